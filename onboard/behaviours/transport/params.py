@@ -1,0 +1,45 @@
+"""The paper's Table 1 (``tab:exp``) as named, documented parameters.
+
+Every value is the paper's unless a comment says otherwise; deviations are listed in docs/behaviour.md.
+Scenario ``params:`` overrides any of them by name (e.g. ``params: {inter_robot_distance_m: 0.65}``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ...config import check_range
+
+
+@dataclass
+class TransportParams:
+    # --- Caging (Table 1, left) ---
+    safety_distance_m: float = 0.35          # d_s: local collision-avoidance radius between robots
+    inter_robot_distance_m: float = 0.45     # I_d: desired spacing of adjacent robots in the cage
+    caging_tolerance_m: float = 0.05         # d_tol (caging): a caging target counts as reached within this
+    closure_factor: float = 1.85             # d_T = closure_factor * I_d (Proposition 1)
+    k_t_caging: float = 30.0                 # K_t (caging): gain toward the caging target
+    proximity_threshold: float = 0.7         # Prox. thres.: IR reading that means contact (~5 cm)
+    # --- Pushing (Table 1, middle) ---
+    theta_p_deg: float = 115.0               # θ_p: a robot pushes when angle(x_o, τ_p) >= θ_p
+    k_cp_effective: float = 40.0             # K_cp while the robot is an effective pusher (< θ_p branch)
+    k_cp_other: float = 20.0                 # K_cp otherwise (>= θ_p branch)
+    push_tolerance_m: float = 0.1            # d_tol (pushing): a waypoint's position is reached within this
+    k_f_push: float = 40.0                   # K_f (pushing): formation gain
+    k_t_push: float = 60.0                   # K_t (pushing): gain toward the local target
+    barrier_fraction: float = 0.9            # barrier: fraction of live cage members that must arrive
+    # --- Rotating (Table 1, right) ---
+    k_cr: float = 450.0                      # K_cr: contact gain while rotating
+    orientation_tolerance_deg: float = 5.72  # Orient. tol.: a waypoint's yaw is reached within this
+    k_f_rotate: float = 400.0                # K_f (rotating): formation gain
+    k_r: float = 600.0                       # K_r: torque (tangential) gain
+    # --- Not in Table 1: from the authors' code or the paper's text ---
+    allocation_time_s: float = 7.0           # T_a: bidding window (70 steps at 10 Hz in the authors' code)
+    cruise_speed_m_s: float = 0.1            # wheel speed the normalised control input is scaled to
+
+    def validate(self, where: str) -> None:
+        for name in ("safety_distance_m", "inter_robot_distance_m", "caging_tolerance_m", "closure_factor",
+                     "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s"):
+            check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
+        check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
+        check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)
+        check_range(f"{where}.barrier_fraction", self.barrier_fraction, 0.0, 1.0, low_open=True)

@@ -1,0 +1,141 @@
+"""Validated configuration records: YAML/dict -> dataclass, with errors that name the field.
+
+Used for behaviour parameters, scenarios and lab configs alike, so a user sees the same kind of message
+everywhere, e.g. ``robots.count: must be >= 1 (got 0)``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from typing import Any, Dict, Mapping, Type, TypeVar
+
+T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """A configuration value is wrong. ``str(err)`` is one line: ``<field path>: <what is wrong>``."""
+
+    def __init__(self, field: str, problem: str):
+        self.field = field
+        self.problem = problem
+        super().__init__(f"{field}: {problem}" if field else problem)
+
+
+def join(where: str, name: Any) -> str:
+    if isinstance(name, int):
+        return f"{where}[{name}]"
+    return f"{where}.{name}" if where else str(name)
+
+
+def check_range(where: str, value: float, low: float = -math.inf, high: float = math.inf,
+                low_open: bool = False) -> float:
+    """Reject values outside [low, high] (or (low, high] with ``low_open``)."""
+    if low_open and not value > low:
+        raise ConfigError(where, f"must be > {low:g} (got {value:g})")
+    if not low_open and value < low:
+        raise ConfigError(where, f"must be >= {low:g} (got {value:g})")
+    if value > high:
+        raise ConfigError(where, f"must be <= {high:g} (got {value:g})")
+    return value
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp).replace("typing.", ""))
+
+
+def coerce(value: Any, tp: Any, where: str) -> Any:
+    """Convert ``value`` to the annotated type ``tp`` or raise ConfigError naming ``where``."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if tp is Any:
+        return value
+    if origin is typing.Union:
+        if value is None and type(None) in args:
+            return None
+        options = [a for a in args if a is not type(None)]
+        if len(options) == 1:
+            return coerce(value, options[0], where)
+        errors = []
+        for option in options:
+            try:
+                return coerce(value, option, where)
+            except ConfigError as err:
+                errors.append(err.problem)
+        raise ConfigError(where, " or ".join(dict.fromkeys(errors)))
+    if dataclasses.is_dataclass(tp):
+        return from_mapping(tp, value, where)
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(where, f"must be true or false (got {value!r})")
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                return int(value)
+            raise ConfigError(where, f"must be an integer (got {value!r})")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(where, f"must be a number (got {value!r})")
+        if not math.isfinite(value):
+            raise ConfigError(where, f"must be a finite number (got {value!r})")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(where, f"must be a string (got {value!r})")
+        return value
+    if origin in (list, tuple) or tp in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(where, f"must be a list (got {value!r})")
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise ConfigError(where, f"must have {len(args)} items (got {len(value)})")
+            return tuple(coerce(v, a, join(where, i)) for i, (v, a) in enumerate(zip(value, args)))
+        item_type = args[0] if args else Any
+        items = [coerce(v, item_type, join(where, i)) for i, v in enumerate(value)]
+        return tuple(items) if (origin is tuple or tp is tuple) else items
+    if origin is dict or tp is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(where, f"must be a mapping (got {value!r})")
+        return dict(value)
+    raise ConfigError(where, f"unsupported type {_type_name(tp)}")
+
+
+def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
+    """Build dataclass ``cls`` from a mapping; reject unknown keys and missing required ones.
+
+    After construction, the dataclass's own ``validate(where)`` method (if any) checks values.
+    """
+    if data is None:
+        data = {}
+    if not isinstance(data, Mapping):
+        raise ConfigError(where, f"must be a mapping (got {data!r})")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = [k for k in data if k not in fields]
+    if unknown:
+        known = ", ".join(sorted(fields))
+        raise ConfigError(join(where, unknown[0]), f"unknown key (known: {known})")
+    kwargs: Dict[str, Any] = {}
+    for name, f in fields.items():
+        if name in data:
+            kwargs[name] = coerce(data[name], hints[name], join(where, name))
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ConfigError(join(where, name), "is required")
+    obj = cls(**kwargs)
+    validate = getattr(obj, "validate", None)
+    if callable(validate):
+        validate(where)
+    return obj
+
+
+def to_mapping(obj: Any) -> Any:
+    """The inverse of :func:`from_mapping`, for writing configs back (tuples become lists)."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_mapping(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (list, tuple)):
+        return [to_mapping(v) for v in obj]
+    if isinstance(obj, dict):
+        return {k: to_mapping(v) for k, v in obj.items()}
+    return obj

@@ -1,0 +1,88 @@
+"""One small interface per sensor and actuator. Backends (simulator, hub + driver) implement them.
+
+A behaviour receives a :class:`Robot` bundle of these devices and nothing else: no simulator, no world,
+no object pose. Each interface is deliberately tiny so that a real implementation is a few lines.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, List, Mapping, Optional
+
+from .records import Message, Neighbour, Pose, ProximityReading, RobotSpec, WheelOdometry
+
+
+class ProximitySensor(ABC):
+    @abstractmethod
+    def read(self) -> ProximityReading:
+        """The latest 8 normalised IR readings (ARGoS order: 0 forward, counter-clockwise)."""
+
+
+class RangeAndBearingSensor(ABC):
+    @abstractmethod
+    def neighbours(self) -> List[Neighbour]:
+        """Robots within communication range d_C at the latest measurement."""
+
+
+class Radio(ABC):
+    #: Largest payload (bytes of compact JSON) a backend must carry; larger broadcasts are refused.
+    MAX_PAYLOAD_BYTES = 8192
+
+    @abstractmethod
+    def broadcast(self, payload: Mapping[str, Any]) -> None:
+        """Send a JSON-compatible mapping to every robot within communication range (best effort)."""
+
+    @abstractmethod
+    def receive(self) -> List[Message]:
+        """Messages that arrived since the previous call (each delivered once)."""
+
+
+class DifferentialSteering(ABC):
+    @abstractmethod
+    def set_speeds(self, left_m_s: float, right_m_s: float) -> None:
+        """Command wheel speeds (m/s, forward positive); values beyond the robot's limit are clamped."""
+
+    def stop(self) -> None:
+        self.set_speeds(0.0, 0.0)
+
+
+class Odometry(ABC):
+    @abstractmethod
+    def read(self) -> WheelOdometry:
+        """Cumulative wheel distances from the encoders."""
+
+
+class Positioning(ABC):
+    @abstractmethod
+    def pose(self) -> Optional[Pose]:
+        """The latest pose the hub sent (noisy, maybe stale: check ``age_s``), or None if none yet."""
+
+
+class Clock(ABC):
+    @abstractmethod
+    def now(self) -> float:
+        """Seconds since the behaviour started (simulated time in simulation)."""
+
+
+@dataclass
+class Robot:
+    """Everything a behaviour may touch. ``spec`` carries the robot's physical constants."""
+
+    id: int
+    proximity: ProximitySensor
+    range_and_bearing: RangeAndBearingSensor
+    radio: Radio
+    wheels: DifferentialSteering
+    odometry: Odometry
+    positioning: Positioning
+    clock: Clock
+    spec: RobotSpec
+
+
+def clamp_wheel_speeds(left: float, right: float, limit: float) -> tuple:
+    """Clamp each wheel to ±limit, scaling both together so the robot keeps its turning radius."""
+    biggest = max(abs(left), abs(right))
+    if biggest > limit > 0.0:
+        scale = limit / biggest
+        return left * scale, right * scale
+    return left, right

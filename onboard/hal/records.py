@@ -1,0 +1,106 @@
+"""Plain records that sensors return. Units: metres, seconds, radians; frames are documented per field.
+
+The robot frame has x forward and y to the left; angles grow counter-clockwise (ARGoS convention).
+The world frame is the motion-capture frame, z up, yaw measured from the world x axis.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Dict, Tuple
+
+PROXIMITY_SENSOR_COUNT = 8
+#: Angle of each proximity sensor in the robot frame: sensor 0 faces forward, index grows counter-clockwise.
+PROXIMITY_ANGLES_RAD: Tuple[float, ...] = tuple(i * math.pi / 4.0 for i in range(PROXIMITY_SENSOR_COUNT))
+
+
+@dataclass(frozen=True)
+class ProximityReading:
+    """Eight normalised IR readings in [0, 1] (1 = touching, 0 = nothing within ~0.12 m).
+
+    ``values[i]`` belongs to the sensor at ``angles_rad[i]`` (robot frame).
+    """
+
+    values: Tuple[float, ...]
+    angles_rad: Tuple[float, ...] = PROXIMITY_ANGLES_RAD
+
+
+@dataclass(frozen=True)
+class Neighbour:
+    """Another robot within communication range, as a range-and-bearing sensor reports it.
+
+    ``bearing_rad`` is in the observing robot's frame, in (-pi, pi]; ``age_s`` is how old the
+    measurement is (0 in simulation without latency; on real robots the hub frame's age).
+    """
+
+    id: int
+    range_m: float
+    bearing_rad: float
+    age_s: float = 0.0
+
+    @property
+    def x(self) -> float:
+        return self.range_m * math.cos(self.bearing_rad)
+
+    @property
+    def y(self) -> float:
+        return self.range_m * math.sin(self.bearing_rad)
+
+
+@dataclass(frozen=True)
+class Message:
+    """A radio message received from ``sender``; ``payload`` is a JSON-compatible mapping.
+
+    ``sent_s`` is the sender's clock when it broadcast (informational: clocks are not synchronised).
+    """
+
+    sender: int
+    payload: Dict[str, Any]
+    sent_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Pose:
+    """The robot's own pose in the world frame, as the hub computed it from motion capture.
+
+    ``stamp_s`` is when the pose was measured on the robot's clock; ``age_s`` how old it was when read.
+    """
+
+    x: float
+    y: float
+    yaw_rad: float
+    stamp_s: float
+    age_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class WheelOdometry:
+    """Cumulative distance each wheel has rolled since start (m), from the encoders. Forward is positive."""
+
+    left_m: float
+    right_m: float
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """Physical facts about the robot that behaviours may use (KheperaIV defaults)."""
+
+    radius_m: float = 0.0704           # ARGoS body radius; diameter 140.8 mm
+    wheel_base_m: float = 0.1054       # distance between the wheels
+    max_wheel_speed_m_s: float = 0.81  # K-Team spec top speed; scenarios may lower it
+    proximity_range_m: float = 0.12    # beyond this the IR reading is 0
+    extra: Dict[str, Any] = field(default_factory=dict)
+
+
+def wrap_angle(angle: float) -> float:
+    """Wrap an angle to (-pi, pi]."""
+    wrapped = math.fmod(angle + math.pi, 2.0 * math.pi)
+    if wrapped <= 0.0:
+        wrapped += 2.0 * math.pi
+    return wrapped - math.pi
+
+
+__all__ = [
+    "PROXIMITY_SENSOR_COUNT", "PROXIMITY_ANGLES_RAD", "ProximityReading", "Neighbour", "Message", "Pose",
+    "WheelOdometry", "RobotSpec", "wrap_angle",
+]

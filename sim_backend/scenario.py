@@ -1,0 +1,277 @@
+"""Scenarios: YAML files describing a run, validated on load with errors that name the field.
+
+The schema is documented in docs/scenarios.md. Built-in scenarios live in ``sim_backend/scenarios/``;
+wherever a built-in name is accepted, a path to a YAML file works too.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple, Union
+
+import yaml
+
+from onboard.behaviour import build_params, get_behaviour
+from onboard.config import ConfigError, check_range, from_mapping, join
+
+BUILTIN_DIR = Path(__file__).parent / "scenarios"
+SHAPES = ("box", "circle", "polygon", "compound", "cloud", "box_rotation", "clover")
+PART_SHAPES = ("box", "circle", "polygon")
+
+
+@dataclass
+class SpawnArea:
+    """Robots start uniformly in this rectangle, non-overlapping, with random headings."""
+
+    x: Tuple[float, float] = (-1.2, -0.6)
+    y: Tuple[float, float] = (-1.2, -0.6)
+
+    def validate(self, where: str) -> None:
+        for axis in ("x", "y"):
+            low, high = getattr(self, axis)
+            if high < low:
+                raise ConfigError(join(where, axis), f"must be [min, max] with min <= max (got [{low}, {high}])")
+
+
+@dataclass
+class RobotsSpec:
+    count: int = 6
+    spawn: SpawnArea = field(default_factory=SpawnArea)
+    max_wheel_speed_m_s: float = 0.81   # KheperaIV spec top speed (K-Team); the HAL clamps to this
+    # Tyre-floor friction coefficient. Rubber on a smooth lab floor is about 0.8-1.0; it bounds the force a
+    # robot can push with to mu * m * g = 0.9 * 0.54 * 9.81 = 4.8 N.
+    traction: float = 0.9
+    mass_kg: float = 0.54               # KheperaIV with battery (K-Team spec, ~540 g)
+
+    def validate(self, where: str) -> None:
+        check_range(join(where, "count"), self.count, 1)
+        check_range(join(where, "max_wheel_speed_m_s"), self.max_wheel_speed_m_s, 0.0, 2.0, low_open=True)
+        check_range(join(where, "traction"), self.traction, 0.0, 3.0, low_open=True)
+        check_range(join(where, "mass_kg"), self.mass_kg, 0.0, low_open=True)
+
+
+@dataclass
+class ObjectPart:
+    """One piece of a compound object, placed at ``offset`` (m) and ``yaw_deg`` in the object's frame."""
+
+    shape: str = "box"
+    size: Optional[Union[Tuple[float, float], float]] = None
+    radius: Optional[float] = None
+    vertices: Optional[List[Tuple[float, float]]] = None
+    offset: Tuple[float, float] = (0.0, 0.0)
+    yaw_deg: float = 0.0
+
+    def validate(self, where: str) -> None:
+        if self.shape not in PART_SHAPES:
+            raise ConfigError(join(where, "shape"), f"must be one of {', '.join(PART_SHAPES)} (got {self.shape!r})")
+        validate_dimensions(self, where)
+
+
+@dataclass
+class ObjectSpec:
+    shape: str = "box"
+    size: Optional[Union[Tuple[float, float], float]] = None     # box [w, h]; circle: radius
+    radius: Optional[float] = None                              # circle
+    vertices: Optional[List[Tuple[float, float]]] = None        # polygon, may be concave
+    parts: Optional[List[ObjectPart]] = None                    # compound
+    scale: float = 1.0                                          # multiplies the named irregular shapes
+    # Foam box alone is ~0.3 kg; the paper's hardware run added 4 kg of LiPo batteries.
+    mass: float = 0.3
+    # Object-ground Coulomb friction coefficient. 0.3 is a middle value for foam/cardboard on a
+    # smooth floor (dry-friction tables give 0.2-0.5 for such pairs). Ground friction is applied as
+    # a force of friction * mass * g through a pivot joint to the static body (pymunk tank.py).
+    friction: float = 0.3
+    static: bool = False
+    position: Tuple[float, float] = (0.0, 0.0)   # where the object's area centroid starts (m)
+    yaw_deg: float = 0.0
+
+    def validate(self, where: str) -> None:
+        if self.shape not in SHAPES:
+            raise ConfigError(join(where, "shape"), f"must be one of {', '.join(SHAPES)} (got {self.shape!r})")
+        check_range(join(where, "mass"), self.mass, 0.0, low_open=True)
+        check_range(join(where, "friction"), self.friction, 0.0, 5.0)
+        check_range(join(where, "scale"), self.scale, 0.0, low_open=True)
+        if self.shape == "compound":
+            if not self.parts:
+                raise ConfigError(join(where, "parts"), "a compound object needs at least one part")
+        elif self.parts is not None:
+            raise ConfigError(join(where, "parts"), f"only for shape: compound (shape is {self.shape})")
+        validate_dimensions(self, where)
+
+
+def validate_dimensions(spec: Any, where: str) -> None:
+    """Check that a box/circle/polygon has the dimensions its shape needs, and only those."""
+    shape = spec.shape
+    if shape == "box":
+        if not isinstance(spec.size, tuple):
+            raise ConfigError(join(where, "size"), "a box needs size: [width, height] in metres")
+        for i, v in enumerate(spec.size):
+            check_range(join(join(where, "size"), i), v, 0.0, low_open=True)
+    elif shape == "circle":
+        radius = spec.radius if spec.radius is not None else spec.size
+        if not isinstance(radius, float):
+            raise ConfigError(join(where, "radius"), "a circle needs radius: <metres>")
+        check_range(join(where, "radius"), radius, 0.0, low_open=True)
+    elif shape == "polygon":
+        if not spec.vertices or len(spec.vertices) < 3:
+            raise ConfigError(join(where, "vertices"), "a polygon needs at least 3 vertices [[x, y], ...]")
+        if abs(polygon_area(spec.vertices)) < 1e-6:
+            raise ConfigError(join(where, "vertices"), "the polygon has no area (collinear or repeated points)")
+
+
+def polygon_area(vertices: List[Tuple[float, float]]) -> float:
+    """Signed area (shoelace); positive when counter-clockwise."""
+    total = 0.0
+    for (x0, y0), (x1, y1) in zip(vertices, vertices[1:] + vertices[:1]):
+        total += x0 * y1 - x1 * y0
+    return total / 2.0
+
+
+@dataclass
+class CommSpec:
+    range_m: float = 3.0            # d_C; the paper's simulations used 7 m
+    drop: float = 0.0               # probability that a message to one receiver is lost
+    latency_s: float = 0.0          # extra delivery delay (messages always arrive one control step later)
+    range_noise_m: float = 0.01     # std of the range-and-bearing range error
+    bearing_noise_rad: float = 0.02  # std of the range-and-bearing bearing error
+
+    def validate(self, where: str) -> None:
+        check_range(join(where, "range_m"), self.range_m, 0.0, low_open=True)
+        check_range(join(where, "drop"), self.drop, 0.0, 1.0)
+        check_range(join(where, "latency_s"), self.latency_s, 0.0, 10.0)
+        check_range(join(where, "range_noise_m"), self.range_noise_m, 0.0)
+        check_range(join(where, "bearing_noise_rad"), self.bearing_noise_rad, 0.0)
+
+
+@dataclass
+class SensorsSpec:
+    proximity_noise: float = 0.01   # std of additive noise on each normalised IR reading
+    # Motion capture as the hub relays it: a few mm of noise, some latency, occasional dropouts.
+    pose_noise_m: float = 0.003
+    pose_noise_rad: float = 0.01
+    pose_latency_s: float = 0.0
+    pose_dropout: float = 0.0       # probability that a control step gets no new pose
+
+    def validate(self, where: str) -> None:
+        for name in ("proximity_noise", "pose_noise_m", "pose_noise_rad", "pose_latency_s"):
+            check_range(join(where, name), getattr(self, name), 0.0)
+        check_range(join(where, "pose_dropout"), self.pose_dropout, 0.0, 1.0)
+
+
+@dataclass
+class PhysicsSpec:
+    dt_s: float = 0.01        # physics step
+    control_hz: float = 10.0  # behaviour rate (the paper's robots ran at 10 Hz)
+    iterations: int = 10      # pymunk solver iterations
+
+    def validate(self, where: str) -> None:
+        check_range(join(where, "dt_s"), self.dt_s, 0.0, 0.05, low_open=True)
+        check_range(join(where, "control_hz"), self.control_hz, 0.0, 100.0, low_open=True)
+        check_range(join(where, "iterations"), self.iterations, 1, 100)
+        steps = 1.0 / (self.control_hz * self.dt_s)
+        if abs(steps - round(steps)) > 1e-6:
+            raise ConfigError(join(where, "control_hz"), f"the control period must be a whole number of "
+                              f"physics steps (dt_s={self.dt_s:g} gives {steps:g})")
+
+
+@dataclass
+class ArenaSpec:
+    """Optional walls: an axis-aligned rectangle [xmin, ymin, xmax, ymax] in metres."""
+
+    walls: Optional[Tuple[float, float, float, float]] = None
+
+    def validate(self, where: str) -> None:
+        if self.walls is not None:
+            xmin, ymin, xmax, ymax = self.walls
+            if xmax <= xmin or ymax <= ymin:
+                raise ConfigError(join(where, "walls"), "must be [xmin, ymin, xmax, ymax] with min < max")
+
+
+@dataclass
+class Fault:
+    robot: int
+    at_s: float
+
+    def validate(self, where: str) -> None:
+        check_range(join(where, "robot"), self.robot, 0)
+        check_range(join(where, "at_s"), self.at_s, 0.0)
+
+
+@dataclass
+class Scenario:
+    name: str
+    behaviour: str = "transport"
+    description: str = ""
+    seed: int = 1
+    robots: RobotsSpec = field(default_factory=RobotsSpec)
+    object: Optional[ObjectSpec] = None
+    path: List[Tuple[float, float, float]] = field(default_factory=list)   # [x, y, yaw_deg] per waypoint
+    params: Dict[str, Any] = field(default_factory=dict)
+    time_limit_s: float = 900.0
+    comm: CommSpec = field(default_factory=CommSpec)
+    sensors: SensorsSpec = field(default_factory=SensorsSpec)
+    physics: PhysicsSpec = field(default_factory=PhysicsSpec)
+    arena: ArenaSpec = field(default_factory=ArenaSpec)
+    faults: List[Fault] = field(default_factory=list)
+
+    def validate(self, where: str) -> None:
+        if not self.name.strip():
+            raise ConfigError("name", "must not be empty")
+        check_range("time_limit_s", self.time_limit_s, 0.0, low_open=True)
+        behaviour_cls = get_behaviour(self.behaviour, "behaviour")
+        build_params(behaviour_cls, self.params, "params")
+        for i, fault in enumerate(self.faults):
+            if fault.robot >= self.robots.count:
+                raise ConfigError(f"faults[{i}].robot", f"no robot {fault.robot} (robots are 0..{self.robots.count - 1})")
+        for i, (_x, _y, yaw) in enumerate(self.path):
+            if not math.isfinite(yaw):
+                raise ConfigError(f"path[{i}]", "yaw must be finite")
+        if self.path and self.object is None:
+            raise ConfigError("path", "a path needs an object to move")
+        if self.path and self.object is not None and self.object.static:
+            raise ConfigError("path", "a static object cannot follow a path (object.static is true)")
+
+    def with_overrides(self, **changes: Any) -> "Scenario":
+        return dataclasses.replace(self, **changes)
+
+
+def builtin_names() -> List[str]:
+    return sorted(p.stem for p in BUILTIN_DIR.glob("*.yaml"))
+
+
+def resolve(name_or_path: str) -> Path:
+    """A built-in scenario's file, or the given path; ConfigError when neither exists."""
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        if not path.is_file():
+            raise ConfigError("scenario", f"no such file: {name_or_path}")
+        return path
+    builtin = BUILTIN_DIR / f"{name_or_path}.yaml"
+    if builtin.is_file():
+        return builtin
+    raise ConfigError("scenario", f"unknown scenario {name_or_path!r}: not a file and not built in "
+                      f"(see `khepri sim list`)")
+
+
+def load_scenario(name_or_path: str) -> Scenario:
+    """Load and validate a scenario by built-in name or path. Raises ConfigError (one line) on bad input."""
+    path = resolve(name_or_path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f"{path.name}:{mark.line + 1}" if mark else path.name
+        raise ConfigError(where, f"not valid YAML ({getattr(err, 'problem', err)})") from None
+    return parse_scenario(data, default_name=path.stem)
+
+
+def parse_scenario(data: Any, default_name: str = "scenario") -> Scenario:
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError("", f"a scenario must be a mapping of keys (got {type(data).__name__})")
+    data = dict(data)
+    data.setdefault("name", default_name)
+    return from_mapping(Scenario, data, "")
