@@ -19,6 +19,8 @@ from onboard.config import ConfigError, check_range, from_mapping, join
 BUILTIN_DIR = Path(__file__).parent / "scenarios"
 SHAPES = ("box", "circle", "polygon", "compound", "cloud", "box_rotation", "clover")
 PART_SHAPES = ("box", "circle", "polygon")
+IRREGULAR_SHAPES = ("cloud", "box_rotation", "clover")
+DIMENSIONS = {"box": ("size",), "circle": ("size", "radius"), "polygon": ("vertices",)}   # keys each shape uses
 
 
 @dataclass
@@ -93,6 +95,9 @@ class ObjectSpec:
         check_range(join(where, "mass"), self.mass, 0.0, low_open=True)
         check_range(join(where, "friction"), self.friction, 0.0, 5.0)
         check_range(join(where, "scale"), self.scale, 0.0, low_open=True)
+        if self.scale != 1.0 and self.shape not in IRREGULAR_SHAPES:
+            raise ConfigError(join(where, "scale"), f"only for shapes {', '.join(IRREGULAR_SHAPES)} "
+                              f"(shape is {self.shape})")
         if self.shape == "compound":
             if not self.parts:
                 raise ConfigError(join(where, "parts"), "a compound object needs at least one part")
@@ -104,6 +109,9 @@ class ObjectSpec:
 def validate_dimensions(spec: Any, where: str) -> None:
     """Check that a box/circle/polygon has the dimensions its shape needs, and only those."""
     shape = spec.shape
+    for key in ("size", "radius", "vertices"):
+        if getattr(spec, key) is not None and key not in DIMENSIONS.get(shape, ()):
+            raise ConfigError(join(where, key), f"not used by shape: {shape}")
     if shape == "box":
         if not isinstance(spec.size, tuple):
             raise ConfigError(join(where, "size"), "a box needs size: [width, height] in metres")
@@ -119,6 +127,28 @@ def validate_dimensions(spec: Any, where: str) -> None:
             raise ConfigError(join(where, "vertices"), "a polygon needs at least 3 vertices [[x, y], ...]")
         if abs(polygon_area(spec.vertices)) < 1e-6:
             raise ConfigError(join(where, "vertices"), "the polygon has no area (collinear or repeated points)")
+        crossing = first_self_intersection(spec.vertices)
+        if crossing is not None:
+            raise ConfigError(join(where, "vertices"), f"edges {crossing[0]} and {crossing[1]} cross: the outline "
+                              "must not intersect itself (split it into compound parts)")
+
+
+def first_self_intersection(vertices: List[Tuple[float, float]]) -> Optional[Tuple[int, int]]:
+    """The first pair of non-adjacent edges that cross, or None for a simple polygon."""
+    n = len(vertices)
+    edges = [(vertices[i], vertices[(i + 1) % n]) for i in range(n)]
+
+    def orient(a, b, c) -> float:
+        return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+
+    for i in range(n):
+        for j in range(i + 2, n):
+            if i == 0 and j == n - 1:
+                continue   # adjacent through the closing vertex
+            (p1, p2), (q1, q2) = edges[i], edges[j]
+            if (orient(p1, p2, q1) * orient(p1, p2, q2) < 0) and (orient(q1, q2, p1) * orient(q1, q2, p2) < 0):
+                return i, j
+    return None
 
 
 def polygon_area(vertices: List[Tuple[float, float]]) -> float:
@@ -219,12 +249,14 @@ class Scenario:
     def validate(self, where: str) -> None:
         if not self.name.strip():
             raise ConfigError("name", "must not be empty")
+        check_range("seed", self.seed, 0)   # numpy's generators reject negative seeds
         check_range("time_limit_s", self.time_limit_s, 0.0, low_open=True)
         behaviour_cls = get_behaviour(self.behaviour, "behaviour")
         build_params(behaviour_cls, self.params, "params")
         for i, fault in enumerate(self.faults):
             if fault.robot >= self.robots.count:
-                raise ConfigError(f"faults[{i}].robot", f"no robot {fault.robot} (robots are 0..{self.robots.count - 1})")
+                raise ConfigError(f"faults[{i}].robot",
+                                  f"no robot {fault.robot} (robots are 0..{self.robots.count - 1})")
         for i, (_x, _y, yaw) in enumerate(self.path):
             if not math.isfinite(yaw):
                 raise ConfigError(f"path[{i}]", "yaw must be finite")
@@ -233,7 +265,7 @@ class Scenario:
         if self.path and self.object is not None and self.object.static:
             raise ConfigError("path", "a static object cannot follow a path (object.static is true)")
 
-    def with_overrides(self, **changes: Any) -> "Scenario":
+    def with_overrides(self, **changes: Any) -> Scenario:
         return dataclasses.replace(self, **changes)
 
 
@@ -259,7 +291,9 @@ def load_scenario(name_or_path: str) -> Scenario:
     """Load and validate a scenario by built-in name or path. Raises ConfigError (one line) on bad input."""
     path = resolve(name_or_path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise ConfigError(path.name, "not a text (UTF-8) file") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"{path.name}:{mark.line + 1}" if mark else path.name

@@ -1,5 +1,5 @@
 """``transport``: collective transport via sequential caging (Varadharajan, Soma, Beltrame)."""
-from .params import TransportParams
 from .behaviour import Transport
+from .params import TransportParams
 
 __all__ = ["Transport", "TransportParams"]

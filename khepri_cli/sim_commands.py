@@ -1,0 +1,130 @@
+"""``khepri sim ...`` and ``khepri bench sim``."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def add_sim(groups) -> None:
+    sim = groups.add_parser("sim", help="run scenarios in the physics simulator",
+                            description="Run scenarios in the pymunk simulator.")
+    commands = sim.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+
+    run = commands.add_parser("run", help="run one scenario headless and write results",
+                              description="Run SCENARIO (a built-in name or a YAML file) and write result.json, "
+                                          "trajectory.npz and trajectory.png to --out.")
+    run.add_argument("scenario", help="built-in scenario name (see `khepri sim list`) or path to a YAML file")
+    run.add_argument("--seed", type=seed_value, help="random seed (default: the scenario's)")
+    run.add_argument("--out", type=Path, help="output folder (default: out/<scenario>-seed<N>)")
+    run.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
+    run.add_argument("--video", type=Path, metavar="FILE", help="also write an animation (.gif, or .mp4 with ffmpeg)")
+    run.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
+    run.set_defaults(func=cmd_run)
+
+    listing = commands.add_parser("list", help="list built-in scenarios",
+                                  description="List the built-in scenarios with their description.")
+    listing.set_defaults(func=cmd_list)
+
+    show = commands.add_parser("show", help="print a scenario as loaded (defaults filled in)",
+                               description="Validate SCENARIO and print it with every default filled in.")
+    show.add_argument("scenario")
+    show.set_defaults(func=cmd_show)
+
+
+def seed_value(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0 (got {value})")
+    return value
+
+
+def add_bench(groups) -> None:
+    bench = groups.add_parser("bench", help="measure speed", description="Benchmarks that print numbers.")
+    commands = bench.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+    sim = commands.add_parser("sim", help="simulator steps/s and real-time factor",
+                              description="Simulate the paper's boxes with 25, 50 and 100 robots and print "
+                                          "physics steps per second and the real-time factor.")
+    sim.add_argument("--robots", default="25,50,100", help="comma-separated robot counts (default 25,50,100)")
+    sim.add_argument("--seconds", type=float, default=30.0, help="simulated seconds per case (default 30)")
+    sim.add_argument("--behaviour", default="transport", help="behaviour to run (default transport)")
+    sim.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    sim.set_defaults(func=cmd_bench_sim)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from sim_backend.outputs import ProgressBar, write_run
+    from sim_backend.runner import Simulation
+    from sim_backend.scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    if args.time_limit is not None and args.time_limit <= 0:
+        print("khepri: error: --time-limit: must be > 0", file=sys.stderr)
+        return 2
+    if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
+        print(f"khepri: error: --video: unsupported file type {args.video.suffix!r} (use .gif or .mp4)",
+              file=sys.stderr)
+        return 2
+    sim = Simulation(scenario, seed=args.seed)
+    out = args.out or Path("out") / f"{scenario.name}-seed{sim.seed}"
+    bar = ProgressBar(f"{scenario.name} seed {sim.seed}")
+    try:
+        result = sim.run(time_limit_s=args.time_limit, progress=bar)
+    finally:
+        bar.close()
+    files = write_run(sim, result, out, video=args.video, plot=not args.no_plot)
+    print(summary_line(result))
+    for name, path in files.items():
+        print(f"  {name}: {path}")
+    return 0
+
+
+def summary_line(result: dict) -> str:
+    parts = [f"{result['scenario']} seed {result['seed']}: {result['robots']} robots, "
+             f"{result['sim_time_s']:.1f} s simulated in {result['wall_time_s']:.1f} s "
+             f"({result['real_time_factor']}x real time), stopped: {result['stop_reason']}"]
+    for key in ("caged", "completed", "final_position_error_m", "spread_ratio"):
+        if key in result:
+            value = result[key]
+            parts.append(f"{key}={value:.3f}" if isinstance(value, float) else f"{key}={value}")
+    return "; ".join(parts)
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    from sim_backend.scenario import builtin_names, load_scenario
+
+    for name in builtin_names():
+        scenario = load_scenario(name)
+        summary = first_sentence(scenario.description)
+        print(f"{name:28s} {scenario.robots.count:4d} robots  {scenario.behaviour:10s} {summary}")
+    return 0
+
+
+def first_sentence(text: str) -> str:
+    return text.split(". ")[0].rstrip(".")
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    import yaml
+
+    from onboard.config import to_mapping
+    from sim_backend.scenario import load_scenario
+
+    print(yaml.safe_dump(to_mapping(load_scenario(args.scenario)), sort_keys=False), end="")
+    return 0
+
+
+def cmd_bench_sim(args: argparse.Namespace) -> int:
+    from sim_backend.bench import bench_sim
+
+    counts = [int(c) for c in args.robots.split(",") if c.strip()]
+    results = bench_sim(counts, args.seconds, args.behaviour)
+    if args.json:
+        print(json.dumps({"results": results}, indent=2))
+        return 0
+    print(f"{'robots':>6} {'behaviour':>10} {'sim s':>7} {'wall s':>7} {'steps/s':>9} {'real-time x':>11}")
+    for r in results:
+        print(f"{r['robots']:6d} {r['behaviour']:>10} {r['sim_seconds']:7.1f} {r['wall_seconds']:7.2f} "
+              f"{r['physics_steps_per_s']:9.0f} {r['real_time_factor']:11.1f}")
+    return 0

@@ -1,0 +1,59 @@
+"""Ground-truth evaluation of a run, outside the behaviour: one evaluator per behaviour name.
+
+Evaluators see the world (true poses) and the behaviour objects (for what the robots *believe*); the
+behaviours never see the evaluators. Each returns the behaviour-specific part of result.json.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, Dict, List, Type
+
+import numpy as np
+
+
+class Evaluator:
+    """Watches a run. ``on_step`` is called once per control step after the behaviours stepped."""
+
+    def __init__(self, scenario, world):
+        self.scenario = scenario
+        self.world = world
+
+    def on_step(self, time_s: float, behaviours: List[Any]) -> None:
+        pass
+
+    def centroid_estimate(self, behaviours: List[Any]) -> np.ndarray:
+        """The swarm's mean belief of the object centroid (NaN when nobody has one); for the trajectory file."""
+        return np.array([np.nan, np.nan])
+
+    def result(self) -> Dict[str, Any]:
+        return {}
+
+
+_EVALUATORS: Dict[str, Type[Evaluator]] = {}
+
+
+def evaluator_for(name: str) -> Callable[..., Evaluator]:
+    return _EVALUATORS.get(name, Evaluator)
+
+
+def register_evaluator(name: str):
+    def decorate(cls):
+        _EVALUATORS[name] = cls
+        return cls
+    return decorate
+
+
+def spread(xy: np.ndarray) -> float:
+    """Mean distance of the robots from their centroid (m)."""
+    return float(np.mean(np.hypot(*(xy - xy.mean(axis=0)).T))) if len(xy) else 0.0
+
+
+@register_evaluator("aggregate")
+class AggregateEvaluator(Evaluator):
+    def __init__(self, scenario, world):
+        super().__init__(scenario, world)
+        self.initial_spread = spread(world.robot_poses()[:, :2])
+
+    def result(self) -> Dict[str, Any]:
+        final = spread(self.world.robot_poses()[:, :2])
+        return {"initial_spread_m": self.initial_spread, "final_spread_m": final,
+                "spread_ratio": final / self.initial_spread if self.initial_spread > 0 else 1.0}

@@ -1,0 +1,54 @@
+"""Simulated radio: range-limited broadcast with per-receiver loss and latency.
+
+A message broadcast at control step k reaches receivers within d_C (at send time) no earlier than step k+1,
+plus ``latency_s`` rounded up to whole control periods; each receiver independently loses it with
+probability ``drop``.
+"""
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+from typing import Any, Dict, List, Tuple
+
+import numpy as np
+
+from onboard.hal import Message
+
+
+class RadioNetwork:
+    def __init__(self, count: int, drop: float, latency_s: float, period_s: float, rng: np.random.Generator):
+        self.count = count
+        self.drop = drop
+        self.delay_steps = 1 + math.ceil(latency_s / period_s - 1e-9)
+        self.rng = rng
+        self._queue: List[Tuple[int, int, int, Message]] = []   # (due step, order, receiver, message)
+        self._order = itertools.count()
+        self.sent = 0
+        self.delivered = 0
+        self.dropped = 0
+
+    def send(self, step: int, sender: int, payload: Dict[str, Any], sent_s: float, receivers: np.ndarray) -> None:
+        self.sent += 1
+        if len(receivers) == 0:
+            return
+        if self.drop > 0.0:
+            keep = self.rng.random(len(receivers)) >= self.drop
+            self.dropped += int(len(receivers) - keep.sum())
+            receivers = receivers[keep]
+        message = Message(sender=sender, payload=payload, sent_s=sent_s)
+        due = step + self.delay_steps
+        for receiver in receivers.tolist():
+            heapq.heappush(self._queue, (due, next(self._order), receiver, message))
+
+    def deliver(self, step: int, inboxes: List[List[Message]], alive: np.ndarray) -> None:
+        """Move every message due by ``step`` into its receiver's inbox (dead receivers get nothing)."""
+        queue = self._queue
+        while queue and queue[0][0] <= step:
+            _, _, receiver, message = heapq.heappop(queue)
+            if alive[receiver]:
+                inboxes[receiver].append(message)
+                self.delivered += 1
+
+    def stats(self) -> Dict[str, int]:
+        return {"sent": self.sent, "delivered": self.delivered, "dropped": self.dropped}

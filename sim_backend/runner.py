@@ -1,0 +1,190 @@
+"""Runs a scenario: owns the control loop, computes every robot's sensors at once, steps the behaviours,
+forwards their commands to physics, records trajectories and evaluates the run against ground truth.
+"""
+from __future__ import annotations
+
+import math
+import random
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, List, Optional
+
+import numpy as np
+
+from onboard.behaviour import build_params, get_behaviour
+from onboard.geometry import neighbour_mask, pairwise_range_bearing, wrap
+from onboard.hal import Pose
+
+from .hal import SensorFrame, make_robot
+from .metrics import evaluator_for
+from .radio import RadioNetwork
+from .scenario import Scenario
+from .sensing import ProximityModel, ir_response
+from .world import World
+
+Progress = Callable[[float, float], None]
+
+
+@dataclass
+class Recording:
+    """Samples at the control rate; see docs/outputs.md for the trajectory file."""
+
+    t: List[float] = field(default_factory=list)
+    robot_pose: List[np.ndarray] = field(default_factory=list)
+    robot_alive: List[np.ndarray] = field(default_factory=list)
+    object_pose: List[np.ndarray] = field(default_factory=list)
+    centroid_estimate: List[np.ndarray] = field(default_factory=list)
+
+
+class Simulation:
+    def __init__(self, scenario: Scenario, seed: Optional[int] = None):
+        self.scenario = scenario
+        self.seed = scenario.seed if seed is None else seed
+        streams = np.random.SeedSequence(self.seed).spawn(5)
+        self.rng_sensors, self.rng_radio, self.rng_pose = (np.random.default_rng(s) for s in streams[1:4])
+        random.seed(self.seed)   # behaviours that use the random module stay reproducible too
+        self.world = World(scenario, np.random.default_rng(streams[0]))
+        self.count = len(self.world.robots)
+        self.period = 1.0 / scenario.physics.control_hz
+        self.substeps = int(round(self.period / scenario.physics.dt_s))
+        self.frame = SensorFrame(inboxes=[[] for _ in range(self.count)], poses=[None] * self.count)
+        self.ir = ProximityModel(self.world.spec.radius_m, self.world.spec.proximity_range_m)
+        self.radio = RadioNetwork(self.count, scenario.comm.drop, scenario.comm.latency_s, self.period,
+                                  self.rng_radio)
+        behaviour_cls = get_behaviour(scenario.behaviour)
+        params = build_params(behaviour_cls, scenario.params)
+        self.robots = [make_robot(self.frame, i, self.world.spec) for i in range(self.count)]
+        self.behaviours = [behaviour_cls(robot, params) for robot in self.robots]
+        self.evaluator = evaluator_for(scenario.behaviour)(scenario, self.world)
+        self.faults = sorted((f.at_s, f.robot) for f in scenario.faults)
+        self.pose_history: List[np.ndarray] = []
+        self.recording = Recording()
+        self.step_index = 0
+        self.stop_reason = ""
+
+    # --- sensing --------------------------------------------------------------------------------------
+    def _sense(self, poses: np.ndarray, alive: np.ndarray) -> None:
+        comm, sensors, frame = self.scenario.comm, self.scenario.sensors, self.frame
+        n = self.count
+        frame.time_s = self.step_index * self.period
+        true_ranges, true_bearings = pairwise_range_bearing(poses[:, :2], poses[:, 2])
+        mask = neighbour_mask(true_ranges, comm.range_m) & alive[None, :] & alive[:, None]
+        frame.ranges = np.maximum(true_ranges + self.rng_sensors.normal(0.0, comm.range_noise_m, (n, n)), 0.0)
+        frame.bearings = wrap(true_bearings + self.rng_sensors.normal(0.0, comm.bearing_noise_rad, (n, n)))
+        frame.neighbour_ids = [np.nonzero(row)[0] for row in mask]
+        self.mask = mask
+        distances = self.ir.distances(poses[:, :2], poses[:, 2], true_ranges, np.ones(n, dtype=bool),
+                                      self.world.obstacle_groups())
+        readings = ir_response(distances) + self.rng_sensors.normal(0.0, sensors.proximity_noise, (n, 8))
+        frame.proximity = np.clip(readings, 0.0, 1.0)
+        frame.odometry = np.array([(r.left_odo, r.right_odo) for r in self.world.robots])
+        self._update_positioning(poses)
+
+    def _update_positioning(self, poses: np.ndarray) -> None:
+        """Motion capture as relayed by the hub: delayed, noisy, sometimes missing."""
+        s = self.scenario.sensors
+        self.pose_history.append(poses.copy())
+        lag = min(int(round(s.pose_latency_s / self.period)), len(self.pose_history) - 1)
+        measured = self.pose_history[-1 - lag]
+        del self.pose_history[: max(0, len(self.pose_history) - lag - 1)]
+        stamp = (self.step_index - lag) * self.period
+        noise_xy = self.rng_pose.normal(0.0, s.pose_noise_m, (self.count, 2))
+        noise_yaw = self.rng_pose.normal(0.0, s.pose_noise_rad, self.count)
+        arrived = self.rng_pose.random(self.count) >= s.pose_dropout
+        for i in np.nonzero(arrived)[0]:
+            x, y = measured[i, :2] + noise_xy[i]
+            yaw = math.remainder(measured[i, 2] + noise_yaw[i], 2.0 * math.pi)
+            self.frame.poses[i] = Pose(float(x), float(y), yaw, stamp)
+
+    # --- one control step -----------------------------------------------------------------------------
+    def step(self) -> None:
+        t = self.step_index * self.period
+        while self.faults and self.faults[0][0] <= t + 1e-9:
+            _, index = self.faults.pop(0)
+            self.world.kill(index)
+            self.behaviours[index].state = "dead"
+        alive = self.world.alive()
+        poses = self.world.robot_poses()
+        self._sense(poses, alive)
+        self.radio.deliver(self.step_index, self.frame.inboxes, alive)
+        for i, behaviour in enumerate(self.behaviours):
+            if alive[i]:
+                behaviour.step()
+                wheels = self.robots[i].wheels
+                self.world.command(i, wheels.left, wheels.right)
+        for i, robot in enumerate(self.robots):
+            outbox = robot.radio.outbox
+            if outbox:
+                receivers = np.nonzero(self.mask[i])[0]
+                for payload in outbox:
+                    self.radio.send(self.step_index, i, payload, t, receivers)
+                outbox.clear()
+        self.evaluator.on_step(t, self.behaviours)
+        self._record(t, poses, alive)
+        self.world.step(self.substeps)
+        self.step_index += 1
+
+    def _record(self, t: float, poses: np.ndarray, alive: np.ndarray) -> None:
+        rec = self.recording
+        rec.t.append(t)
+        rec.robot_pose.append(poses)
+        rec.robot_alive.append(alive)
+        obj = self.world.object_pose()
+        if obj is not None:
+            rec.object_pose.append(obj)
+        rec.centroid_estimate.append(self.evaluator.centroid_estimate(self.behaviours))
+
+    def done(self) -> bool:
+        alive = [b for b, a in zip(self.behaviours, self.world.alive()) if a]
+        return bool(alive) and all(b.finished for b in alive)
+
+    def run(self, time_limit_s: Optional[float] = None, progress: Optional[Progress] = None) -> Dict[str, Any]:
+        limit = self.scenario.time_limit_s if time_limit_s is None else time_limit_s
+        started = time.perf_counter()
+        steps = int(math.ceil(limit / self.period - 1e-9))
+        self.stop_reason = "time limit"
+        for _ in range(steps):
+            self.step()
+            if progress is not None and self.step_index % 10 == 0:
+                progress(self.step_index * self.period, limit)
+            if self.done():
+                self.stop_reason = "behaviour finished"
+                break
+        for behaviour in self.behaviours:
+            behaviour.stop()
+        wall = time.perf_counter() - started
+        sim_time = self.step_index * self.period
+        result: Dict[str, Any] = {
+            "scenario": self.scenario.name,
+            "seed": self.seed,
+            "robots": self.count,
+            "behaviour": self.scenario.behaviour,
+            "sim_time_s": round(sim_time, 6),
+            "wall_time_s": round(wall, 3),
+            "real_time_factor": round(sim_time / wall, 2) if wall > 0 else None,
+            "stop_reason": self.stop_reason,
+            "radio": self.radio.stats(),
+        }
+        result.update(self.evaluator.result())
+        return result
+
+    def trajectory_arrays(self) -> Dict[str, np.ndarray]:
+        rec, world = self.recording, self.world
+        walls = self.scenario.arena.walls
+        arrays: Dict[str, np.ndarray] = {
+            "t": np.asarray(rec.t),
+            "robot_pose": np.asarray(rec.robot_pose).reshape(-1, self.count, 3),
+            "robot_alive": np.asarray(rec.robot_alive, dtype=bool).reshape(-1, self.count),
+            "path": np.asarray(self.scenario.path, dtype=float).reshape(-1, 3),
+            "robot_radius": np.asarray(world.spec.radius_m),
+            "arena_walls": np.asarray(walls if walls is not None else [np.nan] * 4, dtype=float),
+        }
+        estimate = np.asarray(rec.centroid_estimate, dtype=float).reshape(-1, 2)
+        if np.isfinite(estimate).any():
+            arrays["centroid_estimate"] = estimate
+        if world.geometry is not None:
+            rings = world.geometry.outline_polygons()
+            arrays["object_pose"] = np.asarray(rec.object_pose)
+            arrays["object_outline"] = np.vstack(rings)
+            arrays["object_outline_index"] = np.cumsum([0] + [len(r) for r in rings])
+        return arrays

@@ -1,0 +1,208 @@
+"""The pymunk world: KheperaIV bodies with traction-limited wheels, the object with ground friction, walls.
+
+Top-down 2-D in metres, kilograms and seconds. Friction with the floor follows pymunk's ``examples/tank.py``:
+each dynamic body is tied to a "floor" body by a pivot joint (linear friction) and a gear joint (rotational
+friction) whose ``max_force`` is the Coulomb limit and whose ``max_bias`` is 0 (so they only resist motion,
+never correct position). For the object the floor is the static body; for a robot it is a kinematic body
+moving at the commanded wheel velocity, so the robot follows its wheels until the traction limit
+mu * m * g is reached -- it cannot push harder than its tyres grip.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional
+
+import numpy as np
+import pymunk
+
+from onboard.config import ConfigError
+from onboard.hal import RobotSpec
+
+from .scenario import Scenario
+from .sensing import ObstacleGroup
+from .shapes import Geometry, build_geometry
+
+GRAVITY = 9.81
+COLLISION_SLOP_M = 0.0005        # allowed overlap; pymunk's default (0.1) is meant for pixels
+ROBOT_CONTACT_FRICTION = 0.4     # plastic shell against foam/cardboard/plastic (combined by product in pymunk)
+OBJECT_CONTACT_FRICTION = 1.0
+WALL_THICKNESS_M = 0.02
+
+
+@dataclass
+class SimRobot:
+    body: pymunk.Body
+    wheels: pymunk.Body          # kinematic "floor under the tyres"
+    alive: bool = True
+    left_cmd: float = 0.0
+    right_cmd: float = 0.0
+    left_odo: float = 0.0
+    right_odo: float = 0.0
+
+
+class World:
+    """Physics only: no sensing policy, no behaviours, no drawing."""
+
+    def __init__(self, scenario: Scenario, rng: np.random.Generator, spec: Optional[RobotSpec] = None):
+        self.scenario = scenario
+        self.spec = spec or RobotSpec(max_wheel_speed_m_s=scenario.robots.max_wheel_speed_m_s)
+        self.dt = scenario.physics.dt_s
+        self.space = pymunk.Space()
+        self.space.iterations = scenario.physics.iterations
+        self.space.collision_slop = COLLISION_SLOP_M
+        self.time_s = 0.0
+        self.geometry: Optional[Geometry] = None
+        self.object_body: Optional[pymunk.Body] = None
+        self.wall_segments = np.zeros((0, 4))
+        if scenario.object is not None:
+            self._add_object()
+        if scenario.arena.walls is not None:
+            self._add_walls(scenario.arena.walls)
+        self.robots: List[SimRobot] = []
+        for x, y, yaw in self._spawn_poses(rng):
+            self._add_robot(x, y, yaw)
+
+    # --- construction -------------------------------------------------------------------------------
+    def _add_object(self) -> None:
+        spec = self.scenario.object
+        geom = build_geometry(spec)
+        self.geometry = geom
+        if spec.static:
+            body = pymunk.Body(body_type=pymunk.Body.STATIC)
+        else:
+            body = pymunk.Body(spec.mass, spec.mass * geom.radius_of_gyration_m ** 2)
+        body.position = tuple(spec.position)
+        body.angle = math.radians(spec.yaw_deg)
+        shapes: List[pymunk.Shape] = [pymunk.Poly(body, [tuple(p) for p in piece]) for piece in geom.convex_pieces]
+        shapes += [pymunk.Circle(body, r, (cx, cy)) for cx, cy, r in geom.circles]
+        for shape in shapes:
+            shape.friction = OBJECT_CONTACT_FRICTION
+        self.space.add(body, *shapes)
+        if not spec.static:
+            normal_force = spec.friction * spec.mass * GRAVITY
+            # Rotational Coulomb friction of a uniformly loaded footprint: mu * m * g * mean contact radius.
+            self._tie_to_floor(body, self.space.static_body, normal_force, normal_force * geom.mean_radius_m)
+        self.object_body = body
+
+    def _add_walls(self, walls) -> None:
+        xmin, ymin, xmax, ymax = walls
+        corners = [(xmin, ymin), (xmax, ymin), (xmax, ymax), (xmin, ymax)]
+        rows = []
+        for a, b in zip(corners, corners[1:] + corners[:1]):
+            seg = pymunk.Segment(self.space.static_body, a, b, WALL_THICKNESS_M / 2)
+            seg.friction = 1.0
+            self.space.add(seg)
+            rows.append((*a, *b))
+        self.wall_segments = np.asarray(rows, dtype=float)
+
+    def _add_robot(self, x: float, y: float, yaw: float) -> None:
+        spec, mass = self.spec, self.scenario.robots.mass_kg
+        body = pymunk.Body(mass, pymunk.moment_for_circle(mass, 0.0, spec.radius_m))
+        body.position = (x, y)
+        body.angle = yaw
+        shape = pymunk.Circle(body, spec.radius_m)
+        shape.friction = ROBOT_CONTACT_FRICTION
+        wheels = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
+        wheels.position = (x, y)
+        self.space.add(body, shape, wheels)
+        traction = self.scenario.robots.traction * mass * GRAVITY
+        # Each wheel carries half the weight at half the wheel base from the centre.
+        self._tie_to_floor(body, wheels, traction, traction * spec.wheel_base_m / 2.0)
+        self.robots.append(SimRobot(body=body, wheels=wheels))
+
+    def _tie_to_floor(self, body: pymunk.Body, floor: pymunk.Body, max_force: float, max_torque: float) -> None:
+        pivot = pymunk.PivotJoint(floor, body, (0.0, 0.0), (0.0, 0.0))
+        pivot.max_bias = 0.0
+        pivot.max_force = max_force
+        gear = pymunk.GearJoint(floor, body, 0.0, 1.0)
+        gear.max_bias = 0.0
+        gear.max_force = max_torque
+        self.space.add(pivot, gear)
+
+    def _spawn_poses(self, rng: np.random.Generator):
+        """Uniform, non-overlapping (and clear of the object), random heading."""
+        spawn, count = self.scenario.robots.spawn, self.scenario.robots.count
+        radius = self.spec.radius_m
+        clearance = 2.0 * radius + 0.02
+        placed: List[tuple] = []
+        for _ in range(200 * count):
+            if len(placed) == count:
+                break
+            x, y = rng.uniform(*spawn.x), rng.uniform(*spawn.y)
+            if any((x - px) ** 2 + (y - py) ** 2 < clearance ** 2 for px, py, _ in placed):
+                continue
+            if self.object_body is not None and self.space.point_query((x, y), radius + 0.01, pymunk.ShapeFilter()):
+                continue
+            if not self._inside_walls(x, y, radius):
+                continue
+            placed.append((x, y, rng.uniform(-math.pi, math.pi)))
+        if len(placed) < count:
+            raise ConfigError("robots.spawn", f"cannot place {count} robots without overlap in this area "
+                              f"(placed {len(placed)}); make the area larger")
+        return placed
+
+    def _inside_walls(self, x: float, y: float, margin: float) -> bool:
+        walls = self.scenario.arena.walls
+        if walls is None:
+            return True
+        xmin, ymin, xmax, ymax = walls
+        return xmin + margin < x < xmax - margin and ymin + margin < y < ymax - margin
+
+    # --- control and stepping -----------------------------------------------------------------------
+    def command(self, index: int, left_m_s: float, right_m_s: float) -> None:
+        robot = self.robots[index]
+        if robot.alive:
+            robot.left_cmd, robot.right_cmd = left_m_s, right_m_s
+
+    def kill(self, index: int) -> None:
+        """The robot stops for good (battery out, crash): wheels locked, body stays as an obstacle."""
+        robot = self.robots[index]
+        robot.alive = False
+        robot.left_cmd = robot.right_cmd = 0.0
+
+    def step(self, substeps: int = 1) -> None:
+        half_base = self.spec.wheel_base_m / 2.0
+        for _ in range(substeps):
+            for robot in self.robots:
+                v = 0.5 * (robot.left_cmd + robot.right_cmd)
+                omega = (robot.right_cmd - robot.left_cmd) / (2.0 * half_base)
+                angle = robot.body.angle
+                robot.wheels.velocity = (v * math.cos(angle), v * math.sin(angle))
+                robot.wheels.angular_velocity = omega
+                # Encoders count wheel rotation, slip included: odometry drifts when pushing hard.
+                robot.left_odo += robot.left_cmd * self.dt
+                robot.right_odo += robot.right_cmd * self.dt
+            self.space.step(self.dt)
+            self.time_s += self.dt
+
+    # --- state ----------------------------------------------------------------------------------------
+    def robot_poses(self) -> np.ndarray:
+        """(N, 3) true x, y, yaw of every robot."""
+        return np.array([(r.body.position.x, r.body.position.y, r.body.angle) for r in self.robots])
+
+    def alive(self) -> np.ndarray:
+        return np.array([r.alive for r in self.robots], dtype=bool)
+
+    def object_pose(self) -> Optional[np.ndarray]:
+        """True x, y, yaw of the object's centroid (ground truth: never given to behaviours)."""
+        if self.object_body is None:
+            return None
+        b = self.object_body
+        return np.array([b.position.x, b.position.y, b.angle])
+
+    def obstacle_groups(self) -> List[ObstacleGroup]:
+        """The object (at its current pose) and the walls, in world coordinates, for the IR model."""
+        groups = []
+        if self.geometry is not None:
+            x, y, yaw = self.object_pose()
+            c, s = math.cos(yaw), math.sin(yaw)
+            rot = np.array([[c, -s], [s, c]])
+            segs = self.geometry.segments()
+            world_segs = np.hstack([segs[:, :2] @ rot.T + (x, y), segs[:, 2:] @ rot.T + (x, y)])
+            circ = np.asarray(self.geometry.circles, dtype=float).reshape(-1, 3)
+            world_circ = np.column_stack([circ[:, :2] @ rot.T + (x, y), circ[:, 2]]) if len(circ) else circ
+            groups.append(ObstacleGroup(world_circ, world_segs, np.array([x, y]), self.geometry.bounding_radius_m))
+        if len(self.wall_segments):
+            groups.append(ObstacleGroup(np.zeros((0, 3)), self.wall_segments))
+        return groups

@@ -1,0 +1,252 @@
+"""Built-in scenarios load with the documented numbers; bad ones give one-line errors naming the field."""
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from onboard.config import ConfigError
+from sim_backend.scenario import BUILTIN_DIR, builtin_names, load_scenario, parse_scenario
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "scenarios.md"
+
+PAPER = {   # robots -> (box size, mass, spawn x, spawn y, time limit)
+    25: ((2.0, 2.0), 5.56, (-4.0, -2.0), (-4.0, -2.0), 1500.0),
+    50: ((3.6, 6.0), 30.024, (-6.0, -2.0), (-7.0, -4.0), 3000.0),
+    100: ((7.2, 12.0), 120.096, (-10.0, -5.0), (-10.0, -6.0), 6000.0),
+}
+PATHS = ("straight", "zigzag", "straight_rot")
+ZIGZAG_Y = [0, -2, 0, -2, 0, 0, -2, 0, -2, 0, -2]
+IRREGULAR = ("cloud", "box_rotation", "clover")
+BOX = {"shape": "box", "size": [1.0, 1.0]}
+
+
+def error_of(data) -> ConfigError:
+    with pytest.raises(ConfigError) as info:
+        parse_scenario(data, "test")
+    return info.value
+
+
+# --- built-ins --------------------------------------------------------------------------------------
+
+def test_builtin_list_is_complete():
+    expected = {f"paper-{n}-{p}" for n in PAPER for p in PATHS}
+    expected |= {f"irregular-{s}" for s in IRREGULAR} | {"lab-6", "lab-6-payload", "aggregate-20"}
+    assert set(builtin_names()) == expected
+
+
+@pytest.mark.parametrize("name", builtin_names())
+def test_builtin_loads_with_description(name):
+    scenario = load_scenario(name)
+    assert scenario.name == name
+    assert scenario.description.strip()
+    assert "\n" not in scenario.description.strip()   # folded, one paragraph
+
+
+@pytest.mark.parametrize("robots", sorted(PAPER))
+@pytest.mark.parametrize("kind", PATHS)
+def test_paper_scenarios(robots, kind):
+    size, mass, spawn_x, spawn_y, limit = PAPER[robots]
+    s = load_scenario(f"paper-{robots}-{kind}")
+    assert s.behaviour == "transport"
+    assert s.robots.count == robots
+    assert (s.robots.spawn.x, s.robots.spawn.y) == (spawn_x, spawn_y)
+    assert s.object is not None
+    assert (s.object.shape, s.object.size, s.object.mass) == ("box", size, mass)
+    assert s.object.position == (0.0, 0.0) and s.object.yaw_deg == 0.0 and not s.object.static
+    assert s.object.friction == 0.3   # the default
+    assert s.comm.range_m == 7.0
+    assert s.time_limit_s == limit
+    assert len(s.path) == 10
+    assert [x for x, _, _ in s.path] == [-float(k) for k in range(1, 11)]
+    ys = [y for _, y, _ in s.path]
+    yaws = [yaw for _, _, yaw in s.path]
+    if kind == "straight":
+        assert ys == [0.0] * 10 and yaws == [0.0] * 10
+    elif kind == "zigzag":
+        assert ys == [float(v) for v in ZIGZAG_Y[1:]] and yaws == [0.0] * 10
+    else:
+        assert ys == [0.0] * 10
+        assert yaws == [0.0] + [90.0] * 4 + [180.0] * 5
+
+
+def test_paper_robots_start_clear_of_the_box():
+    for robots, (size, _, spawn_x, spawn_y, _) in PAPER.items():
+        half_w, half_h = size[0] / 2, size[1] / 2
+        assert spawn_x[1] < -half_w or spawn_y[1] < -half_h, robots
+
+
+@pytest.mark.parametrize("shape", IRREGULAR)
+def test_irregular_scenarios(shape):
+    s = load_scenario(f"irregular-{shape}")
+    assert s.robots.count == 30
+    assert s.object is not None
+    assert (s.object.shape, s.object.static, s.object.mass) == (shape, True, 5.56)
+    assert s.path == []
+    assert (s.robots.spawn.x, s.robots.spawn.y) == ((-4.0, -2.0), (-4.0, -2.0))
+    assert s.comm.range_m == 7.0 and s.time_limit_s == 1500.0
+    assert "our choice" in s.description
+
+
+@pytest.mark.parametrize(("name", "mass"), [("lab-6", 0.3), ("lab-6-payload", 4.3)])
+def test_lab_scenarios(name, mass):
+    s = load_scenario(name)
+    assert s.robots.count == 6
+    assert s.object is not None
+    assert (s.object.shape, s.object.size, s.object.mass) == ("box", (0.285, 0.435), mass)
+    assert s.path == [(0.0, 0.3, 0.0), (0.0, 0.6, 0.0), (0.0, 0.9, 0.0)]
+    assert (s.robots.spawn.x, s.robots.spawn.y) == ((-1.2, -0.6), (-1.2, -0.6))
+    assert s.comm.range_m == 3.0
+    assert s.arena.walls == (-2.0, -2.0, 2.0, 2.0)
+    assert s.time_limit_s == 600.0 and s.seed == 1
+
+
+def test_aggregate_demo():
+    s = load_scenario("aggregate-20")
+    assert s.behaviour == "aggregate"
+    assert s.robots.count == 20 and s.object is None and s.path == []
+    assert (s.robots.spawn.x, s.robots.spawn.y) == ((-2.0, 2.0), (-2.0, 2.0))
+    assert s.arena.walls == (-3.0, -3.0, 3.0, 3.0)
+    assert s.time_limit_s == 120.0
+
+
+def test_yaml_path_works_like_a_builtin_name(tmp_path):
+    copy = tmp_path / "my-copy.yaml"
+    shutil.copy(BUILTIN_DIR / "lab-6-payload.yaml", copy)
+    from_file = load_scenario(str(copy))
+    assert from_file.with_overrides(name="lab-6-payload") == load_scenario("lab-6-payload")
+    assert from_file.name == "my-copy"   # the file's stem when the file sets no name
+
+
+def test_name_in_file_wins_over_stem(tmp_path):
+    path = tmp_path / "whatever.yaml"
+    path.write_text("name: mine\nbehaviour: aggregate\n")
+    assert load_scenario(str(path)).name == "mine"
+
+
+def test_docs_full_example_loads():
+    text = DOCS.read_text()
+    block = re.search(r"## A full example.*?```yaml\n(.*?)```", text, re.S)
+    assert block is not None
+    scenario = parse_scenario(yaml.safe_load(block.group(1)))
+    assert scenario.name == "my-run" and scenario.object is not None and scenario.faults
+
+
+def test_docs_list_every_builtin():
+    text = DOCS.read_text()
+    for name in builtin_names():
+        assert f"| `{name}` |" in text, name
+
+
+# --- validation errors ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("data", "field", "message"), [
+    ({"robots": {"count": 0}}, "robots.count", "robots.count: must be >= 1 (got 0)"),
+    ({"robots": {"count": 2.5}}, "robots.count", "robots.count: must be an integer (got 2.5)"),
+    ({"robot": {"count": 6}}, "robot", "robot: unknown key (known: arena, behaviour, comm, description, "
+     "faults, name, object, params, path, physics, robots, seed, sensors, time_limit_s)"),
+    ({"params": {"inter_robot_distance": 0.65}}, "params.inter_robot_distance", None),
+    ({"behaviour": "aggregate", "params": {"inter_robot_distance_m": 0.65}}, "params.inter_robot_distance_m",
+     "params.inter_robot_distance_m: unknown key (known: gather_distance_m, k_aggregate, k_avoid, speed_m_s, "
+     "turn_gain)"),
+    ({"params": {"barrier_fraction": 0}}, "params.barrier_fraction",
+     "params.barrier_fraction: must be > 0 (got 0)"),
+    ({"behaviour": "dance"}, "behaviour",
+     "behaviour: unknown behaviour 'dance' (known: aggregate, transport)"),
+    ({"object": {"shape": "triangle"}}, "object.shape", "object.shape: must be one of box, circle, polygon, "
+     "compound, cloud, box_rotation, clover (got 'triangle')"),
+    ({"object": {"shape": "box"}}, "object.size", "object.size: a box needs size: [width, height] in metres"),
+    ({"object": {"shape": "box", "size": [1, -2]}}, "object.size[1]", "object.size[1]: must be > 0 (got -2)"),
+    ({"object": {"shape": "circle"}}, "object.radius", "object.radius: a circle needs radius: <metres>"),
+    ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0]]}}, "object.vertices",
+     "object.vertices: a polygon needs at least 3 vertices [[x, y], ...]"),
+    ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [2, 0]]}}, "object.vertices",
+     "object.vertices: the polygon has no area (collinear or repeated points)"),
+    ({"object": {"shape": "cloud", "size": [3, 3]}}, "object.size", "object.size: not used by shape: cloud"),
+    ({"object": {**BOX, "scale": 2}}, "object.scale",
+     "object.scale: only for shapes cloud, box_rotation, clover (shape is box)"),
+    ({"object": {**BOX, "parts": [BOX]}}, "object.parts",
+     "object.parts: only for shape: compound (shape is box)"),
+    ({"object": {"shape": "compound"}}, "object.parts",
+     "object.parts: a compound object needs at least one part"),
+    ({"object": {"shape": "compound", "parts": [BOX, {"shape": "circle"}]}}, "object.parts[1].radius",
+     "object.parts[1].radius: a circle needs radius: <metres>"),
+    ({"object": {"shape": "compound", "parts": [{"shape": "clover"}]}}, "object.parts[0].shape",
+     "object.parts[0].shape: must be one of box, circle, polygon (got 'clover')"),
+    ({"object": {**BOX, "static": "yes please"}}, "object.static",
+     "object.static: must be true or false (got 'yes please')"),
+    ({"object": {**BOX, "mass": 0}}, "object.mass", "object.mass: must be > 0 (got 0)"),
+    ({"comm": {"drop": 1.5}}, "comm.drop", "comm.drop: must be <= 1 (got 1.5)"),
+    ({"sensors": {"pose_dropout": -0.1}}, "sensors.pose_dropout",
+     "sensors.pose_dropout: must be >= 0 (got -0.1)"),
+    ({"robots": {"count": 6}, "faults": [{"robot": 6, "at_s": 30}]}, "faults[0].robot",
+     "faults[0].robot: no robot 6 (robots are 0..5)"),
+    ({"faults": [{"robot": 1}]}, "faults[0].at_s", "faults[0].at_s: is required"),
+    ({"object": {"shape": "clover", "static": True}, "path": [[-1, 0, 0]]}, "path",
+     "path: a static object cannot follow a path (object.static is true)"),
+    ({"path": [[-1, 0, 0]]}, "path", "path: a path needs an object to move"),
+    ({"object": BOX, "path": [[-1, 0]]}, "path[0]", "path[0]: must have 3 items (got 2)"),
+    ({"object": BOX, "path": [[-1, 0, float("nan")]]}, "path[0][2]",
+     "path[0][2]: must be a finite number (got nan)"),
+    ({"physics": {"dt_s": 0.03}}, "physics.control_hz",
+     "physics.control_hz: the control period must be a whole "
+     "number of physics steps (dt_s=0.03 gives 3.33333)"),
+    ({"arena": {"walls": [1, 1, 0, 0]}}, "arena.walls",
+     "arena.walls: must be [xmin, ymin, xmax, ymax] with min < max"),
+    ({"robots": {"spawn": {"x": [2, 1]}}}, "robots.spawn.x",
+     "robots.spawn.x: must be [min, max] with min <= max (got [2.0, 1.0])"),
+    ({"seed": -1}, "seed", "seed: must be >= 0 (got -1)"),
+    ({"time_limit_s": 0}, "time_limit_s", "time_limit_s: must be > 0 (got 0)"),
+])
+def test_validation_error_names_the_field(data, field, message):
+    err = error_of(data)
+    assert err.field == field
+    assert str(err).startswith(f"{field}: ")
+    assert "\n" not in str(err) and "Traceback" not in str(err)
+    if message is not None:
+        assert str(err) == message
+
+
+def test_unknown_params_key_lists_the_known_names():
+    err = error_of({"params": {"inter_robot_distance": 0.65}})
+    assert err.problem.startswith("unknown key (known: allocation_time_s, barrier_fraction, ")
+    assert "inter_robot_distance_m" in err.problem and err.problem.endswith("theta_p_deg)")
+
+
+def test_not_a_mapping():
+    assert str(error_of([1, 2])) == "a scenario must be a mapping of keys (got list)"
+
+
+def test_yaml_syntax_error_names_file_and_line(tmp_path):
+    path = tmp_path / "mine.yaml"
+    path.write_text("name: demo\nrobots:\n  count: 3\n   spawn: {x: [0, 1]}\n")
+    with pytest.raises(ConfigError) as info:
+        load_scenario(str(path))
+    assert info.value.field == "mine.yaml:4"
+    assert str(info.value) == "mine.yaml:4: not valid YAML (mapping values are not allowed here)"
+    assert info.value.__cause__ is None and info.value.__suppress_context__
+
+
+def test_error_in_file_names_the_field(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("robots:\n  count: 0\n")
+    with pytest.raises(ConfigError, match=r"^robots\.count: must be >= 1 \(got 0\)$"):
+        load_scenario(str(path))
+
+
+def test_unknown_scenario_name():
+    with pytest.raises(ConfigError) as info:
+        load_scenario("paper-26-straight")
+    assert info.value.field == "scenario"
+    assert str(info.value) == ("scenario: unknown scenario 'paper-26-straight': not a file and not built in "
+                               "(see `khepri sim list`)")
+
+
+def test_missing_yaml_file(tmp_path):
+    missing = str(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError) as info:
+        load_scenario(missing)
+    assert str(info.value) == f"scenario: no such file: {missing}"

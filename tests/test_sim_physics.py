@@ -1,0 +1,156 @@
+"""Real physics: sensing, driving, pushing, range-and-bearing, determinism."""
+import math
+
+import numpy as np
+import pytest
+
+from onboard.geometry import neighbour_mask, pairwise_range_bearing
+from sim_backend.runner import Simulation
+from sim_backend.sensing import ir_response
+from sim_backend.world import World
+
+R = 0.0704
+
+
+def place(world, index, x, y, yaw):
+    body = world.robots[index].body
+    body.position = (x, y)
+    body.angle = yaw
+    world.robots[index].wheels.position = (x, y)
+    world.space.reindex_shapes_for_body(body)
+
+
+@pytest.mark.parametrize("sensor", range(8))
+def test_ir_reads_about_0_7_at_5_cm_from_a_wall_in_every_direction(make_scenario, sensor):
+    scenario = make_scenario(robots={"count": 1, "spawn": {"x": [0, 0], "y": [0, 0]}},
+                             arena={"walls": [-1, -1, 1, 1]}, sensors={"proximity_noise": 0.0})
+    sim = Simulation(scenario)
+    # Turn the robot so that this sensor faces the east wall (x = 1), with its rim 5 cm from it.
+    sensor_angle = sensor * math.pi / 4
+    place(sim.world, 0, 1.0 - R - 0.05, 0.0, -sensor_angle)
+    sim.step()
+    values = sim.frame.proximity[0]
+    assert values[sensor] == pytest.approx(0.7, abs=0.03)
+    others = [v for k, v in enumerate(values) if k != sensor]
+    assert max(others) < values[sensor]
+
+
+def test_ir_curve_matches_argos():
+    assert ir_response(np.array([0.0, 0.039]))[0] == 1.0
+    assert ir_response(np.array([0.08]))[0] == pytest.approx(4.14 * math.exp(-33 * 0.08) - 0.085)
+    assert ir_response(np.array([0.13, np.inf])).tolist() == [0.0, 0.0]
+
+
+def test_ir_sees_other_robots_and_the_object_but_not_itself(make_scenario):
+    scenario = make_scenario(robots={"count": 2, "spawn": {"x": [-3, -2], "y": [-3, -2]}},
+                             object={"shape": "circle", "radius": 0.2, "static": True},
+                             sensors={"proximity_noise": 0.0})
+    sim = Simulation(scenario)
+    place(sim.world, 0, 0.0, -(0.2 + R + 0.03), math.pi / 2)   # facing the object, 3 cm away
+    place(sim.world, 1, 2.0, 2.0, 0.0)                          # alone
+    sim.step()
+    assert sim.frame.proximity[0][0] == 1.0          # saturated below 4 cm
+    assert sim.frame.proximity[1].max() == 0.0       # nothing near robot 1, and never itself
+    place(sim.world, 0, 0.0, -(0.2 + R + 0.03), math.pi / 2)   # (it turned away during the step)
+    place(sim.world, 1, 0.0, -(0.2 + R + 0.03) - (2 * R + 0.05), math.pi / 2)   # 5 cm behind robot 0
+    sim.step()
+    assert sim.frame.proximity[1][0] == pytest.approx(0.7, abs=0.03)
+    assert sim.frame.proximity[0][4] == pytest.approx(0.7, abs=0.03)   # robot 0 sees it behind
+
+
+def test_robot_at_0_1_m_s_covers_1_m_in_about_10_s(make_scenario):
+    world = World(make_scenario(robots={"count": 1, "spawn": {"x": [0, 0], "y": [0, 0]}}), np.random.default_rng(0))
+    place(world, 0, 0.0, 0.0, 0.3)
+    world.command(0, 0.1, 0.1)
+    world.step(1000)
+    x, y, yaw = world.robot_poses()[0]
+    assert math.hypot(x, y) == pytest.approx(1.0, abs=0.02)
+    assert yaw == pytest.approx(0.3, abs=1e-3)
+    assert world.robots[0].left_odo == pytest.approx(1.0)
+
+
+def test_wheel_commands_turn_the_robot_at_the_differential_drive_rate(make_scenario):
+    world = World(make_scenario(robots={"count": 1, "spawn": {"x": [0, 0], "y": [0, 0]}}), np.random.default_rng(0))
+    place(world, 0, 0.0, 0.0, 0.0)
+    world.command(0, -0.05, 0.05)
+    world.step(100)
+    omega = 0.1 / 0.1054
+    assert world.robot_poses()[0][2] == pytest.approx(omega * 1.0, rel=0.03)
+
+
+def push_box(make_scenario, pushers):
+    """Line `pushers` robots up behind a 4.3 kg box and drive them forward for 5 s."""
+    scenario = make_scenario(robots={"count": pushers, "spawn": {"x": [-3, -1], "y": [-3, -1]}},
+                             object={"shape": "box", "size": [0.435, 0.285], "mass": 4.3, "friction": 0.3})
+    world = World(scenario, np.random.default_rng(0))
+    for i in range(pushers):
+        place(world, i, -0.0705 * (pushers - 1) + 0.141 * i, -0.1425 - R - 0.001, math.pi / 2)
+        world.command(i, 0.1, 0.1)
+    world.step(500)
+    return world.object_pose()
+
+
+def test_one_robot_cannot_move_the_loaded_box_but_four_can(make_scenario):
+    # 4.3 kg at mu 0.3 needs 12.7 N; one KheperaIV grips with at most 0.9 * 0.54 * 9.81 = 4.8 N.
+    assert np.hypot(*push_box(make_scenario, 1)[:2]) < 0.005
+    moved = push_box(make_scenario, 4)
+    assert moved[1] > 0.3
+
+
+def test_a_static_object_never_moves(make_scenario):
+    scenario = make_scenario(robots={"count": 3, "spawn": {"x": [-3, -1], "y": [-3, -1]}},
+                             object={"shape": "clover", "static": True})
+    world = World(scenario, np.random.default_rng(0))
+    for i in range(3):
+        place(world, i, -0.3 + 0.15 * i, -1.2, math.pi / 2)
+        world.command(i, 0.2, 0.2)
+    world.step(500)
+    assert np.allclose(world.object_pose(), 0.0)
+
+
+def test_range_and_bearing_match_geometry_and_respect_d_c():
+    xy = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [5.0, 5.0]])
+    yaw = np.array([math.pi / 2, 0.0, -math.pi, 0.0])
+    ranges, bearings = pairwise_range_bearing(xy, yaw)
+    assert ranges[0, 1] == pytest.approx(1.0)
+    assert bearings[0, 1] == pytest.approx(-math.pi / 2)   # robot 0 faces +y: robot 1 is on its right
+    assert bearings[1, 0] == pytest.approx(math.pi)        # robot 1 faces +x: robot 0 is behind
+    assert bearings[2, 0] == pytest.approx(math.pi / 2)    # robot 2 faces -x: robot 0 (below) is on its left
+    mask = neighbour_mask(ranges, 2.5)
+    assert mask[0].tolist() == [False, True, True, False]
+    assert not mask[:, 3].any()
+
+
+def test_simulated_range_and_bearing_sensor_reports_only_robots_within_range(make_scenario):
+    scenario = make_scenario(robots={"count": 3, "spawn": {"x": [-1, 1], "y": [-1, 1]}},
+                             comm={"range_m": 1.0, "range_noise_m": 0.0, "bearing_noise_rad": 0.0})
+    sim = Simulation(scenario)
+    place(sim.world, 0, 0.0, 0.0, 0.0)
+    place(sim.world, 1, 0.0, 0.8, 0.0)
+    place(sim.world, 2, 1.5, 0.0, 0.0)
+    sim.step()
+    seen = sim.robots[0].range_and_bearing.neighbours()
+    assert [n.id for n in seen] == [1]
+    assert seen[0].range_m == pytest.approx(0.8)
+    assert seen[0].bearing_rad == pytest.approx(math.pi / 2)
+
+
+def test_same_scenario_and_seed_give_the_same_run(make_scenario):
+    scenario = make_scenario(robots={"count": 10, "spawn": {"x": [-1, 1], "y": [-1, 1]}},
+                             comm={"drop": 0.2}, time_limit_s=8)
+    runs = []
+    for _ in range(2):
+        sim = Simulation(scenario, seed=7)
+        sim.run()
+        runs.append(sim.trajectory_arrays()["robot_pose"])
+    assert np.array_equal(runs[0], runs[1])
+    other = Simulation(scenario, seed=8)
+    other.run()
+    assert not np.array_equal(runs[0], other.trajectory_arrays()["robot_pose"])
+
+
+def test_aggregate_reduces_the_spread_of_the_swarm(make_scenario):
+    scenario = make_scenario(robots={"count": 12, "spawn": {"x": [-2, 2], "y": [-2, 2]}},
+                             arena={"walls": [-3, -3, 3, 3]}, time_limit_s=60)
+    result = Simulation(scenario).run()
+    assert result["final_spread_m"] < 0.5 * result["initial_spread_m"]
