@@ -32,6 +32,8 @@ _EVALUATORS: Dict[str, Type[Evaluator]] = {}
 
 
 def evaluator_for(name: str) -> Callable[..., Evaluator]:
+    from . import transport_metrics  # noqa: F401  (registers the transport evaluator)
+
     return _EVALUATORS.get(name, Evaluator)
 
 

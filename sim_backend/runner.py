@@ -3,6 +3,7 @@ forwards their commands to physics, records trajectories and evaluates the run a
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
 import time
@@ -36,6 +37,19 @@ class Recording:
     centroid_estimate: List[np.ndarray] = field(default_factory=list)
 
 
+def mission_params(behaviour_cls, scenario: Scenario) -> Dict[str, Any]:
+    """The scenario's params plus the operator's mission (path, initial object estimate) for behaviours
+    that declare those parameters. The estimate is the object's *initial* placement, which the paper assumes
+    known; the robots never get the object's live pose."""
+    params = dict(scenario.params)
+    names = {f.name for f in dataclasses.fields(behaviour_cls.Params)}
+    if "path" in names and "path" not in params:
+        params["path"] = [list(w) for w in scenario.path]
+    if "object_estimate" in names and "object_estimate" not in params and scenario.object is not None:
+        params["object_estimate"] = [*scenario.object.position, scenario.object.yaw_deg]
+    return params
+
+
 class Simulation:
     def __init__(self, scenario: Scenario, seed: Optional[int] = None):
         self.scenario = scenario
@@ -52,7 +66,7 @@ class Simulation:
         self.radio = RadioNetwork(self.count, scenario.comm.drop, scenario.comm.latency_s, self.period,
                                   self.rng_radio)
         behaviour_cls = get_behaviour(scenario.behaviour)
-        params = build_params(behaviour_cls, scenario.params)
+        params = build_params(behaviour_cls, mission_params(behaviour_cls, scenario))
         self.robots = [make_robot(self.frame, i, self.world.spec) for i in range(self.count)]
         self.behaviours = [behaviour_cls(robot, params) for robot in self.robots]
         self.evaluator = evaluator_for(scenario.behaviour)(scenario, self.world)

@@ -1,14 +1,362 @@
-"""The transport state machine (work in progress: see issue #3)."""
+"""The transport state machine: bid -> (seed | travel -> attach) -> caged -> settle -> push/rotate -> done.
+
+Written against the HAL only. Each step: merge what the radio brought into the tuple space, estimate the
+own pose, run the current state's handler, publish a heartbeat and broadcast the tuple-space updates.
+See docs/behaviour.md for the diagram and the equations' code locations.
+"""
 from __future__ import annotations
 
+import math
+from typing import Any, Dict, Optional, Tuple
+
+import numpy as np
+
 from ...behaviour import Behaviour, register
+from ...localisation import PoseTracker
+from ...motion import vector_to_wheels
+from . import control as c
+from .control import Vec
+from .estimator import ObjectFilter, ring_centroid
 from .params import TransportParams
+from .perception import Percept, nearest, perceive, world_to_robot
+from .tasks import BRANCH_DIRECTION, Task, TaskBoard, distance, new_space, task_id
+from .transport import TransportPhases
+
+SETTLE_STEPS = 10          # a caging robot must hold its place this many steps to count as settled
+ATTACH_RADIUS_M = 0.25     # switch from travelling to attaching this close to the target
+GROW_PERIOD_S = 1.0        # out of robots: I_d grows one level per second
 
 
 @register("transport")
-class Transport(Behaviour):
+class Transport(TransportPhases, Behaviour):
     Params = TransportParams
 
-    def step(self) -> None:
-        self.robot.wheels.stop()
+    def __init__(self, robot, params: Optional[TransportParams] = None):
+        super().__init__(robot, params)
+        p = self.params
+        self.space = new_space(robot.id)
+        self.board = TaskBoard(self.space, p.liveness_timeout_s)
+        self.tracker = PoseTracker(robot)
         self.state = "idle"
+        self.task: Optional[Task] = None
+        self.bid_seen: Dict[str, float] = {}     # "tid/epoch" -> local time a bid was first seen
+        self.last_bid: Dict[str, float] = {}
+        self.settled_steps = 0
+        self.spawned: Optional[str] = None       # the task this robot opened for its successor
+        self.spawned_times: Dict[Tuple[str, int], float] = {}   # (tid, epoch) -> when this robot opened it
+        self.path: list = []
+        self.estimated_at = 0.0
+        self.grow_at = 0.0
+        self.closed_at: Optional[float] = None
+        self.filter: Optional[ObjectFilter] = None
+        self.reference_ring: Dict[int, Vec] = {}
+        self.reference_centre: Vec = (0.0, 0.0)
+        self.reference_yaw = 0.0
+        self.reference_normals: Dict[int, float] = {}
+        self.formation: Dict[int, Vec] = {}
+        self.waypoint = 0
+        self.phase = "p"
+        self.effective = False
+        self.rotating = False
+        self.last_step: Optional[float] = None
+        self.percept: Optional[Percept] = None
+        estimate = p.object_estimate or (0.0, 0.0, 0.0)
+        self.hint: Vec = (estimate[0], estimate[1])
+        self.initial_yaw = math.radians(estimate[2])
+
+    # --- the loop ---------------------------------------------------------------------------------------
+    def step(self) -> None:
+        robot, now = self.robot, self.robot.clock.now()
+        for message in robot.radio.receive():
+            if isinstance(message.payload, dict):
+                self.space.merge(message.payload.get("ts"), message.sender)
+        self.board.refresh_liveness(now)
+        self._publish_mission()
+        pose = self.tracker.update()
+        if pose is None or pose.stale:
+            # Without a recent position a robot cannot bid, cage or push: hold still until the hub is back.
+            robot.wheels.stop()
+        else:
+            self.percept = perceive(pose.x, pose.y, pose.yaw, robot.range_and_bearing.neighbours(),
+                                    robot.proximity.read())
+            getattr(self, f"_on_{self.state}")(now)
+            if self.state not in ("idle", "done"):
+                self.board.heartbeat(robot.id, pose.x, pose.y, self._contact_normal())
+        self.last_step = now
+        robot.radio.broadcast({"ts": self.space.outgoing()})
+
+    def _contact_normal(self) -> Optional[float]:
+        percept = self.percept
+        if percept is None or not percept.in_contact(self.params.proximity_threshold):
+            return None
+        return math.atan2(percept.object_vector[1], percept.object_vector[0])
+
+    @property
+    def finished(self) -> bool:
+        return self.state == "done"
+
+    def _publish_mission(self) -> None:
+        if "task/S" not in self.space and self.params.object_estimate is not None:
+            self.board.put_task(Task("S", self.hint[0], self.hint[1], "S", 0, None, 0))
+        if "path" not in self.space and self.params.path:
+            self.space.put("path", [list(w) for w in self.params.path])
+
+    def _drive(self, u: Vec, speed_scale: float = 1.0) -> None:
+        """Drive along the world-frame input u at cruise speed (the authors normalised u the same way)."""
+        p, percept = self.params, self.percept
+        local = world_to_robot(c.unit(u), percept.yaw)
+        left, right = vector_to_wheels(local[0], local[1], p.cruise_speed_m_s * speed_scale,
+                                       self.robot.spec.wheel_base_m)
+        self.robot.wheels.set_speeds(left, right)
+
+    def _hold(self) -> None:
+        self.robot.wheels.stop()
+
+    def _avoid(self, exclude: Optional[set] = None) -> Vec:
+        p = self.params
+        vectors = [v for j, v in self.percept.neighbours.items() if not exclude or j not in exclude]
+        return c.u_avoid(vectors, p.safety_distance_m, 2.0)
+
+    def _finish_if_done(self) -> bool:
+        if "done" in self.space:
+            self.state = "done"
+            self._hold()
+            return True
+        return False
+
+    # --- idle: bid for the nearest open task, stay out of the cage's way -----------------------------------
+    def _on_idle(self, now: float) -> None:
+        if self._finish_if_done():
+            return
+        if "closed" in self.space:
+            if not self.params.path:
+                self.state = "done"
+            self._keep_clear()
+            return
+        task = self._nearest_open_task()
+        if task is None:
+            self._keep_clear()
+            return
+        self._bid(task, now)
+        self._keep_clear()
+
+    def _keep_clear(self) -> None:
+        u = c.add(self._avoid(), c.scale(self.percept.obstacle_vector, -1.0))
+        if c.norm(u) > 0.05:
+            self._drive(u)
+        else:
+            self._hold()
+
+    def _nearest_open_task(self) -> Optional[Task]:
+        me = self.percept.position
+        open_tasks = [t for t in self.board.tasks() if self.board.is_open(t)]
+        return min(open_tasks, key=lambda t: (distance(me, t.position), t.tid), default=None)
+
+    def _bid(self, task: Task, now: float) -> None:
+        key = f"{task.tid}/{task.epoch}"
+        mine = distance(self.percept.position, task.position)
+        best = self.board.best_bid(task)
+        if best is not None:
+            self.bid_seen.setdefault(key, now)
+        lower = best is None or mine < float(best["bid"]) - 1e-3
+        if lower and now - self.last_bid.get(key, -math.inf) >= self.params.rebid_period_s:
+            self.board.bid(task, self.robot.id, mine)
+            self.last_bid[key] = now
+            self.bid_seen.setdefault(key, now)
+            return
+        # After T_a with a valid bid stored, the robot whose id is stored takes the task.
+        won = best is not None and best.get("robot") == self.robot.id
+        if won and now - self.bid_seen.get(key, now) >= self.params.allocation_time_s:
+            self.board.take(task, self.robot.id, float(best["bid"]))
+            self.task = task
+            self.state = "seed" if task.branch == "S" else "travel"
+
+    def _still_mine(self) -> bool:
+        task = self.board.task(self.task.tid) if self.task else None
+        owner = self.board.owner(task) if task else None
+        if task is None or task.cancelled or task.epoch != self.task.epoch or "closed" in self.space or \
+                (owner is not None and owner.get("robot") != self.robot.id):
+            self.task = None
+            self.state = "idle"
+            return False
+        return True
+
+    # --- seed: drive to the estimated centroid until the IR sees the object ----------------------------------
+    def _on_seed(self, now: float) -> None:
+        if not self._still_mine():
+            return
+        percept, p = self.percept, self.params
+        if percept.in_contact(p.proximity_threshold):
+            self._settle_as_member(now)
+            return
+        toward = c.unit(c.sub(self.task.position, percept.position))
+        self._drive(c.add(toward, self._avoid()))
+
+    # --- travel: reach the branch target by following the cage ---------------------------------------------
+    def _on_travel(self, now: float) -> None:
+        if not self._still_mine():
+            return
+        percept, p = self.percept, self.params
+        to_target = c.sub(self.task.position, percept.position)
+        if c.norm(to_target) < ATTACH_RADIUS_M:
+            self.state = "attach"
+            self._maybe_pipeline(now)
+            return
+        members = set(self.board.members())
+        n = nearest(percept.neighbours, members)
+        direction = BRANCH_DIRECTION[self.task.branch]
+        if n is not None and c.norm(percept.neighbours[n]) < p.inter_robot_distance_m + 0.1:
+            # Edge-follow the cage: orbit the nearest member at I_d (the paper's x_n input).
+            u = c.u_edge_follow(percept.neighbours[n], p.inter_robot_distance_m, direction)
+            u = c.add(c.unit(u), c.scale(c.unit(to_target), 0.3))
+        else:
+            u = c.unit(to_target)
+        if percept.object_peak > 0.2:
+            # The object is in the way: slide along it toward the target.
+            tangent = c.perp(c.unit(percept.object_vector))
+            if tangent[0] * to_target[0] + tangent[1] * to_target[1] < 0:
+                tangent = c.scale(tangent, -1.0)
+            u = c.add(tangent, c.scale(c.unit(percept.object_vector), -0.3))
+        self._drive(c.add(u, self._avoid()))
+
+    # --- attach: touch the object and correct the distance to the branch predecessor ----------------------
+    def _on_attach(self, now: float) -> None:
+        if not self._still_mine():
+            return
+        p, percept = self.params, self.percept
+        error = self._predecessor_error()
+        direction = BRANCH_DIRECTION[self.task.branch]
+        if percept.in_contact(p.proximity_threshold):
+            # u = perp(x_o): slide along the object until the predecessor is I_d away. No push inward: the
+            # object must not move while the cage forms.
+            u = c.u_distance_correction(percept.object_vector, error * direction, 4.0)
+            settled = abs(error) < p.caging_tolerance_m
+        else:
+            toward = percept.object_vector if percept.object_peak > 0 else c.sub(self._centre_guess(), percept.position)
+            u = c.add(c.unit(toward), c.scale(c.unit(c.sub(self.task.position, percept.position)), 0.2))
+            settled = False
+        self.settled_steps = self.settled_steps + 1 if settled else 0
+        if self.settled_steps >= SETTLE_STEPS:
+            self._hold()
+            self._settle_as_member(now)
+            return
+        if c.norm(u) < 0.05 or (settled and abs(error) < p.caging_tolerance_m / 2):
+            self._hold()
+        else:
+            self._drive(u, speed_scale=0.6)
+
+    def _predecessor_error(self) -> float:
+        """|x_pred| - I_d_eff: positive when too far from the predecessor."""
+        pred = self.task.pred
+        vector = self.percept.neighbours.get(pred) if pred is not None else None
+        if vector is None and pred is not None:
+            where = self.board.position(pred)
+            vector = c.sub(where, self.percept.position) if where else None
+        if vector is None:
+            return 0.0
+        return c.norm(vector) - self._spacing()
+
+    def _spacing(self) -> float:
+        return self.params.inter_robot_distance_m * (1.0 + 0.02 * self.board.grow_level())
+
+    def _centre_guess(self) -> Vec:
+        """Where the object's centre probably is before the cage closes: the ring of members, or the hint."""
+        points = [self.board.position(m) for m in self.board.members()]
+        points = [q for q in points if q is not None]
+        if len(points) >= 3:
+            return ring_centroid(np.asarray(points))
+        return self.hint
+
+    # --- becoming a cage member, spawning the next branch target, closing the cage ---------------------------
+    def _settle_as_member(self, now: float) -> None:
+        self.board.join_cage(self.robot.id, self.task)
+        self.state = "caged"
+        self.settled_steps = 0
+        if self.task.branch == "S":
+            for branch in ("L", "R"):
+                self._spawn(branch, 1, now)
+        elif not self._try_close() and self.spawned is None:
+            self._spawn(self.task.branch, self.task.index + 1, now)
+
+    def _tangent(self, branch: str) -> Vec:
+        normal = c.unit(self.percept.object_vector) if self.percept.object_peak > 0 else \
+            c.unit(c.sub(self._centre_guess(), self.percept.position))
+        # Counter-clockwise around the object is perp(-normal); the left branch grows that way.
+        return c.scale(c.perp(normal), -BRANCH_DIRECTION[branch])
+
+    def _spawn(self, branch: str, index: int, now: float, origin: Optional[Vec] = None) -> None:
+        origin = origin or self.percept.position
+        target = c.add(origin, c.scale(self._tangent(branch), self._spacing()))
+        tid = task_id(branch, index)
+        existing = self.board.task(tid)
+        epoch = existing.epoch + 1 if existing is not None else 0
+        self.board.put_task(Task(tid, target[0], target[1], branch, index, self.robot.id, epoch))
+        self.spawned_times[(tid, epoch)] = now
+        if branch == self.task.branch:
+            self.spawned = tid
+
+    def _maybe_pipeline(self, now: float) -> None:
+        """Improvement: open the successor's target as soon as this robot is near its own."""
+        if not self.params.pipeline_allocation or self.task.branch == "S" or self.spawned is not None:
+            return
+        pred = self.board.position(self.task.pred) if self.task.pred is not None else None
+        heading = c.unit(c.sub(self.task.position, pred)) if pred else self._tangent(self.task.branch)
+        target = c.add(self.task.position, c.scale(heading, self._spacing()))
+        tid = task_id(self.task.branch, self.task.index + 1)
+        existing = self.board.task(tid)
+        epoch = existing.epoch + 1 if existing is not None else 0
+        self.board.put_task(Task(tid, target[0], target[1], self.task.branch, self.task.index + 1,
+                                 self.robot.id, epoch))
+        self.spawned = tid
+        self.spawned_times[(tid, epoch)] = now
+
+    def _gap_crosses_object(self, to_tip: Vec) -> bool:
+        """Deviation from the paper: two tips facing each other *across* a small object are close too, but
+        the ring is not closed. A closing gap lies on the rim, far from the centre; a chord through the
+        object passes near it. Reject gaps whose chord comes closer to the estimated centre than half the
+        robots' own distance from it."""
+        me = self.percept.position
+        centre = self._centre_guess()
+        length_sq = to_tip[0] ** 2 + to_tip[1] ** 2
+        rel = c.sub(centre, me)
+        t = max(0.0, min(1.0, (rel[0] * to_tip[0] + rel[1] * to_tip[1]) / length_sq)) if length_sq > 0 else 0.0
+        closest = c.add(me, c.scale(to_tip, t))
+        tip = c.add(me, to_tip)
+        return distance(closest, centre) < 0.5 * min(distance(me, centre), distance(tip, centre))
+
+    def _opposite_tip(self) -> Optional[int]:
+        """The last robot on the other branch (not the seed: it belongs to both)."""
+        other = "R" if self.task.branch == "L" else "L"
+        tips = [(v.get("index", 0), rid) for rid, v in self.board.members().items() if v.get("branch") == other]
+        return max(tips)[1] if tips else None
+
+    def _try_close(self) -> bool:
+        """Proposition 1: the cage is closed when the two branch tips are within d_T."""
+        if self.task is None or self.task.branch == "S" or "closed" in self.space:
+            return "closed" in self.space
+        tip = self._opposite_tip()
+        if tip is None:
+            return False
+        vector = self.percept.neighbours.get(tip)
+        where = self.board.position(tip)
+        if vector is None and where is not None:
+            vector = c.sub(where, self.percept.position)
+        if vector is None or c.norm(vector) > self.params.closure_factor * self._spacing():
+            return False
+        if self._gap_crosses_object(vector):
+            return False
+        self.space.put("closed", {"pair": sorted([self.robot.id, tip])})
+        if self.spawned is not None:
+            task = self.board.task(self.spawned)
+            if task is not None and not task.cancelled:
+                task.cancelled = True
+                self.board.put_task(task)
+        return True
+
+    def telemetry(self) -> Dict[str, Any]:
+        data: Dict[str, Any] = {"state": self.state, "waypoint": self.waypoint}
+        if self.task is not None:
+            data["task"] = self.task.tid
+        if self.filter is not None:
+            data["estimate"] = [round(v, 4) for v in self.filter.pose]
+        return data

@@ -5,9 +5,12 @@ Scenario ``params:`` overrides any of them by name (e.g. ``params: {inter_robot_
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import List, Optional, Tuple
 
-from ...config import check_range
+from ...config import ConfigError, check_range
+
+PROFILES = ("improved", "faithful")
 
 
 @dataclass
@@ -34,12 +37,41 @@ class TransportParams:
     k_r: float = 600.0                       # K_r: torque (tangential) gain
     # --- Not in Table 1: from the authors' code or the paper's text ---
     allocation_time_s: float = 7.0           # T_a: bidding window (70 steps at 10 Hz in the authors' code)
+    rebid_period_s: float = 0.5              # a robot re-bids every 5 steps while its bid is the lower one
     cruise_speed_m_s: float = 0.1            # wheel speed the normalised control input is scaled to
+    formation_range_factor: float = 1.5      # k: neighbours within k * I_d enter the formation set N_f
+    liveness_timeout_s: float = 4.0          # a robot whose position stops updating this long counts as dead
+    # --- The mission: given by the operator (scenario path and the paper's assumed initial estimate) ---
+    path: List[Tuple[float, float, float]] = field(default_factory=list)   # waypoints [x, y, yaw_deg]
+    object_estimate: Optional[Tuple[float, float, float]] = None             # C_o(0) guess [x, y, yaw_deg]
+    # --- Our improvements over the paper; profile "faithful" turns every one of them off ---
+    profile: str = "improved"
+    pipeline_allocation: bool = True         # open the next branch target while the previous robot travels
+    equalise_spacing: bool = True            # cage members even out their spacing before and during transport
+    settle_time_s: float = 10.0              # after closure, time to even out spacing before pushing
+    position_tolerance_m: float = 0.03       # arrival tolerance used instead of d_tol = 0.1 m
+    slow_down_radius_m: float = 0.25         # scale speed down within this distance of a waypoint
+    hold_yaw_while_pushing: bool = True      # add u_r (gain K_t) while pushing when the object has turned
 
     def validate(self, where: str) -> None:
+        if self.profile not in PROFILES:
+            raise ConfigError(f"{where}.profile", f"must be one of {', '.join(PROFILES)} (got {self.profile!r})")
+        if self.profile == "faithful":
+            self.pipeline_allocation = False
+            self.equalise_spacing = False
+            self.settle_time_s = 0.0
+            self.position_tolerance_m = self.push_tolerance_m
+            self.slow_down_radius_m = 0.0
+            self.hold_yaw_while_pushing = False
+        self._check(where)
+
+    def _check(self, where: str) -> None:
         for name in ("safety_distance_m", "inter_robot_distance_m", "caging_tolerance_m", "closure_factor",
-                     "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s"):
+                     "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s",
+                     "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "position_tolerance_m"):
             check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
         check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
         check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)
         check_range(f"{where}.barrier_fraction", self.barrier_fraction, 0.0, 1.0, low_open=True)
+        check_range(f"{where}.settle_time_s", self.settle_time_s, 0.0)
+        check_range(f"{where}.slow_down_radius_m", self.slow_down_radius_m, 0.0)

@@ -1,0 +1,98 @@
+"""Estimating the object's pose from where the cage robots are, and filtering it over time.
+
+The robots never see the object's true pose. Once the cage is closed they sit around the object at a
+roughly constant offset, so the area centroid of the polygon through their positions approximates the
+object's centroid (exactly, for symmetric objects and even spacing), and the mean angular displacement of
+the members around that centroid since the cage closed approximates how much the object turned.
+A constant-velocity Kalman filter (filterpy) smooths both: measurement noise comes from the positioning
+noise, process noise from how fast a pushed object can plausibly accelerate.
+"""
+from __future__ import annotations
+
+import math
+from typing import Dict, Optional, Sequence, Tuple
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from ...hal import wrap_angle
+
+
+def ring_centroid(points: np.ndarray) -> Tuple[float, float]:
+    """Area centroid of the polygon through ``points`` (n, 2) taken in angular order around their mean.
+
+    Falls back to the mean for fewer than 3 points or a degenerate polygon.
+    """
+    mean = points.mean(axis=0)
+    if len(points) < 3:
+        return float(mean[0]), float(mean[1])
+    order = np.argsort(np.arctan2(points[:, 1] - mean[1], points[:, 0] - mean[0]))
+    ring = points[order] - mean
+    nxt = np.roll(ring, -1, axis=0)
+    cross = ring[:, 0] * nxt[:, 1] - nxt[:, 0] * ring[:, 1]
+    area = cross.sum() / 2.0
+    if abs(area) < 1e-9:
+        return float(mean[0]), float(mean[1])
+    cx = ((ring[:, 0] + nxt[:, 0]) * cross).sum() / (6.0 * area)
+    cy = ((ring[:, 1] + nxt[:, 1]) * cross).sum() / (6.0 * area)
+    return float(cx + mean[0]), float(cy + mean[1])
+
+
+def ring_rotation(now: Dict[int, Sequence[float]], reference: Dict[int, Sequence[float]],
+                  centre_now: Sequence[float], centre_ref: Sequence[float]) -> Optional[float]:
+    """Circular mean of how far each member turned around the centroid since the reference (rad)."""
+    common = [k for k in now if k in reference]
+    if len(common) < 2:
+        return None
+    s = c = 0.0
+    for k in common:
+        a_now = math.atan2(now[k][1] - centre_now[1], now[k][0] - centre_now[0])
+        a_ref = math.atan2(reference[k][1] - centre_ref[1], reference[k][0] - centre_ref[0])
+        d = a_now - a_ref
+        s, c = s + math.sin(d), c + math.cos(d)
+    return math.atan2(s, c)
+
+
+class ObjectFilter:
+    """Constant-velocity Kalman filter on the object's pose: state [x, y, yaw, vx, vy, omega]."""
+
+    def __init__(self, x: float, y: float, yaw: float, position_noise_m: float = 0.02,
+                 yaw_noise_rad: float = 0.05, accel_noise: float = 0.05):
+        kf = KalmanFilter(dim_x=6, dim_z=3)
+        kf.x = np.array([x, y, yaw, 0.0, 0.0, 0.0])
+        kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
+        kf.P = np.diag([0.5, 0.5, 0.3, 0.05, 0.05, 0.05]) ** 2
+        kf.R = np.diag([position_noise_m, position_noise_m, yaw_noise_rad]) ** 2
+        self.kf = kf
+        self.accel_noise = accel_noise
+
+    def predict(self, dt: float) -> None:
+        kf = self.kf
+        kf.F = np.eye(6)
+        kf.F[0, 3] = kf.F[1, 4] = kf.F[2, 5] = dt
+        # Piecewise-constant white acceleration: an object pushed by robots speeds up and stops gently.
+        q = self.accel_noise ** 2
+        block = np.array([[dt ** 4 / 4, dt ** 3 / 2], [dt ** 3 / 2, dt ** 2]]) * q
+        kf.Q = np.zeros((6, 6))
+        for i in range(3):
+            kf.Q[np.ix_([i, i + 3], [i, i + 3])] = block
+        kf.predict()
+
+    def update(self, x: float, y: float, yaw: Optional[float], members: int) -> None:
+        kf = self.kf
+        # Yaw is an angle: measure it as the nearest equivalent of the current estimate.
+        yaw_state = kf.x[2]
+        measured_yaw = yaw_state if yaw is None else yaw_state + wrap_angle(yaw - yaw_state)
+        scale = 1.0 / max(1.0, math.sqrt(members))     # more members, better average
+        r = np.diag(np.diag(kf.R)) * scale ** 2
+        if yaw is None:
+            r[2, 2] = 1e6
+        kf.update(np.array([x, y, measured_yaw]), R=r)
+
+    def reset(self, x: float, y: float, yaw: float) -> None:
+        self.kf.x = np.array([x, y, yaw, 0.0, 0.0, 0.0])
+
+    @property
+    def pose(self) -> Tuple[float, float, float]:
+        x, y, yaw = self.kf.x[:3]
+        return float(x), float(y), float(wrap_angle(yaw))

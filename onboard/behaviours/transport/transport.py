@@ -1,0 +1,281 @@
+"""The cage's life after closure (and while waiting for it): spacing, settling, pushing, rotating.
+
+A mixin of :class:`~.behaviour.Transport`; split out to keep each module readable. Control terms carry the
+paper's names: u_fp = u_t + u_f + u_cp (push), u_fr = u_r + u_f + u_cr (rotate).
+"""
+from __future__ import annotations
+
+import math
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from ...hal import wrap_angle
+from . import control as c
+from .control import Vec
+from .estimator import ObjectFilter, ring_centroid, ring_rotation
+from .tasks import BRANCH_DIRECTION
+
+OUT_OF_ROBOTS_FACTOR = 3.0    # a target nobody took for 3 T_a means the swarm has no robot left for it
+CONTACT_GAIN = 0.3            # gentle push toward the object while holding a cage position
+SPACING_GAIN = 4.0
+
+
+class TransportPhases:
+    # --- caged: hold the object, keep the spacing, watch for closure --------------------------------------
+    def _on_caged(self, now: float) -> None:
+        if self._finish_if_done():
+            return
+        if "closed" in self.space:
+            if not self.params.path:
+                self.state = "done"
+                self._hold()
+                return
+            self.closed_at = now
+            self.state = "settle"
+            return
+        if self.task.branch != "S":
+            self._try_close()
+        self._reopen_orphans(now)
+        self._grow_if_out_of_robots(now)
+        self._hold_position(equalise=False)
+
+    def _hold_position(self, equalise: bool) -> None:
+        """Stay on the object and correct the spacing (paper: to the branch predecessor; improved: even out)."""
+        percept = self.percept
+        x_o = percept.object_vector if percept.object_peak > 0 else c.sub(self._centre_guess(), percept.position)
+        cw, ccw = self._cage_ring_neighbours()
+        d_cw = self._distance_to(cw)
+        d_ccw = self._distance_to(ccw)
+        if equalise and d_cw is not None and d_ccw is not None:
+            error = 0.5 * (d_cw - d_ccw)                 # > 0: move clockwise, toward the farther neighbour
+        elif self.task.pred is not None:
+            error = self._predecessor_error() * BRANCH_DIRECTION[self.task.branch]
+        else:
+            error = 0.0
+        if abs(error) < self.params.caging_tolerance_m / 2 and percept.in_contact(self.params.proximity_threshold):
+            self._hold()
+            return
+        inward = 0.0 if percept.in_contact(self.params.proximity_threshold) else CONTACT_GAIN
+        u = c.add(c.u_distance_correction(x_o, error, SPACING_GAIN), c.scale(c.unit(x_o), inward))
+        self._drive(u, speed_scale=min(1.0, 0.3 + 4.0 * abs(error)))
+
+    def _distance_to(self, robot: Optional[int]) -> Optional[float]:
+        if robot is None:
+            return None
+        vector = self.percept.neighbours.get(robot)
+        if vector is not None:
+            return c.norm(vector)
+        where = self.board.position(robot)
+        return math.hypot(where[0] - self.percept.x, where[1] - self.percept.y) if where else None
+
+    def _cage_ring_neighbours(self) -> Tuple[Optional[int], Optional[int]]:
+        """(clockwise, counter-clockwise) neighbours in the ring S, L1, L2, ... (ccw) and R1, R2, ... (cw)."""
+        members = self.board.members()
+        by_slot = {(v.get("branch"), v.get("index")): rid for rid, v in members.items()}
+        closed = "closed" in self.space
+        tips = {b: max((i for (bb, i) in by_slot if bb == b), default=None) for b in ("L", "R")}
+
+        def slot(branch: str, index: int) -> Optional[int]:
+            if index == 0:
+                return by_slot.get(("S", 0))
+            if index > (tips[branch] or 0):
+                other = "R" if branch == "L" else "L"
+                return by_slot.get((other, tips[other])) if closed and tips[other] else None
+            return by_slot.get((branch, index))
+
+        branch, index = self.task.branch, self.task.index
+        if branch == "S":
+            return slot("R", 1), slot("L", 1)
+        if branch == "L":
+            return slot("L", index - 1), slot("L", index + 1)
+        return slot("R", index + 1), slot("R", index - 1)
+
+    def _reopen_orphans(self, now: float) -> None:
+        """A robot that died on its way to a target this robot opened: open the target again."""
+        members = self.board.members()
+        for task in self.board.tasks():
+            if task.pred != self.robot.id or task.cancelled:
+                continue
+            self.spawned_times.setdefault((task.tid, task.epoch), now)
+            owner = self.board.owner(task)
+            if owner is None:
+                continue
+            rid = owner.get("robot")
+            if rid not in members and self.board.heard_of(rid) and not self.board.alive(rid, now):
+                task.epoch += 1
+                self.board.put_task(task)
+                self.spawned_times[(task.tid, task.epoch)] = now
+
+    def _grow_if_out_of_robots(self, now: float) -> None:
+        """Nobody bids for the next target: grow I_d so the branches spread until the cage closes."""
+        for task in self.board.tasks():
+            if task.pred != self.robot.id or task.cancelled or not self.board.is_open(task):
+                continue
+            opened = self.spawned_times.get((task.tid, task.epoch), now)
+            waiting = now - opened > OUT_OF_ROBOTS_FACTOR * self.params.allocation_time_s
+            if waiting and self.board.best_bid(task) is None and now - self.grow_at >= 1.0:
+                self.space.put("grow", {"level": self.board.grow_level() + 1})
+                self.grow_at = now
+
+    # --- settle: even out the spacing once the ring is closed --------------------------------------------
+    def _on_settle(self, now: float) -> None:
+        if self._finish_if_done():
+            return
+        if now - self.closed_at >= self.params.settle_time_s:
+            self._begin_transport(now)
+            return
+        self._hold_position(equalise=self.params.equalise_spacing)
+
+    def _begin_transport(self, now: float) -> None:
+        ring = self._member_positions(now)
+        self.reference_ring = ring
+        self.reference_centre = ring_centroid(np.asarray(list(ring.values()))) if ring else self.hint
+        self.reference_yaw = self.initial_yaw
+        self.reference_normals = self._member_normals(now)
+        noise = 0.02
+        self.filter = ObjectFilter(self.reference_centre[0], self.reference_centre[1], self.reference_yaw, noise)
+        self.formation = self._formation_now()
+        self.path = [tuple(w) for w in (self.space.get("path") or self.params.path)]
+        self.waypoint, self.phase, self.state = 0, "p", "push"
+        self.estimated_at = now
+
+    def _formation_now(self) -> Dict[int, Vec]:
+        """N_f: cage members within k * I_d, as world-frame vectors from this robot."""
+        members = set(self.board.members())
+        reach = self.params.formation_range_factor * self._spacing()
+        return {j: v for j, v in self.percept.neighbours.items() if j in members and c.norm(v) <= reach}
+
+    def _member_positions(self, now: float) -> Dict[int, Vec]:
+        positions = {}
+        for rid in self._members_alive(now):
+            where = self.percept.position if rid == self.robot.id else self.board.position(rid)
+            if where is not None:
+                positions[rid] = where
+        return positions
+
+    def _member_normals(self, now: float) -> Dict[int, float]:
+        normals = {}
+        for rid in self._members_alive(now):
+            angle = self._contact_normal() if rid == self.robot.id else self.board.contact_normal(rid)
+            if angle is not None:
+                normals[rid] = angle
+        return normals
+
+    def _rotation_since_reference(self, ring: Dict[int, Vec], centre: Vec, now: float) -> Optional[float]:
+        """How far the object turned since transport began.
+
+        Mainly from the contact normals the members see with their IR: a robot on a flat face sees the face
+        turn exactly as the object does. The median rejects robots that slid round a corner. Without two
+        such robots, fall back to how the ring of positions turned about the centroid.
+        """
+        normals = self._member_normals(now)
+        turns = sorted(wrap_angle(a - self.reference_normals[k]) for k, a in normals.items()
+                       if k in self.reference_normals)
+        if len(turns) >= 2:
+            return float(np.median(turns))
+        return ring_rotation(ring, self.reference_ring, centre, self.reference_centre)
+
+    def _estimate_object(self, now: float) -> Tuple[float, float, float]:
+        """C_o and yaw from the live members' shared positions, filtered (constant-velocity Kalman)."""
+        self.filter.predict(max(now - self.estimated_at, 1e-3))
+        self.estimated_at = now
+        ring = self._member_positions(now)
+        if len(ring) >= 3:
+            centre = ring_centroid(np.asarray(list(ring.values())))
+            turned = self._rotation_since_reference(ring, centre, now)
+            yaw = None if turned is None else self.reference_yaw + turned
+            self.filter.update(centre[0], centre[1], yaw, len(ring))
+        return self.filter.pose
+
+    def _barrier_passed(self, now: float) -> bool:
+        live = self._members_alive(now)
+        arrived = self.board.arrivals(self.waypoint, self.phase)
+        return len(arrived & set(live)) >= math.ceil(self.params.barrier_fraction * len(live) - 1e-9)
+
+    def _object_direction(self, centre: Vec) -> Vec:
+        """x_o: from the IR when the object is seen, else toward the estimated centroid."""
+        percept = self.percept
+        return percept.object_vector if percept.object_peak > 0 else c.sub(centre, percept.position)
+
+    # --- push: u_fp = u_t + u_f + u_cp -------------------------------------------------------------------
+    def _on_push(self, now: float) -> None:
+        if self._finish_if_done():
+            return
+        x, y, yaw = self._estimate_object(now)
+        p, centre = self.params, (x, y)
+        tau = self.path[self.waypoint]
+        to_target = c.sub((tau[0], tau[1]), centre)
+        if c.norm(to_target) <= p.position_tolerance_m:
+            self.board.arrive(self.waypoint, "p", self.robot.id)
+        if self._barrier_passed(now):
+            self.phase, self.state = "r", "rotate"
+            self._hold()
+            return
+        if self.robot.id in self.board.arrivals(self.waypoint, "p"):
+            self.effective = False
+            self._hold()
+            return
+        x_o = self._object_direction(centre)
+        self.effective = c.is_effective_pusher(x_o, to_target, math.radians(p.theta_p_deg))
+        held_yaw = self._held_yaw()
+        u = c.add(
+            c.u_t(centre, (tau[0], tau[1]), p.k_t_push, p.position_tolerance_m),
+            c.u_f(self.percept.neighbours, self.formation, p.k_f_push, held_yaw - self.reference_yaw),
+            c.u_cp(x_o, self.effective, p.k_cp_effective, p.k_cp_other),
+        )
+        if p.hold_yaw_while_pushing:
+            # Improvement: a pushed object also turns; correct it on the way instead of only at waypoints.
+            tolerance = math.radians(p.orientation_tolerance_deg)
+            u = c.add(u, c.u_r(self.percept.position, centre, wrap_angle(held_yaw - yaw), p.k_t_push, tolerance))
+        self._drive(u, self._ramp(c.norm(to_target)))
+
+    def _held_yaw(self) -> float:
+        """The yaw the object should keep while pushed toward waypoint k: the one reached at waypoint k-1."""
+        if self.waypoint == 0:
+            return self.initial_yaw
+        return math.radians(self.path[self.waypoint - 1][2])
+
+    def _ramp(self, remaining: float) -> float:
+        radius = self.params.slow_down_radius_m
+        return 1.0 if radius <= 0 else float(np.clip(remaining / radius, 0.3, 1.0))
+
+    # --- rotate: u_fr = u_r + u_f + u_cr ------------------------------------------------------------------
+    def _on_rotate(self, now: float) -> None:
+        if self._finish_if_done():
+            return
+        x, y, yaw = self._estimate_object(now)
+        p, centre = self.params, (x, y)
+        tolerance = math.radians(p.orientation_tolerance_deg)
+        error = wrap_angle(math.radians(self.path[self.waypoint][2]) - yaw)
+        if abs(error) <= tolerance:
+            self.board.arrive(self.waypoint, "r", self.robot.id)
+        if self._barrier_passed(now):
+            self._next_waypoint()
+            return
+        if self.robot.id in self.board.arrivals(self.waypoint, "r"):
+            self.rotating = False
+            self._hold()
+            return
+        x_o = self._object_direction(centre)
+        term_r = c.u_r(self.percept.position, centre, error, p.k_r, tolerance)
+        self.rotating = c.norm(term_r) > 0
+        u = c.add(term_r,
+                  c.u_f(self.percept.neighbours, self.formation, p.k_f_rotate, yaw - self.reference_yaw),
+                  c.u_cr(x_o, p.k_cr))
+        self._drive(u, self._ramp(abs(error) * c.norm(c.sub(self.percept.position, centre))))
+
+    def _next_waypoint(self) -> None:
+        self.rotating = False
+        self._hold()
+        if self.waypoint + 1 >= len(self.path):
+            self.space.put("done", 1)
+            self.state = "done"
+            return
+        self.waypoint, self.phase, self.state = self.waypoint + 1, "p", "push"
+
+    def _on_done(self, now: float) -> None:
+        self._hold()
+
+    def _members_alive(self, now: float) -> List[int]:
+        return [m for m in self.board.members() if m == self.robot.id or self.board.alive(m, now)]

@@ -1,0 +1,136 @@
+"""Ground-truth metrics for the ``transport`` behaviour (result.json), measured outside the behaviour.
+
+A waypoint counts as reached when the cage's barrier for it completes (push and rotate); errors are then
+measured against the simulator's true object pose, which the robots never see.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+
+from onboard.geometry import wrap
+
+from .metrics import Evaluator, register_evaluator
+
+SPACING_SAMPLE_PERIOD_S = 1.0
+
+
+@register_evaluator("transport")
+class TransportEvaluator(Evaluator):
+    def __init__(self, scenario, world):
+        super().__init__(scenario, world)
+        self.closed_at: Optional[float] = None
+        self.members: List[int] = []
+        self.reached: Dict[int, Dict[str, Any]] = {}
+        self.pushers: Dict[int, List[int]] = {}
+        self.rotators: Dict[int, List[int]] = {}
+        self.spacings: List[float] = []
+        self.next_spacing_sample = 0.0
+        self.last_time = 0.0
+
+    def on_step(self, time_s: float, behaviours: List[Any]) -> None:
+        self.last_time = time_s
+        alive = self.world.alive()
+        if self.closed_at is None:
+            if any("closed" in b.space for b in behaviours):
+                self.closed_at = time_s
+            return
+        members = [i for i, b in enumerate(behaviours) if b.state in ("caged", "settle", "push", "rotate", "done")
+                   and f"member/{i}" in b.space]
+        self.members = members or self.members
+        live = [i for i in self.members if alive[i]]
+        transporting = [i for i in live if behaviours[i].state in ("push", "rotate")]
+        for i in transporting:
+            b = behaviours[i]
+            if b.state == "push":
+                self.pushers.setdefault(b.waypoint, []).append(i) if b.effective else None
+            elif b.rotating:
+                self.rotators.setdefault(b.waypoint, []).append(i)
+        self._count_steps(transporting, behaviours)
+        self._check_waypoints(time_s, live, behaviours)
+        if transporting and time_s >= self.next_spacing_sample:
+            self.next_spacing_sample = time_s + SPACING_SAMPLE_PERIOD_S
+            self.spacings.extend(self._adjacent_distances(live))
+
+    def _count_steps(self, transporting: List[int], behaviours: List[Any]) -> None:
+        # Per waypoint and phase, how many control steps were spent (to average the robot counts).
+        for phase in ("push", "rotate"):
+            waypoints = {behaviours[i].waypoint for i in transporting if behaviours[i].state == phase}
+            for wp in waypoints:
+                key = (phase, wp)
+                self.__dict__.setdefault("_steps", {})
+                self._steps[key] = self._steps.get(key, 0) + 1
+
+    def _check_waypoints(self, time_s: float, live: List[int], behaviours: List[Any]) -> None:
+        if not live:
+            return
+        # Waypoint k is reached once most live members have moved past it (the barrier completed).
+        progress = sorted(behaviours[i].waypoint + (1 if behaviours[i].state == "done" else 0) for i in live)
+        passed = progress[len(progress) // 2]
+        for k in range(passed):
+            if k not in self.reached:
+                self.reached[k] = self._errors_now(k, time_s, live, behaviours)
+
+    def _errors_now(self, k: int, time_s: float, live: List[int], behaviours: List[Any]) -> Dict[str, Any]:
+        truth = self.world.object_pose()
+        target = self.scenario.path[k]
+        estimates = [behaviours[i].filter.pose for i in live if behaviours[i].filter is not None]
+        est_error = float(np.mean([math.hypot(e[0] - truth[0], e[1] - truth[1]) for e in estimates])) \
+            if estimates else None
+        steps = getattr(self, "_steps", {})
+        return {
+            "index": k,
+            "reached_s": round(time_s, 2),
+            "position_error_m": float(math.hypot(truth[0] - target[0], truth[1] - target[1])),
+            "orientation_error_rad": float(abs(wrap(truth[2] - math.radians(target[2])))),
+            "centroid_estimation_error_m": est_error,
+            "effective_pushers": round(len(self.pushers.get(k, [])) / max(1, steps.get(("push", k), 1)), 2),
+            "effective_rotators": round(len(self.rotators.get(k, [])) / max(1, steps.get(("rotate", k), 1)), 2),
+        }
+
+    def _adjacent_distances(self, live: List[int]) -> List[float]:
+        """Distances between neighbours around the cage, in angular order about the true centroid."""
+        if len(live) < 2:
+            return []
+        poses = self.world.robot_poses()[live, :2]
+        centre = self.world.object_pose()[:2]
+        order = np.argsort(np.arctan2(poses[:, 1] - centre[1], poses[:, 0] - centre[0]))
+        ring = poses[order]
+        return np.hypot(*(np.roll(ring, -1, axis=0) - ring).T).tolist()
+
+    def centroid_estimate(self, behaviours: List[Any]) -> np.ndarray:
+        poses = [b.filter.pose[:2] for b in behaviours if getattr(b, "filter", None) is not None]
+        return np.mean(poses, axis=0) if poses else np.array([np.nan, np.nan])
+
+    def result(self) -> Dict[str, Any]:
+        scenario = self.scenario
+        params = scenario.params
+        d_tol = float(params.get("push_tolerance_m", 0.1))
+        yaw_tol = math.radians(float(params.get("orientation_tolerance_deg", 5.72)))
+        caged = self.closed_at is not None
+        out: Dict[str, Any] = {"caged": caged, "time_to_cage_s": self.closed_at, "cage_size": len(self.members)}
+        failures = [] if caged else ["cage did not close"]
+        dead = [f"robot {f.robot} failed at {f.at_s:g} s" for f in scenario.faults if f.at_s <= self.last_time]
+        if scenario.path:
+            waypoints = [self.reached[k] for k in sorted(self.reached)]
+            done = len(waypoints) == len(scenario.path)
+            within = all(w["position_error_m"] <= d_tol and w["orientation_error_rad"] <= yaw_tol for w in waypoints)
+            truth = self.world.object_pose()
+            final = scenario.path[-1]
+            out.update({
+                "completed": bool(caged and done and within),
+                "time_to_complete_s": round(waypoints[-1]["reached_s"] - self.closed_at, 2) if done and caged else None,
+                "waypoints": waypoints,
+                "final_position_error_m": float(math.hypot(truth[0] - final[0], truth[1] - final[1])),
+                "final_orientation_error_rad": float(abs(wrap(truth[2] - math.radians(final[2])))),
+                "cage_spacing_m": {"mean": float(np.mean(self.spacings)) if self.spacings else None,
+                                   "std": float(np.std(self.spacings)) if self.spacings else None},
+            })
+            if caged and not done:
+                failures.append(f"reached {len(waypoints)} of {len(scenario.path)} waypoints")
+            if done and not within:
+                failures.append("a waypoint was passed outside the position/orientation tolerance")
+        out["failures"] = failures + dead
+        return out
