@@ -18,7 +18,7 @@ $(STAMP): $(BIN)/python pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/khepri sim run lab-6-payload --out out/demo
+	$(BIN)/khepri sim run lab-6 --out out/demo --video out/demo/run.gif
 
 test: $(STAMP)
 	$(BIN)/ruff check .

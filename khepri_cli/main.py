@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import argparse
+import importlib
+import os
 import sys
 from typing import List, Optional
 
@@ -12,16 +14,30 @@ from . import sim_commands
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="khepri", description="Swarm behaviours from simulation to KheperaIV robots.")
+    parser.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
+                        help="import MODULE first (e.g. a file wander.py in this folder holding your behaviour)")
     groups = parser.add_subparsers(dest="group", metavar="COMMAND", required=True)
     sim_commands.add_sim(groups)
     sim_commands.add_bench(groups)
     return parser
 
 
+def import_user_modules(names: List[str]) -> None:
+    if not names:
+        return
+    sys.path.insert(0, os.getcwd())
+    for name in names:
+        try:
+            importlib.import_module(name[:-3] if name.endswith(".py") else name)
+        except ImportError as err:
+            raise ConfigError("--import", f"cannot import {name!r}: {err}") from None
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        import_user_modules(args.imports)
         return int(args.func(args) or 0)
     except ConfigError as err:
         print(f"khepri: error: {err}", file=sys.stderr)

@@ -62,9 +62,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.time_limit is not None and args.time_limit <= 0:
         print("khepri: error: --time-limit: must be > 0", file=sys.stderr)
         return 2
-    if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
-        print(f"khepri: error: --video: unsupported file type {args.video.suffix!r} (use .gif or .mp4)",
-              file=sys.stderr)
+    problem = video_problem(args.video) if args.video is not None else None
+    if problem:
+        print(f"khepri: error: --video: {problem}", file=sys.stderr)
         return 2
     sim = Simulation(scenario, seed=args.seed)
     out = args.out or Path("out") / f"{scenario.name}-seed{sim.seed}"
@@ -78,6 +78,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     for name, path in files.items():
         print(f"  {name}: {path}")
     return 0
+
+
+def video_problem(path: Path):
+    """Check the video target before a long run, not after it."""
+    suffix = path.suffix.lower()
+    if suffix not in (".gif", ".mp4"):
+        return f"unsupported file type {path.suffix!r} (use .gif or .mp4)"
+    if suffix == ".mp4":
+        import matplotlib.animation
+
+        if not matplotlib.animation.writers.is_available("ffmpeg"):
+            return "mp4 needs ffmpeg, which is not installed; use a .gif file name"
+    if path.parent.exists() and not path.parent.is_dir():
+        return f"{path.parent} is not a folder"
+    return None
 
 
 def summary_line(result: dict) -> str:
@@ -118,7 +133,14 @@ def cmd_show(args: argparse.Namespace) -> int:
 def cmd_bench_sim(args: argparse.Namespace) -> int:
     from sim_backend.bench import bench_sim
 
-    counts = [int(c) for c in args.robots.split(",") if c.strip()]
+    try:
+        counts = [int(c) for c in args.robots.split(",") if c.strip()]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1 or args.seconds <= 0:
+        print("khepri: error: --robots: give positive robot counts, e.g. 25,50,100 (and --seconds > 0)",
+              file=sys.stderr)
+        return 2
     results = bench_sim(counts, args.seconds, args.behaviour)
     if args.json:
         print(json.dumps({"results": results}, indent=2))

@@ -26,6 +26,7 @@ def write_run(sim: Simulation, result: Dict[str, Any], out_dir: Path, video: Opt
             files["plot"] = out_dir / "trajectory.png"
             plots.plot_trajectory(arrays, files["plot"], title=title)
         if video is not None:
+            video.parent.mkdir(parents=True, exist_ok=True)
             files["video"] = video
             plots.write_video(arrays, video, title=title)
     return files

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from onboard.behaviour import behaviour_names
 from onboard.config import ConfigError
 from sim_backend.scenario import BUILTIN_DIR, builtin_names, load_scenario, parse_scenario
 
@@ -155,7 +156,7 @@ def test_docs_list_every_builtin():
     ({"params": {"barrier_fraction": 0}}, "params.barrier_fraction",
      "params.barrier_fraction: must be > 0 (got 0)"),
     ({"behaviour": "dance"}, "behaviour",
-     "behaviour: unknown behaviour 'dance' (known: aggregate, transport)"),
+     "behaviour: unknown behaviour 'dance' (known: " + ", ".join(behaviour_names()) + ")"),
     ({"object": {"shape": "triangle"}}, "object.shape", "object.shape: must be one of box, circle, polygon, "
      "compound, cloud, box_rotation, clover (got 'triangle')"),
     ({"object": {"shape": "box"}}, "object.size", "object.size: a box needs size: [width, height] in metres"),

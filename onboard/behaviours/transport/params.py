@@ -52,6 +52,8 @@ class TransportParams:
     position_tolerance_m: float = 0.03       # arrival tolerance used instead of d_tol = 0.1 m
     slow_down_radius_m: float = 0.25         # scale speed down within this distance of a waypoint
     hold_yaw_while_pushing: bool = True      # add u_r (gain K_t) while pushing when the object has turned
+    keep_contact: bool = True                # while pushing, a robot that lost the object returns to it first
+    soft_side_contact: bool = True           # scale u_cp by cos(angle(x_o, tau_p)) (min 0.25) while pushing
 
     def validate(self, where: str) -> None:
         if self.profile not in PROFILES:
@@ -63,6 +65,8 @@ class TransportParams:
             self.position_tolerance_m = self.push_tolerance_m
             self.slow_down_radius_m = 0.0
             self.hold_yaw_while_pushing = False
+            self.soft_side_contact = False
+            self.keep_contact = False
         self._check(where)
 
     def _check(self, where: str) -> None:

@@ -19,6 +19,7 @@ from .tasks import BRANCH_DIRECTION
 OUT_OF_ROBOTS_FACTOR = 3.0    # a target nobody took for 3 T_a means the swarm has no robot left for it
 CONTACT_GAIN = 0.3            # gentle push toward the object while holding a cage position
 SPACING_GAIN = 4.0
+LOST_CONTACT_READING = 0.3    # below this IR reading (~8 cm) a cage robot has lost touch with the object
 
 
 class TransportPhases:
@@ -219,16 +220,27 @@ class TransportPhases:
         x_o = self._object_direction(centre)
         self.effective = c.is_effective_pusher(x_o, to_target, math.radians(p.theta_p_deg))
         held_yaw = self._held_yaw()
-        u = c.add(
-            c.u_t(centre, (tau[0], tau[1]), p.k_t_push, p.position_tolerance_m),
-            c.u_f(self.percept.neighbours, self.formation, p.k_f_push, held_yaw - self.reference_yaw),
-            c.u_cp(x_o, self.effective, p.k_cp_effective, p.k_cp_other),
-        )
+        term_t = c.u_t(centre, (tau[0], tau[1]), p.k_t_push, p.position_tolerance_m)
+        if p.keep_contact and not self.percept.in_contact(LOST_CONTACT_READING):
+            # Improvement: a robot that lost the object goes back to it instead of running on toward the
+            # target; a cage that outruns its object would also fool the centroid estimate.
+            term_t = c.ZERO
+        term_cp = c.u_cp(x_o, self.effective, p.k_cp_effective, p.k_cp_other)
+        if p.soft_side_contact:
+            term_cp = c.scale(term_cp, self._side_factor(x_o, to_target))
+        u = c.add(term_t, c.u_f(self.percept.neighbours, self.formation, p.k_f_push, held_yaw - self.reference_yaw),
+                  term_cp)
         if p.hold_yaw_while_pushing:
             # Improvement: a pushed object also turns; correct it on the way instead of only at waypoints.
             tolerance = math.radians(p.orientation_tolerance_deg)
             u = c.add(u, c.u_r(self.percept.position, centre, wrap_angle(held_yaw - yaw), p.k_t_push, tolerance))
         self._drive(u, self._ramp(c.norm(to_target)))
+
+    @staticmethod
+    def _side_factor(x_o: Vec, to_target: Vec) -> float:
+        """Improvement: robots beside the object (x_o across the direction of travel) press less hard, so
+        that two of them at different heights do not squeeze the object into a spin."""
+        return max(0.25, math.cos(c.angle_between(x_o, to_target)))
 
     def _held_yaw(self) -> float:
         """The yaw the object should keep while pushed toward waypoint k: the one reached at waypoint k-1."""
