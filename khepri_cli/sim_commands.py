@@ -77,6 +77,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(summary_line(result))
     for name, path in files.items():
         print(f"  {name}: {path}")
+    if "error" in result:
+        print(f"khepri: error: the run crashed: {result['error']}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -157,13 +157,18 @@ class Simulation:
         started = time.perf_counter()
         steps = int(math.ceil(limit / self.period - 1e-9))
         self.stop_reason = "time limit"
-        for _ in range(steps):
-            self.step()
-            if progress is not None and self.step_index % 10 == 0:
-                progress(self.step_index * self.period, limit)
-            if self.done():
-                self.stop_reason = "behaviour finished"
-                break
+        error = None
+        try:
+            for _ in range(steps):
+                self.step()
+                if progress is not None and self.step_index % 10 == 0:
+                    progress(self.step_index * self.period, limit)
+                if self.done():
+                    self.stop_reason = "behaviour finished"
+                    break
+        except Exception as exc:  # a crashed run is recorded, not lost: results up to here are kept
+            error = f"{type(exc).__name__}: {exc} (at t = {self.step_index * self.period:.1f} s)"
+            self.stop_reason = "crashed"
         for behaviour in self.behaviours:
             behaviour.stop()
         wall = time.perf_counter() - started
@@ -179,7 +184,12 @@ class Simulation:
             "stop_reason": self.stop_reason,
             "radio": self.radio.stats(),
         }
-        result.update(self.evaluator.result())
+        try:
+            result.update(self.evaluator.result())
+        except Exception as exc:
+            error = error or f"evaluation failed: {type(exc).__name__}: {exc}"
+        if error:
+            result["error"] = error
         return result
 
     def trajectory_arrays(self) -> Dict[str, np.ndarray]:

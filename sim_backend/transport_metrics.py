@@ -64,12 +64,12 @@ class TransportEvaluator(Evaluator):
                 self._steps[key] = self._steps.get(key, 0) + 1
 
     def _check_waypoints(self, time_s: float, live: List[int], behaviours: List[Any]) -> None:
-        if not live:
+        if not live or not self.scenario.path:
             return
         # Waypoint k is reached once most live members have moved past it (the barrier completed).
         progress = sorted(behaviours[i].waypoint + (1 if behaviours[i].state == "done" else 0) for i in live)
         passed = progress[len(progress) // 2]
-        for k in range(passed):
+        for k in range(min(passed, len(self.scenario.path))):
             if k not in self.reached:
                 self.reached[k] = self._errors_now(k, time_s, live, behaviours)
 

@@ -24,7 +24,6 @@ from .transport import TransportPhases
 
 SETTLE_STEPS = 10          # a caging robot must hold its place this many steps to count as settled
 ATTACH_RADIUS_M = 0.25     # switch from travelling to attaching this close to the target
-GROW_PERIOD_S = 1.0        # out of robots: I_d grows one level per second
 
 
 @register("transport")
@@ -133,12 +132,29 @@ class Transport(TransportPhases, Behaviour):
                 self.state = "done"
             self._keep_clear()
             return
-        task = self._nearest_open_task()
-        if task is None:
-            self._keep_clear()
-            return
-        self._bid(task, now)
+        if not self._take_won_task(now):
+            task = self._nearest_open_task()
+            if task is not None:
+                self._bid(task, now)
         self._keep_clear()
+
+    def _take_won_task(self, now: float) -> bool:
+        """After T_a with a valid bid stored, the robot whose id is stored takes the task -- whichever open
+        task that is, even if another one is nearer now."""
+        for task in self.board.tasks():
+            if not self.board.is_open(task):
+                continue
+            best = self.board.best_bid(task)
+            key = f"{task.tid}/{task.epoch}"
+            if best is not None:
+                self.bid_seen.setdefault(key, now)
+            won = best is not None and best.get("robot") == self.robot.id
+            if won and now - self.bid_seen[key] >= self.params.allocation_time_s:
+                self.board.take(task, self.robot.id, float(best["bid"]))
+                self.task = task
+                self.state = "seed" if task.branch == "S" else "travel"
+                return True
+        return False
 
     def _keep_clear(self) -> None:
         u = c.add(self._avoid(), c.scale(self.percept.obstacle_vector, -1.0))
@@ -163,13 +179,6 @@ class Transport(TransportPhases, Behaviour):
             self.board.bid(task, self.robot.id, mine)
             self.last_bid[key] = now
             self.bid_seen.setdefault(key, now)
-            return
-        # After T_a with a valid bid stored, the robot whose id is stored takes the task.
-        won = best is not None and best.get("robot") == self.robot.id
-        if won and now - self.bid_seen.get(key, now) >= self.params.allocation_time_s:
-            self.board.take(task, self.robot.id, float(best["bid"]))
-            self.task = task
-            self.state = "seed" if task.branch == "S" else "travel"
 
     def _still_mine(self) -> bool:
         task = self.board.task(self.task.tid) if self.task else None
@@ -299,8 +308,10 @@ class Transport(TransportPhases, Behaviour):
         """Improvement: open the successor's target as soon as this robot is near its own."""
         if not self.params.pipeline_allocation or self.task.branch == "S" or self.spawned is not None:
             return
-        pred = self.board.position(self.task.pred) if self.task.pred is not None else None
-        heading = c.unit(c.sub(self.task.position, pred)) if pred else self._tangent(self.task.branch)
+        # Continue round the object, not straight on: step along the tangent of the circle about the
+        # estimated centre through this robot's own target (bends round corners of convex objects).
+        radial = c.unit(c.sub(self.task.position, self._centre_guess()))
+        heading = c.scale(c.perp(radial), BRANCH_DIRECTION[self.task.branch])
         target = c.add(self.task.position, c.scale(heading, self._spacing()))
         tid = task_id(self.task.branch, self.task.index + 1)
         existing = self.board.task(tid)
@@ -325,15 +336,23 @@ class Transport(TransportPhases, Behaviour):
         return distance(closest, centre) < 0.5 * min(distance(me, centre), distance(tip, centre))
 
     def _opposite_tip(self) -> Optional[int]:
-        """The last robot on the other branch (not the seed: it belongs to both)."""
+        """The last robot of the other branch's unbroken chain from the seed (the seed belongs to both)."""
         other = "R" if self.task.branch == "L" else "L"
-        tips = [(v.get("index", 0), rid) for rid, v in self.board.members().items() if v.get("branch") == other]
-        return max(tips)[1] if tips else None
+        return self._chain_tip(other)
+
+    def _chain_tip(self, branch: str) -> Optional[int]:
+        slots = {v.get("index"): rid for rid, v in self.board.members().items() if v.get("branch") == branch}
+        index, tip = 1, None
+        while index in slots:
+            tip, index = slots[index], index + 1
+        return tip
 
     def _try_close(self) -> bool:
         """Proposition 1: the cage is closed when the two branch tips are within d_T."""
         if self.task is None or self.task.branch == "S" or "closed" in self.space:
             return "closed" in self.space
+        if self._chain_tip(self.task.branch) != self.robot.id:
+            return False   # only the tip of an unbroken branch may close the ring
         tip = self._opposite_tip()
         if tip is None:
             return False

@@ -2,8 +2,9 @@
 
 The robots never see the object's true pose. Once the cage is closed they sit around the object at a
 roughly constant offset, so the area centroid of the polygon through their positions approximates the
-object's centroid (exactly, for symmetric objects and even spacing), and the mean angular displacement of
-the members around that centroid since the cage closed approximates how much the object turned.
+object's centroid (exactly, for symmetric objects and even spacing). How far the object turned comes
+mainly from the members' IR contact normals (transport.py); the ring's angular displacement about the
+centroid (ring_rotation) is the fallback.
 A constant-velocity Kalman filter (filterpy) smooths both: measurement noise comes from the positioning
 noise, process noise from how fast a pushed object can plausibly accelerate.
 """

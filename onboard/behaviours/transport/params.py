@@ -23,7 +23,7 @@ class TransportParams:
     k_t_caging: float = 30.0                 # K_t (caging): gain toward the caging target
     proximity_threshold: float = 0.7         # Prox. thres.: IR reading that means contact (~5 cm)
     # --- Pushing (Table 1, middle) ---
-    theta_p_deg: float = 115.0               # θ_p: a robot pushes when angle(x_o, τ_p) >= θ_p
+    theta_p_deg: float = 115.0               # θ_p: effective pusher when angle(x_o, τ_p) < θ_p (see docs)
     k_cp_effective: float = 40.0             # K_cp while the robot is an effective pusher (< θ_p branch)
     k_cp_other: float = 20.0                 # K_cp otherwise (>= θ_p branch)
     push_tolerance_m: float = 0.1            # d_tol (pushing): a waypoint's position is reached within this
@@ -47,7 +47,7 @@ class TransportParams:
     # --- Our improvements over the paper; profile "faithful" turns every one of them off ---
     profile: str = "improved"
     pipeline_allocation: bool = True         # open the next branch target while the previous robot travels
-    equalise_spacing: bool = True            # cage members even out their spacing before and during transport
+    equalise_spacing: bool = True            # cage members even out their spacing after closure (settle)
     settle_time_s: float = 10.0              # after closure, time to even out spacing before pushing
     position_tolerance_m: float = 0.03       # arrival tolerance used instead of d_tol = 0.1 m
     slow_down_radius_m: float = 0.25         # scale speed down within this distance of a waypoint

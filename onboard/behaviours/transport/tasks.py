@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 from ...stigmergy import TupleSpace, lowest_field
 
@@ -87,8 +87,22 @@ class TaskBoard:
         return not task.cancelled and self.owner(task) is None
 
     def best_bid(self, task: Task) -> Optional[dict]:
+        """The lowest valid bid: a bid by a robot that meanwhile took another task or joined the cage is
+        void (it will never take this one), so the task is not lost."""
         value = self.space.get(f"bid/{task.tid}/{task.epoch}")
-        return value if isinstance(value, dict) and "bid" in value else None
+        if not isinstance(value, dict) or "bid" not in value:
+            return None
+        return None if self.busy(value.get("robot"), task.tid) else value
+
+    def busy(self, robot: Any, except_tid: str = "") -> bool:
+        if f"member/{robot}" in self.space:
+            return True
+        for key, value in self.space.items("owner/"):
+            if key != f"owner/{except_tid}" and isinstance(value, dict) and value.get("robot") == robot:
+                task = self.task(key[len("owner/"):])
+                if task is not None and not task.cancelled and task.epoch == value.get("epoch"):
+                    return True
+        return False
 
     def bid(self, task: Task, robot: int, amount: float) -> None:
         self.space.put(f"bid/{task.tid}/{task.epoch}", {"robot": robot, "bid": round(amount, 4)})

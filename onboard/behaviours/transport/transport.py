@@ -16,6 +16,7 @@ from .control import Vec
 from .estimator import ObjectFilter, ring_centroid, ring_rotation
 from .tasks import BRANCH_DIRECTION
 
+GROW_PERIOD_S = 1.0           # out of robots: I_d grows one level (2 %) per second
 OUT_OF_ROBOTS_FACTOR = 3.0    # a target nobody took for 3 T_a means the swarm has no robot left for it
 CONTACT_GAIN = 0.3            # gentle push toward the object while holding a cage position
 SPACING_GAIN = 4.0
@@ -115,7 +116,7 @@ class TransportPhases:
                 continue
             opened = self.spawned_times.get((task.tid, task.epoch), now)
             waiting = now - opened > OUT_OF_ROBOTS_FACTOR * self.params.allocation_time_s
-            if waiting and self.board.best_bid(task) is None and now - self.grow_at >= 1.0:
+            if waiting and self.board.best_bid(task) is None and now - self.grow_at >= GROW_PERIOD_S:
                 self.space.put("grow", {"level": self.board.grow_level() + 1})
                 self.grow_at = now
 

@@ -1,0 +1,128 @@
+"""The transport behaviour: what works today, and the rule that robots never see the object's true pose."""
+import math
+
+import numpy as np
+import pytest
+
+from onboard.behaviour import build_params, get_behaviour
+from onboard.behaviours.transport import control as c
+from onboard.behaviours.transport.estimator import ring_centroid, ring_rotation
+from onboard.config import ConfigError
+from sim_backend.runner import Simulation
+from sim_backend.scenario import load_scenario
+
+
+@pytest.fixture(scope="module")
+def lab6_run():
+    sim = Simulation(load_scenario("lab-6"), seed=1)
+    result = sim.run()
+    return sim, result
+
+
+def test_lab6_cages_the_box_and_brings_it_to_the_last_waypoint(lab6_run):
+    _, result = lab6_run
+    assert result["caged"]
+    assert result["cage_size"] >= 4
+    assert [w["index"] for w in result["waypoints"]] == [0, 1, 2]
+    # The paper's d_tol (0.1 m). Issue #3 asks for 0.05 m on every seed: not met yet (see docs/behaviour.md).
+    assert result["final_position_error_m"] <= 0.1
+    assert result["cage_spacing_m"]["std"] <= 0.05
+    for waypoint in result["waypoints"]:
+        assert waypoint["centroid_estimation_error_m"] <= 0.05
+
+
+def test_no_task_is_given_twice(lab6_run):
+    sim, _ = lab6_run
+    space = sim.behaviours[0].space
+    owners = {}
+    for key, value in space.items("owner/"):
+        tid = key[len("owner/"):]
+        task = space.get(f"task/{tid}")
+        if task and not task["cancelled"] and task["epoch"] == value["epoch"]:
+            owners[tid] = value["robot"]
+    members = {int(k[len("member/"):]): v["tid"] for k, v in space.items("member/")}
+    assert len(set(members.values())) == len(members)                 # one robot per cage slot
+    for robot, tid in members.items():
+        assert owners[tid] == robot
+
+
+def reachable_types(root, depth=4):
+    seen, found, stack = set(), set(), [(root, 0)]
+    while stack:
+        obj, level = stack.pop()
+        if id(obj) in seen or level > depth:
+            continue
+        seen.add(id(obj))
+        found.add(type(obj).__module__.split(".")[0])
+        children = vars(obj).values() if hasattr(obj, "__dict__") else []
+        if isinstance(obj, (list, tuple)):
+            children = obj
+        stack.extend((child, level + 1) for child in children)
+    return found
+
+
+def test_a_robot_hal_holds_no_reference_to_the_world_or_physics():
+    sim = Simulation(load_scenario("lab-6"), seed=1)
+    modules = reachable_types(sim.robots[0])
+    assert "pymunk" not in modules
+    assert not any(isinstance(v, type(sim.world)) for v in vars(sim.robots[0]).values())
+    assert sim.world not in [getattr(d, "frame", None) for d in vars(sim.robots[0]).values()]
+
+
+def test_moving_the_true_object_changes_nothing_until_a_sensor_sees_it():
+    """Teleport the object 3 m away before any robot is near it: every robot does exactly the same."""
+    runs = []
+    for teleport in (False, True):
+        sim = Simulation(load_scenario("lab-6"), seed=1)
+        for _ in range(20):
+            sim.step()
+        if teleport:
+            sim.world.object_body.position = (3.0, 3.0)
+            sim.world.space.reindex_shapes_for_body(sim.world.object_body)
+        for _ in range(40):
+            sim.step()
+        assert sim.frame.proximity.max() < 0.1     # nobody's IR has seen anything yet
+        runs.append((sim.world.robot_poses(), [b.state for b in sim.behaviours], sim.behaviours[0].space.items()))
+    assert np.array_equal(runs[0][0], runs[1][0])
+    assert runs[0][1] == runs[1][1]
+    assert runs[0][2] == runs[1][2]
+
+
+def test_profiles_and_bad_parameters():
+    cls = get_behaviour("transport")
+    faithful = build_params(cls, {"profile": "faithful"})
+    assert not faithful.pipeline_allocation and not faithful.equalise_spacing
+    assert faithful.position_tolerance_m == faithful.push_tolerance_m == 0.1
+    improved = build_params(cls, {})
+    assert improved.inter_robot_distance_m == 0.45 and improved.theta_p_deg == 115.0
+    with pytest.raises(ConfigError, match=r"^params.profile: must be one of improved, faithful"):
+        build_params(cls, {"profile": "fast"})
+    with pytest.raises(ConfigError, match=r"^params.barrier_fraction: must be <= 1"):
+        build_params(cls, {"barrier_fraction": 1.5})
+
+
+def test_control_terms_follow_the_paper():
+    assert c.u_t((0.0, 0.0), (0.05, 0.0), 60.0, 0.1) == c.ZERO             # within d_tol: no push
+    assert c.u_t((0.0, 0.0), (1.0, 0.0), 60.0, 0.1) == pytest.approx((60.0, 0.0))
+    behind = (1.0, 0.0)                                                     # object ahead, target ahead
+    assert c.is_effective_pusher(behind, (1.0, 0.0), math.radians(115))
+    assert not c.is_effective_pusher((-1.0, 0.0), (1.0, 0.0), math.radians(115))
+    assert c.u_cp(behind, True, 40, 20) == pytest.approx((40.0, 0.0))
+    assert c.u_cp(behind, False, 40, 20) == pytest.approx((20.0, 0.0))
+    # u_r is tangential (perpendicular to the radius) and signed by the yaw error.
+    assert c.u_r((1.0, 0.0), (0.0, 0.0), 0.5, 600, 0.1) == pytest.approx((0.0, 600.0))
+    assert c.u_r((1.0, 0.0), (0.0, 0.0), 0.05, 600, 0.1) == c.ZERO
+    # Edge following at I_d: no radial term, pure orbit; too far: pulled in.
+    orbit = c.u_edge_follow((0.45, 0.0), 0.45, +1)
+    assert orbit[0] == pytest.approx(0.0) and orbit[1] != 0.0
+    assert c.u_edge_follow((0.9, 0.0), 0.45, +1)[0] > 0
+    # Formation: a neighbour that drifted away is pulled back.
+    assert c.u_f({1: (0.6, 0.0)}, {1: (0.45, 0.0)}, 40.0)[0] > 0
+
+
+def test_centroid_and_rotation_from_the_cage_ring():
+    square = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0], [0.7, 0.7]]) + (2.0, 3.0)
+    assert ring_centroid(square) == pytest.approx((2.0, 3.0), abs=0.1)
+    reference = {i: (math.cos(a), math.sin(a)) for i, a in enumerate((0.0, 1.5, 3.0, 4.5))}
+    turned = {i: (math.cos(a + 0.3), math.sin(a + 0.3)) for i, a in enumerate((0.0, 1.5, 3.0, 4.5))}
+    assert ring_rotation(turned, reference, (0, 0), (0, 0)) == pytest.approx(0.3)
