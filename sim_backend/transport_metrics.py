@@ -27,6 +27,7 @@ class TransportEvaluator(Evaluator):
         self.pushers: Dict[int, List[int]] = {}
         self.rotators: Dict[int, List[int]] = {}
         self.spacings: List[float] = []
+        self.phase_steps: Dict[tuple, int] = {}      # (phase, waypoint) -> control steps spent in it
         self.next_spacing_sample = 0.0
         self.last_time = 0.0
 
@@ -44,9 +45,9 @@ class TransportEvaluator(Evaluator):
         transporting = [i for i in live if behaviours[i].state in ("push", "rotate")]
         for i in transporting:
             b = behaviours[i]
-            if b.state == "push":
-                self.pushers.setdefault(b.waypoint, []).append(i) if b.effective else None
-            elif b.rotating:
+            if b.state == "push" and b.effective:
+                self.pushers.setdefault(b.waypoint, []).append(i)
+            elif b.state == "rotate" and b.rotating:
                 self.rotators.setdefault(b.waypoint, []).append(i)
         self._count_steps(transporting, behaviours)
         self._check_waypoints(time_s, live, behaviours)
@@ -59,9 +60,7 @@ class TransportEvaluator(Evaluator):
         for phase in ("push", "rotate"):
             waypoints = {behaviours[i].waypoint for i in transporting if behaviours[i].state == phase}
             for wp in waypoints:
-                key = (phase, wp)
-                self.__dict__.setdefault("_steps", {})
-                self._steps[key] = self._steps.get(key, 0) + 1
+                self.phase_steps[(phase, wp)] = self.phase_steps.get((phase, wp), 0) + 1
 
     def _check_waypoints(self, time_s: float, live: List[int], behaviours: List[Any]) -> None:
         if not live or not self.scenario.path:
@@ -79,7 +78,7 @@ class TransportEvaluator(Evaluator):
         estimates = [behaviours[i].filter.pose for i in live if behaviours[i].filter is not None]
         est_error = float(np.mean([math.hypot(e[0] - truth[0], e[1] - truth[1]) for e in estimates])) \
             if estimates else None
-        steps = getattr(self, "_steps", {})
+        steps = self.phase_steps
         return {
             "index": k,
             "reached_s": round(time_s, 2),

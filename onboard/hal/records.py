@@ -6,7 +6,7 @@ The world frame is the motion-capture frame, z up, yaw measured from the world x
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Dict, Tuple
 
 PROXIMITY_SENSOR_COUNT = 8
@@ -89,7 +89,6 @@ class RobotSpec:
     wheel_base_m: float = 0.1054       # distance between the wheels
     max_wheel_speed_m_s: float = 0.81  # K-Team spec top speed; scenarios may lower it
     proximity_range_m: float = 0.12    # beyond this the IR reading is 0
-    extra: Dict[str, Any] = field(default_factory=dict)
 
 
 def wrap_angle(angle: float) -> float:

@@ -293,9 +293,13 @@ class Transport(TransportPhases, Behaviour):
         # Counter-clockwise around the object is perp(-normal); the left branch grows that way.
         return c.scale(c.perp(normal), -BRANCH_DIRECTION[branch])
 
-    def _spawn(self, branch: str, index: int, now: float, origin: Optional[Vec] = None) -> None:
-        origin = origin or self.percept.position
-        target = c.add(origin, c.scale(self._tangent(branch), self._spacing()))
+    def _spawn(self, branch: str, index: int, now: float) -> None:
+        """Open the next target of ``branch``: I_d along the object's tangent from here."""
+        target = c.add(self.percept.position, c.scale(self._tangent(branch), self._spacing()))
+        self._open_task(branch, index, target, now)
+
+    def _open_task(self, branch: str, index: int, target: Vec, now: float) -> None:
+        """Put a caging target (a new epoch if the slot existed before) with this robot as predecessor."""
         tid = task_id(branch, index)
         existing = self.board.task(tid)
         epoch = existing.epoch + 1 if existing is not None else 0
@@ -313,13 +317,7 @@ class Transport(TransportPhases, Behaviour):
         radial = c.unit(c.sub(self.task.position, self._centre_guess()))
         heading = c.scale(c.perp(radial), BRANCH_DIRECTION[self.task.branch])
         target = c.add(self.task.position, c.scale(heading, self._spacing()))
-        tid = task_id(self.task.branch, self.task.index + 1)
-        existing = self.board.task(tid)
-        epoch = existing.epoch + 1 if existing is not None else 0
-        self.board.put_task(Task(tid, target[0], target[1], self.task.branch, self.task.index + 1,
-                                 self.robot.id, epoch))
-        self.spawned = tid
-        self.spawned_times[(tid, epoch)] = now
+        self._open_task(self.task.branch, self.task.index + 1, target, now)
 
     def _gap_crosses_object(self, to_tip: Vec) -> bool:
         """Deviation from the paper: two tips facing each other *across* a small object are close too, but
