@@ -116,6 +116,13 @@ class Transport(TransportPhases, Behaviour):
         vectors = [v for j, v in self.percept.neighbours.items() if not exclude or j not in exclude]
         return c.u_avoid(vectors, p.safety_distance_m, 2.0)
 
+    def _caging_only_done(self) -> bool:
+        """Without a path (a caging-only run) a closed cage is the end of the job."""
+        if not self.params.path:
+            self.state = "done"
+            return True
+        return False
+
     def _finish_if_done(self) -> bool:
         if "done" in self.space:
             self.state = "done"
@@ -128,8 +135,7 @@ class Transport(TransportPhases, Behaviour):
         if self._finish_if_done():
             return
         if "closed" in self.space:
-            if not self.params.path:
-                self.state = "done"
+            self._caging_only_done()
             self._keep_clear()
             return
         if not self._take_won_task(now):

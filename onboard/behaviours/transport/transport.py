@@ -29,8 +29,7 @@ class TransportPhases:
         if self._finish_if_done():
             return
         if "closed" in self.space:
-            if not self.params.path:
-                self.state = "done"
+            if self._caging_only_done():
                 self._hold()
                 return
             self.closed_at = now
@@ -208,15 +207,7 @@ class TransportPhases:
         p, centre = self.params, (x, y)
         tau = self.path[self.waypoint]
         to_target = c.sub((tau[0], tau[1]), centre)
-        if c.norm(to_target) <= p.position_tolerance_m:
-            self.board.arrive(self.waypoint, "p", self.robot.id)
-        if self._barrier_passed(now):
-            self.phase, self.state = "r", "rotate"
-            self._hold()
-            return
-        if self.robot.id in self.board.arrivals(self.waypoint, "p"):
-            self.effective = False
-            self._hold()
+        if self._waypoint_gate(now, c.norm(to_target) <= p.position_tolerance_m):
             return
         x_o = self._object_direction(centre)
         self.effective = c.is_effective_pusher(x_o, to_target, math.radians(p.theta_p_deg))
@@ -261,14 +252,7 @@ class TransportPhases:
         p, centre = self.params, (x, y)
         tolerance = math.radians(p.orientation_tolerance_deg)
         error = wrap_angle(math.radians(self.path[self.waypoint][2]) - yaw)
-        if abs(error) <= tolerance:
-            self.board.arrive(self.waypoint, "r", self.robot.id)
-        if self._barrier_passed(now):
-            self._next_waypoint()
-            return
-        if self.robot.id in self.board.arrivals(self.waypoint, "r"):
-            self.rotating = False
-            self._hold()
+        if self._waypoint_gate(now, abs(error) <= tolerance):
             return
         x_o = self._object_direction(centre)
         term_r = c.u_r(self.percept.position, centre, error, p.k_r, tolerance)
@@ -278,9 +262,26 @@ class TransportPhases:
                   c.u_cr(x_o, p.k_cr))
         self._drive(u, self._ramp(abs(error) * c.norm(c.sub(self.percept.position, centre))))
 
+    def _waypoint_gate(self, now: float, within: bool) -> bool:
+        """The barrier of the current waypoint and phase: flag arrival, move on once enough live members
+        arrived, and hold still meanwhile. True when this robot must not drive this step."""
+        if within:
+            self.board.arrive(self.waypoint, self.phase, self.robot.id)
+        if self._barrier_passed(now):
+            self._hold()
+            if self.phase == "p":
+                self.phase, self.state = "r", "rotate"
+            else:
+                self._next_waypoint()
+            return True
+        if self.robot.id in self.board.arrivals(self.waypoint, self.phase):
+            self.effective = self.rotating = False
+            self._hold()
+            return True
+        return False
+
     def _next_waypoint(self) -> None:
         self.rotating = False
-        self._hold()
         if self.waypoint + 1 >= len(self.path):
             self.space.put("done", 1)
             self.state = "done"
