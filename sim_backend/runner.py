@@ -86,7 +86,6 @@ class Simulation:
         frame.ranges = np.maximum(true_ranges + self.rng_sensors.normal(0.0, comm.range_noise_m, (n, n)), 0.0)
         frame.bearings = wrap(true_bearings + self.rng_sensors.normal(0.0, comm.bearing_noise_rad, (n, n)))
         frame.neighbour_ids = [np.nonzero(row)[0] for row in mask]
-        self.mask = mask
         distances = self.ir.distances(poses[:, :2], poses[:, 2], true_ranges, np.ones(n, dtype=bool),
                                       self.world.obstacle_groups())
         readings = ir_response(distances) + self.rng_sensors.normal(0.0, sensors.proximity_noise, (n, 8))
@@ -129,7 +128,7 @@ class Simulation:
         for i, robot in enumerate(self.robots):
             outbox = robot.radio.outbox
             if outbox:
-                receivers = np.nonzero(self.mask[i])[0]
+                receivers = self.frame.neighbour_ids[i]   # radio reaches exactly the robots in d_C
                 for payload in outbox:
                     self.radio.send(self.step_index, i, payload, t, receivers)
                 outbox.clear()
