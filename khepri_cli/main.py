@@ -9,7 +9,7 @@ from typing import List, Optional
 
 from onboard.config import ConfigError
 
-from . import sim_commands
+from . import lab_commands, log_commands, sim_commands, study_commands
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -18,7 +18,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="import MODULE first (e.g. a file wander.py in this folder holding your behaviour)")
     groups = parser.add_subparsers(dest="group", metavar="COMMAND", required=True)
     sim_commands.add_sim(groups)
-    sim_commands.add_bench(groups)
+    bench_commands = sim_commands.add_bench(groups)
+    lab_commands.add_bench_hub(bench_commands)
+    lab_commands.add_lab(groups)
+    log_commands.add_log(groups)
+    study_commands.add_study(groups)
     return parser
 
 

@@ -40,7 +40,7 @@ def seed_value(text: str) -> int:
     return value
 
 
-def add_bench(groups) -> None:
+def add_bench(groups):
     bench = groups.add_parser("bench", help="measure speed", description="Benchmarks that print numbers.")
     commands = bench.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
     sim = commands.add_parser("sim", help="simulator steps/s and real-time factor",
@@ -51,6 +51,7 @@ def add_bench(groups) -> None:
     sim.add_argument("--behaviour", default="transport", help="behaviour to run (default transport)")
     sim.add_argument("--json", action="store_true", help="print JSON instead of a table")
     sim.set_defaults(func=cmd_bench_sim)
+    return commands
 
 
 def cmd_run(args: argparse.Namespace) -> int:
