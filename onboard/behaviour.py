@@ -59,6 +59,13 @@ class Behaviour:
         return {"state": self.state}
 
 
+def telemetry_of(behaviour: Behaviour) -> Dict[str, Any]:
+    """The behaviour's telemetry plus ``finished``: what a robot reports each step (sim runner and agent)."""
+    data = dict(behaviour.telemetry())
+    data["finished"] = bool(behaviour.finished)
+    return data
+
+
 _REGISTRY: Dict[str, Type[Behaviour]] = {}
 
 

@@ -1,11 +1,12 @@
 """Ground-truth evaluation of a run, outside the behaviour: one evaluator per behaviour name.
 
-Evaluators see the world (true poses) and the behaviour objects (for what the robots *believe*); the
-behaviours never see the evaluators. Each returns the behaviour-specific part of result.json.
+Evaluators see the world (true poses) and each robot's telemetry (what the robots *believe*, the same dict a
+real robot sends its hub, so the software-in-the-loop run evaluates identically); the behaviours never see
+the evaluators. Each returns the behaviour-specific part of result.json.
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Dict, List, Type
+from typing import Any, Callable, Dict, List, Optional, Type
 
 import numpy as np
 
@@ -17,10 +18,10 @@ class Evaluator:
         self.scenario = scenario
         self.world = world
 
-    def on_step(self, time_s: float, behaviours: List[Any]) -> None:
-        pass
+    def on_step(self, time_s: float, telemetry: List[Optional[Dict[str, Any]]]) -> None:
+        """``telemetry[i]`` is robot i's latest telemetry (``onboard.behaviour.telemetry_of``), None if dead."""
 
-    def centroid_estimate(self, behaviours: List[Any]) -> np.ndarray:
+    def centroid_estimate(self, telemetry: List[Optional[Dict[str, Any]]]) -> np.ndarray:
         """The swarm's mean belief of the object centroid (NaN when nobody has one); for the trajectory file."""
         return np.array([np.nan, np.nan])
 

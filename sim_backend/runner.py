@@ -12,7 +12,7 @@ from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
 
-from onboard.behaviour import build_params, get_behaviour
+from onboard.behaviour import build_params, get_behaviour, telemetry_of
 from onboard.geometry import neighbour_mask, pairwise_range_bearing, wrap
 from onboard.hal import Pose
 
@@ -74,6 +74,7 @@ class Simulation:
         self.pose_history: List[np.ndarray] = []
         self.recording = Recording()
         self.step_index = 0
+        self.telemetry: List[Optional[Dict[str, Any]]] = [None] * self.count
         self.stop_reason = ""
 
     # --- sensing --------------------------------------------------------------------------------------
@@ -132,7 +133,8 @@ class Simulation:
                 for payload in outbox:
                     self.radio.send(self.step_index, i, payload, t, receivers)
                 outbox.clear()
-        self.evaluator.on_step(t, self.behaviours)
+        self.telemetry = [telemetry_of(b) if alive[i] else None for i, b in enumerate(self.behaviours)]
+        self.evaluator.on_step(t, self.telemetry)
         self._record(t, poses, alive)
         self.world.step(self.substeps)
         self.step_index += 1
@@ -145,7 +147,7 @@ class Simulation:
         obj = self.world.object_pose()
         if obj is not None:
             rec.object_pose.append(obj)
-        rec.centroid_estimate.append(self.evaluator.centroid_estimate(self.behaviours))
+        rec.centroid_estimate.append(self.evaluator.centroid_estimate(self.telemetry))
 
     def done(self) -> bool:
         alive = [b for b, a in zip(self.behaviours, self.world.alive()) if a]

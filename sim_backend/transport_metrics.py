@@ -15,6 +15,7 @@ from onboard.geometry import wrap
 from .metrics import Evaluator, register_evaluator
 
 SPACING_SAMPLE_PERIOD_S = 1.0
+CAGE_STATES = ("caged", "settle", "push", "rotate", "done")
 
 
 @register_evaluator("transport")
@@ -31,51 +32,50 @@ class TransportEvaluator(Evaluator):
         self.next_spacing_sample = 0.0
         self.last_time = 0.0
 
-    def on_step(self, time_s: float, behaviours: List[Any]) -> None:
+    def on_step(self, time_s: float, telemetry: List[Optional[Dict[str, Any]]]) -> None:
         self.last_time = time_s
-        alive = self.world.alive()
+        reports = {i: t for i, t in enumerate(telemetry) if t is not None}
         if self.closed_at is None:
-            if any("closed" in b.space for b in behaviours):
+            if any(t.get("closed") for t in reports.values()):
                 self.closed_at = time_s
             return
-        members = [i for i, b in enumerate(behaviours) if b.state in ("caged", "settle", "push", "rotate", "done")
-                   and f"member/{i}" in b.space]
+        members = [i for i, t in reports.items() if t["state"] in CAGE_STATES and t.get("member")]
         self.members = members or self.members
-        live = [i for i in self.members if alive[i]]
-        transporting = [i for i in live if behaviours[i].state in ("push", "rotate")]
+        live = [i for i in self.members if i in reports]
+        transporting = [i for i in live if reports[i]["state"] in ("push", "rotate")]
         for i in transporting:
-            b = behaviours[i]
-            if b.state == "push" and b.effective:
-                self.pushers.setdefault(b.waypoint, []).append(i)
-            elif b.state == "rotate" and b.rotating:
-                self.rotators.setdefault(b.waypoint, []).append(i)
-        self._count_steps(transporting, behaviours)
-        self._check_waypoints(time_s, live, behaviours)
+            t = reports[i]
+            if t["state"] == "push" and t.get("effective"):
+                self.pushers.setdefault(t["waypoint"], []).append(i)
+            elif t["state"] == "rotate" and t.get("rotating"):
+                self.rotators.setdefault(t["waypoint"], []).append(i)
+        self._count_steps(transporting, reports)
+        self._check_waypoints(time_s, live, reports)
         if transporting and time_s >= self.next_spacing_sample:
             self.next_spacing_sample = time_s + SPACING_SAMPLE_PERIOD_S
             self.spacings.extend(self._adjacent_distances(live))
 
-    def _count_steps(self, transporting: List[int], behaviours: List[Any]) -> None:
+    def _count_steps(self, transporting: List[int], reports: Dict[int, Dict[str, Any]]) -> None:
         # Per waypoint and phase, how many control steps were spent (to average the robot counts).
         for phase in ("push", "rotate"):
-            waypoints = {behaviours[i].waypoint for i in transporting if behaviours[i].state == phase}
+            waypoints = {reports[i]["waypoint"] for i in transporting if reports[i]["state"] == phase}
             for wp in waypoints:
                 self.phase_steps[(phase, wp)] = self.phase_steps.get((phase, wp), 0) + 1
 
-    def _check_waypoints(self, time_s: float, live: List[int], behaviours: List[Any]) -> None:
+    def _check_waypoints(self, time_s: float, live: List[int], reports: Dict[int, Dict[str, Any]]) -> None:
         if not live or not self.scenario.path:
             return
         # Waypoint k is reached once most live members have moved past it (the barrier completed).
-        progress = sorted(behaviours[i].waypoint + (1 if behaviours[i].state == "done" else 0) for i in live)
+        progress = sorted(reports[i]["waypoint"] + (1 if reports[i]["state"] == "done" else 0) for i in live)
         passed = progress[len(progress) // 2]
         for k in range(min(passed, len(self.scenario.path))):
             if k not in self.reached:
-                self.reached[k] = self._errors_now(k, time_s, live, behaviours)
+                self.reached[k] = self._errors_now(k, time_s, live, reports)
 
-    def _errors_now(self, k: int, time_s: float, live: List[int], behaviours: List[Any]) -> Dict[str, Any]:
+    def _errors_now(self, k: int, time_s: float, live: List[int], reports: Dict[int, Dict[str, Any]]) -> Dict[str, Any]:
         truth = self.world.object_pose()
         target = self.scenario.path[k]
-        estimates = [behaviours[i].filter.pose for i in live if behaviours[i].filter is not None]
+        estimates = [reports[i]["estimate"] for i in live if "estimate" in reports[i]]
         est_error = float(np.mean([math.hypot(e[0] - truth[0], e[1] - truth[1]) for e in estimates])) \
             if estimates else None
         steps = self.phase_steps
@@ -99,8 +99,8 @@ class TransportEvaluator(Evaluator):
         ring = poses[order]
         return np.hypot(*(np.roll(ring, -1, axis=0) - ring).T).tolist()
 
-    def centroid_estimate(self, behaviours: List[Any]) -> np.ndarray:
-        poses = [b.filter.pose[:2] for b in behaviours if getattr(b, "filter", None) is not None]
+    def centroid_estimate(self, telemetry: List[Optional[Dict[str, Any]]]) -> np.ndarray:
+        poses = [t["estimate"][:2] for t in telemetry if t is not None and "estimate" in t]
         return np.mean(poses, axis=0) if poses else np.array([np.nan, np.nan])
 
     def result(self) -> Dict[str, Any]:

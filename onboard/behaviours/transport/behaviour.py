@@ -377,7 +377,10 @@ class Transport(TransportPhases, Behaviour):
         return True
 
     def telemetry(self) -> Dict[str, Any]:
-        data: Dict[str, Any] = {"state": self.state, "waypoint": self.waypoint}
+        # Everything the evaluator and the operator need travels here (also over the wire from real robots).
+        data: Dict[str, Any] = {"state": self.state, "waypoint": self.waypoint,
+                                "member": f"member/{self.robot.id}" in self.space, "closed": "closed" in self.space,
+                                "effective": bool(self.effective), "rotating": bool(self.rotating)}
         if self.task is not None:
             data["task"] = self.task.tid
         if self.filter is not None:
