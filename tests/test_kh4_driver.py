@@ -1,0 +1,335 @@
+"""The KheperaIV driver against a stand-in libkhepera.so compiled from tests/kh4_stub/libkhepera_stub.c.
+
+The stub has libkhepera's function names and C prototypes, logs every call with its arguments and returns
+scripted sensor values, so these tests check what would reach a robot: ctypes signatures, hardware units,
+the IR index mapping, calibration, encoder conversion, and that the wheels are stopped on every way out.
+"""
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+from typing import Dict, List, Tuple
+
+import pytest
+
+from onboard.config import ConfigError
+from onboard.drivers.calibration import load_calibration
+from onboard.drivers.kh4 import KheperaIV, LibkheperaError
+from onboard.hal import WheelOdometry
+
+ROOT = Path(__file__).resolve().parents[1]
+STUB_SOURCE = ROOT / "tests" / "kh4_stub" / "libkhepera_stub.c"
+HAL_DIRECTIONS = ("front", "front-left", "left", "back-left", "back", "back-right", "right", "front-right")
+# Where each sensor's registers sit in kh4_proximity_ir's buffer (kb_khepera4.c, I2C_IR_DIST_* 0x58..0x67).
+HARDWARE_BUFFER_SLOT = {"back-left": 0, "left": 1, "front-left": 2, "front": 3, "front-right": 4, "right": 5,
+                        "back-right": 6, "back": 7}
+
+Call = Tuple[str, Dict[str, str]]
+
+
+def compile_stub(out_dir: Path, *defines: str) -> Path:
+    if shutil.which("gcc") is None:
+        pytest.skip("gcc is not installed: cannot build the stand-in libkhepera.so")
+    library = out_dir / "libkhepera.so"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["gcc", "-shared", "-fPIC", "-Wall", "-Werror", *(f"-D{d}" for d in defines),
+                    "-o", str(library), str(STUB_SOURCE)], check=True)
+    return library
+
+
+@pytest.fixture(scope="module")
+def stub_library(tmp_path_factory) -> Path:
+    return compile_stub(tmp_path_factory.mktemp("stub"))
+
+
+@pytest.fixture
+def stub_log(tmp_path, monkeypatch) -> Path:
+    """A fresh call log and neutral scripted values (os.environ changes reach the C library's getenv)."""
+    log = tmp_path / "calls.log"
+    monkeypatch.setenv("KH4_STUB_LOG", str(log))
+    for name in ("KH4_STUB_IR", "KH4_STUB_POSITION", "KH4_STUB_BATTERY", "KH4_STUB_FAIL",
+                 "KHEPRI_LIBKHEPERA", "KHEPRI_KH4_CALIBRATION"):
+        monkeypatch.delenv(name, raising=False)
+    return log
+
+
+def calls(log: Path) -> List[Call]:
+    parsed = []
+    for line in log.read_text().splitlines():
+        name, *pairs = line.split()
+        parsed.append((name, dict(pair.split("=", 1) for pair in pairs)))
+    return parsed
+
+
+def speed_commands(log: Path) -> List[Tuple[int, int]]:
+    return [(int(a["left"]), int(a["right"])) for name, a in calls(log) if name == "kh4_set_speed"]
+
+
+def write_yaml(path: Path, text: str) -> Path:
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+# --- opening, units, signatures -----------------------------------------------------------------------------
+def test_opening_initialises_the_library_and_drives_in_speed_profile_mode(stub_library, stub_log):
+    driver = KheperaIV(library_path=str(stub_library))
+    names = [name for name, _ in calls(stub_log)]
+    assert names[:2] == ["kh4_init", "knet_open"]
+    assert calls(stub_log)[0][1] == {"argc": "0", "argv": "null"}
+    assert calls(stub_log)[1][1] == {"device": "Khepera4:dsPic", "bus": "0", "argc": "0", "argv": "null"}
+    assert ("kh4_SetMode", {"mode": "2", "dev": "ok"}) in calls(stub_log)
+    # every function got the very handle knet_open returned, not a truncated pointer
+    assert all(args.get("dev", "ok") == "ok" for _, args in calls(stub_log))
+    driver.close()
+
+
+def test_wheel_speeds_in_m_s_reach_kh4_set_speed_in_hardware_units(stub_library, stub_log):
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        driver.set_wheel_speeds(0.1, -0.05)
+        driver.set_wheel_speeds(0.0, 0.2034)
+    # 100 mm/s / 0.6781 = 147.5 -> 147; -50 / 0.6781 = -73.7 -> -74; 203.4 / 0.6781 = 299.96 -> 300
+    assert speed_commands(stub_log)[:2] == [(147, -74), (0, 300)]
+
+
+def test_speeds_beyond_the_limit_are_scaled_together_so_the_turn_is_kept(stub_library, stub_log):
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        driver.set_wheel_speeds(1.62, 0.81)           # twice the KheperaIV's 0.81 m/s
+        driver.set_wheel_speeds(-5.0, -5.0)
+    with KheperaIV(library_path=str(stub_library), max_wheel_speed_m_s=0.2) as slow:
+        slow.set_wheel_speeds(0.4, -0.1)
+    commands = speed_commands(stub_log)
+    assert commands[0] == (1194, 597)                 # 810 mm/s is 1194.5 units: never past the limit
+    assert commands[1] == (-1194, -1194)
+    assert (294, -74) in commands                     # 0.2 and -0.05 m/s
+
+
+def test_a_speed_that_is_not_a_number_stops_the_wheels_and_names_the_wheel(stub_library, stub_log):
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        driver.set_wheel_speeds(0.1, 0.1)
+        with pytest.raises(ValueError, match="right_m_s"):
+            driver.set_wheel_speeds(0.1, float("nan"))
+        assert speed_commands(stub_log) == [(147, 147), (0, 0)]
+        with pytest.raises(ValueError, match="left_m_s"):
+            driver.set_wheel_speeds("fast", 0.1)
+
+
+# --- IR ring ------------------------------------------------------------------------------------------------
+def hardware_ir(values_by_direction: Dict[str, int], ground: Tuple[int, ...] = (11, 22, 33, 44)) -> str:
+    ring = [0] * 8
+    for direction, raw in values_by_direction.items():
+        ring[HARDWARE_BUFFER_SLOT[direction]] = raw
+    return " ".join(str(v) for v in ring + list(ground))
+
+
+def test_ir_values_come_back_in_hal_order_forward_then_counter_clockwise(stub_library, stub_log, monkeypatch):
+    distinct = {direction: 100 + 37 * i for i, direction in enumerate(HARDWARE_BUFFER_SLOT)}
+    distinct["front"] = 1000                          # > 255: both bytes of the little-endian pair matter
+    monkeypatch.setenv("KH4_STUB_IR", hardware_ir(distinct))
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        raw = driver.raw_proximity()
+    assert raw == [distinct[direction] for direction in HAL_DIRECTIONS]
+
+
+def test_without_a_calibration_file_readings_are_raw_over_1023_clipped(stub_library, stub_log, monkeypatch):
+    raws = dict(zip(HAL_DIRECTIONS, (0, 1023, 512, 1100, 0, 0, 0, 0)))   # 1100: out of range, clips to 1
+    monkeypatch.setenv("KH4_STUB_IR", hardware_ir(raws))
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        values = driver.proximity()
+    assert values == pytest.approx([0.0, 1.0, 512 / 1023, 1.0, 0.0, 0.0, 0.0, 0.0])
+
+
+def test_a_calibration_file_normalises_each_hal_sensor_its_own_way(stub_library, stub_log, monkeypatch, tmp_path):
+    calibration = write_yaml(tmp_path / "kh4-3.yaml", """\
+        robot: 3
+        notes: white foam, lab lights on
+        proximity:
+          - {ambient: 100, touch: 900}
+          - {ambient: 100, touch: 900}
+          - {ambient: 200, touch: 600}
+          - {points: [[50, 0.0], [250, 0.5], [450, 1.0]]}
+          - {ambient: 0, touch: 1023}
+          - {ambient: 0, touch: 1023}
+          - {ambient: 0, touch: 1023}
+          - {ambient: 0, touch: 1023}
+        """)
+    raws = dict(zip(HAL_DIRECTIONS, (500, 50, 700, 150, 0, 0, 0, 0)))
+    monkeypatch.setenv("KH4_STUB_IR", hardware_ir(raws))
+    with KheperaIV(library_path=str(stub_library), calibration_path=calibration) as driver:
+        values = driver.proximity()
+    # front (500-100)/800; front-left below ambient -> 0; left above touch -> 1; back-left on the table
+    assert values[:4] == pytest.approx([0.5, 0.0, 1.0, 0.25])
+
+
+def test_the_calibration_path_can_come_from_the_environment(stub_library, stub_log, monkeypatch, tmp_path):
+    calibration = write_yaml(tmp_path / "kh4-1.yaml", "proximity: " + str([{"ambient": 0, "touch": 100}] * 8))
+    monkeypatch.setenv("KHEPRI_KH4_CALIBRATION", str(calibration))
+    monkeypatch.setenv("KH4_STUB_IR", hardware_ir({"front": 50}))
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        assert driver.proximity()[0] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("body, field, problem", [
+    ("proximity: " + str([{"ambient": 0, "touch": 100}] * 7), "proximity", "must list 8 sensors"),
+    ("proximity: " + str([{"ambient": 500, "touch": 400}] * 8), "proximity[0].touch", "must be > ambient"),
+    ("proximity: " + str([{"ambient": 0}] * 8), "proximity[0].touch", "is required"),
+    ("proximity: " + str([{"ambient": 0, "touch": 2000}] * 8), "proximity[0].touch", "must be <= 1023"),
+    ("proximity: " + str([{"ambient": 0, "touch": 9, "points": [[0, 0], [9, 1]]}] * 8), "proximity[0]",
+     "not both"),
+    ("proximity: " + str([{"points": [[0, 0], [500, 0.5], [400, 1.0]]}] * 8), "proximity[0].points[2][0]",
+     "must increase"),
+    ("proximity: " + str([{"points": [[0, 0], [500, 1.5]]}] * 8), "proximity[0].points[1][1]", "must be <= 1"),
+    ("proximity: " + str([{"gain": 2}] * 8), "proximity[0].gain", "unknown key"),
+    ("robot: three\nproximity: []", "robot", "must be an integer"),
+])
+def test_a_bad_calibration_file_is_refused_naming_the_file_and_the_field(tmp_path, body, field, problem):
+    path = write_yaml(tmp_path / "kh4-9.yaml", body)
+    with pytest.raises(ConfigError, match=problem) as caught:
+        load_calibration(path)
+    assert caught.value.field == f"{path}: {field}"
+
+
+def test_a_missing_or_unparsable_calibration_file_is_refused_before_the_robot_is_touched(
+        stub_library, stub_log, tmp_path):
+    with pytest.raises(ConfigError, match="cannot read") as caught:
+        KheperaIV(library_path=str(stub_library), calibration_path=tmp_path / "absent.yaml")
+    assert "absent.yaml" in str(caught.value)
+    broken = write_yaml(tmp_path / "broken.yaml", "proximity: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        KheperaIV(library_path=str(stub_library), calibration_path=broken)
+    assert not stub_log.exists()
+
+
+# --- encoders and battery -----------------------------------------------------------------------------------
+def test_encoders_give_signed_metres_per_wheel_since_the_driver_opened(stub_library, stub_log, monkeypatch):
+    monkeypatch.setenv("KH4_STUB_POSITION", "5000 -3000")
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        assert driver.encoders() == WheelOdometry(0.0, 0.0)
+        # 147471 pulses x 0.006781 mm = 1.000 m forward on the left; 14747 back on the right = -0.1 m
+        monkeypatch.setenv("KH4_STUB_POSITION", f"{5000 + 147471} {-3000 - 14747}")
+        odometry = driver.encoders()
+    assert odometry.left_m == pytest.approx(1.0, abs=1e-4)
+    assert odometry.right_m == pytest.approx(-0.1, abs=1e-4)
+
+
+def test_encoders_keep_counting_through_the_32_bit_wrap(stub_library, stub_log, monkeypatch):
+    monkeypatch.setenv("KH4_STUB_POSITION", f"{2 ** 31 - 100} {-2 ** 31 + 100}")
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        monkeypatch.setenv("KH4_STUB_POSITION", f"{-2 ** 31 + 100} {2 ** 31 - 100}")
+        odometry = driver.encoders()
+    assert odometry.left_m == pytest.approx(200 * 0.006781 / 1000)
+    assert odometry.right_m == pytest.approx(-200 * 0.006781 / 1000)
+
+
+def test_battery_voltage_is_read_when_the_library_offers_it(stub_library, stub_log, monkeypatch, tmp_path):
+    monkeypatch.setenv("KH4_STUB_BATTERY", "760")
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        assert driver.battery_v() == pytest.approx(760 * 0.00976)
+    without_battery = compile_stub(tmp_path / "no-battery", "KH4_STUB_WITHOUT_BATTERY")
+    with KheperaIV(library_path=str(without_battery)) as driver:
+        assert driver.battery_v() is None
+
+
+# --- errors -------------------------------------------------------------------------------------------------
+def test_a_missing_library_names_its_path_and_how_to_set_it(stub_log, monkeypatch, tmp_path):
+    absent = tmp_path / "nowhere" / "libkhepera.so"
+    monkeypatch.setenv("KHEPRI_LIBKHEPERA", str(absent))
+    with pytest.raises(LibkheperaError, match="KHEPRI_LIBKHEPERA") as caught:
+        KheperaIV()
+    assert str(absent) in str(caught.value)
+
+
+def test_a_library_without_a_needed_function_is_named(stub_log, tmp_path):
+    library = compile_stub(tmp_path / "no-set-speed", "KH4_STUB_WITHOUT_SET_SPEED")
+    with pytest.raises(LibkheperaError, match="has no function kh4_set_speed") as caught:
+        KheperaIV(library_path=str(library))
+    assert str(library) in str(caught.value)
+
+
+def test_a_failing_call_names_the_function_and_its_code(stub_library, stub_log, monkeypatch):
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        monkeypatch.setenv("KH4_STUB_FAIL", "kh4_proximity_ir")
+        with pytest.raises(LibkheperaError, match="kh4_proximity_ir failed with code -4"):
+            driver.proximity()
+        monkeypatch.delenv("KH4_STUB_FAIL")
+
+
+def test_a_robot_that_cannot_be_opened_is_reported_and_nothing_is_left_open(stub_library, stub_log, monkeypatch):
+    monkeypatch.setenv("KH4_STUB_FAIL", "knet_open")
+    with pytest.raises(LibkheperaError, match="Khepera4:dsPic"):
+        KheperaIV(library_path=str(stub_library))
+    monkeypatch.setenv("KH4_STUB_FAIL", "kh4_SetMode")
+    with pytest.raises(LibkheperaError, match="kh4_SetMode failed"):
+        KheperaIV(library_path=str(stub_library))
+    assert calls(stub_log)[-1] == ("knet_close", {"dev": "ok"})
+
+
+def test_a_stop_that_keeps_failing_raises_instead_of_pretending(stub_library, stub_log, monkeypatch):
+    driver = KheperaIV(library_path=str(stub_library))
+    monkeypatch.setenv("KH4_STUB_FAIL", "kh4_set_speed")
+    with pytest.raises(LibkheperaError, match="kh4_set_speed"):
+        driver.stop()
+    assert len(speed_commands(stub_log)) == 3          # retried before giving up
+    monkeypatch.delenv("KH4_STUB_FAIL")
+    driver.close()
+
+
+# --- stopping on every way out ------------------------------------------------------------------------------
+def test_close_stops_the_wheels_idles_the_motors_and_later_stops_are_harmless(stub_library, stub_log):
+    driver = KheperaIV(library_path=str(stub_library))
+    driver.set_wheel_speeds(0.3, 0.3)
+    driver.close()
+    tail = calls(stub_log)[-3:]
+    assert tail == [("kh4_set_speed", {"left": "0", "right": "0", "dev": "ok"}),
+                    ("kh4_SetMode", {"mode": "0", "dev": "ok"}), ("knet_close", {"dev": "ok"})]
+    logged = len(calls(stub_log))
+    driver.stop()
+    driver.close()
+    assert len(calls(stub_log)) == logged               # nothing more reaches the closed device
+    with pytest.raises(LibkheperaError, match="closed"):
+        driver.set_wheel_speeds(0.1, 0.1)
+
+
+CHILD_SCRIPT = """\
+import signal, sys
+from onboard.drivers.kh4 import KheperaIV
+
+def terminate(signum, frame):          # what the agent does: turn SIGTERM into an orderly exit
+    raise SystemExit(0)
+
+signal.signal(signal.SIGTERM, terminate)
+driver = KheperaIV(library_path=sys.argv[1])
+driver.set_wheel_speeds(0.2, 0.2)
+print("driving", flush=True)
+if sys.argv[2] == "raise":
+    raise RuntimeError("a behaviour bug")
+sys.stdin.read()                       # wait here until the test signals us
+"""
+
+
+def run_child(stub_library: Path, stub_log: Path, tmp_path: Path, mode: str) -> subprocess.CompletedProcess:
+    script = tmp_path / "child.py"
+    script.write_text(CHILD_SCRIPT)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), KH4_STUB_LOG=str(stub_log))
+    child = subprocess.Popen([sys.executable, str(script), str(stub_library), mode], env=env, cwd=tmp_path,
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert child.stdout.readline() == "driving\n"
+    if mode == "sigterm":
+        child.send_signal(signal.SIGTERM)
+    stdout, stderr = child.communicate(timeout=20)
+    return subprocess.CompletedProcess(child.args, child.returncode, stdout, stderr)
+
+
+def test_a_process_killed_with_sigterm_stops_the_wheels(stub_library, stub_log, tmp_path):
+    finished = run_child(stub_library, stub_log, tmp_path, "sigterm")
+    assert finished.returncode == 0, finished.stderr
+    assert speed_commands(stub_log) == [(295, 295), (0, 0)]
+    assert calls(stub_log)[-1] == ("knet_close", {"dev": "ok"})
+
+
+def test_a_process_dying_of_an_exception_stops_the_wheels(stub_library, stub_log, tmp_path):
+    finished = run_child(stub_library, stub_log, tmp_path, "raise")
+    assert finished.returncode == 1 and "a behaviour bug" in finished.stderr
+    assert speed_commands(stub_log) == [(295, 295), (0, 0)]
