@@ -1,6 +1,32 @@
 """``khepri log info FILE``: summarise a recorded MCAP log."""
 from __future__ import annotations
 
+import argparse
+import json
+from pathlib import Path
+
 
 def add_log(groups) -> None:
     """Register the ``log`` command group."""
+    log = groups.add_parser("log", help="inspect hub recordings (MCAP logs)",
+                            description="Inspect the MCAP logs the hub records (see docs/recording.md).")
+    commands = log.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+    info = commands.add_parser("info", help="summarise a log: duration, robots, message counts, drops",
+                               description="Print a log's start, duration, robots, messages per topic, dropped "
+                                           "frames by reason, and whether the file was cut short (a killed hub).")
+    info.add_argument("file", type=Path, metavar="FILE", help="an .mcap log written by the hub")
+    info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    info.add_argument("--all-topics", action="store_true",
+                      help="list every robot's topics (default: one line per kind, e.g. /robot/*/frame)")
+    info.set_defaults(func=cmd_info)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from hub.log_summary import format_summary, summarise
+
+    summary = summarise(args.file)   # LogError (a ConfigError) naming the file for missing, empty or non-MCAP files
+    if args.json:
+        print(json.dumps(summary.to_dict(), indent=2))
+    else:
+        print(format_summary(summary, all_topics=args.all_topics))
+    return 0

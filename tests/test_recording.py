@@ -1,0 +1,281 @@
+"""Hub recordings: MCAP round trip, summaries, a SIGKILLed recorder, damaged files, and ``khepri log info``."""
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from hub.recording import (
+    CONTROL,
+    HUB_DROPS,
+    HUB_STATUS,
+    MOCAP_POSES,
+    ROBOT_TOPIC_KINDS,
+    LogError,
+    Recorder,
+    read_log,
+    robot_topic,
+    summarise,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+KHEPRI = REPO / ".venv" / "bin" / "khepri"
+T0 = 1_770_000_000.0   # a fixed hub-clock start, so stamps and durations are exact
+
+
+def every_topic_records():
+    """(topic, payload, stamp) for every topic the hub uses, two robots, in write order."""
+    records = [(MOCAP_POSES, {"bodies": {"kh1": [1.0, 2.0, 0.05, 0.0, 0.0, 0.38, 0.92]}, "frame": 7}, T0)]
+    for robot in (1, 2):
+        for kind in ROBOT_TOPIC_KINDS:
+            payload = {"robot": robot, "kind": kind, "nested": {"list": [1, 2.5, None, True], "text": "é ∆"}}
+            records.append((robot_topic(robot, kind), payload, T0 + len(records) * 0.01))
+    records.append((CONTROL, {"request": "estop", "reply": "ok"}, T0 + 1.0))
+    records.append((HUB_STATUS, {"frames_per_s": 120.0, "robots": 2}, T0 + 1.5))
+    return records
+
+
+def write_log(path, records, **options):
+    with Recorder(path, **options) as recorder:
+        for topic, payload, stamp in records:
+            recorder.write(topic, payload, stamp)
+    return path
+
+
+def test_every_topic_round_trips_and_standard_mcap_readers_see_json_with_schemas(tmp_path):
+    records = every_topic_records()
+    path = write_log(tmp_path / "all.mcap", records, metadata={"lab": "L1", "robots": [1, 2]})
+
+    back = [(r.topic, r.payload, r.stamp_s) for r in read_log(path)]
+    assert [(topic, payload) for topic, payload, _ in back] == [(topic, payload) for topic, payload, _ in records]
+    assert all(math.isclose(got, want, abs_tol=1e-6) for (_, _, got), (_, _, want) in zip(back, records))
+    assert [r.topic for r in read_log(path, topics=[CONTROL, "/robot/2/relay"])] == ["/robot/2/relay", CONTROL]
+    assert [r.topic for r in read_log(path, topics=CONTROL)] == [CONTROL]
+
+    # What Foxglove relies on: json messages, a jsonschema object schema on every channel, an index.
+    with open(path, "rb") as file:
+        index = make_reader(file).get_summary()
+    assert {channel.topic for channel in index.channels.values()} == {topic for topic, _, _ in records}
+    for channel in index.channels.values():
+        schema = index.schemas[channel.schema_id]
+        assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
+        assert json.loads(schema.data)["type"] == "object"
+    frame_schemas = {index.schemas[c.schema_id].name for c in index.channels.values() if c.topic.endswith("/frame")}
+    assert frame_schemas == {"khepri.RobotFrame"}
+
+
+def test_summary_counts_robots_drops_and_metadata(tmp_path):
+    path = tmp_path / "counts.mcap"
+    with Recorder(path, metadata={"lab": "L1", "seed": 3}) as recorder:
+        for i in range(30):
+            recorder.write(MOCAP_POSES, {"bodies": {}}, T0 + i / 10)
+        for robot in (10, 2):
+            for i in range(5):
+                recorder.write(robot_topic(robot, "frame"), {"i": i}, T0 + 1 + i / 10)
+        recorder.write(robot_topic(2, "telemetry"), {"state": "push"}, T0 + 1.5)
+        for i in range(4):
+            recorder.count_drop("stale_pose", sender="2", stamp_s=T0 + i / 10)
+        recorder.count_drop("oversize", sender=10, stamp_s=T0 + 2.9)
+        recorder.count_drop("unknown_sender", stamp_s=T0 + 2)
+
+    summary = summarise(path)
+    assert summary.truncated is False and summary.stop_reason == ""
+    assert summary.robots == [2, 10]
+    counts = {topic: n for topic, n in summary.topic_counts.items() if topic != HUB_DROPS}
+    assert counts == {MOCAP_POSES: 30, "/robot/10/frame": 5, "/robot/2/frame": 5, "/robot/2/telemetry": 1}
+    assert summary.drops == {"oversize": 1, "stale_pose": 4, "unknown_sender": 1}
+    assert summary.drops_by_sender == {"10": 1, "2": 4, "unknown": 1}
+    assert summary.start_s == pytest.approx(T0) and summary.duration_s == pytest.approx(2.9, abs=1e-6)
+    assert summary.metadata == {"lab": "L1", "seed": 3} and summary.format_version == 1
+    # The index (fast) and a record-by-record walk agree on a complete file.
+    assert summarise(path, use_index=False) == summary
+
+
+def test_bad_payloads_raise_naming_the_topic_and_leave_the_file_intact(tmp_path):
+    path = tmp_path / "bad.mcap"
+    with Recorder(path) as recorder:
+        recorder.write("/robot/1/frame", {"i": 0}, T0)
+        for payload in ({"when": object()}, {"x": float("nan")}, ["not", "a", "dict"]):
+            with pytest.raises(LogError, match="/robot/1/telemetry"):
+                recorder.write("/robot/1/telemetry", payload, T0)
+        for stamp in (-5.0, time.monotonic() % 1e6, float("nan"), "now"):   # a monotonic clock would scramble the log
+            with pytest.raises(LogError, match="/robot/1/frame: stamp_s must be wall-clock"):
+                recorder.write("/robot/1/frame", {"i": 1}, stamp)
+        with pytest.raises(LogError, match="topic"):
+            recorder.write("no-slash", {"i": 1}, T0)
+        recorder.write("/robot/1/frame", {"i": 2}, T0 + 1)
+    assert [r.payload for r in read_log(path)] == [{"i": 0}, {"i": 2}]
+    with open(path, "rb") as file:   # the mcap library's own reader agrees the file is whole
+        assert len(list(make_reader(file).iter_messages())) == 2
+
+
+def test_recorder_lifecycle_and_bad_arguments(tmp_path):
+    recorder = Recorder(tmp_path / "life.mcap")
+    recorder.write(CONTROL, {"request": "status"})
+    recorder.close()
+    recorder.close()   # idempotent
+    with pytest.raises(LogError, match="closed"):
+        recorder.write(CONTROL, {"request": "status"})
+    assert summarise(tmp_path / "life.mcap").topic_counts == {CONTROL: 1}
+    with pytest.raises(LogError, match="no-such-folder"):
+        Recorder(tmp_path / "no-such-folder" / "x.mcap")
+    with pytest.raises(LogError, match="metadata.when"):
+        Recorder(tmp_path / "meta.mcap", metadata={"when": object()})
+    if Path("/dev/full").exists():   # a disk that is full: the error names the file instead of a traceback
+        with pytest.raises(LogError, match="/dev/full: cannot write the log"):
+            Recorder("/dev/full")
+
+
+def test_an_idle_recorder_still_flushes_within_its_period(tmp_path):
+    """The timer thread closes the chunk even when nothing else is written (a hub idle, then killed)."""
+    path = tmp_path / "idle.mcap"
+    with Recorder(path, flush_period_s=0.2) as recorder:
+        recorder.write(MOCAP_POSES, {"bodies": {}}, T0)
+        recorder.count_drop("stale_pose", sender="1")
+        deadline = time.monotonic() + 10.0
+        seen = []
+        while not seen and time.monotonic() < deadline:
+            time.sleep(0.05)
+            seen = [r.topic for r in read_log(path)]
+        assert seen == [MOCAP_POSES, HUB_DROPS]
+        assert summarise(path).truncated is True   # still open: no footer yet
+
+
+CHILD = textwrap.dedent("""
+    import sys, time
+    from hub.recording import Recorder
+    recorder = Recorder(sys.argv[1])   # default flush_period_s = 1.0
+    i = 0
+    while True:
+        recorder.write("/robot/1/telemetry", {"i": i}, time.time())
+        i += 1
+        time.sleep(0.005)
+""")
+
+
+def test_a_sigkilled_recorder_loses_at_most_about_a_second(tmp_path):
+    path = tmp_path / "killed.mcap"
+    child = subprocess.Popen([sys.executable, "-c", CHILD, str(path)], cwd=REPO)
+    try:
+        # While the child writes, everything older than about a second must already be readable.
+        deadline = time.monotonic() + 20.0
+        stamps, worst_lag = [], 0.0
+        while time.monotonic() < deadline and (len(stamps) < 2 or stamps[-1] - stamps[0] < 3.0):
+            time.sleep(0.1)
+            stamps = [r.stamp_s for r in read_log(path)] if path.exists() and path.stat().st_size else []
+            if stamps:
+                worst_lag = max(worst_lag, time.time() - stamps[-1])
+        assert child.poll() is None, "the recording child died on its own"
+        assert len(stamps) >= 2 and stamps[-1] - stamps[0] >= 3.0, "no data reached the file within 20 s"
+        assert worst_lag < 1.5, f"the readable log lagged the writer by {worst_lag:.2f} s"
+        killed_at = time.time()
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait(timeout=10)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+
+    records = list(read_log(path))
+    assert [r.payload["i"] for r in records] == list(range(len(records)))   # a gapless prefix
+    assert killed_at - records[-1].stamp_s < 1.5
+    summary = summarise(path)
+    assert summary.truncated and "no footer" in summary.stop_reason
+    assert summary.message_count == len(records) and summary.end_s == pytest.approx(records[-1].stamp_s)
+
+
+def several_chunk_log(tmp_path):
+    path = tmp_path / "chunks.mcap"
+    with Recorder(path) as recorder:
+        for i in range(60):
+            recorder.write(robot_topic(i % 3, "frame"), {"i": i}, T0 + i / 10)
+            if i % 10 == 9:
+                recorder.flush()   # one chunk per ten messages
+    return path, [r.payload["i"] for r in read_log(path)]
+
+
+def test_a_log_cut_anywhere_reads_as_a_prefix(tmp_path):
+    path, everything = several_chunk_log(tmp_path)
+    data = path.read_bytes()
+    cut_path = tmp_path / "cut.mcap"
+    recovered_counts = set()
+    for cut in range(8, len(data), 23):
+        cut_path.write_bytes(data[:cut])
+        got = [r.payload["i"] for r in read_log(cut_path)]
+        assert got == everything[:len(got)], f"cut at {cut}"
+        summary = summarise(cut_path)
+        assert summary.truncated and summary.message_count == len(got), f"cut at {cut}"
+        assert summary.readable_bytes <= cut
+        recovered_counts.add(len(got))
+    assert {0, 10, 30, 60} <= recovered_counts   # whole chunks come back, and all of them once the data ends
+    cut_path.write_bytes(data[:5])
+    with pytest.raises(LogError, match="not an MCAP file"):
+        summarise(cut_path)
+
+
+def test_a_damaged_chunk_stops_reading_there(tmp_path):
+    path, everything = several_chunk_log(tmp_path)
+    with open(path, "rb") as file:
+        second_chunk = make_reader(file).get_summary().chunk_indexes[1]
+    data = bytearray(path.read_bytes())
+    for offset in range(second_chunk.chunk_start_offset + 80, second_chunk.chunk_start_offset + 90):
+        data[offset] ^= 0xFF   # inside the compressed records: the chunk's CRC no longer matches
+    path.write_bytes(bytes(data))
+    got = [r.payload["i"] for r in read_log(path)]
+    assert got == everything[:10]
+    summary = summarise(path, use_index=False)
+    assert summary.truncated and "damaged" in summary.stop_reason
+
+
+@pytest.mark.parametrize("content, problem", [(b"", "empty file"), (b"this is not a log\n" * 20, "not an MCAP"),
+                                              (None, "no such file")])
+def test_unreadable_files_give_one_clear_error(tmp_path, content, problem):
+    path = tmp_path / "bad.mcap"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(LogError, match=problem) as caught:
+        summarise(path)
+    assert str(path) in str(caught.value)
+    with pytest.raises(LogError, match=problem):
+        read_log(path)   # raised at the call, before iteration
+
+
+def run_khepri(*args):
+    return subprocess.run([str(KHEPRI), "log", "info", *map(str, args)], capture_output=True, text=True, timeout=60)
+
+
+def test_cli_log_info_prints_the_summary_and_json(tmp_path):
+    path = write_log(tmp_path / "cli.mcap", every_topic_records(), metadata={"lab": "L1"})
+    text = run_khepri(path)
+    assert text.returncode == 0, text.stderr
+    assert "status:    complete" in text.stdout and "robots:    2 (1, 2)" in text.stdout
+    assert "/robot/*/frame (2 robots)" in text.stdout and "duration:  1.500 s" in text.stdout
+    listed = run_khepri(path, "--all-topics")
+    assert "/robot/2/command" in listed.stdout
+
+    as_json = run_khepri(path, "--json")
+    assert as_json.returncode == 0, as_json.stderr
+    parsed = json.loads(as_json.stdout)
+    assert parsed == json.loads(json.dumps(summarise(path).to_dict()))
+    assert parsed["topic_counts"][MOCAP_POSES] == 1 and parsed["metadata"] == {"lab": "L1"}
+
+    truncated = tmp_path / "truncated.mcap"
+    truncated.write_bytes(path.read_bytes()[:-200])
+    cut = run_khepri(truncated)
+    assert cut.returncode == 0 and "TRUNCATED, recovered up to" in cut.stdout
+
+
+def test_cli_log_info_bad_files_exit_2_with_one_line(tmp_path):
+    garbage = tmp_path / "garbage.mcap"
+    garbage.write_bytes(os.urandom(256))
+    for path in (garbage, tmp_path / "missing.mcap"):
+        result = run_khepri(path)
+        assert result.returncode == 2 and result.stdout == ""
+        assert result.stderr.count("\n") == 1 and str(path) in result.stderr and "Traceback" not in result.stderr
