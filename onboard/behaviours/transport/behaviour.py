@@ -24,6 +24,8 @@ from .transport import TransportPhases
 
 SETTLE_STEPS = 10          # a caging robot must hold its place this many steps to count as settled
 ATTACH_RADIUS_M = 0.25     # switch from travelling to attaching this close to the target
+# ... or already touching the object this close to it (a target estimated inside the object is unreachable).
+TOUCH_ATTACH_RADIUS_M = 0.6
 
 
 @register("transport")
@@ -194,6 +196,7 @@ class Transport(TransportPhases, Behaviour):
             self.task = None
             self.state = "idle"
             return False
+        self.task = task        # the predecessor may have re-aimed the target (same epoch, new position)
         return True
 
     # --- seed: drive to the estimated centroid until the IR sees the object ----------------------------------
@@ -213,7 +216,8 @@ class Transport(TransportPhases, Behaviour):
             return
         percept, p = self.percept, self.params
         to_target = c.sub(self.task.position, percept.position)
-        if c.norm(to_target) < ATTACH_RADIUS_M:
+        touching = percept.in_contact(p.proximity_threshold) and c.norm(to_target) < TOUCH_ATTACH_RADIUS_M
+        if c.norm(to_target) < ATTACH_RADIUS_M or touching:
             self.state = "attach"
             self._maybe_pipeline(now)
             return
@@ -290,8 +294,11 @@ class Transport(TransportPhases, Behaviour):
         if self.task.branch == "S":
             for branch in ("L", "R"):
                 self._spawn(branch, 1, now)
-        elif not self._try_close() and self.spawned is None:
-            self._spawn(self.task.branch, self.task.index + 1, now)
+        elif not self._try_close():
+            if self.spawned is None:
+                self._spawn(self.task.branch, self.task.index + 1, now)
+            else:
+                self._reaim_successor()
 
     def _tangent(self, branch: str) -> Vec:
         normal = c.unit(self.percept.object_vector) if self.percept.object_peak > 0 else \
@@ -303,6 +310,17 @@ class Transport(TransportPhases, Behaviour):
         """Open the next target of ``branch``: I_d along the object's tangent from here."""
         target = c.add(self.percept.position, c.scale(self._tangent(branch), self._spacing()))
         self._open_task(branch, index, target, now)
+
+    def _reaim_successor(self) -> None:
+        """A pipelined target was extrapolated from this robot's *target*; now that it sits on the object,
+        move the successor's target to I_d along the real tangent from here. Same epoch: the successor
+        keeps its task and no new bidding round is needed (its robot picks the new position up)."""
+        task = self.board.task(self.spawned)
+        if task is None or task.cancelled or task.pred != self.robot.id:
+            return
+        target = c.add(self.percept.position, c.scale(self._tangent(task.branch), self._spacing()))
+        task.x, task.y = target
+        self.board.put_task(task)
 
     def _open_task(self, branch: str, index: int, target: Vec, now: float) -> None:
         """Put a caging target (a new epoch if the slot existed before) with this robot as predecessor."""
