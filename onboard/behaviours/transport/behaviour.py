@@ -53,7 +53,7 @@ class Transport(TransportPhases, Behaviour):
         self.reference_ring: Dict[int, Vec] = {}
         self.reference_centre: Vec = (0.0, 0.0)
         self.reference_yaw = 0.0
-        self.reference_normals: Dict[int, float] = {}
+        self.reference_edges: Dict[tuple, float] = {}
         self.formation: Dict[int, Vec] = {}
         self.waypoint = 0
         self.phase = "p"

@@ -2,9 +2,9 @@
 
 The robots never see the object's true pose. Once the cage is closed they sit around the object at a
 roughly constant offset, so the area centroid of the polygon through their positions approximates the
-object's centroid (exactly, for symmetric objects and even spacing). How far the object turned comes
-mainly from the members' IR contact normals (transport.py); the ring's angular displacement about the
-centroid (ring_rotation) is the fallback.
+object's centroid (exactly, for symmetric objects and even spacing). How far the object turned comes from
+how the edges between neighbouring members turned (edge_rotation): robots on the same face stay on a line
+parallel to it. The ring's angular displacement about the centroid (ring_rotation) is the fallback.
 A constant-velocity Kalman filter (filterpy) smooths both: measurement noise comes from the positioning
 noise, process noise from how fast a pushed object can plausibly accelerate.
 """
@@ -52,6 +52,31 @@ def ring_rotation(now: Dict[int, Sequence[float]], reference: Dict[int, Sequence
         d = a_now - a_ref
         s, c = s + math.sin(d), c + math.cos(d)
     return math.atan2(s, c)
+
+
+def ring_edges(points: Dict[int, Sequence[float]], centre: Sequence[float], max_length: float) -> Dict[tuple, float]:
+    """Direction (rad) of each edge between robots adjacent around ``centre`` and at most ``max_length``
+    apart, keyed by the (from, to) ids in counter-clockwise order."""
+    ids = sorted(points, key=lambda k: math.atan2(points[k][1] - centre[1], points[k][0] - centre[0]))
+    edges = {}
+    for a, b in zip(ids, ids[1:] + ids[:1]):
+        dx, dy = points[b][0] - points[a][0], points[b][1] - points[a][1]
+        if a != b and math.hypot(dx, dy) <= max_length:
+            edges[(a, b)] = math.atan2(dy, dx)
+    return edges
+
+
+def edge_rotation(now: Dict[tuple, float], reference: Dict[tuple, float]) -> Optional[float]:
+    """How far the object turned, from how the edges between neighbouring cage robots turned.
+
+    Two robots pressed against the same flat face stay on a line parallel to it even when they slide
+    along it, so their edge turns exactly as the object does; an edge across a corner does not, and the
+    median rejects those. Needs at least two edges seen both now and at the reference.
+    """
+    turns = sorted(wrap_angle(now[k] - reference[k]) for k in now if k in reference)
+    if len(turns) < 2:
+        return None
+    return float(np.median(turns))
 
 
 class ObjectFilter:

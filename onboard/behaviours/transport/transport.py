@@ -13,7 +13,7 @@ import numpy as np
 from ...hal import wrap_angle
 from . import control as c
 from .control import Vec
-from .estimator import ObjectFilter, ring_centroid, ring_rotation
+from .estimator import ObjectFilter, edge_rotation, ring_centroid, ring_edges, ring_rotation
 from .tasks import BRANCH_DIRECTION
 
 GROW_PERIOD_S = 1.0           # out of robots: I_d grows one level (2 %) per second
@@ -21,6 +21,7 @@ OUT_OF_ROBOTS_FACTOR = 3.0    # a target nobody took for 3 T_a means the swarm h
 CONTACT_GAIN = 0.3            # gentle push toward the object while holding a cage position
 SPACING_GAIN = 4.0
 LOST_CONTACT_READING = 0.3    # below this IR reading (~8 cm) a cage robot has lost touch with the object
+EDGE_FACTOR = 1.5             # edges between cage neighbours longer than 1.5 I_d are gaps, not faces
 
 
 class TransportPhases:
@@ -133,7 +134,7 @@ class TransportPhases:
         self.reference_ring = ring
         self.reference_centre = ring_centroid(np.asarray(list(ring.values()))) if ring else self.hint
         self.reference_yaw = self.initial_yaw
-        self.reference_normals = self._member_normals(now)
+        self.reference_edges = ring_edges(ring, self.reference_centre, EDGE_FACTOR * self._spacing())
         noise = 0.02
         self.filter = ObjectFilter(self.reference_centre[0], self.reference_centre[1], self.reference_yaw, noise)
         self.formation = self._formation_now()
@@ -155,26 +156,13 @@ class TransportPhases:
                 positions[rid] = where
         return positions
 
-    def _member_normals(self, now: float) -> Dict[int, float]:
-        normals = {}
-        for rid in self._members_alive(now):
-            angle = self._contact_normal() if rid == self.robot.id else self.board.contact_normal(rid)
-            if angle is not None:
-                normals[rid] = angle
-        return normals
-
-    def _rotation_since_reference(self, ring: Dict[int, Vec], centre: Vec, now: float) -> Optional[float]:
-        """How far the object turned since transport began.
-
-        Mainly from the contact normals the members see with their IR: a robot on a flat face sees the face
-        turn exactly as the object does. The median rejects robots that slid round a corner. Without two
-        such robots, fall back to how the ring of positions turned about the centroid.
-        """
-        normals = self._member_normals(now)
-        turns = sorted(wrap_angle(a - self.reference_normals[k]) for k, a in normals.items()
-                       if k in self.reference_normals)
-        if len(turns) >= 2:
-            return float(np.median(turns))
+    def _rotation_since_reference(self, ring: Dict[int, Vec], centre: Vec) -> Optional[float]:
+        """How far the object turned since transport began: from the edges between neighbouring members
+        (estimator.edge_rotation), else from how the ring turned about the centroid."""
+        edges = ring_edges(ring, centre, EDGE_FACTOR * self._spacing())
+        turned = edge_rotation(edges, self.reference_edges)
+        if turned is not None:
+            return turned
         return ring_rotation(ring, self.reference_ring, centre, self.reference_centre)
 
     def _estimate_object(self, now: float) -> Tuple[float, float, float]:
@@ -184,7 +172,7 @@ class TransportPhases:
         ring = self._member_positions(now)
         if len(ring) >= 3:
             centre = ring_centroid(np.asarray(list(ring.values())))
-            turned = self._rotation_since_reference(ring, centre, now)
+            turned = self._rotation_since_reference(ring, centre)
             yaw = None if turned is None else self.reference_yaw + turned
             self.filter.update(centre[0], centre[1], yaw, len(ring))
         return self.filter.pose
