@@ -1,6 +1,145 @@
 """``khepri study``: the paper's grid of runs, locally or on Dask."""
 from __future__ import annotations
 
+import argparse
+import os
+import shlex
+import sys
+from pathlib import Path
+
+from onboard.config import ConfigError
+
+DEFAULT_REPS = 30
+
 
 def add_study(groups) -> None:
     """Register the ``study`` command group."""
+    study = groups.add_parser(
+        "study", help="run a grid of simulations (the paper's study) and compare with the paper",
+        description="Run TARGET's grid of runs (scenarios x overrides x seeds), skipping runs already in --out, "
+                    "then write summary.csv, report.md and figures/. TARGET is `paper` (the paper's 9 transport "
+                    "cases and 3 irregular caging cases), a study YAML file, or `report DIR` to re-aggregate a "
+                    "study folder without running anything. See docs/study.md.")
+    study.add_argument("target", help="paper | STUDY.yaml | report")
+    study.add_argument("folder", nargs="?", type=Path, help="with `report`: the study folder to re-aggregate")
+    study.add_argument("--reps", type=int, metavar="N",
+                       help=f"seeds 1..N per cell (default {DEFAULT_REPS} for paper; a YAML file's seeds otherwise)")
+    study.add_argument("--scenarios", metavar="A,B", help="run only these scenarios of the study")
+    study.add_argument("--executor", default="local", metavar="KIND",
+                       help="local (a process pool, default), dask (a Dask LocalCluster) or dask:ADDRESS "
+                            "(an existing Dask scheduler, e.g. dask:tcp://10.0.0.5:8786)")
+    study.add_argument("--workers", type=int, metavar="N", help="worker processes (default: the number of cores)")
+    study.add_argument("--out", type=Path, help="study folder (default out/study-<name>)")
+    study.add_argument("--time-limit", type=float, metavar="S", help="cap every run at S simulated seconds")
+    study.add_argument("--retry-failed", action="store_true", help="run again the runs recorded as failed")
+    study.add_argument("--dry-run", action="store_true", help="print the grid and what is done; run nothing")
+    study.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    study.set_defaults(func=cmd_study)
+
+
+def cmd_study(args: argparse.Namespace) -> int:
+    from sim_backend.study.report import write_study_outputs
+
+    if args.target == "report":
+        return cmd_report(args)
+    if args.folder is not None:
+        raise ConfigError("study", f"unexpected argument {str(args.folder)!r} (only `report` takes a folder)")
+    spec, runs = study_grid(args)
+    out = args.out or Path("out") / f"study-{spec.name}"
+    if args.dry_run:
+        return print_dry_run(runs, out, args.retry_failed)
+    from sim_backend.study.driver import run_study
+    from sim_backend.study.executors import make_executor, parse_executor
+
+    executor = make_executor(parse_executor(args.executor), args.workers)
+    print(f"study {spec.name}: {len(runs)} runs on {executor.describe()}, writing to {out}")
+    outcome = run_study(spec, runs, out, executor, retry_failed=args.retry_failed, command=command_line(args))
+    print(f"ran {outcome.ran} runs ({outcome.failed} failed), skipped {outcome.skipped} finished"
+          + (f" and {outcome.kept_failed} failed (re-run them with --retry-failed)" if outcome.kept_failed else ""))
+    return print_outputs(write_study_outputs(out, figures=not args.no_figures))
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from sim_backend.study.report import write_study_outputs
+
+    folder = args.folder
+    if folder is None:
+        raise ConfigError("study report", "give the study folder: khepri study report DIR")
+    if not folder.is_dir():
+        raise ConfigError("study report", f"no such folder: {folder}")
+    if not (folder / "study.json").is_file() and not any(folder.glob("*/seed-*/result.json")):
+        raise ConfigError("study report", f"{folder} holds no study (no study.json, no <cell>/seed-<n>/result.json)")
+    return print_outputs(write_study_outputs(folder, figures=not args.no_figures))
+
+
+def study_grid(args: argparse.Namespace):
+    from sim_backend.study.grid import check_reps, expand, load_study_file, paper_study, restrict
+
+    if args.reps is not None:
+        check_reps("--reps", args.reps)
+    if args.time_limit is not None and not args.time_limit > 0:
+        raise ConfigError("--time-limit", f"must be > 0 (got {args.time_limit:g})")
+    if args.target == "paper":
+        spec = paper_study(args.reps or DEFAULT_REPS)
+    else:
+        path = Path(args.target)
+        if not path.is_file():
+            raise ConfigError("study", f"{args.target!r} is not `paper`, `report` or a study file")
+        spec = load_study_file(path)
+        if args.reps is not None:
+            spec.seeds = list(range(1, args.reps + 1))
+    if args.time_limit is not None:
+        spec.time_limit_s = args.time_limit
+    if args.scenarios is not None:
+        names = [n.strip() for n in args.scenarios.split(",") if n.strip()]
+        if not names:
+            raise ConfigError("--scenarios", "give scenario names separated by commas")
+        spec = restrict(spec, names)
+    runs = expand(spec)
+    for run in runs:   # workers import what `khepri --import` imported here (a user's behaviour)
+        run.imports, run.import_dir = list(getattr(args, "imports", [])), os.getcwd()
+    return spec, runs
+
+
+def print_dry_run(runs, out: Path, retry_failed: bool) -> int:
+    from sim_backend.study.driver import plan_runs
+    from sim_backend.study.grid import grid_table
+
+    plan = plan_runs(runs, out, retry_failed)
+    done = {(r.cell, r.seed) for r in plan.finished}
+    kept = {(r.cell, r.seed) for r in plan.kept_failed}
+    print(f"{len(runs)} runs, {len(plan.to_run)} to run, {len(done)} finished, {len(kept)} failed kept; out {out}")
+    for cell, seeds in grid_table(runs):
+        cell_runs = [r for r in runs if r.cell == cell]
+        finished = sum((r.cell, r.seed) in done for r in cell_runs)
+        failed = sum((r.cell, r.seed) in kept for r in cell_runs)
+        limit = cell_runs[0].time_limit_s
+        limit_text = f"{limit:g} s" if limit else f"{cell_runs[0].scenario_data.get('time_limit_s'):g} s (scenario)"
+        print(f"  {cell:40s} seeds {seeds:10s} time limit {limit_text:16s} finished {finished}, failed {failed}")
+    return 0
+
+
+def print_outputs(files) -> int:
+    from sim_backend.study.aggregate import load_results
+
+    for name, path in files.items():
+        print(f"  {name}: {path}")
+    results = load_results(files["summary"].parent)
+    failed = sum(len(cell.failed) for cell in results.cells)
+    if failed:
+        print(f"khepri: {failed} runs failed; report.md lists why (re-run them with --retry-failed)",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """The command as it could be typed again (recorded in study.json and quoted by report.md)."""
+    words = ["khepri"] + [f"--import={name}" for name in getattr(args, "imports", [])] + ["study", args.target]
+    options = (("--reps", args.reps), ("--scenarios", args.scenarios), ("--executor", args.executor),
+               ("--workers", args.workers), ("--out", args.out), ("--time-limit", args.time_limit))
+    for flag, value in options:
+        if value is not None and not (flag == "--executor" and value == "local"):
+            words += [flag, format(value, "g") if isinstance(value, float) else str(value)]
+    words += ["--retry-failed"] if args.retry_failed else []
+    return " ".join(shlex.quote(word) for word in words)

@@ -1,0 +1,196 @@
+"""From a study folder's result.json files to per-cell statistics and ``summary.csv``.
+
+Statistics are over the runs that did not fail (``failed: true`` runs are counted, never averaged). A
+distribution is summarised by its median and its spread: quartiles (numpy's linear interpolation) and
+min/max. Rates are fractions of the runs that did not fail.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from . import paper_reference as paper
+from .paper_reference import PaperCase
+from .worker import RESULT_FILE, read_result
+
+WAYPOINT_METRICS = ("centroid_estimation_error_m", "position_error_m", "orientation_error_rad",
+                    "effective_pushers", "effective_rotators")
+RUN_METRICS = ("time_to_cage_s", "time_to_complete_s", "cage_size", "final_position_error_m",
+               "final_orientation_error_rad", "wall_time_s")
+CAGED_ONLY = ("cage_size",)
+CSV_COLUMNS = ("cell", "scenario", "robots", "overrides", "metric", "waypoint", "n", "value", "q1", "q3",
+               "min", "max", "paper_value", "paper_n")
+
+
+@dataclass
+class Distribution:
+    n: int
+    median: float
+    q1: float
+    q3: float
+    min: float
+    max: float
+
+
+def distribution(values: Sequence[float]) -> Optional[Distribution]:
+    finite = [float(v) for v in values if v is not None and math.isfinite(v)]
+    if not finite:
+        return None
+    q1, median, q3 = np.percentile(finite, [25, 50, 75])
+    return Distribution(len(finite), float(median), float(q1), float(q3), min(finite), max(finite))
+
+
+@dataclass
+class Cell:
+    """All runs of one (scenario, overrides) cell; ``results`` holds every run, failed ones included."""
+
+    name: str
+    scenario: str
+    robots: Optional[int]
+    overrides: Dict[str, Any]
+    case: PaperCase
+    results: Dict[int, Dict[str, Any]] = field(default_factory=dict)   # seed -> result
+
+    @property
+    def ok(self) -> List[Dict[str, Any]]:
+        return [r for _, r in sorted(self.results.items()) if not r.get("failed")]
+
+    @property
+    def failed(self) -> List[Tuple[int, Dict[str, Any]]]:
+        return [(seed, r) for seed, r in sorted(self.results.items()) if r.get("failed")]
+
+    @property
+    def has_path(self) -> bool:
+        return any("completed" in r for r in self.ok)
+
+    def values(self, key: str) -> List[float]:
+        # A cage that never closed has no size (result.json says 0): count cage sizes of caged runs only.
+        runs = [r for r in self.ok if r.get("caged")] if key in CAGED_ONLY else self.ok
+        return [r[key] for r in runs if isinstance(r.get(key), (int, float)) and not isinstance(r[key], bool)]
+
+    def waypoint_values(self, index: int, key: str) -> List[float]:
+        out = []
+        for result in self.ok:
+            for waypoint in result.get("waypoints") or []:
+                if waypoint.get("index") == index and isinstance(waypoint.get(key), (int, float)):
+                    out.append(waypoint[key])
+        return out
+
+    def waypoint_indices(self) -> List[int]:
+        return sorted({w["index"] for r in self.ok for w in r.get("waypoints") or [] if "index" in w})
+
+    def rate(self, predicate) -> Optional[float]:
+        ok = self.ok
+        return sum(1 for r in ok if predicate(r)) / len(ok) if ok else None
+
+
+@dataclass
+class StudyResults:
+    root: Path
+    cells: List[Cell]
+    unreadable: List[str]   # result.json files that exist but cannot be read
+
+
+def load_results(out_dir: Path) -> StudyResults:
+    cells: Dict[str, Cell] = {}
+    unreadable = []
+    for path in sorted(out_dir.glob(f"*/seed-*/{RESULT_FILE}")):
+        result = read_result(path.parent)
+        seed_text = path.parent.name[len("seed-"):]
+        if not result or not seed_text.isdigit():
+            unreadable.append(str(path.relative_to(out_dir)))
+            continue
+        name = path.parent.parent.name
+        if name not in cells:
+            study = result.get("study") or {}
+            scenario = str(result.get("scenario", name.split("@")[0]))
+            cells[name] = Cell(name, scenario, result.get("robots"), dict(study.get("overrides") or {}),
+                               paper.paper_case(scenario))
+        cells[name].results[int(seed_text)] = result
+    return StudyResults(out_dir, sorted(cells.values(), key=cell_order), unreadable)
+
+
+def cell_order(cell: Cell) -> tuple:
+    """Paper cells in the paper's order (robots, then path), then irregular objects, then the rest."""
+    case = cell.case
+    if case.robots is not None:
+        return (0, case.robots, paper.PAPER_PATHS.index(case.path), cell.name)
+    return (1 if case.irregular else 2, 0, 0, cell.name)
+
+
+@dataclass
+class SummaryRow:
+    metric: str
+    n: int
+    value: Optional[float]
+    spread: Optional[Distribution] = None
+    waypoint: Optional[int] = None
+    paper_value: Optional[float] = None
+    paper_n: Optional[int] = None
+
+
+def success_rate(cell: Cell) -> Optional[float]:
+    """Completed (every waypoint, within tolerance) for a transport; caged for a caging-only run."""
+    return cell.rate(lambda r: bool(r.get("completed"))) if cell.has_path else cell.rate(lambda r: bool(r.get("caged")))
+
+
+def cell_rows(cell: Cell) -> List[SummaryRow]:
+    ok = len(cell.ok)
+    rows = [SummaryRow("runs", len(cell.results), len(cell.results)),
+            SummaryRow("failed_runs", len(cell.results), len(cell.failed))]
+    if any("caged" in r for r in cell.ok):
+        rows.append(SummaryRow("caged_rate", ok, cell.rate(lambda r: bool(r.get("caged")))))
+    if cell.has_path:
+        rows.append(SummaryRow("all_waypoints_rate", ok, cell.rate(lambda r: r.get("time_to_complete_s") is not None)))
+        rows.append(SummaryRow("completed_rate", ok, cell.rate(lambda r: bool(r.get("completed")))))
+    rows.append(SummaryRow("success_rate", ok, success_rate(cell)))
+    paper_runs = {"time_to_cage_s": paper.time_to_cage_s(cell.case),
+                  "time_to_complete_s": paper.time_to_push_s(cell.case)}
+    for metric in RUN_METRICS:
+        rows.append(distribution_row(metric, cell.values(metric), paper_runs.get(metric)))
+    for index in cell.waypoint_indices():
+        for metric in WAYPOINT_METRICS:
+            reference = paper.error_values(cell.case, index, metric)
+            reference_median = float(np.median(reference)) if reference else None
+            rows.append(distribution_row(metric, cell.waypoint_values(index, metric), reference_median,
+                                         index, len(reference) or None))
+    return [row for row in rows if row.n or row.metric in ("runs", "failed_runs")]
+
+
+def distribution_row(metric: str, values: List[float], paper_value: Optional[float], waypoint: Optional[int] = None,
+                     paper_n: Optional[int] = None) -> SummaryRow:
+    spread = distribution(values)
+    return SummaryRow(metric, spread.n if spread else 0, spread.median if spread else None, spread, waypoint,
+                      paper_value, paper_n)
+
+
+def number_text(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def overrides_text(overrides: Dict[str, Any]) -> str:
+    return " ".join(f"{key}={value}" for key, value in overrides.items())
+
+
+def write_summary_csv(results: StudyResults, path: Path) -> Path:
+    """One row per (cell, metric[, waypoint]); see docs/study.md for the columns."""
+    with path.open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(CSV_COLUMNS)
+        for cell in results.cells:
+            for row in cell_rows(cell):
+                s = row.spread
+                writer.writerow([cell.name, cell.scenario, number_text(cell.robots), overrides_text(cell.overrides),
+                                 row.metric, number_text(row.waypoint), row.n, number_text(row.value),
+                                 *(number_text(getattr(s, k)) if s else "" for k in ("q1", "q3", "min", "max")),
+                                 number_text(row.paper_value), number_text(row.paper_n)])
+    return path

@@ -1,0 +1,164 @@
+"""Runs a study: skips finished runs, sends the rest to an executor, records every result, shows progress.
+
+Resumable by construction: a run is done when its ``<out>/<cell>/seed-<n>/result.json`` exists (it is
+written atomically). A failed run (``failed: true``) is done too, unless ``retry_failed`` asks to run it
+again.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, TextIO
+
+from onboard.config import to_mapping
+
+from .grid import RunSpec, StudySpec
+from .worker import RESULT_FILE, read_result, write_result
+
+STUDY_FILE = "study.json"
+
+
+@dataclass
+class StudyPlan:
+    to_run: List[RunSpec] = field(default_factory=list)
+    finished: List[RunSpec] = field(default_factory=list)       # result.json present: skipped
+    kept_failed: List[RunSpec] = field(default_factory=list)    # failed before, not retried: skipped
+    other_limit: List[RunSpec] = field(default_factory=list)    # skipped, but ran with another time limit
+
+
+@dataclass
+class StudyOutcome:
+    ran: int = 0
+    failed: int = 0
+    skipped: int = 0
+    kept_failed: int = 0
+
+
+def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) -> StudyPlan:
+    plan = StudyPlan()
+    for run in runs:
+        previous = read_result(out_dir / run.run_dir)
+        if not previous or (previous.get("failed") and retry_failed):
+            plan.to_run.append(run)
+            continue
+        (plan.kept_failed if previous.get("failed") else plan.finished).append(run)
+        if (previous.get("study") or {}).get("time_limit_s") != run.time_limit_s:
+            plan.other_limit.append(run)
+    return plan
+
+
+def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, retry_failed: bool = False,
+              command: str = "", stream: Optional[TextIO] = None) -> StudyOutcome:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    record_study(spec, out_dir, command)
+    plan = plan_runs(runs, out_dir, retry_failed)
+    outcome = StudyOutcome(skipped=len(plan.finished), kept_failed=len(plan.kept_failed))
+    for run in plan.to_run:
+        # A retried run's old result.json goes first, so "missing" below means "the worker could not write".
+        (out_dir / run.run_dir / RESULT_FILE).unlink(missing_ok=True)
+    stream = stream or sys.stderr
+    if plan.other_limit:
+        stream.write(f"warning: {len(plan.other_limit)} runs already in {out_dir} ran with another time limit "
+                     f"and are kept; use another --out to run them again\n")
+    by_key = {(run.cell, run.seed): run for run in plan.to_run}
+    progress = StudyProgress(len(plan.to_run), stream)
+    try:
+        for result in executor.results(plan.to_run, str(out_dir.resolve())):
+            run = by_key[(result["study"]["cell"], result["seed"])]
+            run_dir = out_dir / run.run_dir
+            if not (run_dir / RESULT_FILE).is_file():
+                write_result(result, run_dir)   # the worker had no access to this folder
+            outcome.ran += 1
+            outcome.failed += bool(result.get("failed"))
+            progress.update(result)
+    finally:
+        progress.close()
+    return outcome
+
+
+def record_study(spec: StudySpec, out_dir: Path, command: str) -> None:
+    """study.json: the grid and every command that ran into this folder (the report quotes them)."""
+    path = out_dir / STUDY_FILE
+    previous: Dict[str, Any] = {}
+    if path.is_file():
+        try:
+            previous = json.loads(path.read_text(encoding="utf-8"))
+        except ValueError:
+            previous = {}
+    commands = list(previous.get("commands", [])) + ([command] if command else [])
+    data = dict(to_mapping(spec), commands=commands)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    tmp.replace(path)
+
+
+def read_study(out_dir: Path) -> Dict[str, Any]:
+    try:
+        data = json.loads((out_dir / STUDY_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def outcome_text(result: Dict[str, Any]) -> str:
+    """A run in a few words: FAILED and why, or whether it caged and completed."""
+    if result.get("failed"):
+        return f"FAILED: {result.get('error', 'unknown reason')}"
+    parts = []
+    if "caged" in result:
+        cage = result.get("time_to_cage_s")
+        parts.append(f"caged at {cage:.0f} s" if result["caged"] and cage is not None else "not caged")
+    if "completed" in result:
+        parts.append("completed" if result["completed"] else "not completed")
+    return ", ".join(parts) or f"stopped: {result.get('stop_reason', '?')}"
+
+
+def duration_text(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+class StudyProgress:
+    """Runs done out of the total, failures and an ETA from the pace so far.
+
+    On a terminal: one bar redrawn in place. Otherwise (a log file, a CI job): one line per finished run.
+    """
+
+    def __init__(self, total: int, stream: TextIO, clock=time.monotonic):
+        self.total = total
+        self.stream = stream
+        self.clock = clock
+        self.started = clock()
+        self.done = 0
+        self.failed = 0
+        self.is_terminal = stream.isatty()
+
+    def eta_text(self) -> str:
+        if self.done == 0:
+            return "ETA --:--:--"
+        remaining = (self.clock() - self.started) / self.done * (self.total - self.done)
+        return f"ETA {duration_text(remaining)}"
+
+    def update(self, result: Dict[str, Any]) -> None:
+        self.done += 1
+        self.failed += bool(result.get("failed"))
+        failed = f", {self.failed} failed" if self.failed else ""
+        if self.is_terminal:
+            width = 30
+            filled = int(width * self.done / max(self.total, 1))
+            self.stream.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} runs"
+                              f"{failed} | {self.eta_text()} ")
+        else:
+            wall = result.get("wall_time_s")
+            wall_text = f" ({wall:.1f} s wall)" if isinstance(wall, (int, float)) else ""
+            self.stream.write(f"[{self.done}/{self.total}] {result['study']['cell']} seed {result['seed']}: "
+                              f"{outcome_text(result)}{wall_text}{failed} | {self.eta_text()}\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.is_terminal and self.done:
+            self.stream.write("\n")
+            self.stream.flush()

@@ -1,0 +1,188 @@
+"""Where a study's runs execute: a local process pool or a Dask cluster, behind one small interface.
+
+``executor.results(runs, out_root)`` takes run specs and yields each run's result as it finishes, in
+completion order. A run whose worker raised or died comes back as a failed result, never as an exception,
+so one bad run cannot stop a study.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+from collections import deque
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional
+
+from onboard.config import ConfigError
+
+from .grid import RunSpec
+from .worker import execute_run, failed_result
+
+RunFunction = Callable[[RunSpec, str], Dict[str, Any]]
+WORKER_DIED = "the worker process died while running this run (killed, out of memory or a crash in native code)"
+
+
+@dataclass
+class ExecutorChoice:
+    kind: str                      # "local" or "dask"
+    address: Optional[str] = None  # a Dask scheduler; None = start a LocalCluster
+
+
+def parse_executor(text: str) -> ExecutorChoice:
+    """``local``, ``dask`` (a LocalCluster on this machine) or ``dask:ADDRESS`` (an existing scheduler)."""
+    kind, separator, address = text.partition(":")
+    if kind == "local" and not address:
+        return ExecutorChoice("local")
+    if kind == "dask":
+        if separator and not address.strip():
+            raise ConfigError("--executor", "dask: needs a scheduler address, e.g. dask:tcp://10.0.0.5:8786")
+        return ExecutorChoice("dask", address.strip() or None)
+    raise ConfigError("--executor", f"must be local, dask or dask:ADDRESS (got {text!r})")
+
+
+def default_workers() -> int:
+    return os.cpu_count() or 1
+
+
+def make_executor(choice: ExecutorChoice, workers: Optional[int] = None, run_function: RunFunction = execute_run):
+    workers = workers or default_workers()
+    if workers < 1:
+        raise ConfigError("--workers", f"must be >= 1 (got {workers})")
+    if choice.kind == "dask":
+        return DaskExecutor(choice.address, workers, run_function)
+    return LocalExecutor(workers, run_function)
+
+
+class LocalExecutor:
+    """A process pool over this machine's cores (fresh interpreters: 'spawn', safe next to threads)."""
+
+    def __init__(self, workers: int, run_function: RunFunction = execute_run):
+        self.workers = workers
+        self.run_function = run_function
+        self.context = multiprocessing.get_context("spawn")
+
+    def describe(self) -> str:
+        return f"local process pool, {self.workers} workers"
+
+    def results(self, runs: Iterable[RunSpec], out_root: str) -> Iterator[Dict[str, Any]]:
+        queue = deque(runs)
+        pool = ProcessPoolExecutor(self.workers, mp_context=self.context)
+        in_flight: Dict[Future, RunSpec] = {}
+        completed = False
+        try:
+            while queue or in_flight:
+                # Only as many runs in flight as workers: if the pool breaks, the suspects are few.
+                while queue and len(in_flight) < self.workers:
+                    spec = queue.popleft()
+                    in_flight[pool.submit(self.run_function, spec, out_root)] = spec
+                done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
+                suspects = []
+                for future in done:
+                    spec = in_flight.pop(future)
+                    outcome = self._outcome(future, spec)
+                    if outcome is None:
+                        suspects.append(spec)
+                    else:
+                        yield outcome
+                if suspects:
+                    # A worker died and took the pool down: every run still in flight is a suspect too.
+                    suspects += in_flight.values()
+                    in_flight.clear()
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    yield from self._isolate(suspects, out_root)
+                    pool = ProcessPoolExecutor(self.workers, mp_context=self.context)
+            completed = True
+        finally:
+            if completed:
+                pool.shutdown(wait=True)
+            else:
+                stop_workers(pool)
+
+    def _outcome(self, future: Future, spec: RunSpec) -> Optional[Dict[str, Any]]:
+        """The run's result; a failed result if it raised; None if the pool broke under it."""
+        try:
+            return future.result()
+        except BrokenProcessPool:
+            return None
+        except Exception as exc:
+            return failed_result(spec, f"{type(exc).__name__}: {exc}")
+
+    def _isolate(self, suspects: List[RunSpec], out_root: str) -> Iterator[Dict[str, Any]]:
+        """Run each suspect alone in its own one-worker pool: the one that kills its worker again is
+        recorded as failed, the innocent ones that shared the broken pool simply complete."""
+        for spec in suspects:
+            with ProcessPoolExecutor(1, mp_context=self.context) as solo:
+                outcome = self._outcome(solo.submit(self.run_function, spec, out_root), spec)
+            yield outcome if outcome is not None else failed_result(spec, WORKER_DIED)
+
+
+def stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Interrupted (Ctrl-C): end the runs in flight now rather than wait minutes for them. They left no
+    result.json, so a resume runs them again."""
+    terminate = getattr(pool, "terminate_workers", None)   # public from Python 3.14
+    if terminate is not None:
+        terminate()
+        return
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.terminate()
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
+class DaskExecutor:
+    """Dask distributed: a LocalCluster of ``workers`` single-threaded processes, or an existing scheduler.
+
+    Workers of an existing scheduler need khepri installed (the same version) in their environment.
+    """
+
+    def __init__(self, address: Optional[str], workers: int, run_function: RunFunction = execute_run):
+        self.address = address
+        self.workers = workers
+        self.run_function = run_function
+
+    def describe(self) -> str:
+        return f"Dask scheduler at {self.address}" if self.address else f"Dask LocalCluster, {self.workers} workers"
+
+    def results(self, runs: Iterable[RunSpec], out_root: str) -> Iterator[Dict[str, Any]]:
+        from distributed import Client, LocalCluster, as_completed
+
+        cluster = None
+        if self.address is None:
+            # One thread per worker: the simulator is pure Python, threads would only contend for the GIL.
+            cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.ERROR)
+        try:
+            client = Client(cluster if cluster is not None else self.address, timeout="30s")
+        except OSError as err:
+            if cluster is not None:
+                cluster.close()
+            raise ConfigError("--executor", f"cannot reach the Dask scheduler {self.address}: {err}") from None
+        futures = {}
+        try:
+            for spec in runs:
+                future = client.submit(self.run_function, spec, out_root, pure=False,
+                                       key=f"khepri-run-{spec.cell}-seed-{spec.seed}-{os.urandom(4).hex()}")
+                futures[future] = spec
+            for future in as_completed(futures):
+                yield self._outcome(future, futures[future])
+        finally:
+            for future in futures:
+                future.cancel()
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+    @staticmethod
+    def _outcome(future, spec: RunSpec) -> Dict[str, Any]:
+        from distributed.scheduler import KilledWorker
+
+        if future.status == "finished":
+            return future.result()
+        exc = future.exception() if future.status == "error" else None
+        if isinstance(exc, KilledWorker):
+            # Dask retried the task on other workers; each of them died with it.
+            return failed_result(spec, f"{WORKER_DIED} (Dask: {exc})")
+        if exc is not None:
+            return failed_result(spec, f"{type(exc).__name__}: {exc}")
+        return failed_result(spec, f"the Dask task ended as {future.status!r}")

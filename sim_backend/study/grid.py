@@ -1,0 +1,249 @@
+"""What a study runs: scenarios x parameter overrides x seeds, from the paper's grid or a YAML study file.
+
+A run is identified by (scenario, overrides, seed). Scenario and overrides make its *cell* (the folder
+``<out>/<cell>/``), the seed its run folder ``seed-<n>/``. Each run carries its full scenario mapping, so
+a worker on another machine needs neither the study file nor the scenario file.
+"""
+from __future__ import annotations
+
+import copy
+import itertools
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import yaml
+
+from onboard.config import ConfigError, to_mapping
+from sim_backend.scenario import load_scenario, parse_scenario
+
+from .paper_reference import paper_scenarios
+
+STUDY_KEYS = ("name", "scenarios", "seeds", "reps", "overrides", "time_limit_s")
+SEED_RANGE = re.compile(r"^\s*(\d+)\s*\.\.\s*(\d+)\s*$")
+SAFE_NAME = re.compile(r"^[A-Za-z0-9_.+-]+$")
+
+
+@dataclass
+class StudySpec:
+    """A validated study: every scenario is run with every combination of override values and every seed."""
+
+    name: str
+    scenarios: List[str]                       # built-in names or paths to scenario files
+    seeds: List[int]
+    overrides: Dict[str, List[Any]] = field(default_factory=dict)   # dotted scenario key -> values
+    time_limit_s: Optional[float] = None       # caps every run; None = each scenario's own limit
+
+
+@dataclass
+class RunSpec:
+    """One run, as sent to a worker (plain data, picklable)."""
+
+    cell: str
+    scenario: str                      # as named in the study (for people); the worker uses scenario_data
+    scenario_data: Dict[str, Any]      # the full scenario mapping with the overrides applied
+    seed: int
+    overrides: Dict[str, Any] = field(default_factory=dict)
+    time_limit_s: Optional[float] = None
+    # Modules the driver was started with (``khepri --import``), e.g. a user's behaviour: a worker process
+    # imports them too, from import_dir (the driver's working folder) or its own path.
+    imports: List[str] = field(default_factory=list)
+    import_dir: Optional[str] = None
+
+    @property
+    def run_dir(self) -> str:
+        return f"{self.cell}/seed-{self.seed}"
+
+
+def paper_study(reps: int) -> StudySpec:
+    check_reps("--reps", reps)
+    return StudySpec(name="paper", scenarios=paper_scenarios(), seeds=list(range(1, reps + 1)))
+
+
+def check_reps(where: str, reps: Any) -> int:
+    if isinstance(reps, bool) or not isinstance(reps, int) or reps < 1:
+        raise ConfigError(where, f"must be an integer >= 1 (got {reps!r})")
+    return reps
+
+
+def load_study_file(path: Path) -> StudySpec:
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as err:
+        raise ConfigError("study", f"cannot read {path}: {err.strerror or err}") from None
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f"{path.name}:{mark.line + 1}" if mark else path.name
+        raise ConfigError(where, f"not valid YAML ({getattr(err, 'problem', err)})") from None
+    return parse_study(data, base_dir=path.parent, default_name=path.stem)
+
+
+def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "study") -> StudySpec:
+    """Validate a study mapping; every problem is a ConfigError naming the field."""
+    if not isinstance(data, dict):
+        raise ConfigError("", f"a study file must be a mapping of keys (got {type(data).__name__})")
+    unknown = [key for key in data if key not in STUDY_KEYS]
+    if unknown:
+        raise ConfigError(str(unknown[0]), f"unknown key (known: {', '.join(STUDY_KEYS)})")
+    name = data.get("name", default_name)
+    if not isinstance(name, str) or not SAFE_NAME.match(name):
+        raise ConfigError("name", f"must be a name of letters, digits and _.+- (got {name!r})")
+    spec = StudySpec(name=name, scenarios=parse_scenario_list(data.get("scenarios"), base_dir),
+                     seeds=parse_seeds(data), overrides=parse_overrides(data.get("overrides")),
+                     time_limit_s=parse_time_limit("time_limit_s", data.get("time_limit_s")))
+    expand(spec)   # builds and validates every cell's scenario now, before anything runs
+    return spec
+
+
+def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
+    if not isinstance(value, list) or not value:
+        raise ConfigError("scenarios", f"must be a non-empty list of scenario names or files (got {value!r})")
+    names = []
+    for i, item in enumerate(value):
+        if not isinstance(item, str) or not item.strip():
+            raise ConfigError(f"scenarios[{i}]", f"must be a scenario name or file (got {item!r})")
+        # Files are relative to the study file, so a study folder can be moved as a whole.
+        is_file = item.endswith((".yaml", ".yml"))
+        names.append(str((base_dir / item).resolve()) if is_file else item)
+    if len(set(names)) != len(names):
+        raise ConfigError("scenarios", "lists a scenario twice")
+    return names
+
+
+def parse_seeds(data: Dict[str, Any]) -> List[int]:
+    if ("seeds" in data) == ("reps" in data):
+        raise ConfigError("seeds", "give either seeds (a list, or 'first..last') or reps (seeds 1..reps)")
+    if "reps" in data:
+        return list(range(1, check_reps("reps", data["reps"]) + 1))
+    value = data["seeds"]
+    if isinstance(value, str):
+        match = SEED_RANGE.match(value)
+        if not match or int(match.group(2)) < int(match.group(1)):
+            raise ConfigError("seeds", f"a range must read 'first..last' with first <= last (got {value!r})")
+        return list(range(int(match.group(1)), int(match.group(2)) + 1))
+    if not isinstance(value, list) or not value:
+        raise ConfigError("seeds", f"must be a non-empty list of integers or 'first..last' (got {value!r})")
+    for i, seed in enumerate(value):
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ConfigError(f"seeds[{i}]", f"must be an integer >= 0 (got {seed!r})")
+    if len(set(value)) != len(value):
+        raise ConfigError("seeds", "lists a seed twice")
+    return list(value)
+
+
+def parse_overrides(value: Any) -> Dict[str, List[Any]]:
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise ConfigError("overrides", f"must be a mapping of scenario key -> list of values (got {value!r})")
+    overrides = {}
+    for key, values in value.items():
+        where = f"overrides.{key}"
+        if not isinstance(key, str) or not all(part.strip() for part in key.split(".")):
+            raise ConfigError(where, "the key must be a dotted scenario key, e.g. params.inter_robot_distance_m")
+        if key in ("name", "seed"):
+            raise ConfigError(where, "cannot be overridden (the study sets names and seeds)")
+        values = values if isinstance(values, list) else [values]
+        if not values:
+            raise ConfigError(where, "must list at least one value")
+        overrides[key] = values
+    return overrides
+
+
+def parse_time_limit(where: str, value: Any) -> Optional[float]:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise ConfigError(where, f"must be a number of seconds > 0 (got {value!r})")
+    return float(value)
+
+
+def restrict(spec: StudySpec, names: Sequence[str]) -> StudySpec:
+    """Keep only the named scenarios (``--scenarios``), in the study's order."""
+    known = {Path(s).stem if s.endswith((".yaml", ".yml")) else s: s for s in spec.scenarios}
+    missing = [n for n in names if n not in known and n not in spec.scenarios]
+    if missing:
+        raise ConfigError("--scenarios", f"not in the study: {', '.join(missing)} "
+                          f"(the study has: {', '.join(known)})")
+    wanted = {known.get(n, n) for n in names}
+    return StudySpec(spec.name, [s for s in spec.scenarios if s in wanted], spec.seeds, spec.overrides,
+                     spec.time_limit_s)
+
+
+def expand(spec: StudySpec) -> List[RunSpec]:
+    """Every run of the study, cell by cell, seeds in order."""
+    runs = []
+    combos = list(itertools.product(*spec.overrides.values())) or [()]
+    for i, scenario_ref in enumerate(spec.scenarios):
+        base = scenario_mapping(scenario_ref, f"scenarios[{i}]")
+        for combo in combos:
+            chosen = dict(zip(spec.overrides, combo))
+            data = apply_overrides(base, chosen)
+            cell = cell_name(str(data["name"]), chosen)
+            check_cell(data, cell, chosen)
+            runs.extend(RunSpec(cell, scenario_ref, data, seed, chosen, spec.time_limit_s) for seed in spec.seeds)
+    runs_per_cell = Counter(r.cell for r in runs)
+    duplicate = next((c for c, count in runs_per_cell.items() if count > len(spec.seeds)), None)
+    if duplicate:
+        raise ConfigError("scenarios", f"two scenarios share the name {duplicate.split('@')[0]!r}: "
+                          f"their runs would share a folder")
+    return runs
+
+
+def scenario_mapping(scenario_ref: str, where: str) -> Dict[str, Any]:
+    """A scenario as a plain mapping with every default filled in (what ``khepri sim show`` prints)."""
+    try:
+        return to_mapping(load_scenario(scenario_ref))
+    except ConfigError as err:
+        raise ConfigError(where, str(err)) from None
+
+
+def apply_overrides(base: Dict[str, Any], chosen: Dict[str, Any]) -> Dict[str, Any]:
+    data = copy.deepcopy(base)
+    for key, value in chosen.items():
+        target = data
+        parts = key.split(".")
+        for depth, part in enumerate(parts[:-1]):
+            child = target.get(part)
+            if child is None:
+                child = target[part] = {}
+            if not isinstance(child, dict):
+                raise ConfigError(f"overrides.{key}", f"{'.'.join(parts[:depth + 1])} is not a mapping")
+            target = child
+        target[parts[-1]] = copy.deepcopy(value)
+    return data
+
+
+def check_cell(data: Dict[str, Any], cell: str, chosen: Dict[str, Any]) -> None:
+    try:
+        parse_scenario(data)
+    except ConfigError as err:
+        where = f"overrides ({cell})" if chosen else "scenarios"
+        raise ConfigError(where, str(err)) from None
+
+
+def cell_name(scenario_name: str, chosen: Dict[str, Any]) -> str:
+    """``scenario`` or ``scenario@key=value@key=value``: readable, and safe as a folder name."""
+    parts = [scenario_name] + [f"{key}={value_text(value)}" for key, value in chosen.items()]
+    return "@".join(re.sub(r"[^A-Za-z0-9_.,+=-]", "_", part) for part in parts)
+
+
+def value_text(value: Any) -> str:
+    if isinstance(value, (list, tuple)):
+        return ",".join(value_text(v) for v in value)
+    return format(value, "g") if isinstance(value, float) else str(value)
+
+
+def grid_table(runs: List[RunSpec]) -> List[Tuple[str, str]]:
+    """(cell, seeds) lines for ``--dry-run``."""
+    seeds: Dict[str, List[int]] = {}
+    for run in runs:
+        seeds.setdefault(run.cell, []).append(run.seed)
+    return [(cell, seed_text(values)) for cell, values in seeds.items()]
+
+
+def seed_text(seeds: List[int]) -> str:
+    contiguous = seeds == list(range(seeds[0], seeds[0] + len(seeds)))
+    return f"{seeds[0]}..{seeds[-1]}" if contiguous and len(seeds) > 2 else ",".join(map(str, seeds))

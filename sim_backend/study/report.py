@@ -1,0 +1,172 @@
+"""``report.md``: a study's outcome per cell and its errors per waypoint, next to the paper's numbers."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+
+from . import paper_reference as paper
+from .aggregate import Cell, StudyResults, distribution, load_results, success_rate, write_summary_csv
+from .driver import outcome_text, read_study
+
+ERROR_COLUMNS = (("centroid_estimation_error_m", "centroid est. err (m)"),
+                 ("position_error_m", "position err (m)"),
+                 ("orientation_error_rad", "orientation err (rad)"))
+
+
+def number(value: Optional[float], digits: int = 3) -> str:
+    if value is None:
+        return "–"
+    if abs(value) < 10:
+        return f"{value:.{digits}g}"
+    return f"{value:.0f}" if float(value).is_integer() else f"{value:.1f}"
+
+
+def median_and_spread(values: List[float], digits: int = 3) -> str:
+    """``median [q1–q3]``, or the single value, or ``–`` when there is none."""
+    spread = distribution(values)
+    if spread is None:
+        return "–"
+    if spread.n == 1:
+        return number(spread.median, digits)
+    return f"{number(spread.median, digits)} [{number(spread.q1, digits)}–{number(spread.q3, digits)}]"
+
+
+def percent(value: Optional[float]) -> str:
+    return "–" if value is None else f"{100 * value:.0f}%"
+
+
+def count_of(cell: Cell, key: str) -> str:
+    ok = cell.ok
+    if not any(key in r for r in ok):
+        return "–"
+    return f"{sum(1 for r in ok if r.get(key))}/{len(ok)}"
+
+
+def write_study_outputs(out_dir: Path, figures: bool = True) -> Dict[str, Path]:
+    """(Re)build summary.csv, the figures and report.md from the run folders under ``out_dir``."""
+    results = load_results(out_dir)
+    files = {"summary": write_summary_csv(results, out_dir / "summary.csv")}
+    drawn: Dict[str, Path] = {}
+    if figures:
+        from .figures import write_figures  # matplotlib only when drawing
+
+        drawn = write_figures(results, out_dir / "figures")
+    files["report"] = write_report(results, read_study(out_dir), out_dir / "report.md", drawn)
+    files.update({f"figure {name}": path for name, path in drawn.items()})
+    return files
+
+
+def write_report(results: StudyResults, study: Dict[str, Any], path: Path, figures: Dict[str, Path]) -> Path:
+    lines = header(results, study)
+    lines += outcome_table(results.cells)
+    lines += error_tables(results.cells)
+    lines += effective_tables(results.cells)
+    lines += figure_section(figures, path.parent)
+    lines += failure_section(results)
+    lines += source_section()
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def header(results: StudyResults, study: Dict[str, Any]) -> List[str]:
+    runs = sum(len(c.results) for c in results.cells)
+    failed = sum(len(c.failed) for c in results.cells)
+    lines = [f"# Study `{study.get('name', results.root.name)}`", ""]
+    commands = study.get("commands") or []
+    if commands:
+        lines += ["Commands that wrote this folder:", "", "```sh", *commands, "```", ""]
+    limit = study.get("time_limit_s")
+    lines += [f"{runs} runs in {len(results.cells)} cells, {failed} failed (crashed; excluded from the "
+              f"statistics). Time limit: {f'{limit:g} s for every run' if limit else 'each scenario’s own'}.",
+              "", "Values are medians over the runs that did not fail, with the interquartile range in brackets. "
+              "Paper: medians from the paper (times quoted in its text; errors from its per-run data).", ""]
+    return lines
+
+
+def outcome_table(cells: List[Cell]) -> List[str]:
+    lines = ["## Outcome per cell", "",
+             "Success = completed (every waypoint reached within the tolerances) for a transport, caged for a "
+             "caging-only run.", "",
+             "| cell | robots | runs | failed | caged | all waypoints | success | time to cage (s) | paper | "
+             "time to complete (s) | paper | cage size |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for cell in cells:
+        all_waypoints = (f"{sum(1 for r in cell.ok if r.get('time_to_complete_s') is not None)}/{len(cell.ok)}"
+                         if cell.has_path else "–")
+        lines.append(
+            f"| {cell.name} | {cell.robots if cell.robots is not None else '–'} | {len(cell.results)} | "
+            f"{len(cell.failed)} | {count_of(cell, 'caged')} | {all_waypoints} | {percent(success_rate(cell))} | "
+            f"{median_and_spread(cell.values('time_to_cage_s'), 4)} | {number(paper.time_to_cage_s(cell.case), 4)} | "
+            f"{median_and_spread(cell.values('time_to_complete_s'), 4)} | "
+            f"{number(paper.time_to_push_s(cell.case), 4)} | {median_and_spread(cell.values('cage_size'))} |")
+    return lines + [""]
+
+
+def error_tables(cells: List[Cell]) -> List[str]:
+    lines = ["## Errors per waypoint, ours vs the paper", "",
+             "`n` = our runs that reached the waypoint. Paper: median over its runs (MISTLab/SwarmHaul "
+             "`Errors.csv`).", ""]
+    for cell in cells:
+        indices = cell.waypoint_indices()
+        if not indices:
+            continue
+        lines += [f"### {cell.name}", "",
+                  "| WP | n | " + " | ".join(f"{label} ours | paper" for _, label in ERROR_COLUMNS) + " |",
+                  "|---|---|" + "---|---|" * len(ERROR_COLUMNS)]
+        for index in indices:
+            cells_text = []
+            for metric, _ in ERROR_COLUMNS:
+                reference = paper.error_values(cell.case, index, metric)
+                cells_text.append(f"{median_and_spread(cell.waypoint_values(index, metric))} | "
+                                  f"{number(float(np.median(reference))) if reference else '–'}")
+            reached = len(cell.waypoint_values(index, "position_error_m"))
+            lines.append(f"| {index} | {reached} | " + " | ".join(cells_text) + " |")
+        lines.append("")
+    return lines
+
+
+def effective_tables(cells: List[Cell]) -> List[str]:
+    path_cells = [c for c in cells if c.waypoint_indices()]
+    if not path_cells:
+        return []
+    lines = ["## Effective pushers and rotators per waypoint (ours; the paper gives no numbers)", "",
+             "Each entry: pushers / rotators, medians over the runs that reached the waypoint.", ""]
+    width = max(max(c.waypoint_indices()) for c in path_cells) + 1
+    lines += ["| cell | " + " | ".join(f"WP{i}" for i in range(width)) + " |", "|---|" + "---|" * width]
+    for cell in path_cells:
+        entries = []
+        for index in range(width):
+            pushers = distribution(cell.waypoint_values(index, "effective_pushers"))
+            rotators = distribution(cell.waypoint_values(index, "effective_rotators"))
+            entries.append(f"{number(pushers.median if pushers else None)} / "
+                           f"{number(rotators.median if rotators else None)}")
+        lines.append(f"| {cell.name} | " + " | ".join(entries) + " |")
+    return lines + [""]
+
+
+def figure_section(figures: Dict[str, Path], folder: Path) -> List[str]:
+    if not figures:
+        return []
+    lines = ["## Figures", ""]
+    for title, path in figures.items():
+        lines += [f"### {title}", "", f"![{title}]({path.relative_to(folder).as_posix()})", ""]
+    return lines
+
+
+def failure_section(results: StudyResults) -> List[str]:
+    failed = [(cell.name, seed, result) for cell in results.cells for seed, result in cell.failed]
+    if not failed and not results.unreadable:
+        return []
+    lines = ["## Failed runs", "", "Re-run them with `--retry-failed`.", ""]
+    lines += [f"- `{name}` seed {seed}: {outcome_text(result)[len('FAILED: '):]}" for name, seed, result in failed]
+    lines += [f"- `{path}`: unreadable result.json (run again: delete it and resume)" for path in results.unreadable]
+    return lines + [""]
+
+
+def source_section() -> List[str]:
+    return ["## Paper data", "",
+            "Varadharajan, Soma, Beltrame, \"Collective transport via sequential caging\". Errors per waypoint: "
+            "the authors' per-run data (MISTLab/SwarmHaul `plotting/Data/Errors.csv`); times: medians quoted in "
+            "the paper's text. Copies and notes: `sim_backend/study/data/`.", ""]

@@ -1,0 +1,123 @@
+"""One study run, as executed in a worker process (local pool or Dask worker).
+
+The worker writes the run's files itself and also returns the result, so a remote worker that cannot see
+the driver's output folder still delivers its result: the driver writes result.json when it is missing.
+A run never raises: whatever goes wrong becomes a result with ``failed: true`` and the reason in ``error``.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import shutil
+import sys
+import tempfile
+import traceback
+from pathlib import Path
+from typing import Any, Dict
+
+from .grid import RunSpec
+
+RESULT_FILE = "result.json"
+TRACEBACK_LINES = 6   # enough to find the failing line without flooding result.json
+
+
+def execute_run(spec: RunSpec, out_root: str) -> Dict[str, Any]:
+    """Run one (scenario, overrides, seed) and write ``<out_root>/<cell>/seed-<n>/``; return its result."""
+    try:
+        from sim_backend.runner import Simulation
+        from sim_backend.scenario import parse_scenario
+
+        import_user_modules(spec)
+        sim = Simulation(parse_scenario(spec.scenario_data), seed=spec.seed)
+        result = sim.run(time_limit_s=spec.time_limit_s)
+    except Exception as exc:  # a run that cannot start is recorded as failed with its reason, not lost
+        result = failed_result(spec, f"{type(exc).__name__}: {exc}", traceback.format_exc())
+        try:
+            write_result(result, Path(out_root) / spec.run_dir)
+        except OSError:
+            pass
+        return result
+    result = with_study_fields(result, spec, failed="error" in result)
+    try:
+        write_run_files(sim, result, Path(out_root) / spec.run_dir)
+    except OSError:
+        pass   # e.g. a remote worker without the shared folder: the driver writes result.json
+    return result
+
+
+def import_user_modules(spec: RunSpec) -> None:
+    if spec.import_dir and spec.import_dir not in sys.path:
+        sys.path.insert(0, spec.import_dir)
+    for name in spec.imports:
+        importlib.import_module(name[:-3] if name.endswith(".py") else name)
+
+
+def with_study_fields(result: Dict[str, Any], spec: RunSpec, failed: bool) -> Dict[str, Any]:
+    result = dict(result)
+    result["failed"] = failed
+    result["study"] = {"cell": spec.cell, "scenario": spec.scenario, "overrides": spec.overrides,
+                       "time_limit_s": spec.time_limit_s}
+    return result
+
+
+def failed_result(spec: RunSpec, reason: str, trace: str = "") -> Dict[str, Any]:
+    """The result.json of a run that crashed outside the simulation loop (or whose worker died)."""
+    result: Dict[str, Any] = {
+        "scenario": str(spec.scenario_data.get("name", spec.scenario)),
+        "seed": spec.seed,
+        "robots": (spec.scenario_data.get("robots") or {}).get("count"),
+        "behaviour": spec.scenario_data.get("behaviour"),
+        "error": reason,
+    }
+    if trace:
+        result["traceback"] = trace.strip().splitlines()[-TRACEBACK_LINES:]
+    return with_study_fields(result, spec, failed=True)
+
+
+def write_run_files(sim, result: Dict[str, Any], run_dir: Path) -> None:
+    """Write the run's files through ``write_run`` in a staging folder, then move them in, result.json last.
+
+    So a result.json that exists is always complete: a run killed half-way leaves no result.json and is
+    run again on resume.
+    """
+    from sim_backend.outputs import write_run
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=run_dir))
+    try:
+        files = write_run(sim, result, staging, plot=False)
+        for name, path in files.items():
+            if name != "result":
+                os.replace(path, run_dir / path.name)
+        os.replace(files["result"], run_dir / RESULT_FILE)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def write_result(result: Dict[str, Any], run_dir: Path) -> Path:
+    """Write result.json atomically (temporary file, then rename)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    target = run_dir / RESULT_FILE
+    handle, temporary = tempfile.mkstemp(prefix=".result-", suffix=".json", dir=run_dir)
+    with os.fdopen(handle, "w", encoding="utf-8") as stream:
+        stream.write(json.dumps(result, indent=2, default=json_value) + "\n")
+    os.replace(temporary, target)
+    return target
+
+
+def json_value(value: Any) -> Any:
+    """numpy scalars and arrays inside a result, as JSON values."""
+    for method in ("tolist", "item"):
+        if hasattr(value, method):
+            return getattr(value, method)()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def read_result(run_dir: Path) -> Dict[str, Any]:
+    """A run's result.json, or {} when it is missing or unreadable (then the run counts as not done)."""
+    try:
+        data = json.loads((run_dir / RESULT_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}

@@ -1,0 +1,378 @@
+"""``khepri study``: the grid, real runs through a process pool and a Dask LocalCluster, resume, failures,
+and the aggregation (summary.csv, report.md, figures) of known results."""
+import csv
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from khepri_cli.main import main
+from sim_backend.study import paper_reference as paper
+from sim_backend.study.aggregate import load_results
+from sim_backend.study.driver import StudyProgress, run_study
+from sim_backend.study.executors import WORKER_DIED, LocalExecutor
+from sim_backend.study.grid import expand, paper_study, parse_study
+from sim_backend.study.report import write_study_outputs
+from sim_backend.study.worker import execute_run
+
+# Small and fast: lab-6 (6 robots) and a failing cell, a few simulated seconds each.
+TINY_STUDY = """
+name: tiny
+scenarios: [lab-6]
+seeds: 1..2
+time_limit_s: 4
+"""
+SPAWN_FAILURE = "robots.spawn.x"   # a zero-width start area: valid on load, fails when the world is built
+
+
+def write(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def results_in(out: Path) -> dict:
+    return {str(p.relative_to(out).parent): json.loads(p.read_text()) for p in sorted(out.glob("*/seed-*/result.json"))}
+
+
+def comparable(result: dict) -> dict:
+    """A result without what depends on the machine's speed."""
+    return {k: v for k, v in result.items() if k not in ("wall_time_s", "real_time_factor")}
+
+
+# --- the grid ------------------------------------------------------------------------------------------
+
+def test_the_paper_grid_is_nine_transport_cases_and_three_irregular_objects():
+    runs = expand(paper_study(2))
+    cells = list(dict.fromkeys(r.cell for r in runs))
+    assert cells == [f"paper-{n}-{p}" for n in (25, 50, 100) for p in ("straight", "zigzag", "straight_rot")] + [
+        "irregular-cloud", "irregular-box_rotation", "irregular-clover"]
+    assert [r.seed for r in runs if r.cell == "irregular-clover"] == [1, 2]
+    assert len(runs) == 24
+
+
+def test_overrides_make_a_cartesian_product_of_cells(tmp_path):
+    spec = parse_study({"name": "spacing", "scenarios": ["lab-6"], "reps": 2,
+                        "overrides": {"params.inter_robot_distance_m": [0.45, 0.65], "comm.drop": [0.0, 0.1]}})
+    runs = expand(spec)
+    assert len(runs) == 8
+    first = runs[0]
+    assert first.cell == "lab-6@params.inter_robot_distance_m=0.45@comm.drop=0"
+    assert first.scenario_data["params"]["inter_robot_distance_m"] == 0.45
+    assert runs[-1].scenario_data["comm"]["drop"] == 0.1
+    assert runs[-1].run_dir == "lab-6@params.inter_robot_distance_m=0.65@comm.drop=0.1/seed-2"
+
+
+@pytest.mark.parametrize("text, message", [
+    ("scenarios: lab-6\nreps: 2", "scenarios: must be a non-empty list"),
+    ("scenarios: [no-such-scenario]\nreps: 2", "scenarios[0]: scenario: unknown scenario 'no-such-scenario'"),
+    ("scenarios: [lab-6]\nreps: 0", "reps: must be an integer >= 1 (got 0)"),
+    ("scenarios: [lab-6]", "seeds: give either seeds"),
+    ("scenarios: [lab-6]\nseeds: 5..2", "seeds: a range must read 'first..last'"),
+    ("scenarios: [lab-6]\nseeds: [1, -3]", "seeds[1]: must be an integer >= 0"),
+    ("scenarios: [lab-6]\nreps: 1\noverrides: {params.no_such_param: [1]}", "params.no_such_param: unknown key"),
+    ("scenarios: [lab-6]\nreps: 1\noverrides: {robots.count: [0]}", "robots.count: must be >= 1"),
+    ("scenarios: [lab-6]\nreps: 1\ntime_limit_s: -5", "time_limit_s: must be a number of seconds > 0"),
+    ("scenarios: [lab-6]\nreps: 1\nrepeats: 3", "repeats: unknown key"),
+    ("scenarios: [lab-6\nreps: 1", "bad.yaml:2: not valid YAML"),
+])
+def test_a_bad_study_file_is_refused_with_the_field_named(tmp_path, capsys, text, message):
+    study = write(tmp_path / "bad.yaml", text)
+    assert main(["study", str(study), "--out", str(tmp_path / "out")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--executor", "spark"], "--executor: must be local, dask or dask:ADDRESS"),
+    (["--scenarios", "paper-25-straight"], "--scenarios: not in the study: paper-25-straight"),
+    (["--time-limit", "0"], "--time-limit: must be > 0"),
+    (["--reps", "0"], "--reps: must be an integer >= 1"),
+])
+def test_bad_options_are_refused(tmp_path, capsys, options, message):
+    study = write(tmp_path / "tiny.yaml", TINY_STUDY)
+    assert main(["study", str(study), "--out", str(tmp_path / "out"), *options]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_dry_run_prints_the_grid_and_runs_nothing(tmp_path, capsys):
+    assert main(["study", "paper", "--reps", "3", "--scenarios", "paper-25-straight,irregular-clover",
+                 "--dry-run", "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("6 runs, 6 to run, 0 finished")
+    assert "paper-25-straight" in out and "irregular-clover" in out and "paper-50-straight" not in out
+    assert not (tmp_path / "out").exists()
+
+
+# --- real runs -----------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def local_study(tmp_path_factory):
+    """The tiny study plus a cell that fails at start, run for real on a 2-process pool."""
+    folder = tmp_path_factory.mktemp("local")
+    study = write(folder / "tiny.yaml", TINY_STUDY + f"overrides: {{{SPAWN_FAILURE}: [[-1.2, -0.6], [0.0, 0.0]]}}\n")
+    out = folder / "out"
+    code = main(["study", str(study), "--out", str(out), "--workers", "2"])
+    return study, out, code
+
+
+def test_the_local_pool_runs_every_run_and_writes_its_files(local_study):
+    _, out, code = local_study
+    results = results_in(out)
+    good = "lab-6@robots.spawn.x=-1.2,-0.6"
+    assert sorted(results) == [f"{good}/seed-1", f"{good}/seed-2", "lab-6@robots.spawn.x=0,0/seed-1",
+                               "lab-6@robots.spawn.x=0,0/seed-2"]
+    for seed in (1, 2):
+        result = results[f"{good}/seed-{seed}"]
+        assert result["seed"] == seed and result["failed"] is False and result["sim_time_s"] == 4.0
+        assert result["study"] == {"cell": good, "scenario": "lab-6", "overrides": {SPAWN_FAILURE: [-1.2, -0.6]},
+                                   "time_limit_s": 4.0}
+        assert (out / good / f"seed-{seed}" / "trajectory.npz").stat().st_size > 0
+    assert code == 1   # some runs failed: the command says so
+    assert (out / "summary.csv").is_file() and (out / "report.md").is_file()
+
+
+def test_a_run_that_fails_at_start_is_recorded_with_its_reason(local_study):
+    _, out, _ = local_study
+    result = json.loads((out / "lab-6@robots.spawn.x=0,0" / "seed-1" / "result.json").read_text())
+    assert result["failed"] is True
+    assert result["error"].startswith("ConfigError: robots.spawn: cannot place 6 robots")
+    assert result["study"]["overrides"] == {SPAWN_FAILURE: [0.0, 0.0]}
+    report = (out / "report.md").read_text()
+    assert "- `lab-6@robots.spawn.x=0,0` seed 1: ConfigError: robots.spawn: cannot place 6 robots" in report
+
+
+def test_resume_skips_finished_runs_and_retries_failed_ones_only_when_asked(local_study, capsys):
+    study, out, _ = local_study
+    finished = out / "lab-6@robots.spawn.x=-1.2,-0.6" / "seed-1" / "result.json"
+    failed = out / "lab-6@robots.spawn.x=0,0" / "seed-1" / "result.json"
+    marks = {path: path.read_text() + " " for path in (finished, failed)}
+    for path, text in marks.items():   # a trailing space marks the files: a re-run would rewrite them
+        path.write_text(text)
+    capsys.readouterr()
+    main(["study", str(study), "--out", str(out), "--workers", "2"])
+    assert "ran 0 runs (0 failed), skipped 2 finished and 2 failed" in capsys.readouterr().out
+    assert all(path.read_text() == text for path, text in marks.items())
+    main(["study", str(study), "--out", str(out), "--workers", "2", "--retry-failed"])
+    assert "ran 2 runs (2 failed), skipped 2 finished" in capsys.readouterr().out
+    assert finished.read_text() == marks[finished] and failed.read_text() != marks[failed]
+    main(["study", str(study), "--out", str(out), "--time-limit", "3", "--no-figures"])
+    assert "warning: 4 runs already in" in capsys.readouterr().err   # kept, though their time limit differs
+
+
+def die_on_seed_2(spec, out_root):
+    """A run function whose worker process dies (no exception, no result) on seed 2."""
+    if spec.seed == 2:
+        os._exit(3)
+    return execute_run(spec, out_root)
+
+
+def run_elsewhere(spec, out_root):
+    """A worker that cannot see the driver's folder (as on another machine without a shared disk)."""
+    return execute_run(spec, out_root + "-elsewhere")
+
+
+def test_a_worker_process_that_dies_is_recorded_and_the_other_runs_complete(tmp_path):
+    spec = parse_study({"name": "deaths", "scenarios": ["lab-6"], "seeds": [1, 2, 3], "time_limit_s": 1})
+    outcome = run_study(spec, expand(spec), tmp_path, LocalExecutor(2, die_on_seed_2))
+    results = results_in(tmp_path)
+    assert outcome.ran == 3 and outcome.failed == 1
+    assert results["lab-6/seed-2"]["failed"] is True and results["lab-6/seed-2"]["error"] == WORKER_DIED
+    assert results["lab-6/seed-1"]["failed"] is False and results["lab-6/seed-3"]["failed"] is False
+
+
+def test_the_driver_writes_the_result_a_remote_worker_could_not(tmp_path):
+    spec = parse_study({"name": "remote", "scenarios": ["lab-6"], "seeds": [1], "time_limit_s": 1})
+    run_study(spec, expand(spec), tmp_path / "out", LocalExecutor(1, run_elsewhere))
+    here = json.loads((tmp_path / "out" / "lab-6" / "seed-1" / "result.json").read_text())
+    there = json.loads((tmp_path / "out-elsewhere" / "lab-6" / "seed-1" / "result.json").read_text())
+    assert here == there and here["failed"] is False
+
+
+def test_a_dask_local_cluster_gives_the_same_results_as_the_local_pool(local_study, tmp_path, capsys):
+    study, local_out, _ = local_study
+    code = main(["study", str(study), "--executor", "dask", "--workers", "1", "--out", str(tmp_path)])
+    assert code == 1   # the failing cell fails on Dask too
+    assert "on Dask LocalCluster, 1 workers" in capsys.readouterr().out
+    dask_results, local_results = results_in(tmp_path), results_in(local_out)
+    assert sorted(dask_results) == sorted(local_results)
+    for key, result in dask_results.items():
+        if result["failed"]:
+            assert result["error"] == local_results[key]["error"]
+        else:
+            assert comparable(result) == comparable(local_results[key])
+    assert "--executor dask" in json.loads((tmp_path / "study.json").read_text())["commands"][0]
+
+
+# --- aggregation of known results ----------------------------------------------------------------------
+
+def waypoint(index, position, centroid, orientation, pushers, rotators=0.0):
+    return {"index": index, "reached_s": 100.0 + index, "position_error_m": position,
+            "orientation_error_rad": orientation, "centroid_estimation_error_m": centroid,
+            "effective_pushers": pushers, "effective_rotators": rotators}
+
+
+def transport_result(seed, cage, complete, waypoints, completed=True):
+    return {"scenario": "paper-25-straight", "seed": seed, "robots": 25, "behaviour": "transport",
+            "sim_time_s": 500.0, "wall_time_s": 10.0 * seed, "failed": False, "caged": True,
+            "time_to_cage_s": cage, "cage_size": 18 + seed, "completed": completed, "time_to_complete_s": complete,
+            "waypoints": waypoints, "final_position_error_m": 0.05, "final_orientation_error_rad": 0.01,
+            "study": {"cell": "paper-25-straight", "overrides": {}}}
+
+
+@pytest.fixture
+def known_study(tmp_path):
+    """Four paper-25-straight runs (one crashed) and two irregular-clover runs, written by hand."""
+    runs = {
+        "paper-25-straight/seed-1": transport_result(1, 100.0, 90.0, [waypoint(0, 0.1, 0.2, 0.01, 10),
+                                                                      waypoint(1, 0.2, 0.3, 0.02, 12)]),
+        "paper-25-straight/seed-2": transport_result(2, 200.0, 110.0, [waypoint(0, 0.2, 0.4, 0.03, 11),
+                                                                       waypoint(1, 0.4, 0.5, 0.04, 13)]),
+        "paper-25-straight/seed-3": transport_result(3, 400.0, None, [waypoint(0, 0.3, 0.6, 0.05, 12)],
+                                                     completed=False),
+        "paper-25-straight/seed-4": {"scenario": "paper-25-straight", "seed": 4, "robots": 25, "failed": True,
+                                     "error": "RuntimeError: boom", "study": {"cell": "paper-25-straight"}},
+        "irregular-clover/seed-1": {"scenario": "irregular-clover", "seed": 1, "robots": 30, "failed": False,
+                                    "caged": True, "time_to_cage_s": 280.0, "cage_size": 22},
+        "irregular-clover/seed-2": {"scenario": "irregular-clover", "seed": 2, "robots": 30, "failed": False,
+                                    "caged": False, "time_to_cage_s": None, "cage_size": 0},
+    }
+    for run_dir, result in runs.items():
+        (tmp_path / run_dir).mkdir(parents=True)
+        write(tmp_path / run_dir / "result.json", json.dumps(result))
+    track = np.column_stack([np.linspace(0, -2, 50), np.zeros(50), np.zeros(50)])
+    np.savez_compressed(tmp_path / "paper-25-straight/seed-1/trajectory.npz", object_pose=track,
+                        path=np.array([[-1.0, 0.0, 0.0], [-2.0, 0.0, 0.0]]))
+    return tmp_path
+
+
+def summary_rows(folder):
+    with (folder / "summary.csv").open() as handle:
+        return {(r["cell"], r["metric"], r["waypoint"]): r for r in csv.DictReader(handle)}
+
+
+def test_summary_csv_has_the_medians_spreads_rates_and_paper_values(known_study):
+    write_study_outputs(known_study, figures=False)
+    rows = summary_rows(known_study)
+    cage = rows[("paper-25-straight", "time_to_cage_s", "")]
+    assert (cage["n"], cage["value"], cage["q1"], cage["q3"], cage["min"], cage["max"], cage["paper_value"]) == (
+        "3", "200", "150", "300", "100", "400", "247")
+    complete = rows[("paper-25-straight", "time_to_complete_s", "")]
+    assert (complete["n"], complete["value"], complete["paper_value"]) == ("2", "100", "100")
+    assert rows[("paper-25-straight", "runs", "")]["value"] == "4"
+    assert rows[("paper-25-straight", "failed_runs", "")]["value"] == "1"
+    assert rows[("paper-25-straight", "success_rate", "")]["value"] == "0.666667"
+    assert rows[("paper-25-straight", "all_waypoints_rate", "")]["value"] == "0.666667"
+    position = rows[("paper-25-straight", "position_error_m", "0")]
+    assert (position["n"], position["value"], position["q1"], position["q3"]) == ("3", "0.2", "0.15", "0.25")
+    reference = paper.error_values(paper.paper_case("paper-25-straight"), 0, "position_error_m")
+    assert position["paper_value"] == f"{np.median(reference):.6g}" and position["paper_n"] == "30"
+    assert rows[("paper-25-straight", "effective_pushers", "1")]["value"] == "12.5"
+    clover = rows[("irregular-clover", "success_rate", "")]
+    assert (clover["n"], clover["value"]) == ("2", "0.5")
+    assert rows[("irregular-clover", "time_to_cage_s", "")]["paper_value"] == "300"
+    assert ("irregular-clover", "completed_rate", "") not in rows
+
+
+def test_report_md_puts_ours_next_to_the_paper(known_study):
+    write_study_outputs(known_study, figures=False)
+    report = (known_study / "report.md").read_text()
+    assert ("| paper-25-straight | 25 | 4 | 1 | 3/3 | 2/3 | 67% | 200 [150–300] | 247 | 100 [95–105] | 100 | "
+            "20 [19.5–20.5] |") in report
+    assert "| irregular-clover | 30 | 2 | 0 | 1/2 | – | 50% | 280 | 300 | – | – | 22 |" in report
+    assert "| 0 | 3 | 0.4 [0.3–0.5] | 0.102 | 0.2 [0.15–0.25] | 0.0747 | 0.03 [0.02–0.04] | 0.0218 |" in report
+    assert "- `paper-25-straight` seed 4: RuntimeError: boom" in report
+
+
+def test_figures_are_written_as_non_empty_images(known_study):
+    files = write_study_outputs(known_study)
+    figures = sorted(p.name for name, p in files.items() if name.startswith("figure"))
+    assert figures == ["effective.png", "errors.png", "times.png", "trajectories.png"]
+    for name in figures:
+        with Image.open(known_study / "figures" / name) as image:
+            pixels = np.asarray(image.convert("L"))
+        assert pixels.shape[0] > 300 and pixels.std() > 5   # something is drawn, not a blank canvas
+    assert "![Errors per waypoint](figures/errors.png)" in (known_study / "report.md").read_text()
+
+
+def test_study_report_reaggregates_a_folder_without_running(known_study, capsys):
+    assert main(["study", "report", str(known_study), "--no-figures"]) == 1   # the folder has a failed run
+    assert "report: " in capsys.readouterr().out
+    assert len(load_results(known_study).cells) == 2
+    assert main(["study", "report", str(known_study / "missing")]) == 2
+    assert "study report: no such folder" in capsys.readouterr().err
+    (known_study / "empty").mkdir()
+    assert main(["study", "report", str(known_study / "empty")]) == 2
+    assert "holds no study" in capsys.readouterr().err
+
+
+# --- the paper's data and the progress line ------------------------------------------------------------
+
+def test_the_papers_csv_gives_the_medians_its_readme_quotes():
+    for row in paper.quoted_numbers()["error_medians"]:
+        case = paper.PaperCase(robots=row["robots"], path=row["path"])
+        median = {(m, wp): float(np.median(paper.error_values(case, wp, m)))
+                  for m in paper.ERROR_METRICS.values() for wp in range(10)}
+        assert median[("centroid_estimation_error_m", 0)] == pytest.approx(row["centroid_wp0"], abs=0.006)
+        assert median[("centroid_estimation_error_m", 9)] == pytest.approx(row["centroid_wp9"], abs=0.006)
+        assert median[("position_error_m", 0)] == pytest.approx(row["position_wp0"], abs=0.0006)
+        assert median[("position_error_m", 9)] == pytest.approx(row["position_wp9"], abs=0.0006)
+        worst = max(median[("orientation_error_rad", wp)] for wp in range(10))
+        assert worst == pytest.approx(row["orientation_max"], abs=0.0006)
+    assert len(paper.error_values(paper.PaperCase(100, "straight_rot"), 0, "position_error_m")) == 14
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_progress_lines_show_each_run_and_an_eta_from_the_pace_so_far(tmp_path):
+    clock = FakeClock()
+    with (tmp_path / "log.txt").open("w+") as stream:
+        progress = StudyProgress(4, stream, clock)
+        clock.now = 10.0
+        progress.update({"seed": 1, "failed": False, "caged": True, "time_to_cage_s": 71.0, "completed": False,
+                         "wall_time_s": 2.5, "study": {"cell": "lab-6"}})
+        clock.now = 20.0
+        progress.update({"seed": 2, "failed": True, "error": "RuntimeError: boom", "study": {"cell": "lab-6"}})
+        stream.seek(0)
+        lines = stream.read().splitlines()
+    assert lines == ["[1/4] lab-6 seed 1: caged at 71 s, not completed (2.5 s wall) | ETA 0:00:30",
+                     "[2/4] lab-6 seed 2: FAILED: RuntimeError: boom, 1 failed | ETA 0:00:20"]
+
+
+USER_BEHAVIOUR = '''
+from dataclasses import dataclass
+
+from onboard.behaviour import Behaviour, register
+
+
+@dataclass
+class StandStillParams:
+    speed_m_s: float = 0.0
+
+
+@register("study-stand-still")
+class StandStill(Behaviour):
+    Params = StandStillParams
+
+    def step(self) -> None:
+        self.robot.wheels.set_speeds(self.params.speed_m_s, self.params.speed_m_s)
+'''
+
+
+def test_workers_import_the_users_behaviour_module_too(tmp_path, monkeypatch, capsys):
+    write(tmp_path / "study_user_behaviour.py", USER_BEHAVIOUR)
+    write(tmp_path / "still.yaml", "name: still-4\nbehaviour: study-stand-still\ntime_limit_s: 1\n"
+                                   "robots: {count: 4, spawn: {x: [-1, 1], y: [-1, 1]}}\n")
+    write(tmp_path / "still-study.yaml", "scenarios: [still.yaml]\nreps: 1\n")
+    monkeypatch.chdir(tmp_path)
+    code = main(["--import", "study_user_behaviour", "study", "still-study.yaml", "--out", "out", "--workers", "1"])
+    result = json.loads((tmp_path / "out" / "still-4" / "seed-1" / "result.json").read_text())
+    assert (code, result["failed"], result["behaviour"]) == (0, False, "study-stand-still"), result.get("error")
