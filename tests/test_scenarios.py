@@ -36,6 +36,7 @@ def error_of(data) -> ConfigError:
 def test_builtin_list_is_complete():
     expected = {f"paper-{n}-{p}" for n in PAPER for p in PATHS}
     expected |= {f"irregular-{s}" for s in IRREGULAR} | {"lab-6", "lab-6-payload", "aggregate-20"}
+    expected |= {"paper-25-straight-lossy", "paper-25-straight-faults"}
     assert set(builtin_names()) == expected
 
 
