@@ -1,10 +1,215 @@
 """``khepri hub``, ``khepri agent``, ``khepri ctl``, ``khepri keys``, ``khepri sil``, ``khepri bench hub``."""
 from __future__ import annotations
 
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from onboard.config import ConfigError
+
 
 def add_lab(groups) -> None:
-    """Register the lab-stack commands (filled in as the hub and agent land)."""
+    """Register the lab-stack commands."""
+    _add_hub(groups)
+    _add_agent(groups)
+    _add_ctl(groups)
+    _add_keys(groups)
+    _add_sil(groups)
 
 
 def add_bench_hub(bench_commands) -> None:
     """Register ``khepri bench hub`` under the bench group."""
+    bench = bench_commands.add_parser("hub", help="hub latency and CPU with many robots",
+                                      description="Feed the hub synthetic motion capture for --robots bodies at "
+                                                  "--rate Hz, receive its frames on light agents, and print "
+                                                  "mocap-frame-to-agent latency p50/p99 and the hub's CPU use.")
+    bench.add_argument("--robots", type=int, default=100, help="robots (default 100)")
+    bench.add_argument("--rate", type=float, default=120.0, help="motion-capture frames per second (default 120)")
+    bench.add_argument("--seconds", type=float, default=5.0, help="measurement time (default 5)")
+    bench.add_argument("--json", action="store_true", help="print JSON only")
+    bench.set_defaults(func=cmd_bench_hub)
+
+
+# --- hub ------------------------------------------------------------------------------------------------------
+def _add_hub(groups) -> None:
+    hub = groups.add_parser("hub", help="run the lab hub (motion capture -> robots)",
+                            description="Run the hub: poses from the configured source, virtual sensors and radio "
+                                        "relay for every robot, operator control. Prints `listening <role> "
+                                        "<endpoint>` per socket.")
+    source = hub.add_mutually_exclusive_group()
+    source.add_argument("--config", type=Path, metavar="FILE", help="lab config YAML (see docs/lab.md)")
+    source.add_argument("--demo", action="store_true",
+                        help="no files needed: sim source on lab-6, loopback only, insecure")
+    hub.add_argument("--insecure", action="store_true", help="run without CURVE encryption and authentication")
+    hub.add_argument("--record", metavar="FILE", help="record everything in and out to this MCAP file")
+    hub.add_argument("--bind", help="interface to listen on (overrides network.bind)")
+    hub.set_defaults(func=cmd_hub)
+
+
+def cmd_hub(args: argparse.Namespace) -> int:
+    from hub.config import demo_config, load_config, parse_config
+    from hub.runner import serve_hub
+
+    if args.demo:
+        config = demo_config()
+    elif args.config is not None:
+        config = load_config(args.config)
+    else:
+        config = parse_config({})
+        print("khepri hub: no --config: sim source on lab-6 (see docs/lab.md for a lab config)", file=sys.stderr)
+    if args.insecure:
+        config.security.insecure = True
+    if args.record:
+        config.record = args.record
+    if args.bind:
+        config.network.bind = args.bind
+    return serve_hub(config)
+
+
+# --- agent ----------------------------------------------------------------------------------------------------
+def _add_agent(groups) -> None:
+    from onboard.agent.cli import add_agent_arguments
+
+    agent = groups.add_parser("agent", help="run a robot's agent",
+                              description="Run one robot's agent: the behaviour the hub starts, at 10 Hz, with the "
+                                          "kh4 (real robot) or sim (hub-simulated) driver. On a robot without the "
+                                          "khepri command: python -m onboard.agent with the same options.")
+    add_agent_arguments(agent)
+    agent.set_defaults(func=cmd_agent)
+
+
+def cmd_agent(args: argparse.Namespace) -> int:
+    from onboard.agent.cli import run_agent
+
+    return run_agent(args)
+
+
+# --- ctl ------------------------------------------------------------------------------------------------------
+def _add_ctl(groups) -> None:
+    ctl = groups.add_parser("ctl", help="operator control: status, start, stop, estop, clear",
+                            description="Talk to a running hub's control socket.")
+    ctl.add_argument("command", choices=("status", "start", "stop", "estop", "clear"))
+    ctl.add_argument("--hub", default="127.0.0.1", help="hub host (default 127.0.0.1)")
+    ctl.add_argument("--port", type=int, default=5561, help="hub control port (default 5561)")
+    ctl.add_argument("--keys", type=Path, metavar="DIR", help="key folder with operators/<name>.key_secret, hub.key")
+    ctl.add_argument("--operator", help="operator key name when the folder holds several")
+    ctl.add_argument("--timeout", type=float, default=2.0, metavar="S", help="wait this long for the hub")
+    ctl.add_argument("--json", action="store_true", help="status: print JSON")
+    ctl.set_defaults(func=cmd_ctl)
+
+
+def cmd_ctl(args: argparse.Namespace) -> int:
+    from hub.control import ControlError, request, status_table
+    from hub.security import operator_client_keys
+
+    keys = operator_client_keys(args.keys, args.operator) if args.keys is not None else None
+    endpoint = args.hub if "://" in args.hub else f"tcp://{args.hub}:{args.port}"
+    try:
+        reply = request(endpoint, args.command, keys=keys, timeout_s=args.timeout)
+    except ControlError as err:
+        print(f"khepri: error: {err}", file=sys.stderr)
+        return 1
+    if args.command == "status":
+        print(json.dumps(reply["status"], indent=2) if args.json else status_table(reply["status"]))
+    else:
+        print(f"{args.command}: ok{' (' + reply['note'] + ')' if reply.get('note') else ''}")
+    return 0
+
+
+# --- keys -----------------------------------------------------------------------------------------------------
+def _add_keys(groups) -> None:
+    keys = groups.add_parser("keys", help="CURVE key pairs for the hub, robots and operators",
+                             description="Manage the lab's CURVE keys (see docs/lab.md).")
+    commands = keys.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+    init = commands.add_parser("init", help="create hub, robot and operator key pairs",
+                               description="Create DIR/hub.key(_secret), DIR/robots/robot-<id>.key(_secret) and "
+                                           "DIR/operators/<name>.key(_secret).")
+    init.add_argument("folder", nargs="?", type=Path, default=Path("keys"), help="key folder (default ./keys)")
+    init.add_argument("--robots", default="6", help="robot count N (ids 0..N-1) or a list like 0,1,5 (default 6)")
+    init.add_argument("--operator", action="append", help="operator name (repeatable; default: operator)")
+    init.add_argument("--force", action="store_true", help="replace existing keys")
+    init.set_defaults(func=cmd_keys_init)
+
+
+def cmd_keys_init(args: argparse.Namespace) -> int:
+    from hub.security import init_keys
+
+    ids = parse_robot_ids(args.robots)
+    created = init_keys(args.folder, ids, args.operator or ["operator"], force=args.force)
+    print(f"created {len(created)} key files in {args.folder}: hub, robots {ids[0]}..{ids[-1]} "
+          f"({len(ids)}), operators {', '.join(args.operator or ['operator'])}")
+    print(f"  give robot N: {args.folder}/robots/robot-N.key_secret and {args.folder}/hub.key")
+    print(f"  keep secret:  {args.folder}/hub.key_secret, {args.folder}/operators/*.key_secret")
+    return 0
+
+
+def parse_robot_ids(text: str):
+    try:
+        if "," in text:
+            ids = sorted({int(part) for part in text.split(",") if part.strip()})
+        else:
+            ids = list(range(int(text)))
+    except ValueError:
+        raise ConfigError("--robots", f"give a count like 6 or ids like 0,1,5 (got {text!r})") from None
+    if not ids or min(ids) < 0:
+        raise ConfigError("--robots", f"needs at least one robot id >= 0 (got {text!r})")
+    return ids
+
+
+# --- sil ------------------------------------------------------------------------------------------------------
+def _add_sil(groups) -> None:
+    sil = groups.add_parser("sil", help="software in the loop: hub + one real agent process per robot",
+                            description="Run SCENARIO through the lab stack: the hub's sim source plays robots and "
+                                        "cameras, one agent process per robot runs the behaviour over loopback "
+                                        "sockets. Writes result.json (as `khepri sim run`, plus hub and agent "
+                                        "figures), trajectory.npz/png and the MCAP log.")
+    sil.add_argument("scenario", help="built-in scenario name or YAML file")
+    sil.add_argument("--out", type=Path, help="output folder (default out/sil-<scenario>-seed<N>)")
+    sil.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
+    sil.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
+    sil.add_argument("--realtime", action="store_true", help="pace by the wall clock instead of lockstep")
+    sil.add_argument("--no-record", action="store_true", help="skip the MCAP log")
+    sil.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
+    sil.set_defaults(func=cmd_sil)
+
+
+def cmd_sil(args: argparse.Namespace) -> int:
+    from hub.sil import SilOptions, run_sil
+    from sim_backend.scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    if args.time_limit is not None and args.time_limit <= 0:
+        raise ConfigError("--time-limit", "must be > 0")
+    seed = scenario.seed if args.seed is None else args.seed
+    out = args.out or Path("out") / f"sil-{scenario.name}-seed{seed}"
+    options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
+                         record=not args.no_record, plot=not args.no_plot)
+    result = run_sil(scenario, out, options)
+    from khepri_cli.sim_commands import summary_line
+
+    print(summary_line(result))
+    sil = result.get("sil", {})
+    print(f"  agents: {sil.get('agents')}, lockstep: {sil.get('lockstep')}, frame latency p99 "
+          f"{sil.get('latency_ms', {}).get('p99')} ms, loop misses {sil.get('loop_misses')}, "
+          f"dropped {sil.get('dropped')}")
+    print(f"  results: {out}")
+    if "error" in result:
+        print(f"khepri: error: {result['error']}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_bench_hub(args: argparse.Namespace) -> int:
+    from hub.bench import bench_hub
+
+    if args.robots < 1 or args.rate <= 0 or args.seconds <= 0:
+        raise ConfigError("--robots", "give --robots >= 1, --rate > 0 and --seconds > 0")
+    result = bench_hub(args.robots, args.rate, args.seconds)
+    if args.json:
+        print(json.dumps({key: result[key] for key in ("latency_p50_ms", "latency_p99_ms", "hub_cpu_percent")}))
+        return 0
+    print(f"hub with {args.robots} robots at {args.rate:g} Hz for {args.seconds:g} s: "
+          f"mocap-frame-to-agent latency p50 {result['latency_p50_ms']:.3f} ms, p99 {result['latency_p99_ms']:.3f} ms; "
+          f"hub CPU {result['hub_cpu_percent']:.1f} % of a core ({result['frames_received']} frames received)")
+    return 0

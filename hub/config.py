@@ -1,0 +1,167 @@
+"""The lab config (``khepri hub --config lab.yaml``): validated records with errors that name the field.
+
+Every key is documented in docs/lab.md; ``hub/examples/lab.yaml`` is a commented example.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+import yaml
+
+from onboard.config import ConfigError, check_range, from_mapping, join
+
+SOURCE_TYPES = ("sim", "motioncapture", "replay")
+UP_AXES = ("z", "y")
+
+
+@dataclass
+class SourceConfig:
+    """Where poses come from. ``sim``: the pymunk world of ``scenario``; ``motioncapture``: the motioncapture
+    library (``system`` vicon, qualisys, optitrack, vrpn, mock, ...); ``replay``: a recorded MCAP log."""
+
+    type: str = "sim"
+    scenario: str = "lab-6"                 # sim: built-in name or YAML file
+    seed: Optional[int] = None              # sim: overrides the scenario's seed
+    lockstep: bool = False                  # sim: advance physics only when every agent answered
+    frame_hz: float = 50.0                  # sim, real time: pose frames per second (physics in between)
+    system: str = "mock"                    # motioncapture: the library's backend name
+    options: Dict[str, Any] = field(default_factory=dict)   # motioncapture: passed to connect(), as strings
+    bodies: Dict[str, int] = field(default_factory=dict)     # motioncapture: rigid body name -> robot id
+    up_axis: str = "z"                      # motioncapture: which axis of the mocap frame points up
+    stale_s: float = 0.1                    # a body not seen for this long has no pose
+    file: Optional[str] = None              # replay: the MCAP log
+    rate: float = 1.0                       # replay: playback speed (2 = twice as fast)
+
+    def validate(self, where: str) -> None:
+        if self.type not in SOURCE_TYPES:
+            raise ConfigError(join(where, "type"), f"must be one of {', '.join(SOURCE_TYPES)} (got {self.type!r})")
+        if self.up_axis not in UP_AXES:
+            raise ConfigError(join(where, "up_axis"), f"must be z or y (got {self.up_axis!r})")
+        check_range(join(where, "frame_hz"), self.frame_hz, 0.0, 1000.0, low_open=True)
+        check_range(join(where, "stale_s"), self.stale_s, 0.0, low_open=True)
+        check_range(join(where, "rate"), self.rate, 0.0, 100.0, low_open=True)
+        if self.type == "motioncapture" and not self.bodies:
+            raise ConfigError(join(where, "bodies"), "map each rigid body name to a robot id, e.g. {kh0: 0}")
+        ids = list(self.bodies.values())
+        for name, rid in self.bodies.items():
+            check_range(join(join(where, "bodies"), name), rid, 0, 999_999)
+        if len(set(ids)) != len(ids):
+            raise ConfigError(join(where, "bodies"), "two rigid bodies map to the same robot id")
+        if self.type == "replay" and not self.file:
+            raise ConfigError(join(where, "file"), "a replay source needs file: <log.mcap>")
+
+
+@dataclass
+class NetworkConfig:
+    bind: str = "*"                 # interface to listen on ("*" = all, "127.0.0.1" = this PC only)
+    robot_port: int = 5560          # agents' DEALER sockets connect here (0: any free port)
+    control_port: int = 5561        # khepri ctl connects here (0: any free port)
+    downlink_hz: float = 20.0       # frames per second to each robot (latest data; spread over robots)
+
+    def validate(self, where: str) -> None:
+        for name in ("robot_port", "control_port"):
+            check_range(join(where, name), getattr(self, name), 0, 65535)
+        if self.robot_port == self.control_port != 0:
+            raise ConfigError(join(where, "control_port"), "must differ from robot_port")
+        check_range(join(where, "downlink_hz"), self.downlink_hz, 1.0, 1000.0)
+
+
+@dataclass
+class SecurityConfig:
+    keys: str = "keys"              # folder made by `khepri keys init`
+    insecure: bool = False          # true: no encryption, no authentication (loopback demos only)
+
+
+@dataclass
+class SensingConfig:
+    """Virtual sensors. ``None`` means: take it from the scenario (sim source) or the default shown."""
+
+    range_m: Optional[float] = None             # d_C; default 3.0
+    range_noise_m: Optional[float] = None       # default 0.01
+    bearing_noise_rad: Optional[float] = None   # default 0.02
+    pose_noise_m: Optional[float] = None        # extra noise on relayed poses; default 0 (mocap is real)
+    pose_noise_rad: Optional[float] = None      # default 0
+
+    def validate(self, where: str) -> None:
+        for name in ("range_m", "range_noise_m", "bearing_noise_rad", "pose_noise_m", "pose_noise_rad"):
+            value = getattr(self, name)
+            if value is not None:
+                check_range(join(where, name), value, 0.0, low_open=name == "range_m")
+
+
+@dataclass
+class RelayConfig:
+    drop: Optional[float] = None    # probability a message to one receiver is lost; default 0
+    queue: int = 64                 # messages waiting per receiver; the oldest is dropped beyond
+    max_bytes: int = 8192           # largest payload (compact JSON)
+
+    def validate(self, where: str) -> None:
+        if self.drop is not None:
+            check_range(join(where, "drop"), self.drop, 0.0, 1.0)
+        check_range(join(where, "queue"), self.queue, 1, 100_000)
+        check_range(join(where, "max_bytes"), self.max_bytes, 2, 8192)
+
+
+@dataclass
+class RunConfig:
+    """What ``khepri ctl start`` runs. For the sim source, unset fields come from the scenario."""
+
+    behaviour: Optional[str] = None
+    params: Optional[Dict[str, Any]] = None
+    control_hz: float = 10.0
+    autostart: bool = False          # start as soon as the hub is up (SIL)
+
+    def validate(self, where: str) -> None:
+        check_range(join(where, "control_hz"), self.control_hz, 0.0, 100.0, low_open=True)
+
+
+@dataclass
+class LabConfig:
+    source: SourceConfig = field(default_factory=SourceConfig)
+    robots: Optional[List[int]] = None          # robot ids; default: the bodies' ids, or 0..N-1 for sim
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    security: SecurityConfig = field(default_factory=SecurityConfig)
+    sensing: SensingConfig = field(default_factory=SensingConfig)
+    relay: RelayConfig = field(default_factory=RelayConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+    geofence: Optional[Tuple[float, float, float, float]] = None   # [xmin, ymin, xmax, ymax], metres
+    watchdog_s: float = 0.3         # hub side: an agent silent this long is "not connected"
+    record: Optional[str] = None    # MCAP file for everything in and out
+
+    def validate(self, where: str) -> None:
+        if self.geofence is not None:
+            xmin, ymin, xmax, ymax = self.geofence
+            if xmax <= xmin or ymax <= ymin:
+                raise ConfigError("geofence", "must be [xmin, ymin, xmax, ymax] with min < max")
+        check_range("watchdog_s", self.watchdog_s, 0.0, 10.0, low_open=True)
+        if self.robots is not None:
+            for i, rid in enumerate(self.robots):
+                check_range(f"robots[{i}]", rid, 0, 999_999)
+            if len(set(self.robots)) != len(self.robots):
+                raise ConfigError("robots", "lists a robot id twice")
+
+
+def parse_config(data: Any) -> LabConfig:
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError("", f"a lab config must be a mapping of keys (got {type(data).__name__})")
+    return from_mapping(LabConfig, data, "")
+
+
+def load_config(path: Path) -> LabConfig:
+    if not path.is_file():
+        raise ConfigError("--config", f"no such file: {path}")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, yaml.YAMLError) as err:
+        raise ConfigError(path.name, f"not a valid YAML file ({getattr(err, 'problem', err)})") from None
+    return parse_config(data)
+
+
+def demo_config() -> LabConfig:
+    """``khepri hub --demo``: the sim source on lab-6, loopback only, no keys."""
+    return parse_config({"source": {"type": "sim", "scenario": "lab-6"},
+                         "network": {"bind": "127.0.0.1"}, "security": {"insecure": True}})

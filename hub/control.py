@@ -1,0 +1,87 @@
+"""``khepri ctl``'s side of the control socket: one request, one reply, and the status table."""
+from __future__ import annotations
+
+import random
+from typing import Any, Dict, List, Optional
+
+import zmq
+
+from onboard.protocol import ProtocolError, decode, encode
+
+from .security import apply_client_keys
+
+DEFAULT_CONTROL_ENDPOINT = "tcp://127.0.0.1:5561"
+
+
+class ControlError(RuntimeError):
+    """The hub did not answer, or answered with an error."""
+
+
+def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, timeout_s: float = 2.0,
+            context: Optional[zmq.Context] = None) -> Dict[str, Any]:
+    """Send one control request and return the reply (``ok`` true), or raise ControlError."""
+    context = context or zmq.Context.instance()
+    sock = context.socket(zmq.DEALER)
+    sock.linger = 0
+    if keys is not None:
+        apply_client_keys(sock, keys)
+    try:
+        sock.connect(endpoint)
+        nonce = random.randrange(1 << 30)
+        # A DEALER blocks sending until a connection is up; with a wrong key it never comes up.
+        sock.sndtimeo = int(timeout_s * 1000)
+        try:
+            sock.send(encode({"type": "request", "cmd": cmd, "nonce": nonce}))
+        except zmq.Again:
+            raise ControlError(_no_answer(endpoint, timeout_s)) from None
+        reply = _await_reply(sock, nonce, timeout_s, endpoint)
+    finally:
+        sock.close(0)
+    if not reply["ok"]:
+        raise ControlError(f"the hub refused {cmd}: {reply.get('error', 'no reason given')}")
+    return reply
+
+
+def _await_reply(sock: zmq.Socket, nonce: int, timeout_s: float, endpoint: str) -> Dict[str, Any]:
+    poller = zmq.Poller()
+    poller.register(sock, zmq.POLLIN)
+    while poller.poll(timeout_s * 1000.0):
+        try:
+            reply = decode(sock.recv(), f"hub at {endpoint}", accept=("reply",))
+        except ProtocolError as err:
+            raise ControlError(str(err)) from None
+        if reply.get("nonce") == nonce:
+            return reply
+    raise ControlError(_no_answer(endpoint, timeout_s))
+
+
+def _no_answer(endpoint: str, timeout_s: float) -> str:
+    return (f"no answer from the hub at {endpoint} within {timeout_s:g} s (is it running? A secure hub needs "
+            "--keys with an operator key it lists; a hub run with --insecure needs no keys)")
+
+
+def status_table(status: Dict[str, Any]) -> str:
+    lines = [f"hub: {status['mode']}  run: {status.get('run_id') or '-'}  behaviour: {status.get('behaviour')}  "
+             f"source: {status['source']}  mocap: {status['mocap_hz']:.1f} Hz  "
+             f"{'secure (CURVE)' if status.get('secure') else 'INSECURE'}"]
+    header = f"{'robot':>5}  {'connected':9}  {'last seen':>9}  {'mode':7}  {'state':14}  {'loop Hz':>7}  " \
+             f"{'misses':>6}  {'battery':>7}  note"
+    lines.append(header)
+    for row in status["robots"]:
+        lines.append(_row(row))
+    drops = status.get("drops") or {}
+    if drops:
+        lines.append("dropped: " + ", ".join(f"{reason} {count}" for reason, count in sorted(drops.items())))
+    return "\n".join(lines)
+
+
+def _row(row: Dict[str, Any]) -> str:
+    seen = "never" if row["last_seen_s"] is None else f"{row['last_seen_s']:.1f} s"
+    battery = "-" if row.get("battery_v") is None else f"{row['battery_v']:.2f} V"
+    loop = "-" if row.get("loop_hz") is None else f"{row['loop_hz']:.1f}"
+    misses = "-" if row.get("loop_misses") is None else str(row["loop_misses"])
+    notes: List[str] = [n for n in (row.get("reason"), row.get("error")) if n]
+    if row.get("estop_ack_ms") is not None:
+        notes.append(f"e-stop acknowledged in {row['estop_ack_ms']:.1f} ms")
+    return f"{row['id']:>5}  {'yes' if row['connected'] else 'no':9}  {seen:>9}  {row['mode']:7}  " \
+           f"{str(row.get('state') or '-'):14.14}  {loop:>7}  {misses:>6}  {battery:>7}  {'; '.join(notes)}"

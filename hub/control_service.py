@@ -1,0 +1,130 @@
+"""The hub's side of operator control: ``status``, ``start``, ``stop``, ``estop`` and ``clear`` requests.
+
+Modes: ``idle`` (no run) -> ``run`` (behaviours step) ; ``estop`` is latched until ``clear``, which leaves the
+run ``hold`` (wheels stopped, behaviours paused) until the next ``start`` resumes it.
+"""
+from __future__ import annotations
+
+import time
+import uuid
+from typing import TYPE_CHECKING, Any, Dict, List, Tuple
+
+import zmq
+
+from onboard.protocol import ProtocolError, decode, encode
+
+if TYPE_CHECKING:
+    from .server import Hub
+
+
+class ControlService:
+    def __init__(self, hub: Hub):
+        self.hub = hub
+
+    def handle(self, parts: List[zmq.Frame]) -> None:
+        hub = self.hub
+        if len(parts) != 2:
+            hub.drops.drop("malformed control message", "unknown operator", f"{len(parts) - 1} frames")
+            return
+        routing, body = parts
+        sender = f"{_property(body, 'User-Id') or 'operator'} at {_property(body, 'Peer-Address') or '?'}"
+        try:
+            request = decode(body.bytes, sender, accept=("request",))
+        except ProtocolError as err:
+            hub.drops.drop("bad control message", sender, str(err))
+            return
+        ok, extra = self.execute(request["cmd"], sender)
+        reply: Dict[str, Any] = {"type": "reply", "ok": ok, **extra}
+        if "nonce" in request:
+            reply["nonce"] = request["nonce"]
+        try:
+            hub.control_socket.send_multipart([routing.bytes, encode(reply)], zmq.NOBLOCK)
+        except zmq.ZMQError:
+            pass    # the operator left; nothing to do
+
+    def execute(self, cmd: str, sender: str = "operator") -> Tuple[bool, Dict[str, Any]]:
+        ok, extra = self._execute(cmd, sender)
+        if cmd != "status" and self.hub.recorder is not None:
+            self.hub.recorder.write("/control", {"cmd": cmd, "sender": sender, "ok": ok, **extra})
+        return ok, extra
+
+    def _execute(self, cmd: str, sender: str) -> Tuple[bool, Dict[str, Any]]:
+        hub = self.hub
+        if cmd == "status":
+            return True, {"status": self.status(time.monotonic())}
+        if cmd == "estop":
+            self.estop(sender)
+            return True, {}
+        if cmd == "clear":
+            if hub.mode == "estop":
+                hub.mode = "hold" if hub.run_id is not None else "idle"
+                hub.log(f"hub: e-stop cleared by {sender}; robots stay stopped until `khepri ctl start`")
+                hub.send_command_to_all("clear")
+            return True, {}
+        if cmd == "start":
+            return self.start(sender)
+        if cmd == "stop":
+            if hub.mode == "estop":
+                return False, {"error": "the e-stop is latched: `khepri ctl clear` first"}
+            self.stop(sender)
+            return True, {}
+        return False, {"error": f"unknown command {cmd!r}"}
+
+    def estop(self, sender: str) -> None:
+        hub = self.hub
+        hub.mode = "estop"
+        hub.estop_at = time.monotonic()
+        for robot in hub.robots.values():
+            robot.estop_ack_s = None
+        hub.send_command_to_all("estop", "operator e-stop")   # before anything else: this is the urgent part
+        hub._hold_sim_wheels(time.monotonic())
+        hub.log(f"hub: E-STOP by {sender}: every robot stopped (latched until `khepri ctl clear`)")
+
+    def start(self, sender: str) -> Tuple[bool, Dict[str, Any]]:
+        hub = self.hub
+        if hub.mode == "estop":
+            return False, {"error": "the e-stop is latched: `khepri ctl clear` first"}
+        if hub.mode == "run":
+            return True, {"note": "already running"}
+        if hub.mode == "idle":
+            hub.run_id = uuid.uuid4().hex[:12]
+            hub.send_command_to_all("start")
+            hub.log(f"hub: run {hub.run_id} started by {sender}: {hub.run.behaviour}")
+        else:
+            hub.log(f"hub: run {hub.run_id} resumed by {sender}")
+        hub.mode = "run"
+        return True, {}
+
+    def stop(self, sender: str) -> None:
+        hub = self.hub
+        if hub.run_id is not None:
+            hub.log(f"hub: run {hub.run_id} stopped by {sender}")
+        hub.mode = "idle"
+        hub.run_id = None
+        hub.send_command_to_all("stop")
+        hub._hold_sim_wheels(time.monotonic())
+
+    def status(self, now: float) -> Dict[str, Any]:
+        hub = self.hub
+        rows = [robot.status_row(now, hub.config.watchdog_s, *hub.mode_for(robot)) for robot in hub.robots.values()]
+        return {
+            "mode": hub.mode,
+            "run_id": hub.run_id,
+            "behaviour": hub.run.behaviour,
+            "source": hub.source.description,
+            "mocap_hz": round(hub.mocap_rate.current(now), 1),
+            "clock_s": hub.clock_s,
+            "uptime_s": round(now - hub.started_at, 3),
+            "cpu_s": round(time.process_time(), 4),
+            "secure": hub.keyring is not None,
+            "drops": dict(hub.drops.counts),
+            "relay": hub.relay.stats.as_dict(),
+            "robots": rows,
+        }
+
+
+def _property(frame: zmq.Frame, name: str):
+    try:
+        return frame.get(name)
+    except zmq.ZMQError:
+        return None

@@ -1,0 +1,105 @@
+"""From a validated :class:`LabConfig` to a ready :class:`Hub`: source, robot list, run, sensing, keys, log."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable, Dict, Optional
+
+import zmq
+
+from onboard.behaviour import build_params, get_behaviour
+from onboard.config import ConfigError
+from onboard.hal import RobotSpec
+
+from .config import LabConfig
+from .security import load_keyring
+from .sensors import SensingModel
+from .server import Hub, RunTemplate
+from .sources import MotionCaptureSource, PoseSource, ReplaySource
+
+
+def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Optional[zmq.Context] = None,
+              recorder=None, scenario=None) -> Hub:
+    """``scenario`` (sim source only) replaces loading ``source.scenario``, e.g. with overrides applied."""
+    context = context or zmq.Context.instance()
+    seed = None
+    if config.source.type == "sim":
+        from sim_backend.scenario import load_scenario
+
+        from .sim_source import SimSource
+
+        scenario = scenario or load_scenario(config.source.scenario)
+        source: PoseSource = SimSource(scenario, config.source.seed, config.source.frame_hz)
+        seed = source.hub_seed
+    elif config.source.type == "motioncapture":
+        src = config.source
+        source = MotionCaptureSource(context, src.system, src.options, src.bodies, src.up_axis, log)
+    else:
+        source = ReplaySource(config.source.file, config.source.rate, log)
+    try:
+        ids = robot_ids(config, source)
+        run = run_template(config, scenario)
+        keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
+        if recorder is None and config.record:
+            recorder = open_recorder(config.record, {"source": source.description, "behaviour": run.behaviour})
+    except Exception:
+        source.close()
+        raise
+    return Hub(config, source, ids, run, sensing_model(config, scenario), relay_drop(config, scenario), seed=seed,
+               keyring=keyring, recorder=recorder, log=log, context=context)
+
+
+def robot_ids(config: LabConfig, source: PoseSource):
+    if config.robots is not None:
+        return list(config.robots)
+    known = source.robot_ids()
+    if known is None:
+        raise ConfigError("robots", "list the robot ids, e.g. robots: [0, 1, 2]")
+    return known
+
+
+def run_template(config: LabConfig, scenario) -> RunTemplate:
+    run = config.run
+    name = run.behaviour or (scenario.behaviour if scenario is not None else None)
+    if name is None:
+        raise ConfigError("run.behaviour", "name the behaviour to run (e.g. aggregate)")
+    cls = get_behaviour(name, "run.behaviour")
+    if run.params is not None:
+        params: Dict[str, Any] = dict(run.params)
+    elif scenario is not None and name == scenario.behaviour:
+        from sim_backend.runner import mission_params
+
+        params = mission_params(cls, scenario)
+    else:
+        params = {}
+    build_params(cls, params, "run.params")     # reject bad parameters here, not on every robot
+    spec = RobotSpec() if scenario is None else RobotSpec(max_wheel_speed_m_s=scenario.robots.max_wheel_speed_m_s)
+    control_hz = scenario.physics.control_hz if scenario is not None else run.control_hz
+    return RunTemplate(name, params, control_hz, lockstep=config.source.type == "sim" and config.source.lockstep,
+                       spec=dict(spec.__dict__))
+
+
+def sensing_model(config: LabConfig, scenario) -> SensingModel:
+    s = config.sensing
+    model = SensingModel()
+    if scenario is not None:
+        c, sens = scenario.comm, scenario.sensors
+        model = SensingModel(c.range_m, c.range_noise_m, c.bearing_noise_rad, sens.pose_noise_m, sens.pose_noise_rad)
+    for name in ("range_m", "range_noise_m", "bearing_noise_rad", "pose_noise_m", "pose_noise_rad"):
+        if getattr(s, name) is not None:
+            setattr(model, name, getattr(s, name))
+    return model
+
+
+def relay_drop(config: LabConfig, scenario) -> float:
+    if config.relay.drop is not None:
+        return config.relay.drop
+    return scenario.comm.drop if scenario is not None else 0.0
+
+
+def open_recorder(path: str, metadata: Dict[str, Any]):
+    try:
+        from hub.recording import Recorder
+    except ImportError as err:
+        raise ConfigError("record", f"recording is not available in this installation ({err})") from None
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    return Recorder(path, flush_period_s=1.0, metadata={k: str(v) for k, v in metadata.items()})

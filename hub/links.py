@@ -1,0 +1,108 @@
+"""Bookkeeping records for the hub: one per robot, drop counters with rate-limited log lines, a rate meter."""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Optional
+
+
+@dataclass
+class RobotLink:
+    """What the hub knows about one robot and its agent."""
+
+    id: int
+    routing: Optional[bytes] = None          # the agent's ZeroMQ routing id (None: never heard from)
+    peer: str = ""                           # the agent's network address
+    driver: str = ""
+    run_id: Optional[str] = None             # the run the agent says it holds
+    last_uplink: float = -math.inf           # hub monotonic time of the last valid message
+    telemetry: Optional[Dict[str, Any]] = None
+    step_answered: int = -1                  # seq of the last frame the agent answered (lockstep)
+    seq: int = 0                             # downlink frames sent
+    next_due: float = 0.0                    # when the next downlink frame is due
+    pending: Optional[Dict[str, Any]] = None     # a command re-sent until acknowledged
+    pending_sent_at: float = -math.inf
+    estop_ack_s: Optional[float] = None      # e-stop to acknowledgement (wheels already stopped)
+    frames_dropped: int = 0                  # downlink frames refused by a full queue (latest-only)
+    unresponsive_steps: int = 0              # lockstep: consecutive steps without an answer
+
+    def connected(self, now: float, timeout_s: float) -> bool:
+        return self.routing is not None and now - self.last_uplink <= timeout_s
+
+    def status_row(self, now: float, timeout_s: float, mode: str, reason: str) -> Dict[str, Any]:
+        telemetry = self.telemetry or {}
+        behaviour = telemetry.get("behaviour") or {}
+        loop = telemetry.get("loop") or {}
+        return {
+            "id": self.id,
+            "connected": self.connected(now, timeout_s),
+            "last_seen_s": None if self.last_uplink == -math.inf else round(now - self.last_uplink, 3),
+            "peer": self.peer,
+            "driver": self.driver,
+            "mode": mode,
+            "reason": reason,
+            "agent_mode": telemetry.get("mode"),
+            "state": behaviour.get("state"),
+            "loop_hz": loop.get("hz"),
+            "loop_misses": loop.get("misses"),
+            "battery_v": telemetry.get("battery_v"),
+            "frames_lost": telemetry.get("frames_lost"),
+            "frames_dropped": self.frames_dropped,
+            "estop_ack_ms": None if self.estop_ack_s is None else round(self.estop_ack_s * 1000.0, 2),
+            "error": telemetry.get("error"),
+        }
+
+
+@dataclass
+class DropLog:
+    """Counts every dropped message by reason and sender; logs at most one line per sender per second."""
+
+    log: Callable[[str], None]
+    on_drop: Optional[Callable[[str, str], None]] = None
+    counts: Dict[str, int] = field(default_factory=dict)
+    _last_line: Dict[str, float] = field(default_factory=dict)
+    _suppressed: Dict[str, int] = field(default_factory=dict)
+
+    def drop(self, reason: str, sender: str, detail: str) -> None:
+        self.counts[reason] = self.counts.get(reason, 0) + 1
+        if self.on_drop is not None:
+            self.on_drop(reason, sender)
+        now = time.monotonic()
+        if now - self._last_line.get(sender, -math.inf) < 1.0:
+            self._suppressed[sender] = self._suppressed.get(sender, 0) + 1
+            return
+        self._last_line[sender] = now
+        more = self._suppressed.pop(sender, 0)
+        suffix = f" (+{more} more from this sender in the last second)" if more else ""
+        self.log(f"hub: dropped {reason}: {detail}{suffix}")
+        if len(self._last_line) > 10_000:   # a flood of fake senders must not grow memory without bound
+            self._last_line.clear()
+            self._suppressed.clear()
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+class RateMeter:
+    """Events per second over a sliding window."""
+
+    def __init__(self, window_s: float = 1.0):
+        self.window_s = window_s
+        self.window_start = time.monotonic()
+        self.count = 0
+        self.hz = 0.0
+        self.last = -math.inf
+
+    def tick(self, now: float) -> None:
+        self.count += 1
+        self.last = now
+        elapsed = now - self.window_start
+        if elapsed >= self.window_s:
+            self.hz = self.count / elapsed
+            self.count = 0
+            self.window_start = now
+
+    def current(self, now: float) -> float:
+        return 0.0 if now - self.last > 2.0 * self.window_s else self.hz

@@ -1,0 +1,93 @@
+"""Lockstep pacing for the ``sim`` source: one control step of physics only after every live agent answered.
+
+Each step: snapshot the world (faults, poses, IR, odometry) -> virtual sensors -> one frame to every agent ->
+wait until each expected agent's telemetry answers that frame (wheel commands and broadcasts arrive before
+it on the same socket) or the wall-clock timeout passes -> advance physics by one control period. A dead or
+hung agent costs at most the timeout per step, and after three silent steps it is no longer waited for
+(until it answers again). The agents run their normal loop; only their pacing follows the frames.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+import zmq
+
+from .server import Hub
+from .sim_source import SimSource
+
+UNRESPONSIVE_AFTER_STEPS = 3
+
+
+@dataclass
+class StepReport:
+    time_s: float
+    answered: List[int] = field(default_factory=list)
+    missing: List[int] = field(default_factory=list)
+    round_trip_s: List[float] = field(default_factory=list)   # frame sent -> answer received, per agent
+
+
+class Lockstep:
+    def __init__(self, hub: Hub, timeout_s: float = 2.0):
+        if not isinstance(hub.source, SimSource):
+            raise TypeError("lockstep needs the sim source")
+        self.hub, self.source, self.timeout_s = hub, hub.source, timeout_s
+        self.poller = zmq.Poller()
+        self.poller.register(hub.robot_socket, zmq.POLLIN)
+        self.poller.register(hub.control_socket, zmq.POLLIN)
+        self.steps = 0
+        self.timeouts = 0
+
+    def expected(self, now: float) -> List[int]:
+        """Agents this step waits for: connected, alive in the world, not written off as unresponsive."""
+        hub = self.hub
+        return [r.id for r in hub.robots.values()
+                if r.routing is not None and r.id not in hub.killed and r.unresponsive_steps < UNRESPONSIVE_AFTER_STEPS]
+
+    def step(self) -> StepReport:
+        hub, source = self.hub, self.source
+        now = time.monotonic()
+        frame = source.snapshot(now)
+        hub.on_pose_frame(frame)
+        report = StepReport(frame.clock_s or 0.0)
+        sent_at = {}
+        for robot in hub.robots.values():
+            if robot.routing is not None:
+                hub.send_frame(robot, time.monotonic())
+                sent_at[robot.id] = (time.monotonic(), robot.seq)
+        waiting = set(self.expected(now))
+        deadline = time.monotonic() + self.timeout_s
+        while waiting and time.monotonic() < deadline:
+            events = dict(self.poller.poll(max(0.0, deadline - time.monotonic()) * 1000.0))
+            hub.handle_sockets(events)
+            for rid in list(waiting):
+                robot = hub.robots[rid]
+                if rid in sent_at and robot.step_answered >= sent_at[rid][1]:
+                    waiting.discard(rid)
+                    report.answered.append(rid)
+                    report.round_trip_s.append(time.monotonic() - sent_at[rid][0])
+                    robot.unresponsive_steps = 0
+        for rid in waiting:
+            hub.robots[rid].unresponsive_steps += 1
+            report.missing.append(rid)
+        if waiting:
+            self.timeouts += 1
+        hub.housekeeping(time.monotonic())
+        self.steps += 1
+        return report
+
+    def advance(self) -> None:
+        self.source.advance(self.source.substeps_per_control)
+
+    def wait_for(self, condition, timeout_s: float, what: str) -> Optional[str]:
+        """Serve sockets until ``condition()``; None when met, else a one-line reason."""
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return f"timed out after {timeout_s:g} s waiting for {what}"
+            events = dict(self.poller.poll(min(left, 0.05) * 1000.0))
+            self.hub.handle_sockets(events)
+            self.hub.housekeeping(time.monotonic())
+        return None

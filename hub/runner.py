@@ -1,0 +1,43 @@
+"""Running a hub process: bind, serve until SIGINT/SIGTERM, tell the robots to stop, close the log."""
+from __future__ import annotations
+
+import signal
+import sys
+from typing import Callable
+
+from .config import LabConfig
+from .factory import build_hub
+
+INSECURE_WARNING = """\
+************************************************************************
+*  WARNING: --insecure: no encryption and no authentication.            *
+*  Anyone who can reach these ports can drive the robots and read the   *
+*  lab's traffic. Use it only on loopback or an isolated test network. *
+************************************************************************"""
+
+
+def print_now(line: str) -> None:
+    print(line, flush=True)     # flushed: supervisors and tests read these lines through a pipe
+
+
+def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
+    if config.security.insecure:
+        print(INSECURE_WARNING, file=sys.stderr, flush=True)
+    hub = build_hub(config, log=log)
+    stop = {"requested": False}
+
+    def request_stop(signum, frame):
+        stop["requested"] = True
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        hub.bind()
+        if config.run.autostart:
+            hub.control.execute("start", "config (run.autostart)")
+        hub.serve(lambda: stop["requested"])
+    finally:
+        hub.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    log("hub: stopped")
+    return 0

@@ -1,0 +1,147 @@
+"""CURVE keys and authentication: the hub talks only to robots and operators whose public key it holds.
+
+Key folder (``khepri keys init DIR``)::
+
+    DIR/hub.key, DIR/hub.key_secret                     the hub's pair (the secret stays on the lab PC)
+    DIR/robots/robot-<id>.key, robot-<id>.key_secret    one pair per robot; copy both + hub.key to the robot
+    DIR/operators/<name>.key, <name>.key_secret         one pair per operator (khepri ctl)
+
+The hub accepts a robot key only on the robot socket and an operator key only on the control socket. The
+authenticated key gives the peer's identity (ZAP User-Id ``robot:<id>`` or ``operator:<name>``), so a robot
+cannot claim another robot's id.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import zmq
+import zmq.auth
+from zmq.auth.thread import ThreadAuthenticator
+
+from onboard.config import ConfigError
+
+ROBOT_DOMAIN = "robots"
+OPERATOR_DOMAIN = "operators"
+ROBOT_KEY = re.compile(r"^robot-(\d+)\.key$")
+
+
+@dataclass
+class KeyRing:
+    """What the hub needs: its own pair and the public keys it accepts (z85 bytes -> identity)."""
+
+    folder: Path
+    public: bytes
+    secret: bytes
+    robots: Dict[bytes, int] = field(default_factory=dict)
+    operators: Dict[bytes, str] = field(default_factory=dict)
+
+
+def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: bool = False) -> List[Path]:
+    """Create the hub, robot and operator key pairs. Refuses to overwrite existing keys unless ``force``."""
+    targets = [folder / "hub.key"] + [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
+        + [folder / "operators" / f"{name}.key" for name in operators]
+    existing = [p for p in targets if p.exists()]
+    if existing and not force:
+        raise ConfigError("keys", f"{existing[0]} already exists (use --force to replace keys)")
+    for name in operators:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
+            raise ConfigError("--operator", f"use letters, digits, '.', '_' or '-' only (got {name!r})")
+    created = []
+    for path in targets:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        public, secret = zmq.auth.create_certificates(str(path.parent), path.stem)
+        Path(secret).chmod(0o600)
+        created += [Path(public), Path(secret)]
+    return created
+
+
+def load_keyring(folder: Path) -> KeyRing:
+    public, secret = _load_pair(folder / "hub.key_secret", "hub")
+    ring = KeyRing(folder, public, secret)
+    for path in sorted((folder / "robots").glob("robot-*.key")):
+        match = ROBOT_KEY.match(path.name)
+        if match:
+            ring.robots[_load_public(path)] = int(match.group(1))
+    for path in sorted((folder / "operators").glob("*.key")):
+        ring.operators[_load_public(path)] = path.stem
+    if not ring.robots:
+        raise ConfigError("security.keys", f"no robot keys in {folder / 'robots'} (run `khepri keys init {folder}`)")
+    return ring
+
+
+def operator_client_keys(folder: Path, name: Optional[str] = None) -> Dict[str, bytes]:
+    """``khepri ctl``'s side: an operator pair (the only one in the folder unless ``name`` is given)."""
+    candidates = sorted((folder / "operators").glob("*.key_secret"))
+    if name is not None:
+        candidates = [p for p in candidates if p.stem == name]
+    if not candidates:
+        raise ConfigError("--keys", f"no operator key{' ' + repr(name) if name else ''} in {folder / 'operators'}")
+    if len(candidates) > 1:
+        raise ConfigError("--operator", f"several operator keys in {folder / 'operators'}: name one")
+    public, secret = _load_pair(candidates[0], "operator")
+    return {"public": public, "secret": secret, "server": _load_public(folder / "hub.key")}
+
+
+def apply_client_keys(socket: zmq.Socket, keys: Dict[str, bytes]) -> None:
+    socket.curve_publickey = keys["public"]
+    socket.curve_secretkey = keys["secret"]
+    socket.curve_serverkey = keys["server"]
+
+
+def make_curve_server(socket: zmq.Socket, ring: KeyRing, domain: str) -> None:
+    socket.zap_domain = domain.encode()
+    socket.curve_publickey = ring.public
+    socket.curve_secretkey = ring.secret
+    socket.curve_server = True
+
+
+class _Members:
+    """ZAP callback: is this public key listed for the domain?"""
+
+    def __init__(self, keys):
+        self.keys = keys
+
+    def callback(self, domain: str, key: bytes) -> bool:
+        return key in self.keys
+
+
+class HubAuthenticator(ThreadAuthenticator):
+    """Accepts listed keys per domain and names the peer by the key's identity (``robot:3``)."""
+
+    def __init__(self, context: zmq.Context, ring: KeyRing):
+        super().__init__(context)
+        self.ring = ring
+        self.configure_curve_callback(ROBOT_DOMAIN, _Members(ring.robots))
+        self.configure_curve_callback(OPERATOR_DOMAIN, _Members(ring.operators))
+
+    def curve_user_id(self, client_public_key: bytes) -> str:
+        z85 = zmq.utils.z85.encode(client_public_key)
+        if z85 in self.ring.robots:
+            return f"robot:{self.ring.robots[z85]}"
+        return f"operator:{self.ring.operators.get(z85, '?')}"
+
+
+def _load_pair(path: Path, who: str):
+    if not path.is_file():
+        raise ConfigError("keys", f"no {who} key {path} (run `khepri keys init {path.parent}`, or --insecure "
+                          "on a trusted loopback only)")
+    try:
+        public, secret = zmq.auth.load_certificate(str(path))
+    except (OSError, ValueError) as err:
+        raise ConfigError("keys", f"{path}: not a key file ({err})") from None
+    if secret is None:
+        raise ConfigError("keys", f"{path}: holds no secret key")
+    return public, secret
+
+
+def _load_public(path: Path) -> bytes:
+    if not path.is_file():
+        raise ConfigError("keys", f"no public key {path}")
+    try:
+        public, _ = zmq.auth.load_certificate(str(path))
+    except (OSError, ValueError) as err:
+        raise ConfigError("keys", f"{path}: not a key file ({err})") from None
+    return public

@@ -1,0 +1,192 @@
+"""Software in the loop: the hub's ``sim`` source plus one real agent process per robot, over loopback
+ZeroMQ with CURVE (throw-away keys), evaluated exactly like ``khepri sim run``.
+
+Lockstep (default): physics advances one control step when every agent answered, so a 250 s run takes
+seconds. ``realtime``: the hub's normal loop paces physics by the wall clock and agents tick on their own.
+"""
+from __future__ import annotations
+
+import math
+import subprocess
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+from onboard.config import ConfigError
+from sim_backend.metrics import evaluator_for
+from sim_backend.scenario import Scenario
+
+from .config import parse_config
+from .factory import build_hub
+from .harness import spawn_agent, stop_processes
+from .lockstep import Lockstep
+from .security import init_keys
+from .sil_report import SilRecording, sil_figures
+
+CONNECT_TIMEOUT_S = 60.0
+
+
+@dataclass
+class SilOptions:
+    seed: Optional[int] = None
+    time_limit_s: Optional[float] = None
+    realtime: bool = False
+    record: bool = True
+    plot: bool = True
+    step_timeout_s: float = 2.0
+    log_to_console: bool = False
+
+
+def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any]:
+    from sim_backend.outputs import write_run
+
+    out.mkdir(parents=True, exist_ok=True)
+    seed = scenario.seed if options.seed is None else options.seed
+    scenario = scenario.with_overrides(seed=seed)
+    limit = scenario.time_limit_s if options.time_limit_s is None else options.time_limit_s
+    hub_log = open(out / "hub.log", "w", encoding="utf-8")   # noqa: SIM115 - closed below
+
+    def log(line: str) -> None:
+        hub_log.write(line + "\n")
+        hub_log.flush()
+        if options.log_to_console:
+            print(line, flush=True)
+
+    with tempfile.TemporaryDirectory(prefix="khepri-sil-keys-") as key_dir:
+        keys = Path(key_dir)
+        init_keys(keys, list(range(scenario.robots.count)), ["sil"])
+        config = parse_config({
+            "source": {"type": "sim", "lockstep": not options.realtime},
+            "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0},
+            "security": {"keys": str(keys)},
+            "record": str(out / "hub.mcap") if options.record else None,
+        })
+        hub = build_hub(config, log=log, scenario=scenario)
+        agents: List[subprocess.Popen] = []
+        try:
+            hub.bind()
+            agents = spawn_agents(hub.endpoints["robots"], keys, scenario.robots.count, out)
+            session = SilSession(hub, scenario, agents, options, limit, out)
+            result = session.run()
+        finally:
+            stop_processes(agents)        # SIGTERM: each agent stops its wheels and exits
+            hub.close()
+            hub_log.close()
+    result["sil"]["agent_exit_codes"] = [a.returncode for a in agents]
+    result["sil"]["log"] = str(out / "hub.mcap") if options.record else None
+    write_run(session.recording, result, out, plot=options.plot)
+    return result
+
+
+def spawn_agents(endpoint: str, keys: Path, count: int, out: Path) -> List[subprocess.Popen]:
+    logs = out / "agents"
+    logs.mkdir(exist_ok=True)
+    return [spawn_agent(endpoint, i, logs / f"agent-{i}.log", keys=keys) for i in range(count)]
+
+
+class SilSession:
+    def __init__(self, hub, scenario: Scenario, agents, options: SilOptions, limit_s: float, out: Path):
+        self.hub, self.scenario, self.agents, self.options, self.out = hub, scenario, agents, options, out
+        self.source = hub.source
+        self.limit_s = limit_s
+        self.evaluator = evaluator_for(scenario.behaviour)(scenario, self.source.world)
+        self.recording = SilRecording(scenario, self.source.world)
+        self.round_trips: List[float] = []
+        self.missing_answers = 0
+        self.stop_reason = "time limit"
+
+    def run(self) -> Dict[str, Any]:
+        lockstep = Lockstep(self.hub, self.options.step_timeout_s)
+        count = len(self.agents)
+        problem = lockstep.wait_for(lambda: self._connected() == count or self._dead_agent() is not None,
+                                    CONNECT_TIMEOUT_S, f"{count} agents to connect")
+        problem = problem or self._dead_agent()
+        if problem:
+            raise ConfigError("sil", f"{problem}; see the agent logs in {self.out / 'agents'}")
+        self.hub.control.execute("start", "sil")
+        lockstep.wait_for(lambda: all(r.pending is None for r in self.hub.robots.values()), 10.0, "start acks")
+        started = time.perf_counter()
+        error = None
+        try:
+            if self.options.realtime:
+                self._run_realtime()
+            else:
+                self._run_lockstep(lockstep)
+        except Exception as exc:   # a crashed run is reported, not lost (as in `khepri sim run`)
+            error = f"{type(exc).__name__}: {exc} (at t = {self.source.time_s:.1f} s)"
+            self.stop_reason = "crashed"
+        wall = time.perf_counter() - started
+        self.hub.control.execute("stop", "sil")
+        return self._result(wall, lockstep, error)
+
+    def _connected(self) -> int:
+        return sum(1 for r in self.hub.robots.values() if r.routing is not None)
+
+    def _dead_agent(self) -> Optional[str]:
+        for i, agent in enumerate(self.agents):
+            if agent.poll() is not None:
+                return f"agent {i} exited with code {agent.returncode}"
+        return None
+
+    def _run_lockstep(self, lockstep: Lockstep) -> None:
+        period = self.source.control_period
+        steps = int(math.ceil(self.limit_s / period - 1e-9))
+        for _ in range(steps):
+            report = lockstep.step()
+            self.round_trips.extend(report.round_trip_s)
+            self.missing_answers += len(report.missing)
+            if self._observe(report.time_s):
+                self.stop_reason = "behaviour finished"
+                return
+            lockstep.advance()
+
+    def _run_realtime(self) -> None:
+        period = self.source.control_period
+        observed = -1
+
+        def should_stop() -> bool:
+            nonlocal observed
+            step = self.source.control_steps_done()
+            if step != observed and self.hub.clock_s is not None:
+                observed = step
+                if self._observe(step * period):
+                    self.stop_reason = "behaviour finished"
+                    return True
+            return self.source.time_s >= self.limit_s - 1e-9
+
+        self.hub.serve(should_stop)
+
+    def _observe(self, t: float) -> bool:
+        """Evaluate one control step from the agents' telemetry; True when every live robot has finished."""
+        alive = self.source.world.alive()
+        telemetry = [self._behaviour_telemetry(i) if alive[i] else None for i in range(len(alive))]
+        self.evaluator.on_step(t, telemetry)
+        self.recording.add(t, self.source.world, self.evaluator.centroid_estimate(telemetry))
+        live = [tel for tel, a in zip(telemetry, alive) if a]
+        return bool(live) and all(tel is not None and tel.get("finished") for tel in live)
+
+    def _behaviour_telemetry(self, index: int) -> Optional[Dict[str, Any]]:
+        telemetry = self.hub.robots[index].telemetry
+        return None if telemetry is None else telemetry.get("behaviour")
+
+    def _result(self, wall: float, lockstep: Lockstep, error: Optional[str]) -> Dict[str, Any]:
+        sim_time = self.recording.t[-1] + self.source.control_period if self.recording.t else 0.0
+        relay = self.hub.relay.stats
+        result: Dict[str, Any] = {
+            "scenario": self.scenario.name, "seed": self.scenario.seed, "robots": len(self.agents),
+            "behaviour": self.scenario.behaviour, "sim_time_s": round(sim_time, 6), "wall_time_s": round(wall, 3),
+            "real_time_factor": round(sim_time / wall, 2) if wall > 0 else None, "stop_reason": self.stop_reason,
+            "radio": {"sent": relay.sent, "delivered": relay.delivered,
+                      "dropped": relay.dropped_random + relay.dropped_overflow},
+        }
+        try:
+            result.update(self.evaluator.result())
+        except Exception as exc:
+            error = error or f"evaluation failed: {type(exc).__name__}: {exc}"
+        result["sil"] = sil_figures(self.hub, lockstep, self.round_trips, self.missing_answers,
+                                    not self.options.realtime)
+        if error:
+            result["error"] = error
+        return result

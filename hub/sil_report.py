@@ -1,0 +1,86 @@
+"""What a SIL run writes besides the evaluator's keys: the trajectory (same NPZ keys as ``khepri sim run``,
+see docs/outputs.md) and the hub/agent figures under ``result["sil"]``."""
+from __future__ import annotations
+
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+
+
+class SilRecording:
+    """Samples per control step; ``trajectory_arrays()`` is what ``sim_backend.outputs.write_run`` reads."""
+
+    def __init__(self, scenario, world):
+        self.scenario, self.world = scenario, world
+        self.t: List[float] = []
+        self.robot_pose: List[np.ndarray] = []
+        self.robot_alive: List[np.ndarray] = []
+        self.object_pose: List[np.ndarray] = []
+        self.centroid_estimate: List[np.ndarray] = []
+
+    def add(self, t: float, world, centroid_estimate: np.ndarray) -> None:
+        self.t.append(t)
+        self.robot_pose.append(world.robot_poses())
+        self.robot_alive.append(world.alive())
+        obj = world.object_pose()
+        if obj is not None:
+            self.object_pose.append(obj)
+        self.centroid_estimate.append(np.asarray(centroid_estimate, dtype=float))
+
+    def trajectory_arrays(self) -> Dict[str, np.ndarray]:
+        count = len(self.world.robots)
+        walls = self.scenario.arena.walls
+        arrays: Dict[str, np.ndarray] = {
+            "t": np.asarray(self.t),
+            "robot_pose": np.asarray(self.robot_pose).reshape(-1, count, 3),
+            "robot_alive": np.asarray(self.robot_alive, dtype=bool).reshape(-1, count),
+            "path": np.asarray(self.scenario.path, dtype=float).reshape(-1, 3),
+            "robot_radius": np.asarray(self.world.spec.radius_m),
+            "arena_walls": np.asarray(walls if walls is not None else [np.nan] * 4, dtype=float),
+        }
+        estimate = np.asarray(self.centroid_estimate, dtype=float).reshape(-1, 2)
+        if np.isfinite(estimate).any():
+            arrays["centroid_estimate"] = estimate
+        geometry = self.world.geometry
+        if geometry is not None:
+            rings = geometry.outline_polygons()
+            arrays["object_pose"] = np.asarray(self.object_pose)
+            arrays["object_outline"] = np.vstack(rings)
+            arrays["object_outline_index"] = np.cumsum([0] + [len(r) for r in rings])
+        return arrays
+
+
+def sil_figures(hub, lockstep, round_trips: List[float], missing_answers: int, is_lockstep: bool) -> Dict[str, Any]:
+    """Hub and agent figures: frame-to-answer latency, agents' loop timing and misses, every kind of drop."""
+    loops = [((r.telemetry or {}).get("loop") or {}) for r in hub.robots.values()]
+    lost = [int((r.telemetry or {}).get("frames_lost") or 0) for r in hub.robots.values()]
+    bad = [int((r.telemetry or {}).get("frames_bad") or 0) for r in hub.robots.values()]
+    return {
+        "agents": len(hub.robots),
+        "lockstep": is_lockstep,
+        "steps": lockstep.steps if is_lockstep else None,
+        "latency_ms": {  # hub sends a frame -> the agent's answer (its step ran in between) arrives
+            "p50": _percentile_ms(round_trips, 50), "p99": _percentile_ms(round_trips, 99),
+            "max": _percentile_ms(round_trips, 100)},
+        "step_timeouts": lockstep.timeouts if is_lockstep else None,
+        "missing_answers": missing_answers,
+        "loop_misses": sum(int(loop.get("misses") or 0) for loop in loops),
+        "loop_step_ms": {"mean": _mean([loop.get("mean_ms") for loop in loops]),
+                         "max": max([loop.get("max_ms") or 0.0 for loop in loops], default=None)},
+        "dropped": {
+            "hub_rejected": dict(hub.drops.counts),
+            "downlink_queue_full": sum(r.frames_dropped for r in hub.robots.values()),
+            "frames_lost_at_agents": sum(lost),
+            "bad_frames_at_agents": sum(bad),
+            "relay": hub.relay.stats.as_dict(),
+        },
+    }
+
+
+def _percentile_ms(values: List[float], q: float) -> Optional[float]:
+    return round(float(np.percentile(values, q)) * 1000.0, 3) if values else None
+
+
+def _mean(values: List[Any]) -> Optional[float]:
+    numbers = [v for v in values if isinstance(v, (int, float))]
+    return round(sum(numbers) / len(numbers), 3) if numbers else None

@@ -1,0 +1,109 @@
+"""The ``sim`` source: the pymunk world plays the robots and the cameras.
+
+It publishes ground-truth poses as the motion capture, applies the wheel commands the agents send, and
+supplies IR and encoder readings for agents that use the ``sim`` driver -- with the simulator's own models
+(``sim_backend.sensing``), so a software-in-the-loop run senses what ``khepri sim run`` senses.
+
+Two pacings: real time (a frame every ``1 / frame_hz`` s of wall time, physics in between) and lockstep
+(the hub calls :meth:`advance` once per control step, when every agent has answered).
+"""
+from __future__ import annotations
+
+import math
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from onboard.hal import clamp_wheel_speeds
+from sim_backend.scenario import Scenario
+from sim_backend.sensing import ProximityModel, ir_response
+from sim_backend.world import World
+
+from .sources import PoseFrame, PoseSource
+
+
+class SimSource(PoseSource):
+    def __init__(self, scenario: Scenario, seed: Optional[int] = None, frame_hz: float = 50.0):
+        self.scenario = scenario
+        self.seed = scenario.seed if seed is None else seed
+        # Same stream layout as the simulator: stream 0 places the robots, so SIL starts where sim starts.
+        streams = np.random.SeedSequence(self.seed).spawn(5)
+        self.world = World(scenario, np.random.default_rng(streams[0]))
+        self.rng_ir = np.random.default_rng(streams[1])
+        self.hub_seed = streams[4]       # for the hub's virtual sensors and relay
+        self.description = f"sim {scenario.name} (seed {self.seed})"
+        self.count = len(self.world.robots)
+        self.control_period = 1.0 / scenario.physics.control_hz
+        self.dt = scenario.physics.dt_s
+        self.substeps_per_control = int(round(self.control_period / self.dt))
+        self.substeps_per_frame = max(1, int(round(1.0 / (frame_hz * self.dt))))
+        self.ir = ProximityModel(self.world.spec.radius_m, self.world.spec.proximity_range_m)
+        self.faults = sorted((f.at_s, f.robot) for f in scenario.faults)
+        self.killed: List[int] = []
+        self.steps = 0                   # physics substeps done
+        self.next_frame_at: Optional[float] = None
+
+    @property
+    def time_s(self) -> float:
+        return self.steps * self.dt
+
+    def robot_ids(self) -> List[int]:
+        return list(range(self.count))
+
+    # --- actuation --------------------------------------------------------------------------------------
+    def command(self, robot: int, left_m_s: float, right_m_s: float) -> None:
+        # The agent's HAL already clamps; the physics clamps again so a bad agent cannot exceed the robot.
+        left, right = clamp_wheel_speeds(left_m_s, right_m_s, self.world.spec.max_wheel_speed_m_s)
+        self.world.command(robot, left, right)
+
+    def advance(self, substeps: int) -> None:
+        self.world.step(substeps)
+        self.steps += substeps
+
+    # --- sensing ----------------------------------------------------------------------------------------
+    def snapshot(self, stamp: float) -> PoseFrame:
+        """Fire due faults, then the poses of live robots plus every robot's IR and odometry."""
+        t = self.time_s
+        while self.faults and self.faults[0][0] <= t + 1e-9:
+            _, index = self.faults.pop(0)
+            self.world.kill(index)
+            self.killed.append(index)
+        poses = self.world.robot_poses()
+        alive = self.world.alive()
+        xy, yaw = poses[:, :2], poses[:, 2]
+        centre_ranges = np.hypot(*(xy[None, :, :] - xy[:, None, :]).transpose(2, 0, 1))
+        distances = self.ir.distances(xy, yaw, centre_ranges, np.ones(self.count, dtype=bool),
+                                      self.world.obstacle_groups())
+        noise = self.rng_ir.normal(0.0, self.scenario.sensors.proximity_noise, (self.count, 8))
+        ir = np.round(np.clip(ir_response(distances) + noise, 0.0, 1.0), 4).tolist()
+        extras: Dict[int, Dict[str, list]] = {}
+        for i, robot in enumerate(self.world.robots):
+            extras[i] = {"ir": ir[i], "odo": [round(robot.left_odo, 6), round(robot.right_odo, 6)]}
+        live = np.nonzero(alive)[0]
+        return PoseFrame(stamp, live.tolist(), poses[live], clock_s=round(t, 6), extras=extras,
+                         killed=tuple(self.killed))
+
+    # --- real-time pacing -------------------------------------------------------------------------------
+    def poll(self, now: float) -> List[PoseFrame]:
+        frame_period = self.substeps_per_frame * self.dt
+        if self.next_frame_at is None:
+            self.next_frame_at = now
+        elif now < self.next_frame_at:
+            return []
+        else:
+            self.advance(self.substeps_per_frame)
+        # Fall behind by more than a second (a stalled PC) and the schedule restarts instead of racing.
+        behind = now - self.next_frame_at
+        self.next_frame_at = now + frame_period if behind > 1.0 else self.next_frame_at + frame_period
+        return [self.snapshot(now)]
+
+    def next_due(self, now: float) -> float:
+        if self.next_frame_at is None:
+            return 0.0
+        return max(0.0, self.next_frame_at - now)
+
+    def object_pose(self):
+        return self.world.object_pose()
+
+    def control_steps_done(self) -> int:
+        return int(math.floor(self.steps / self.substeps_per_control + 1e-9))

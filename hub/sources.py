@@ -1,0 +1,244 @@
+"""Pose sources for the hub: the ``motioncapture`` library, a recorded MCAP log (``replay``), and the
+simulator (``hub/sim_source.py``). Each hands the hub :class:`PoseFrame` records stamped on arrival with
+the hub's monotonic clock, in the world frame (z up, yaw counter-clockwise from x).
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
+
+import numpy as np
+
+from onboard.config import ConfigError
+
+
+@dataclass
+class PoseFrame:
+    stamp: float                    # hub monotonic time when the frame arrived (s)
+    ids: List[int]                  # robots seen in this frame
+    poses: np.ndarray               # (len(ids), 3) x, y (m), yaw (rad), world frame
+    clock_s: Optional[float] = None     # sim source: simulated time of the frame
+    extras: Dict[int, Dict[str, Any]] = field(default_factory=dict)   # sim source: per-robot IR and odometry
+    killed: Tuple[int, ...] = ()    # sim source: robots a scenario fault has killed
+
+
+class PoseSource:
+    """Base: a source is polled by the hub loop. ``wake_socket`` (optional) becomes readable when frames wait."""
+
+    description = "source"
+    wake_socket = None
+
+    def robot_ids(self) -> Optional[List[int]]:
+        """The robots this source knows, or None when the config's list decides."""
+        return None
+
+    def poll(self, now: float) -> List[PoseFrame]:
+        return []
+
+    def next_due(self, now: float) -> float:
+        """Seconds until the source wants to be polled again without a wake-up."""
+        return 0.05
+
+    def close(self) -> None:
+        pass
+
+
+# --- axis conventions ---------------------------------------------------------------------------------------
+def pose_from_mocap(position, quaternion_wxyz, up_axis: str) -> Tuple[float, float, float]:
+    """World (x, y, yaw) from a rigid body's position and orientation in the mocap frame.
+
+    Z-up systems (Vicon, Qualisys by default): the floor is x-y. Y-up systems (OptiTrack Motive's default):
+    the floor is x-z, and the z-up world is (x, -z, y). Yaw is the heading of the body's x axis on the floor.
+    """
+    w, qx, qy, qz = quaternion_wxyz
+    # The body's x axis expressed in the mocap frame: the first column of the rotation matrix.
+    ax = 1.0 - 2.0 * (qy * qy + qz * qz)
+    ay = 2.0 * (qx * qy + w * qz)
+    az = 2.0 * (qx * qz - w * qy)
+    if up_axis == "y":
+        return float(position[0]), float(-position[2]), math.atan2(-az, ax)
+    return float(position[0]), float(position[1]), math.atan2(ay, ax)
+
+
+def poses_from_mocap(positions: np.ndarray, quaternions_wxyz: np.ndarray, up_axis: str) -> np.ndarray:
+    """:func:`pose_from_mocap` for many bodies at once: (K, 3) positions, (K, 4) quaternions -> (K, 3)."""
+    w, qx, qy, qz = quaternions_wxyz.T
+    ax = 1.0 - 2.0 * (qy * qy + qz * qz)
+    ay = 2.0 * (qx * qy + w * qz)
+    az = 2.0 * (qx * qz - w * qy)
+    if up_axis == "y":
+        return np.column_stack([positions[:, 0], -positions[:, 2], np.arctan2(-az, ax)])
+    return np.column_stack([positions[:, 0], positions[:, 1], np.arctan2(ay, ax)])
+
+
+class _WakeUp:
+    """An inproc socket pair: a reader thread pokes, the hub's poller wakes."""
+
+    def __init__(self, context, name: str):
+        import zmq
+
+        self.reader = context.socket(zmq.PAIR)
+        self.reader.bind(f"inproc://wake-{name}-{id(self)}")
+        self.writer = context.socket(zmq.PAIR)
+        self.writer.connect(f"inproc://wake-{name}-{id(self)}")
+        self.lock = threading.Lock()
+        self.zmq = zmq
+
+    def poke(self) -> None:
+        with self.lock:
+            try:
+                self.writer.send(b"", self.zmq.NOBLOCK)
+            except self.zmq.ZMQError:
+                pass   # already poked and not yet drained
+
+    def drain(self) -> None:
+        while True:
+            try:
+                self.reader.recv(self.zmq.NOBLOCK)
+            except self.zmq.Again:
+                return
+
+    def close(self) -> None:
+        self.reader.close(0)
+        self.writer.close(0)
+
+
+class MotionCaptureSource(PoseSource):
+    """The ``motioncapture`` library in a reader thread (its ``waitForNextFrame`` blocks)."""
+
+    def __init__(self, context, system: str, options: Dict[str, Any], bodies: Dict[str, int], up_axis: str,
+                 log: Callable[[str], None] = print, connect: Optional[Callable] = None):
+        import motioncapture
+
+        self.description = f"motioncapture {system}"
+        self.bodies, self.up_axis, self.log = dict(bodies), up_axis, log
+        try:
+            self.mocap = (connect or motioncapture.connect)(system, {k: str(v) for k, v in options.items()})
+        except RuntimeError as err:
+            raise ConfigError("source.system", f"cannot connect to {system!r}: {err}") from None
+        self.frames: Deque[PoseFrame] = deque(maxlen=8)   # the hub wants the newest; old ones are useless
+        self.wake = _WakeUp(context, "mocap")
+        self.wake_socket = self.wake.reader
+        self.unknown_names: set = set()
+        self.running = True
+        self.thread = threading.Thread(target=self._read, name="mocap-reader", daemon=True)
+        self.thread.start()
+
+    def robot_ids(self) -> Optional[List[int]]:
+        return sorted(self.bodies.values())
+
+    def _read(self) -> None:
+        while self.running:
+            try:
+                self.mocap.waitForNextFrame()
+                stamp = time.monotonic()
+                bodies = self.mocap.rigidBodies
+            except Exception as err:   # a network hiccup in the SDK must not kill the hub
+                self.log(f"hub: motion capture read failed: {err}")
+                time.sleep(0.1)
+                continue
+            self.frames.append(self._convert(stamp, bodies))
+            self.wake.poke()
+
+    def _convert(self, stamp: float, bodies) -> PoseFrame:
+        ids, positions, rotations = [], [], []
+        for name, body in bodies.items():
+            robot = self.bodies.get(name)
+            if robot is None:
+                if name not in self.unknown_names:
+                    self.unknown_names.add(name)
+                    self.log(f"hub: ignoring rigid body {name!r} (not listed in source.bodies)")
+                continue
+            q = body.rotation
+            ids.append(robot)
+            positions.append(body.position.tolist())
+            rotations.append((q.w, q.x, q.y, q.z))
+        poses = poses_from_mocap(np.asarray(positions, dtype=float).reshape(-1, 3),
+                                 np.asarray(rotations, dtype=float).reshape(-1, 4), self.up_axis)
+        seen = np.isfinite(poses).all(axis=1)          # occluded bodies come as NaN in some systems
+        if not seen.all():
+            ids = [rid for rid, ok in zip(ids, seen) if ok]
+            poses = poses[seen]
+        return PoseFrame(stamp, ids, poses)
+
+    def poll(self, now: float) -> List[PoseFrame]:
+        self.wake.drain()
+        out = []
+        while self.frames:
+            out.append(self.frames.popleft())
+        return out
+
+    def next_due(self, now: float) -> float:
+        return 0.1
+
+    def close(self) -> None:
+        self.running = False
+        self.thread.join(timeout=1.0)
+        self.wake.close()
+
+
+class ReplaySource(PoseSource):
+    """Poses from a recorded log's ``/mocap/poses`` topic, paced by their stamps at ``rate``."""
+
+    def __init__(self, path: str, rate: float = 1.0, log: Callable[[str], None] = print):
+        from hub.recording import read_log
+
+        self.description = f"replay {path}"
+        self.rate, self.log = rate, log
+        try:
+            self.records = iter(read_log(path, topics=["/mocap/poses"]))
+        except (OSError, ValueError) as err:
+            raise ConfigError("source.file", f"cannot read {path}: {err}") from None
+        self.pending = None
+        self.first_stamp: Optional[float] = None
+        self.started_at: Optional[float] = None
+        self.finished = False
+        self._fetch()
+
+    def _fetch(self) -> None:
+        try:
+            self.pending = next(self.records)
+        except StopIteration:
+            self.pending = None
+            if not self.finished:
+                self.finished = True
+                self.log("hub: replay reached the end of the log")
+
+    def _due_at(self) -> float:
+        return self.started_at + (self.pending.stamp_s - self.first_stamp) / self.rate
+
+    def poll(self, now: float) -> List[PoseFrame]:
+        out = []
+        while self.pending is not None:
+            if self.first_stamp is None:
+                self.first_stamp, self.started_at = self.pending.stamp_s, now
+            if self._due_at() > now:
+                break
+            frame = self._to_frame(self.pending.payload, now)
+            if frame is not None:
+                out.append(frame)
+            self._fetch()
+        return out[-1:]   # latest-only: a late hub skips to the newest frame
+
+    def _to_frame(self, payload: Dict[str, Any], now: float) -> Optional[PoseFrame]:
+        try:
+            ids, poses = [], []
+            for name, (x, y, _z, qx, qy, qz, qw) in payload["bodies"].items():
+                ids.append(int(name))
+                poses.append(pose_from_mocap((x, y, 0.0), (qw, qx, qy, qz), "z"))
+            poses = np.asarray(poses, dtype=float).reshape(len(ids), 3)
+        except (KeyError, TypeError, ValueError, AttributeError) as err:
+            self.log(f"hub: replay: skipping a malformed /mocap/poses record ({err})")
+            return None
+        return PoseFrame(now, ids, poses, clock_s=payload.get("clock_s"))
+
+    def next_due(self, now: float) -> float:
+        if self.pending is None:
+            return 0.1
+        if self.first_stamp is None:
+            return 0.0
+        return max(0.0, self._due_at() - now)

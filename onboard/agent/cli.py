@@ -1,0 +1,97 @@
+"""Command line of the agent, shared by ``khepri agent`` (lab PC, SIL) and ``python -m onboard.agent`` (robots,
+where only ``onboard/`` is installed)."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+from onboard.behaviour import behaviour_names
+from onboard.config import ConfigError
+from onboard.drivers import Driver
+
+DEFAULT_ROBOT_PORT = 5560
+
+
+def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--id", dest="robot_id", type=int, required=True, help="this robot's id")
+    parser.add_argument("--hub", default="127.0.0.1", help="the hub's host name or address (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=DEFAULT_ROBOT_PORT,
+                        help=f"the hub's robot port (default {DEFAULT_ROBOT_PORT})")
+    parser.add_argument("--driver", choices=("kh4", "sim"), required=True,
+                        help="kh4: this KheperaIV's hardware; sim: a robot simulated by the hub's sim source")
+    parser.add_argument("--keys", type=Path, metavar="DIR",
+                        help="key folder with robots/robot-<id>.key_secret and hub.key (CURVE); "
+                             "without it the agent connects unencrypted, which only a hub run with --insecure accepts")
+    parser.add_argument("--library", help="kh4: path to libkhepera.so")
+    parser.add_argument("--calibration", help="kh4: this robot's IR calibration YAML")
+    parser.add_argument("--watchdog", type=float, default=0.25, metavar="S",
+                        help="stop the wheels after S seconds without a hub frame (default 0.25, at most 0.3)")
+    parser.add_argument("--quiet", action="store_true", help="log only problems")
+
+
+def run_agent(args: argparse.Namespace) -> int:
+    from .link import HubLink, load_robot_keys
+    from .loop import Agent
+
+    if args.robot_id < 0:
+        raise ConfigError("--id", f"must be >= 0 (got {args.robot_id})")
+    if not 0.0 < args.watchdog <= 0.3:
+        raise ConfigError("--watchdog", f"must be in (0, 0.3] seconds (got {args.watchdog})")
+    keys = load_robot_keys(args.keys, args.robot_id) if args.keys is not None else None
+    behaviour_names()       # import the behaviours now, not when the hub says start (that takes a while)
+    log = _logger(args.quiet)
+    endpoint = args.hub if "://" in args.hub else f"tcp://{args.hub}:{args.port}"
+    link = HubLink(args.robot_id, endpoint, keys, log=log)
+    if keys is None and not args.quiet:
+        log(f"agent {args.robot_id}: no --keys: connecting unencrypted (only a hub run with --insecure accepts this)")
+
+    def make_driver(agent: Agent) -> Driver:
+        return open_driver(args, agent)
+
+    try:
+        agent = Agent(args.robot_id, link, make_driver, watchdog_s=args.watchdog, log=log)
+        log(f"agent {args.robot_id}: connecting to {endpoint} with the {args.driver} driver")
+        agent.serve()
+    finally:
+        link.close()
+    return 0
+
+
+def open_driver(args: argparse.Namespace, agent) -> Driver:
+    if args.driver == "sim":
+        from onboard.drivers.sim import SimDriver
+
+        return SimDriver(agent.link.send, lambda: agent.state.sim)
+    try:
+        kh4 = importlib.import_module("onboard.drivers.kh4")
+    except ImportError as err:
+        raise ConfigError("--driver", f"the kh4 driver is not available here ({err})") from None
+    try:
+        return kh4.KheperaIV(library_path=args.library, calibration_path=args.calibration)
+    except (OSError, RuntimeError, ValueError) as err:
+        raise ConfigError("--driver", f"cannot open the KheperaIV: {err}") from None
+
+
+def _logger(quiet: bool):
+    def log(line: str) -> None:
+        if quiet and not any(word in line for word in ("error", "stop", "hold", "estop", "no frame", "cannot")):
+            return
+        print(line, file=sys.stderr, flush=True)
+    return log
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m onboard.agent",
+                                     description="Run this robot's agent: behaviour at 10 Hz, fed by the hub.")
+    add_agent_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run_agent(args)
+    except ConfigError as err:
+        print(f"agent: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130

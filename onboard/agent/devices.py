@@ -1,0 +1,158 @@
+"""The agent's HAL: devices fed by hub frames (pose, neighbours, radio, clock) and by the driver (IR, wheels,
+encoders). A behaviour gets the same :class:`onboard.hal.Robot` bundle as in the simulator.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable, Deque, Dict, List, Mapping, Optional
+
+from onboard import hal
+from onboard.drivers import Driver
+from onboard.hal import Message, Neighbour, Pose, ProximityReading, RobotSpec, WheelOdometry, clamp_wheel_speeds
+
+INBOX_LIMIT = 256    # relayed messages kept between two behaviour steps; the oldest go first
+
+
+@dataclass
+class HubState:
+    """The latest hub frame, as the devices read it. Times are the robot's clock (``AgentClock``)."""
+
+    seq: int = 0
+    mode: str = "idle"
+    reason: str = ""
+    received_at: float = -math.inf          # local monotonic time of the last frame
+    pose: Optional[Pose] = None
+    neighbours: List[Neighbour] = field(default_factory=list)
+    neighbours_at: float = 0.0              # robot-clock time the neighbours were measured
+    hub_clock_s: Optional[float] = None
+    sim: Optional[Dict[str, Any]] = None    # IR and odometry from the hub's sim source
+    inbox: Deque[Message] = field(default_factory=lambda: deque(maxlen=INBOX_LIMIT))
+    frames_lost: int = 0
+
+
+class AgentClock(hal.Clock):
+    """Seconds since the run started: local monotonic time, or the hub's simulated time in lockstep."""
+
+    def __init__(self, state: HubState):
+        self.state = state
+        self.use_hub_clock = False
+        self.started = time.monotonic()
+
+    def restart(self, use_hub_clock: bool) -> None:
+        self.use_hub_clock = use_hub_clock
+        self.started = time.monotonic()
+
+    def now(self) -> float:
+        if self.use_hub_clock:
+            return self.state.hub_clock_s if self.state.hub_clock_s is not None else 0.0
+        return time.monotonic() - self.started
+
+
+def apply_frame(state: HubState, frame: Dict[str, Any], clock: AgentClock, received_at: float) -> None:
+    """Fold one downlink frame into the state (messages accumulate; everything else is latest-only).
+    The frame's mode is applied by the agent, which must act on a change (stop the wheels)."""
+    if state.seq and frame["seq"] > state.seq + 1:
+        state.frames_lost += frame["seq"] - state.seq - 1
+    state.seq = frame["seq"]
+    state.received_at = received_at
+    state.hub_clock_s = frame.get("clock_s", state.hub_clock_s)
+    state.sim = frame.get("sim", state.sim)
+    now = clock.now()
+    # In lockstep the pose belongs to the frame's simulated instant; in real time it is age_s old on arrival.
+    measured = now if clock.use_hub_clock else now - frame.get("pose_age_s", 0.0)
+    pose = frame.get("pose")
+    if pose is not None:
+        state.pose = Pose(pose[0], pose[1], pose[2], measured)
+    state.neighbours = [Neighbour(n[0], n[1], n[2]) for n in frame["neighbours"]]
+    state.neighbours_at = measured
+    for sender, sent_s, payload in frame["messages"]:
+        state.inbox.append(Message(sender, payload, sent_s))
+
+
+class HubPositioning(hal.Positioning):
+    def __init__(self, state: HubState, clock: AgentClock):
+        self.state, self.clock = state, clock
+
+    def pose(self) -> Optional[Pose]:
+        p = self.state.pose
+        if p is None:
+            return None
+        return Pose(p.x, p.y, p.yaw_rad, p.stamp_s, max(0.0, self.clock.now() - p.stamp_s))
+
+
+class HubRangeAndBearing(hal.RangeAndBearingSensor):
+    def __init__(self, state: HubState, clock: AgentClock):
+        self.state, self.clock = state, clock
+
+    def neighbours(self) -> List[Neighbour]:
+        age = max(0.0, self.clock.now() - self.state.neighbours_at)
+        return [Neighbour(n.id, n.range_m, n.bearing_rad, age) for n in self.state.neighbours]
+
+
+class HubRadio(hal.Radio):
+    """Broadcasts go to the hub at once; the hub relays them to the robots within d_C."""
+
+    def __init__(self, state: HubState, clock: AgentClock, send: Callable[[Dict[str, Any]], bool], robot_id: int):
+        self.state, self.clock, self.send, self.robot_id = state, clock, send, robot_id
+
+    def broadcast(self, payload: Mapping[str, Any]) -> None:
+        # The same checks as the simulator's radio, so a behaviour fails the same way in both.
+        if not isinstance(payload, Mapping):
+            raise TypeError(f"robot {self.robot_id}: radio payload must be a mapping, got {type(payload).__name__}")
+        encoded = json.dumps(payload, separators=(",", ":"))
+        if len(encoded) > self.MAX_PAYLOAD_BYTES:
+            raise ValueError(f"robot {self.robot_id}: radio payload of {len(encoded)} bytes exceeds "
+                             f"{self.MAX_PAYLOAD_BYTES}")
+        self.send({"type": "broadcast", "payload": json.loads(encoded), "sent_s": round(self.clock.now(), 6)})
+
+    def receive(self) -> List[Message]:
+        messages = list(self.state.inbox)
+        self.state.inbox.clear()
+        return messages
+
+
+class DriverWheels(hal.DifferentialSteering):
+    def __init__(self, driver: Driver, spec: RobotSpec):
+        self.driver, self.spec = driver, spec
+        self.left = self.right = 0.0
+
+    def set_speeds(self, left_m_s: float, right_m_s: float) -> None:
+        if not (math.isfinite(left_m_s) and math.isfinite(right_m_s)):
+            raise ValueError(f"wheel speeds must be finite (got {left_m_s}, {right_m_s})")
+        self.left, self.right = clamp_wheel_speeds(float(left_m_s), float(right_m_s), self.spec.max_wheel_speed_m_s)
+        self.driver.set_wheel_speeds(self.left, self.right)
+
+
+class DriverProximity(hal.ProximitySensor):
+    def __init__(self, driver: Driver):
+        self.driver = driver
+
+    def read(self) -> ProximityReading:
+        return ProximityReading(values=tuple(float(v) for v in self.driver.proximity()))
+
+
+class DriverOdometry(hal.Odometry):
+    def __init__(self, driver: Driver):
+        self.driver = driver
+
+    def read(self) -> WheelOdometry:
+        return self.driver.encoders()
+
+
+def make_robot(robot_id: int, state: HubState, clock: AgentClock, driver: Driver,
+               send: Callable[[Dict[str, Any]], bool], spec: RobotSpec) -> hal.Robot:
+    return hal.Robot(
+        id=robot_id,
+        proximity=DriverProximity(driver),
+        range_and_bearing=HubRangeAndBearing(state, clock),
+        radio=HubRadio(state, clock, send, robot_id),
+        wheels=DriverWheels(driver, spec),
+        odometry=DriverOdometry(driver),
+        positioning=HubPositioning(state, clock),
+        clock=clock,
+        spec=spec,
+    )

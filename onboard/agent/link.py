@@ -1,0 +1,118 @@
+"""The agent's connection to the hub: one DEALER socket, CURVE when keys are given, protocol checks both ways."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional
+
+import zmq
+
+from onboard.config import ConfigError
+from onboard.protocol import DOWNLINK_TYPES, ProtocolError, decode, encode
+
+RECEIVE_HWM = 16      # downlink frames waiting; the agent drains every poll, so more would be stale anyway
+MAX_SOCKET_BYTES = 1 << 20   # larger frames cut the connection; up to here they are read and rejected as oversized
+
+
+def load_robot_keys(folder: Path, robot_id: int) -> Dict[str, bytes]:
+    """The robot's key pair and the hub's public key, from a folder laid out by ``khepri keys init``
+    (``robots/robot-<id>.key_secret`` and ``hub.key``; copy just these two files onto the robot)."""
+    import zmq.auth
+
+    secret_file = folder / "robots" / f"robot-{robot_id}.key_secret"
+    hub_file = folder / "hub.key"
+    for path in (secret_file, hub_file):
+        if not path.is_file():
+            raise ConfigError("--keys", f"missing {path} (make keys with `khepri keys init`)")
+    try:
+        public, secret = zmq.auth.load_certificate(str(secret_file))
+        server, _ = zmq.auth.load_certificate(str(hub_file))
+    except (OSError, ValueError) as err:
+        raise ConfigError("--keys", f"not a key file: {err}") from None
+    if secret is None:
+        raise ConfigError("--keys", f"{secret_file} holds no secret key")
+    return {"public": public, "secret": secret, "server": server}
+
+
+class HubLink:
+    """Sends uplink messages and returns validated downlink messages. Never raises on bad input from the hub:
+    bad messages are counted (``bad``) and reported through ``log`` at most once a second."""
+
+    def __init__(self, robot_id: int, endpoint: str, keys: Optional[Dict[str, bytes]] = None,
+                 log: Callable[[str], None] = print, context: Optional[zmq.Context] = None):
+        self.robot_id = robot_id
+        self.endpoint = endpoint
+        self.log = log
+        self.context = context or zmq.Context.instance()
+        self.bad = 0
+        self.unsent = 0
+        self._last_bad_line = -1e9
+        self.keys = keys
+        self.resets = 0
+        self._open()
+
+    def _open(self) -> None:
+        self.socket = self.context.socket(zmq.DEALER)
+        self.socket.linger = 0
+        self.socket.rcvhwm = RECEIVE_HWM
+        self.socket.sndhwm = 1000
+        self.socket.immediate = 1          # queue nothing while disconnected: stale uplink is worse than none
+        self.socket.reconnect_ivl = 100
+        self.socket.reconnect_ivl_max = 1000
+        # Bounds memory against an absurd frame. ZeroMQ drops the connection for a frame past this and may not
+        # reconnect, which is why the agent calls reset() after a long silence.
+        self.socket.maxmsgsize = MAX_SOCKET_BYTES
+        if self.keys is not None:
+            self.socket.curve_publickey = self.keys["public"]
+            self.socket.curve_secretkey = self.keys["secret"]
+            self.socket.curve_serverkey = self.keys["server"]
+        self.socket.connect(self.endpoint)
+        self.poller = zmq.Poller()
+        self.poller.register(self.socket, zmq.POLLIN)
+
+    def reset(self) -> None:
+        """A fresh socket and connection (the hub learns the new one from the next hello)."""
+        self.socket.close(0)
+        self.resets += 1
+        self._open()
+
+    def send(self, message: Dict[str, Any]) -> bool:
+        """Best effort: False when the hub is unreachable right now (nothing is queued for later)."""
+        message = dict(message)
+        message["id"] = self.robot_id
+        try:
+            self.socket.send(encode(message), zmq.NOBLOCK)
+            return True
+        except zmq.Again:
+            self.unsent += 1
+            return False
+        except ProtocolError as err:
+            self.log(f"agent {self.robot_id}: cannot send {message.get('type')}: {err}")
+            return False
+
+    def receive(self, timeout_s: float) -> List[Dict[str, Any]]:
+        """Every message waiting (waiting up to ``timeout_s`` for the first)."""
+        out: List[Dict[str, Any]] = []
+        if not self.poller.poll(max(0.0, timeout_s) * 1000.0):
+            return out
+        for _ in range(1000):
+            try:
+                data = self.socket.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            try:
+                out.append(decode(data, "hub", accept=DOWNLINK_TYPES))
+            except ProtocolError as err:
+                self._bad(str(err))
+        return out
+
+    def _bad(self, detail: str) -> None:
+        self.bad += 1
+        now = time.monotonic()
+        if now - self._last_bad_line >= 1.0:
+            self._last_bad_line = now
+            self.log(f"agent {self.robot_id}: dropped a bad message ({self.bad} so far): {detail}")
+
+    def close(self) -> None:
+        # A short linger: the last messages (the wheels' stop for the sim driver, the final telemetry) get out.
+        self.socket.close(linger=200)

@@ -1,0 +1,250 @@
+"""The agent: runs one behaviour at the control rate through a HAL backed by hub frames and a driver.
+
+Safety rules, in order of precedence:
+
+- the hub's mode: ``estop`` and ``hold`` stop the wheels at once and pause the behaviour; ``idle`` has none;
+- the watchdog: no frame from the hub for ``watchdog_s`` (0.25 s) -> wheels stopped, behaviour held, until
+  frames return;
+- leaving for any reason (SIGINT, SIGTERM, an exception in the behaviour) stops the wheels first.
+
+Pacing: in real time the loop ticks on its own clock at ``control_hz``; in lockstep (SIL) it ticks once per
+hub frame. Everything else is the same code.
+"""
+from __future__ import annotations
+
+import math
+import signal
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional
+
+from onboard.behaviour import Behaviour, build_params, get_behaviour, telemetry_of
+from onboard.config import ConfigError
+from onboard.drivers import Driver
+from onboard.hal import RobotSpec
+
+from .devices import AgentClock, HubState, apply_frame, make_robot
+from .link import HubLink
+
+HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
+RESET_AFTER_S = 2.0       # this long without a frame: reopen the socket (a connection can be stuck for good)
+
+
+@dataclass
+class LoopStats:
+    """Loop timing for telemetry: measured rate, step duration, deadline misses."""
+
+    steps: int = 0
+    misses: int = 0
+    total_step_s: float = 0.0
+    max_step_s: float = 0.0
+    window_start: float = 0.0
+    window_steps: int = 0
+    hz: float = 0.0
+
+    def record(self, started: float, finished: float, deadline: float) -> None:
+        duration = finished - started
+        self.steps += 1
+        self.total_step_s += duration
+        self.max_step_s = max(self.max_step_s, duration)
+        if finished > deadline:
+            self.misses += 1
+        self.window_steps += 1
+        if finished - self.window_start >= 1.0:
+            self.hz = self.window_steps / (finished - self.window_start) if self.window_start else 0.0
+            self.window_start, self.window_steps = finished, 0
+
+    def as_dict(self) -> Dict[str, Any]:
+        mean = self.total_step_s / self.steps if self.steps else 0.0
+        return {"hz": round(self.hz, 2), "steps": self.steps, "misses": self.misses,
+                "mean_ms": round(mean * 1000.0, 3), "max_ms": round(self.max_step_s * 1000.0, 3)}
+
+
+class Agent:
+    def __init__(self, robot_id: int, link: HubLink, driver_factory: Callable[[Agent], Driver],
+                 watchdog_s: float = 0.25, log: Callable[[str], None] = print):
+        self.robot_id, self.link, self.log = robot_id, link, log
+        self.watchdog_s = watchdog_s
+        self.state = HubState()
+        self.clock = AgentClock(self.state)
+        self.driver = driver_factory(self)
+        self.behaviour: Optional[Behaviour] = None
+        self.run: Optional[Dict[str, Any]] = None
+        self.error: Optional[str] = None
+        self.period = 0.1
+        self.stats = LoopStats()
+        self.next_tick = time.monotonic()
+        self.answered_seq = 0
+        self.watchdog_tripped = False
+        self.last_hello = -math.inf
+        self.last_reset = time.monotonic()
+        self.stop_requested = False
+
+    # --- main loop ----------------------------------------------------------------------------------------
+    def serve(self, should_stop: Callable[[], bool] = lambda: False) -> None:
+        """Run until ``should_stop()`` or a signal; the wheels are stopped on every way out."""
+        previous = self._install_signal_handlers()
+        try:
+            self.hello(time.monotonic())
+            while not (self.stop_requested or should_stop()):
+                self.loop_once()
+        finally:
+            self.driver.stop()
+            self.link.send({"type": "telemetry", "step": self.state.seq, "mode": "exiting"})
+            self._restore_signal_handlers(previous)
+
+    def loop_once(self) -> None:
+        now = time.monotonic()
+        for message in self.link.receive(self._wait_time(now)):
+            self.handle(message, time.monotonic())
+        now = time.monotonic()
+        self.check_watchdog(now)
+        silent_s = now - max(self.state.received_at, self.last_reset)
+        if silent_s > RESET_AFTER_S:
+            self.last_reset = now
+            self.link.reset()
+        if silent_s > self.watchdog_s or (self.state.mode != "idle" and self.run is None):
+            if now - self.last_hello >= HELLO_PERIOD_S:
+                self.hello(now)
+        if self._tick_due(now):
+            self.tick(now)
+
+    def _lockstep(self) -> bool:
+        return bool(self.run and self.run.get("lockstep"))
+
+    def _wait_time(self, now: float) -> float:
+        watchdog_left = self.state.received_at + self.watchdog_s - now
+        wait = 0.02 if self._lockstep() else self.next_tick - now
+        if not self.watchdog_tripped:
+            wait = min(wait, max(0.0, watchdog_left) + 0.001)
+        return max(0.0, min(wait, 0.05))
+
+    def _tick_due(self, now: float) -> bool:
+        if self._lockstep():
+            return self.state.seq > self.answered_seq
+        return now >= self.next_tick
+
+    # --- messages -----------------------------------------------------------------------------------------
+    def handle(self, message: Dict[str, Any], now: float) -> None:
+        if message["type"] == "frame":
+            apply_frame(self.state, message, self.clock, now)
+            if self.watchdog_tripped:
+                self.watchdog_tripped = False
+                self.log(f"agent {self.robot_id}: hub frames are back")
+            self.apply_mode(message["mode"], message.get("reason", ""))
+        else:
+            self.on_command(message)
+
+    def on_command(self, message: Dict[str, Any]) -> None:
+        cmd = message["cmd"]
+        if cmd == "estop":
+            self.apply_mode("estop", message.get("reason", "e-stop"))
+        elif cmd == "clear":
+            self.apply_mode("hold", "e-stop cleared")
+        elif cmd == "stop":
+            self.end_run()
+            self.apply_mode("idle", "")
+        elif cmd == "start":
+            self.start_run(message.get("run") or {})
+        self.link.send({"type": "ack", "cmd": cmd, "seq": self.state.seq})   # after acting: wheels already stopped
+
+    def apply_mode(self, mode: str, reason: str) -> None:
+        if mode == self.state.mode:
+            return
+        if mode != "run":
+            self.driver.stop()      # hold, estop and idle never leave a wheel turning
+        if mode in ("estop", "hold"):
+            self.log(f"agent {self.robot_id}: {mode}{': ' + reason if reason else ''}")
+        self.state.mode = mode
+        self.state.reason = reason
+
+    def start_run(self, run: Dict[str, Any]) -> None:
+        if self.run is not None and run.get("run_id") == self.run.get("run_id"):
+            return                 # a repeated start: we already have this run
+        self.end_run()
+        try:
+            cls = get_behaviour(str(run.get("behaviour")), "run.behaviour")
+            params = build_params(cls, run.get("params") or {}, "run.params")
+            spec = RobotSpec(**{k: float(v) for k, v in (run.get("spec") or {}).items()
+                                if k in RobotSpec.__dataclass_fields__})
+            self.period = 1.0 / float(run.get("control_hz", 10.0))
+        except (ConfigError, TypeError, ValueError, ZeroDivisionError) as err:
+            self.error = f"cannot start the run: {err}"
+            self.log(f"agent {self.robot_id}: {self.error}")
+            return
+        self.error = None
+        self.run = run
+        self.clock.restart(run.get("clock") == "hub")
+        robot = make_robot(self.robot_id, self.state, self.clock, self.driver, self.link.send, spec)
+        self.behaviour = cls(robot, params)
+        self.answered_seq = self.state.seq
+        self.next_tick = time.monotonic()
+        self.log(f"agent {self.robot_id}: run {run.get('run_id')}: {run.get('behaviour')}")
+
+    def end_run(self) -> None:
+        if self.behaviour is not None:
+            self.behaviour.stop()
+        self.behaviour, self.run = None, None
+        self.driver.stop()
+
+    def hello(self, now: float) -> None:
+        self.last_hello = now
+        self.link.send({"type": "hello", "driver": type(self.driver).__name__,
+                        "run_id": self.run.get("run_id") if self.run else None})
+
+    # --- safety -------------------------------------------------------------------------------------------
+    def check_watchdog(self, now: float) -> None:
+        if not self.watchdog_tripped and now - self.state.received_at > self.watchdog_s:
+            self.watchdog_tripped = True
+            self.driver.stop()
+            if self.state.received_at > -math.inf:
+                self.log(f"agent {self.robot_id}: no frame from the hub for {self.watchdog_s:g} s: wheels stopped")
+
+    # --- one control step ---------------------------------------------------------------------------------
+    def tick(self, now: float) -> None:
+        started = time.monotonic()
+        scheduled = started if self._lockstep() else self.next_tick
+        stepped = self.behaviour is not None and self.state.mode == "run" and not self.watchdog_tripped
+        if stepped:
+            self.behaviour.step()
+            finished = time.monotonic()
+            self.stats.record(started, finished, scheduled + self.period)
+        self.answered_seq = self.state.seq
+        self.send_telemetry(stepped)
+        finished = time.monotonic()
+        self.next_tick = scheduled + self.period
+        if self.next_tick <= finished:            # behind by a whole period: skip ahead instead of bursting
+            self.next_tick = finished + self.period
+
+    def send_telemetry(self, stepped: bool) -> None:
+        mode = "watchdog" if self.watchdog_tripped else self.state.mode
+        message: Dict[str, Any] = {
+            "type": "telemetry", "step": self.state.seq, "mode": mode,
+            "behaviour": telemetry_of(self.behaviour) if self.behaviour is not None else None,
+            "loop": self.stats.as_dict(), "battery_v": self.driver.battery_v(),
+            "clock_s": round(self.clock.now(), 6), "frames_lost": self.state.frames_lost,
+            "frames_bad": self.link.bad, "run_id": self.run.get("run_id") if self.run else None,
+        }
+        if self.error:
+            message["error"] = self.error[:200]
+        self.link.send(message)
+
+    # --- signals ------------------------------------------------------------------------------------------
+    def _install_signal_handlers(self) -> List[Any]:
+        def request_stop(signum, frame):
+            # The loop wakes within 50 ms and stops the wheels on its way out (see serve); stopping here
+            # could interrupt the driver or the socket in the middle of a call.
+            self.stop_requested = True
+
+        previous = []
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                previous.append((sig, signal.signal(sig, request_stop)))
+            except ValueError:              # not the main thread (tests run agents in threads too)
+                pass
+        return previous
+
+    @staticmethod
+    def _restore_signal_handlers(previous: List[Any]) -> None:
+        for sig, handler in previous:
+            signal.signal(sig, handler)

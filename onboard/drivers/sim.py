@@ -1,0 +1,31 @@
+"""The ``sim`` driver: the robot is simulated by the hub's ``sim`` source.
+
+Wheel commands go up to the hub as ``wheels`` messages; IR and encoder readings come down in every frame's
+``sim`` field. Everything else in the agent is the code that runs on a real robot.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, Dict, List, Optional
+
+from onboard.drivers import Driver
+from onboard.hal import WheelOdometry
+
+
+class SimDriver(Driver):
+    def __init__(self, send: Callable[[Dict[str, Any]], bool], readings: Callable[[], Optional[Dict[str, Any]]]):
+        """``send`` delivers an uplink message to the hub; ``readings`` returns the latest frame's ``sim`` field."""
+        self.send = send
+        self.readings = readings
+        self.left = self.right = 0.0
+
+    def set_wheel_speeds(self, left_m_s: float, right_m_s: float) -> None:
+        self.left, self.right = float(left_m_s), float(right_m_s)
+        self.send({"type": "wheels", "left": self.left, "right": self.right})
+
+    def proximity(self) -> List[float]:
+        data = self.readings()
+        return list(data["ir"]) if data else [0.0] * 8
+
+    def encoders(self) -> WheelOdometry:
+        data = self.readings()
+        return WheelOdometry(*data["odo"]) if data else WheelOdometry(0.0, 0.0)

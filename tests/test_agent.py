@@ -1,0 +1,153 @@
+"""The onboard agent, as a real process (or the real Agent class in a thread) against a scripted hub socket."""
+import signal
+import threading
+import time
+
+import pytest
+
+from hub.harness import ScriptedHub, spawn_agent, stop_processes
+from onboard.agent.link import HubLink
+from onboard.agent.loop import Agent
+from onboard.behaviour import Behaviour, register
+from onboard.drivers.sim import SimDriver
+
+RUN = {"run_id": "r1", "behaviour": "aggregate", "params": {}, "control_hz": 10.0, "lockstep": False,
+       "clock": "local", "spec": {"max_wheel_speed_m_s": 0.81}}
+FAR_NEIGHBOUR = [[1, 2.0, 0.5]]          # aggregate drives towards it: the wheels turn
+
+
+@pytest.fixture
+def scripted():
+    hub = ScriptedHub()
+    yield hub
+    hub.close()
+
+
+@pytest.fixture
+def agent_process(scripted, tmp_path):
+    process = spawn_agent(scripted.endpoint, 0, tmp_path / "agent.log")
+    scripted.wait_for(lambda m: m["type"] == "hello")
+    yield process
+    stop_processes([process])
+
+
+def wheels_after(hub, t0, moving):
+    return lambda m: m["type"] == "wheels" and m["_at"] > t0 and ((m["left"], m["right"]) != (0.0, 0.0)) == moving
+
+
+def feed(hub, seconds, **fields):
+    """Frames at 20 Hz for ``seconds``; returns when the last one was sent."""
+    end = time.monotonic() + seconds
+    last = time.monotonic()
+    while time.monotonic() < end:
+        hub.frame(**fields)
+        last = time.monotonic()
+        hub.pump(0.05)
+    return last
+
+
+def start_run(hub, run=RUN):
+    hub.send({"type": "command", "cmd": "start", "run": run})
+    hub.wait_for(lambda m: m["type"] == "ack" and m["cmd"] == "start")
+
+
+def test_agent_runs_the_behaviour_the_hub_starts(scripted, agent_process):
+    start_run(scripted)
+    t0 = time.monotonic()
+    feed(scripted, 0.6, neighbours=FAR_NEIGHBOUR)
+    scripted.wait_for(wheels_after(scripted, t0, moving=True))
+    telemetry = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["_at"] > t0 and m["behaviour"]
+                                  and m["behaviour"]["state"] != "init")
+    assert telemetry["run_id"] == "r1" and telemetry["behaviour"]["state"] == "gathering"
+    assert telemetry["behaviour"]["finished"] is False and telemetry["loop"]["steps"] >= 1
+
+
+def test_watchdog_stops_wheels_within_0_3_s_of_hub_silence_and_resumes(scripted, agent_process):
+    start_run(scripted)
+    t0 = time.monotonic()
+    last_frame = feed(scripted, 1.0, neighbours=FAR_NEIGHBOUR)
+    scripted.wait_for(wheels_after(scripted, t0, moving=True))
+    stopped = scripted.wait_for(wheels_after(scripted, last_frame, moving=False), timeout_s=2.0)
+    silence_to_stop = stopped["_at"] - last_frame
+    assert silence_to_stop < 0.3, f"wheels stopped {silence_to_stop:.3f} s after the last frame"
+    held = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["_at"] > stopped["_at"])
+    assert held["mode"] == "watchdog"
+    resumed_at = time.monotonic()
+    feed(scripted, 0.5, neighbours=FAR_NEIGHBOUR)
+    scripted.wait_for(wheels_after(scripted, resumed_at, moving=True), timeout_s=2.0)
+
+
+def test_estop_stops_the_wheels_before_the_acknowledgement(scripted, agent_process):
+    start_run(scripted)
+    t0 = time.monotonic()
+    feed(scripted, 0.5, neighbours=FAR_NEIGHBOUR)
+    scripted.wait_for(wheels_after(scripted, t0, moving=True))
+    sent = time.monotonic()
+    scripted.send({"type": "command", "cmd": "estop", "reason": "test"})
+    ack = scripted.wait_for(lambda m: m["type"] == "ack" and m["cmd"] == "estop")
+    stop = scripted.wait_for(wheels_after(scripted, sent, moving=False))
+    assert stop["_at"] <= ack["_at"] and ack["_at"] - sent < 0.05
+    # Frames that still say run cannot undo a latched e-stop... only the hub's mode can, and it says estop.
+    t1 = time.monotonic()
+    feed(scripted, 0.4, mode="estop", neighbours=FAR_NEIGHBOUR)
+    assert not [m for m in scripted.received if wheels_after(scripted, t1, moving=True)(m)]
+
+
+def test_sigterm_stops_the_wheels_before_exit(scripted, agent_process):
+    start_run(scripted)
+    t0 = time.monotonic()
+    feed(scripted, 0.5, neighbours=FAR_NEIGHBOUR)
+    scripted.wait_for(wheels_after(scripted, t0, moving=True))
+    agent_process.send_signal(signal.SIGTERM)
+    assert agent_process.wait(timeout=5.0) == 0
+    scripted.pump(0.2)
+    wheels = [m for m in scripted.received if m["type"] == "wheels"]
+    assert (wheels[-1]["left"], wheels[-1]["right"]) == (0.0, 0.0)
+
+
+def test_lockstep_agent_answers_each_frame_once_on_the_hub_clock(scripted, agent_process):
+    start_run(scripted, {**RUN, "run_id": "lock", "lockstep": True, "clock": "hub"})
+    for k in range(20):
+        frame = scripted.frame(clock_s=round(k * 0.1, 3), neighbours=FAR_NEIGHBOUR)
+        answer = scripted.wait_for(lambda m, seq=frame["seq"]: m["type"] == "telemetry" and m["step"] == seq)
+        assert answer["clock_s"] == pytest.approx(k * 0.1)
+        assert answer["behaviour"] is not None
+    answers = [m for m in scripted.received if m["type"] == "telemetry" and m.get("run_id") == "lock"]
+    steps = [m["step"] for m in answers if m["behaviour"] is not None]
+    assert len(steps) == len(set(steps))          # never two steps for one frame
+
+
+@register("test-explode")
+class Explode(Behaviour):
+    def step(self) -> None:
+        self.robot.wheels.set_speeds(0.2, 0.2)
+        if self.robot.clock.now() > 0.3:
+            raise RuntimeError("behaviour bug")
+
+
+def test_an_exception_in_the_behaviour_stops_the_wheels_and_ends_the_agent(scripted):
+    link = HubLink(0, scripted.endpoint)
+    agent = Agent(0, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=lambda line: None)
+    failure = []
+
+    def serve():
+        try:
+            agent.serve()
+        except RuntimeError as err:
+            failure.append(err)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    scripted.wait_for(lambda m: m["type"] == "hello")
+    start_run(scripted, {**RUN, "behaviour": "test-explode"})
+    deadline = time.monotonic() + 5.0
+    while thread.is_alive() and time.monotonic() < deadline:
+        scripted.frame()
+        scripted.pump(0.05)
+    thread.join(timeout=1.0)
+    link.close()
+    assert failure and "behaviour bug" in str(failure[0])
+    scripted.pump(0.2)
+    wheels = [m for m in scripted.received if m["type"] == "wheels"]
+    assert any(m["left"] == 0.2 for m in wheels), "the behaviour never drove"
+    assert (wheels[-1]["left"], wheels[-1]["right"]) == (0.0, 0.0)

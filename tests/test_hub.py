@@ -1,0 +1,97 @@
+"""The hub with the sim source and real agent processes: operator control, e-stop latch, geofence, status."""
+import time
+
+import numpy as np
+import pytest
+
+from hub.config import parse_config
+from hub.control import ControlError, status_table
+from hub.harness import HubThread, spawn_agent, stop_processes
+
+
+def lab_config(**extra):
+    data = {"source": {"type": "sim"}, "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0},
+            "security": {"insecure": True}}
+    data.update(extra)
+    return parse_config(data)
+
+
+@pytest.fixture
+def three_robots(make_scenario):
+    return make_scenario(robots={"count": 3, "spawn": {"x": [-1.2, -0.6], "y": [-1.2, -0.6]}},
+                         arena={"walls": [-2.0, -2.0, 2.0, 2.0]}, time_limit_s=60)
+
+
+def start_agents(hub, count, tmp_path):
+    agents = [spawn_agent(hub.endpoints["robots"], i, tmp_path / f"agent-{i}.log") for i in range(count)]
+    hub.wait_until(lambda s: all(r["connected"] for r in s["robots"]))
+    return agents
+
+
+def robots_say(status, key, value):
+    return all(r[key] == value for r in status["robots"])
+
+
+def test_operator_start_estop_clear_resume_stop(three_robots, tmp_path):
+    with HubThread(lab_config(), scenario=three_robots) as hub:
+        agents = start_agents(hub, 3, tmp_path)
+        try:
+            status = hub.status()
+            assert status["mode"] == "idle" and status["mocap_hz"] > 20
+            hub.request("start")
+            status = hub.wait_until(lambda s: robots_say(s, "agent_mode", "run")
+                                    and all(r["state"] not in (None, "init") for r in s["robots"]))
+            run_id = status["run_id"]
+
+            hub.request("estop")
+            status = hub.wait_until(lambda s: robots_say(s, "agent_mode", "estop"))
+            assert robots_say(status, "mode", "estop")
+            assert all(r["estop_ack_ms"] is not None for r in status["robots"])
+            for refused in ("start", "stop"):
+                with pytest.raises(ControlError, match="latched"):
+                    hub.request(refused)
+
+            hub.request("clear")
+            status = hub.wait_until(lambda s: robots_say(s, "agent_mode", "hold"))
+            assert status["mode"] == "hold" and status["run_id"] == run_id
+
+            hub.request("start")                 # resumes the same run
+            status = hub.wait_until(lambda s: robots_say(s, "agent_mode", "run"))
+            assert status["run_id"] == run_id
+
+            hub.request("stop")
+            status = hub.wait_until(lambda s: robots_say(s, "agent_mode", "idle"))
+            assert status["run_id"] is None
+            table = status_table(status)
+            assert "connected" in table and len(table.splitlines()) == 2 + 3
+        finally:
+            codes = stop_processes(agents)
+    assert codes == [0, 0, 0]
+
+
+def test_robots_outside_the_geofence_are_held(three_robots, tmp_path):
+    config = lab_config(geofence=[-0.5, -2.0, 2.0, 2.0])       # every robot spawns at x < -0.6: outside
+    with HubThread(config, scenario=three_robots) as hub:
+        agents = start_agents(hub, 3, tmp_path)
+        try:
+            hub.request("start")
+            status = hub.wait_until(lambda s: robots_say(s, "agent_mode", "hold"))
+            assert all(r["reason"] == "outside the geofence" for r in status["robots"])
+            before = hub.hub.source.world.robot_poses()
+            time.sleep(1.0)
+            after = hub.hub.source.world.robot_poses()
+            assert np.abs(after - before).max() < 1e-3, "a fenced robot moved"
+            assert any("left the geofence" in line for line in hub.lines)
+        finally:
+            stop_processes(agents)
+
+
+def test_status_before_any_agent_shows_robots_never_seen(three_robots):
+    with HubThread(lab_config(), scenario=three_robots) as hub:
+        status = hub.status()
+        assert [r["id"] for r in status["robots"]] == [0, 1, 2]
+        assert not any(r["connected"] for r in status["robots"])
+        assert all(r["last_seen_s"] is None for r in status["robots"])
+        assert "never" in status_table(status)
+        assert hub.lines[:2] == [f"listening robots {hub.endpoints['robots']}",
+                                 f"listening control {hub.endpoints['control']}"]

@@ -1,0 +1,95 @@
+"""Hub killed mid-run and restarted: agents stop their wheels, reconnect, and run again; nothing crashes."""
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from hub.control import request
+from hub.harness import spawn_agent, stop_processes
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_hub(config_path: Path) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    hub = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "hub", "--config", str(config_path)],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    listening = []
+    while len(listening) < 2:
+        line = hub.stdout.readline()
+        assert line, "the hub exited before listening"
+        if line.startswith("listening "):
+            listening.append(line.split()[1])
+    assert listening == ["robots", "control"]
+    return hub
+
+
+def status(endpoint):
+    return request(endpoint, "status", timeout_s=5.0)["status"]
+
+
+def wait_status(endpoint, condition, timeout_s=30.0):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        current = status(endpoint)
+        if condition(current):
+            return current
+        assert time.monotonic() < deadline, f"not reached within {timeout_s} s: {current}"
+        time.sleep(0.1)
+
+
+def all_robots(key, value):
+    return lambda s: all(r[key] == value for r in s["robots"])
+
+
+def test_agents_survive_a_hub_restart(tmp_path):
+    (tmp_path / "two.yaml").write_text(yaml.safe_dump({
+        "behaviour": "aggregate", "robots": {"count": 2, "spawn": {"x": [-1.0, 1.0], "y": [-1.0, 1.0]}},
+        "arena": {"walls": [-2, -2, 2, 2]}, "time_limit_s": 600}))
+    robot_port, control_port = free_port(), free_port()
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump({
+        "source": {"type": "sim", "scenario": str(tmp_path / "two.yaml")},
+        "network": {"bind": "127.0.0.1", "robot_port": robot_port, "control_port": control_port},
+        "security": {"insecure": True}}))
+    control = f"tcp://127.0.0.1:{control_port}"
+    hub = start_hub(config)
+    agents = [spawn_agent(f"tcp://127.0.0.1:{robot_port}", i, tmp_path / f"agent-{i}.log") for i in range(2)]
+    try:
+        wait_status(control, all_robots("connected", True))
+        request(control, "start")
+        wait_status(control, lambda s: all(r["agent_mode"] == "run" and r["state"] not in (None, "init")
+                                           for r in s["robots"]))
+
+        hub.send_signal(signal.SIGKILL)                       # no goodbye: a crash or a pulled cable
+        hub.wait()
+        time.sleep(1.0)
+        assert [a.poll() for a in agents] == [None, None], "an agent died with the hub"
+        for i in range(2):
+            log = (tmp_path / f"agent-{i}.log").read_text()
+            assert "no frame from the hub" in log and "wheels stopped" in log
+
+        hub = start_hub(config)
+        fresh = wait_status(control, all_robots("connected", True))
+        assert fresh["mode"] == "idle"
+        wait_status(control, all_robots("agent_mode", "idle"))   # the new hub has no run: agents drop theirs
+        request(control, "start")
+        wait_status(control, lambda s: all(r["agent_mode"] == "run" and r["state"] not in (None, "init")
+                                           for r in s["robots"]))
+        assert [a.poll() for a in agents] == [None, None]
+    finally:
+        agent_codes = stop_processes(agents)
+        hub_code = stop_processes([hub])
+        hub.stdout.close()
+    assert agent_codes == [0, 0] and hub_code == [0]

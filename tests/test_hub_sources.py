@@ -1,0 +1,91 @@
+"""Pose sources: the motioncapture library (its mock backend stands in for the cameras) and replay of a log."""
+import math
+import time
+
+import numpy as np
+import pytest
+import zmq
+
+from hub.config import parse_config
+from hub.factory import build_hub
+from hub.harness import HubThread
+from hub.recording import Recorder
+from hub.server import poses_record
+from hub.sources import PoseFrame
+from onboard.protocol import decode, encode
+
+NETWORK = {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}
+
+
+def mock_config(rigid_bodies, up_axis="z", **extra):
+    return parse_config({"source": {"type": "motioncapture", "system": "mock", "up_axis": up_axis,
+                                    "options": {"frequency": 100, "rigid_bodies": rigid_bodies},
+                                    "bodies": {"kh0": 0, "kh1": 1}},
+                         "network": NETWORK, "security": {"insecure": True}, "run": {"behaviour": "aggregate"},
+                         **extra})
+
+
+def first_frame_for(endpoint, robot_id, timeout_s=5.0):
+    """Join as a light robot and return the first downlink frame that carries a pose."""
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.linger = 0
+    sock.connect(endpoint)
+    sock.send(encode({"type": "hello", "id": robot_id, "driver": "test"}))
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            if sock.poll(100):
+                message = decode(sock.recv(), "hub")
+                if message["type"] == "frame" and message.get("pose") is not None:
+                    return message
+        raise TimeoutError("no frame with a pose")
+    finally:
+        sock.close(0)
+
+
+@pytest.mark.parametrize("up_axis, bodies", [
+    ("z", "kh0(1.0,2.0,0.05,1,0,0,0);kh1(1.5,2.0,0.05,1,0,0,0);stray(0,0,0,1,0,0,0)"),
+    # Y-up: the floor is x-z and world y = -z; a quarter turn about +y is a quarter turn of yaw.
+    ("y", "kh0(1.0,0.05,-2.0,1,0,0,0);kh1(1.5,0.05,-2.0,1,0,0,0);stray(0,0,0,1,0,0,0)"),
+])
+def test_motioncapture_bodies_become_robot_poses_and_neighbours(up_axis, bodies):
+    with HubThread(mock_config(bodies, up_axis)) as hub:
+        frame = first_frame_for(hub.endpoints["robots"], 0)
+        assert frame["pose"] == pytest.approx([1.0, 2.0, 0.0], abs=1e-4)
+        (neighbour,) = frame["neighbours"]
+        assert neighbour[0] == 1 and neighbour[1] == pytest.approx(0.5, abs=0.05)
+        status = hub.wait_until(lambda s: s["mocap_hz"] > 0)
+        assert 40 < status["mocap_hz"] < 130          # the mock's 100 Hz, as measured on arrival
+        assert any("ignoring rigid body 'stray'" in line for line in hub.lines)
+
+
+def test_stale_bodies_lose_their_pose_and_are_held():
+    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0)"), log=lambda line: None)
+    try:
+        hub.mode = "run"
+        both = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
+        hub.on_pose_frame(PoseFrame(100.0, [0, 1], both))
+        assert hub.sensors.pose_of(1) is not None and hub.mode_for(hub.robots[1]) == ("run", "")
+        hub.on_pose_frame(PoseFrame(100.05, [0], both[:1]))          # robot 1 missing, but within stale_s
+        assert hub.sensors.pose_of(1) is not None
+        hub.on_pose_frame(PoseFrame(100.2, [0], both[:1]))           # now older than stale_s = 0.1 s
+        assert hub.sensors.pose_of(1) is None and hub.sensors.receivers_of(0) == []
+        assert hub.mode_for(hub.robots[1]) == ("hold", "not tracked by motion capture")
+    finally:
+        hub.source.close()
+
+
+def test_replay_serves_recorded_poses(tmp_path):
+    log = tmp_path / "run.mcap"
+    with Recorder(log) as recorder:
+        for k in range(20):
+            poses = np.array([[0.1 * k, 0.0, math.pi / 4], [0.1 * k, 1.0, 0.0]])
+            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0, 1], poses)), stamp_s=1.7e9 + 0.05 * k)
+    config = parse_config({"source": {"type": "replay", "file": str(log)}, "robots": [0, 1], "network": NETWORK,
+                           "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+    with HubThread(config) as hub:
+        frame = first_frame_for(hub.endpoints["robots"], 0)
+        x, y, yaw = frame["pose"]
+        assert y == pytest.approx(0.0, abs=1e-4) and yaw == pytest.approx(math.pi / 4, abs=1e-4)
+        assert 0.0 <= x <= 1.9 + 1e-6
+        assert frame["neighbours"][0][:2] == [1, pytest.approx(1.0, abs=0.05)]

@@ -1,0 +1,127 @@
+"""CURVE on by default: only listed robot and operator keys get in, and a robot key cannot claim another id."""
+import stat
+import time
+
+import pytest
+import zmq
+
+from hub.config import parse_config
+from hub.control import ControlError, request
+from hub.harness import HubThread, spawn_agent, stop_processes
+from hub.security import init_keys, operator_client_keys
+from onboard.agent.link import load_robot_keys
+from onboard.config import ConfigError
+from onboard.protocol import encode
+
+
+@pytest.fixture
+def keys(tmp_path):
+    folder = tmp_path / "keys"
+    init_keys(folder, [0, 1], ["alice"])
+    return folder
+
+
+@pytest.fixture
+def secure_hub(keys, make_scenario):
+    scenario = make_scenario(robots={"count": 2}, arena={"walls": [-2.0, -2.0, 2.0, 2.0]})
+    config = parse_config({"source": {"type": "sim"}, "security": {"keys": str(keys)},
+                           "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}})
+    with HubThread(config, scenario=scenario, operator_keys=operator_client_keys(keys)) as hub:
+        yield hub
+
+
+def test_keys_init_makes_private_secrets_and_refuses_to_overwrite(keys):
+    secrets = (keys / "hub.key_secret", keys / "robots" / "robot-1.key_secret", keys / "operators" / "alice.key_secret")
+    for path in secrets:
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert (keys / "robots" / "robot-0.key").read_text().count("secret-key") == 0
+    with pytest.raises(ConfigError, match="already exists"):
+        init_keys(keys, [0], ["alice"])
+
+
+def test_the_hub_refuses_to_start_without_keys_unless_insecure(tmp_path, make_scenario):
+    config = parse_config({"source": {"type": "sim"}, "security": {"keys": str(tmp_path / "none")}})
+    with pytest.raises(ConfigError, match="keys init"):
+        HubThread(config, scenario=make_scenario()).__enter__()
+
+
+def client(endpoint, keypair=None):
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.linger = 0
+    if keypair is not None:
+        sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = keypair
+    sock.connect(endpoint)
+    return sock
+
+
+def hammer(sock, messages, listen_s=0.5):
+    """Send, then collect whatever comes back."""
+    for message in messages:
+        try:
+            sock.send(encode(message), zmq.NOBLOCK)
+        except zmq.Again:
+            pass       # no connection came up (the handshake failed): nothing to send to
+    got = []
+    deadline = time.monotonic() + listen_s
+    while time.monotonic() < deadline:
+        if sock.poll(50):
+            got.append(sock.recv())
+    return got
+
+
+HELLO_1 = {"type": "hello", "id": 1, "driver": "SimDriver"}
+ESTOP = {"type": "request", "cmd": "estop", "nonce": 1}
+
+
+def test_a_listed_robot_key_connects_and_runs(secure_hub, keys, tmp_path):
+    agent = spawn_agent(secure_hub.endpoints["robots"], 0, tmp_path / "agent.log", keys=keys)
+    try:
+        status = secure_hub.wait_until(lambda s: s["robots"][0]["connected"])
+        assert status["secure"] is True and not status["robots"][1]["connected"]
+    finally:
+        assert stop_processes([agent]) == [0]
+
+
+def test_no_key_and_unlisted_keys_get_nothing_and_command_nothing(secure_hub, keys):
+    server = load_robot_keys(keys, 0)["server"]
+    stranger = zmq.curve_keypair()
+    alice = operator_client_keys(keys)
+    intruders = {
+        "no key": client(secure_hub.endpoints["robots"]),
+        "unlisted key": client(secure_hub.endpoints["robots"], (*stranger, server)),
+        "operator key on the robot socket": client(secure_hub.endpoints["robots"],
+                                                   (alice["public"], alice["secret"], server)),
+    }
+    controllers = {
+        "no key": client(secure_hub.endpoints["control"]),
+        "unlisted key": client(secure_hub.endpoints["control"], (*stranger, server)),
+        "robot key on the control socket": client(secure_hub.endpoints["control"],
+                                                  tuple(load_robot_keys(keys, 1)[k] for k in ("public", "secret",
+                                                                                             "server"))),
+    }
+    secure_hub.request("start")
+    for name, sock in intruders.items():
+        assert hammer(sock, [HELLO_1] * 20) == [], name
+    for name, sock in controllers.items():
+        assert hammer(sock, [ESTOP] * 5) == [], name
+    status = secure_hub.status()
+    assert status["mode"] == "run", "an unauthenticated client commanded the hub"
+    assert not status["robots"][1]["connected"]
+    for sock in (*intruders.values(), *controllers.values()):
+        sock.close(0)
+
+
+def test_a_robot_key_cannot_claim_another_robots_id(secure_hub, keys):
+    robot0 = load_robot_keys(keys, 0)
+    sock = client(secure_hub.endpoints["robots"], (robot0["public"], robot0["secret"], robot0["server"]))
+    assert hammer(sock, [HELLO_1] * 3) == []
+    status = secure_hub.status()
+    assert status["drops"].get("id mismatch", 0) >= 3
+    assert not status["robots"][1]["connected"] and not status["robots"][0]["connected"]
+    assert any("claimed to be robot 1" in line and "robot:0" in line for line in secure_hub.lines)
+    sock.close(0)
+
+
+def test_ctl_needs_an_operator_key(secure_hub):
+    with pytest.raises(ControlError, match="no answer"):
+        request(secure_hub.endpoints["control"], "status", keys=None, timeout_s=0.5)
