@@ -45,7 +45,9 @@ def add_bench(groups):
     commands = bench.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
     sim = commands.add_parser("sim", help="simulator steps/s and real-time factor",
                               description="Simulate the paper's boxes with 25, 50 and 100 robots and print "
-                                          "physics steps per second and the real-time factor.")
+                                          "physics steps per second, the real-time factor (wall and CPU "
+                                          "time) and the milliseconds each phase takes per simulated "
+                                          "second.")
     sim.add_argument("--robots", default="25,50,100", help="comma-separated robot counts (default 25,50,100)")
     sim.add_argument("--seconds", type=float, default=30.0, help="simulated seconds per case (default 30)")
     sim.add_argument("--behaviour", default="transport", help="behaviour to run (default transport)")
@@ -149,8 +151,12 @@ def cmd_bench_sim(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"results": results}, indent=2))
         return 0
-    print(f"{'robots':>6} {'behaviour':>10} {'sim s':>7} {'wall s':>7} {'steps/s':>9} {'real-time x':>11}")
+    phases = list(results[0]["phase_ms_per_sim_s"]) if results else []
+    print(f"{'robots':>6} {'behaviour':>10} {'sim s':>7} {'wall s':>7} {'steps/s':>9} {'real-time x':>11} "
+          f"{'cpu x':>7} | ms per simulated second: " + " ".join(f"{name:>10}" for name in phases))
     for r in results:
+        cpu_factor = r["cpu_real_time_factor"] or 0.0
+        phase_ms = " ".join(f"{r['phase_ms_per_sim_s'][name]:10.1f}" for name in phases)
         print(f"{r['robots']:6d} {r['behaviour']:>10} {r['sim_seconds']:7.1f} {r['wall_seconds']:7.2f} "
-              f"{r['physics_steps_per_s']:9.0f} {r['real_time_factor']:11.1f}")
+              f"{r['physics_steps_per_s']:9.0f} {r['real_time_factor']:11.1f} {cpu_factor:7.1f} | {'':24} {phase_ms}")
     return 0

@@ -9,6 +9,8 @@ from typing import Tuple
 
 import numpy as np
 
+TWO_PI = 2.0 * np.pi
+
 
 def pairwise_range_bearing(xy: np.ndarray, yaw: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """Range (m) and bearing (rad, observer's frame) from every robot i to every robot j.
@@ -17,10 +19,11 @@ def pairwise_range_bearing(xy: np.ndarray, yaw: np.ndarray) -> Tuple[np.ndarray,
     ``bearings[i, j]`` is where j appears to i, wrapped to (-pi, pi]. The diagonal is range 0, bearing 0.
     """
     xy = np.asarray(xy, dtype=float)
-    delta = xy[None, :, :] - xy[:, None, :]           # delta[i, j] = x_j - x_i
-    ranges = np.hypot(delta[..., 0], delta[..., 1])
-    absolute = np.arctan2(delta[..., 1], delta[..., 0])
-    bearings = wrap(absolute - np.asarray(yaw, dtype=float)[:, None])
+    x, y = xy[:, 0], xy[:, 1]
+    dx = x[None, :] - x[:, None]                      # dx[i, j] = x_j - x_i; contiguous, unlike a (N, N, 2) delta
+    dy = y[None, :] - y[:, None]
+    ranges = np.hypot(dx, dy)
+    bearings = wrap(np.arctan2(dy, dx) - np.asarray(yaw, dtype=float)[:, None])
     np.fill_diagonal(bearings, 0.0)
     return ranges, bearings
 
@@ -34,5 +37,7 @@ def neighbour_mask(ranges: np.ndarray, d_c: float) -> np.ndarray:
 
 def wrap(angles: np.ndarray) -> np.ndarray:
     """Wrap angles to (-pi, pi]."""
-    wrapped = np.mod(np.asarray(angles) + np.pi, 2.0 * np.pi) - np.pi
-    return np.where(wrapped == -np.pi, np.pi, wrapped)
+    angles = np.asarray(angles, dtype=float)
+    # floor() instead of np.mod: several times faster on the (N, N) bearing matrices, same results.
+    wrapped = angles - TWO_PI * np.floor((angles + np.pi) / TWO_PI)
+    return np.where(wrapped <= -np.pi, wrapped + TWO_PI, wrapped)

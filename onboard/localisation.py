@@ -53,10 +53,8 @@ class PoseTracker:
 
     def _odometry_at(self, stamp: float) -> Optional[Tuple[float, float]]:
         """Wheel distances at (or just before) ``stamp``, if the history reaches back that far."""
-        best = None
-        for t, left, right in self._odometry:
+        # Newest first: poses are recent, so this usually stops at once (times only grow along the history).
+        for t, left, right in reversed(self._odometry):
             if t <= stamp + 1e-9:
-                best = (left, right)
-            else:
-                break
-        return best
+                return (left, right)
+        return None

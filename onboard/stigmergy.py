@@ -9,11 +9,18 @@ Wire format: a list of ``[key, value, timestamp, writer]`` lists, ready for JSON
 bytes a 24-entry message is around 1-3 KB; the radio refuses more than 8192 bytes, so ``outgoing()`` also stops
 before the compact JSON (``payload_bytes``) exceeds ``max_bytes``. An entry too big alone is never sent.
 
+Speed (a swarm of N robots merges N - 1 messages per robot per step): every replica remembers the JSON text
+of each entry version it holds or has outgrown, and ``outgoing()`` returns a :class:`Gossip`, a list that
+carries its entries' texts. A simulator that hands receivers a Gossip lets them dismiss a message of known
+versions with one set operation; over a real wire it arrives as a plain list and the same merge runs entry
+by entry. Both give identical replicas (tests/test_performance_equivalence.py).
+
 Runs on the robots: standard library only, Python 3.9; no randomness, no clock, so simulations reproduce.
 """
 from __future__ import annotations
 
 import json
+import marshal
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional, Tuple
@@ -98,6 +105,18 @@ def _same(a: Any, b: Any) -> bool:
     return a == b
 
 
+def _fingerprint(value: Any) -> bytes:
+    """Type-exact bytes of a value: equal bytes mean equal JSON values (1, 1.0 and True differ, as in
+    ``_same``). Unequal bytes prove nothing (dict order, -0.0), so callers fall back to the full check.
+    marshal version 2 has no back-references, whose presence would depend on reference counts."""
+    return marshal.dumps(value, 2)
+
+
+def _copy(decoded: Any) -> Any:
+    """Deep copy of a freshly decoded JSON value, types kept (equal to decoding its text again, faster)."""
+    return marshal.loads(marshal.dumps(decoded, 2))
+
+
 # Compact and sorted: one text per JSON value, so equal values are equal strings on every replica.
 # Built once: json.dumps with non-default options would build a new encoder on every call.
 _canonical = json.JSONEncoder(separators=(",", ":"), sort_keys=True).encode
@@ -106,6 +125,41 @@ _canonical = json.JSONEncoder(separators=(",", ":"), sort_keys=True).encode
 def _wire(key: str, canonical: str, timestamp: int, writer: int) -> str:
     # Same text as json.dumps([key, value, timestamp, writer], compact), built without re-encoding the value.
     return f"[{json.dumps(key)},{canonical},{timestamp},{writer}]"
+
+
+class Gossip(list):
+    """What ``outgoing()`` returns: a plain list of ``[key, value, timestamp, writer]`` entries (JSON encodes
+    it as a list) that also carries ``wires``, each entry's compact JSON text, which the sender already has.
+
+    A backend may use it to size and copy the message without encoding it again (``json_text``,
+    ``decoded_copy``). A replica that merges a Gossip skips, with one set operation, every entry whose exact
+    version it has seen before. Over a real wire it arrives as a plain list, merged entry by entry with the
+    same result. Treat it as read-only: ``wires`` must keep describing the entries.
+    """
+
+    __slots__ = ("wires", "versions", "_positions")
+
+    def __init__(self, entries: Any = (), wires: Any = ()) -> None:
+        super().__init__(entries)
+        self.wires: Tuple[str, ...] = tuple(wires)
+        self.versions = frozenset(self.wires)
+        self._positions: Optional[Dict[str, int]] = None
+
+    def position(self, wire: str) -> int:
+        """Index of the first entry with this text (built once, shared by every replica merging this copy)."""
+        if self._positions is None:
+            self._positions = {}
+            for index, text in enumerate(self.wires):
+                self._positions.setdefault(text, index)
+        return self._positions[wire]
+
+    def json_text(self) -> str:
+        """The compact JSON of this list, from the entries' texts (the radio's size check counts these bytes)."""
+        return "[" + ",".join(self.wires) + "]"
+
+    def decoded_copy(self, text: Optional[str] = None) -> Gossip:
+        """An independent copy, decoded from the JSON text exactly as a receiver of the wire would get it."""
+        return Gossip(json.loads(self.json_text() if text is None else text), self.wires)
 
 
 class TupleSpace:
@@ -123,6 +177,13 @@ class TupleSpace:
         self._rules = sorted((conflict_rules or {}).items(), key=lambda item: -len(item[0]))
         self._entries: Dict[str, Entry] = {}
         self._wire: Dict[str, str] = {}            # cached compact JSON of each entry: sizes and duplicates
+        self._fingerprints: Dict[str, bytes] = {}  # cached _fingerprint of each value, made on first need
+        # Wire texts of entry versions this replica holds or has outgrown (merging them again changes nothing),
+        # so that a Gossip message is mostly dismissed with one set operation. Reset to the held versions when
+        # it grows past _seen_limit(): a forgotten old version just takes the full path once more.
+        self._seen: set = set()
+        self._keys_by_prefix: Dict[str, List[str]] = {}
+        self._revisions: Dict[str, int] = {"": 0}   # family -> changes so far ("" counts every change)
         self._dirty: OrderedDict[str, int] = OrderedDict()   # key -> sends left; last = most recently changed
         self._order: List[str] = []                # round-robin order; keys are never removed, only appended
         self._cursor = 0
@@ -139,10 +200,22 @@ class TupleSpace:
         return self._entries.get(key)
 
     def keys(self, prefix: str = "") -> List[str]:
-        return sorted(key for key in self._entries if key.startswith(prefix))
+        found = self._keys_by_prefix.get(prefix)
+        if found is None:
+            # Behaviours ask for the same few prefixes many times per step; keys are never removed, so a
+            # prefix's sorted list only changes when a new key arrives (_store forgets the lists then).
+            found = self._keys_by_prefix[prefix] = sorted(key for key in self._entries if key.startswith(prefix))
+        return list(found)
 
     def items(self, prefix: str = "") -> List[Tuple[str, Any]]:
-        return [(key, self._entries[key].value) for key in self.keys(prefix)]
+        entries = self._entries
+        return [(key, entries[key].value) for key in self.keys(prefix)]
+
+    def revision(self, family: str = "") -> int:
+        """A count that grows whenever an entry of ``family`` is stored or replaced (the family of "task/L1"
+        is "task"); without a family, whenever any entry changes. Callers cache what they derive from the
+        space (parsed tasks, member lists) and rebuild it only when this number moves."""
+        return self._revisions.get(family, 0)
 
     def __contains__(self, key: object) -> bool:
         return key in self._entries
@@ -166,14 +239,53 @@ class TupleSpace:
         if not isinstance(entries, (list, tuple)):
             self._reject(sender)
             return []
+        if type(entries) is Gossip and len(entries.wires) == len(entries):
+            return self._merge_gossip(entries, sender)
         changed: Dict[str, None] = {}              # ordered set: a key may come twice in one message
         for raw in entries:
-            key = self._merge_one(raw, sender)
-            if key is not None:
-                changed[key] = None
+            if not self._known(raw):
+                key = self._merge_one(raw, sender)
+                if key is not None:
+                    changed[key] = None
         return list(changed)
 
-    def _merge_one(self, raw: Any, sender: Optional[int]) -> Optional[str]:
+    def _merge_gossip(self, entries: Gossip, sender: Optional[int]) -> List[str]:
+        """Merge only the entries whose exact version this replica has not seen, found with set operations."""
+        unseen = entries.versions - self._seen
+        if not unseen:
+            return []                              # the usual case in a chatty swarm: nothing new at all
+        wires = entries.wires
+        changed: Dict[str, None] = {}
+        for index in sorted(entries.position(version) for version in unseen):   # in message order
+            rejected = self.rejected
+            key = self._merge_one(entries[index], sender, wires[index])
+            if key is not None:
+                changed[key] = None
+            if self.rejected == rejected:          # held now, or outgrown by what is held: settled for good
+                self._seen.add(wires[index])       # (not a local: _store may have replaced the set)
+        return list(changed)
+
+    def _known(self, raw: Any) -> bool:
+        """Fast path for the common case, a well-formed entry that is stale or that we hold already. False
+        means "not sure": ``_merge_one`` then decides (and validates) in full."""
+        if type(raw) is not list or len(raw) != 4:
+            return False
+        key, value, timestamp, writer = raw
+        local = self._entries.get(key) if type(key) is str else None
+        if local is None or type(timestamp) is not int or type(writer) is not int or timestamp < 0:
+            return False
+        if timestamp != local.timestamp:
+            return timestamp < local.timestamp
+        if writer != local.writer or value != local.value:
+            return False
+        fingerprint = self._fingerprints.get(key)
+        if fingerprint is None:
+            fingerprint = self._fingerprints[key] = _fingerprint(local.value)
+        return _fingerprint(value) == fingerprint
+
+    def _merge_one(self, raw: Any, sender: Optional[int], wire: Optional[str] = None) -> Optional[str]:
+        """Merge one entry. ``wire`` is its compact JSON when known (from a Gossip, whose values are fresh JSON
+        decodes): then nothing is encoded, and the replica's own copy is decoded only if the entry wins."""
         parsed = _parse(raw)
         if parsed is None:
             self._reject(sender)
@@ -185,18 +297,22 @@ class TupleSpace:
         tie = local is not None and timestamp == local.timestamp
         if tie and writer == local.writer and _same(value, local.value):
             return None                            # duplicate, the common case: decided without encoding
-        try:
-            canonical = _canonical(value)
-        except (TypeError, ValueError):
-            self._reject(sender)
-            return None
-        wire = _wire(key, canonical, timestamp, writer)
+        canonical: Optional[str] = None
+        if wire is None:
+            try:
+                canonical = _canonical(value)
+            except (TypeError, ValueError):
+                self._reject(sender)
+                return None
+            wire = _wire(key, canonical, timestamp, writer)
         if tie and wire == self._wire[key]:
             return None                            # duplicate after all (e.g. a tuple for a list)
-        remote = Entry(json.loads(canonical), timestamp, writer)
-        if tie and self._resolve(key, local, remote) is local:
+        # Rules judge exactly what a replica would hold, a fresh JSON decode (a Gossip's values already are).
+        judged = value if canonical is None else json.loads(canonical)
+        if tie and self._resolve(key, local, Entry(judged, timestamp, writer)) is local:
             return None
-        self._store(key, remote, wire)             # dirty again, so the entry travels on: multi-hop gossip
+        own = judged if canonical is not None else _copy(value)   # never the message's shared copy
+        self._store(key, Entry(own, timestamp, writer), wire)   # dirty again, so it travels on: multi-hop gossip
         return key
 
     def _resolve(self, key: str, local: Entry, remote: Entry) -> Entry:
@@ -211,8 +327,16 @@ class TupleSpace:
     def _store(self, key: str, entry: Entry, wire: str) -> None:
         if key not in self._entries:
             self._order.append(key)
+            self._keys_by_prefix.clear()
         self._entries[key] = entry
         self._wire[key] = wire
+        self._fingerprints.pop(key, None)
+        family = key.partition("/")[0]
+        self._revisions[family] = self._revisions.get(family, 0) + 1
+        self._revisions[""] += 1
+        if len(self._seen) > 4 * len(self._entries) + 4096:
+            self._seen = set(self._wire.values())
+        self._seen.add(wire)
         if len(wire) + 2 > self.max_bytes:
             self.oversized += 1                    # alone it would break the radio's limit: keep it local
             self._dirty.pop(key, None)
@@ -224,14 +348,15 @@ class TupleSpace:
         self.rejected += 1
         self.last_rejected_sender = sender
 
-    def outgoing(self) -> List[list]:
+    def outgoing(self) -> Gossip:
         """This step's broadcast: dirty keys newest first, then round-robin over the others (anti-entropy)."""
         chosen: List[str] = []
         size = self._take_dirty(chosen)
         if size is not None:
             self._take_round_robin(chosen, size)
-        return [[key, self._entries[key].value, self._entries[key].timestamp, self._entries[key].writer]
-                for key in chosen]
+        entries = self._entries
+        return Gossip([[key, entries[key].value, entries[key].timestamp, entries[key].writer] for key in chosen],
+                      [self._wire[key] for key in chosen])
 
     def _take_dirty(self, chosen: List[str]) -> Optional[int]:
         """Fill ``chosen`` with dirty keys; return the message size so far, None if the byte budget is spent."""

@@ -6,10 +6,9 @@ probability ``drop``.
 """
 from __future__ import annotations
 
-import heapq
-import itertools
 import math
-from typing import Any, Dict, List, Tuple
+from collections import deque
+from typing import Any, Deque, Dict, List, Tuple
 
 import numpy as np
 
@@ -22,8 +21,9 @@ class RadioNetwork:
         self.drop = drop
         self.delay_steps = 1 + math.ceil(latency_s / period_s - 1e-9)
         self.rng = rng
-        self._queue: List[Tuple[int, int, int, Message]] = []   # (due step, order, receiver, message)
-        self._order = itertools.count()
+        # (due step, message, receivers) in sending order. Every message waits the same number of steps, so
+        # this is also the order they fall due in, and each inbox fills in sending order.
+        self._queue: Deque[Tuple[int, Message, List[int]]] = deque()
         self.sent = 0
         self.delivered = 0
         self.dropped = 0
@@ -37,18 +37,18 @@ class RadioNetwork:
             self.dropped += int(len(receivers) - keep.sum())
             receivers = receivers[keep]
         message = Message(sender=sender, payload=payload, sent_s=sent_s)
-        due = step + self.delay_steps
-        for receiver in receivers.tolist():
-            heapq.heappush(self._queue, (due, next(self._order), receiver, message))
+        self._queue.append((step + self.delay_steps, message, receivers.tolist()))
 
     def deliver(self, step: int, inboxes: List[List[Message]], alive: np.ndarray) -> None:
         """Move every message due by ``step`` into its receiver's inbox (dead receivers get nothing)."""
         queue = self._queue
+        living = alive.tolist()
         while queue and queue[0][0] <= step:
-            _, _, receiver, message = heapq.heappop(queue)
-            if alive[receiver]:
-                inboxes[receiver].append(message)
-                self.delivered += 1
+            _, message, receivers = queue.popleft()
+            for receiver in receivers:
+                if living[receiver]:
+                    inboxes[receiver].append(message)
+                    self.delivered += 1
 
     def stats(self) -> Dict[str, int]:
         return {"sent": self.sent, "delivered": self.delivered, "dropped": self.dropped}

@@ -14,7 +14,6 @@ import numpy as np
 
 from onboard.behaviour import build_params, get_behaviour, telemetry_of
 from onboard.geometry import neighbour_mask, pairwise_range_bearing, wrap
-from onboard.hal import Pose
 
 from .hal import SensorFrame, make_robot
 from .metrics import evaluator_for
@@ -24,6 +23,8 @@ from .sensing import ProximityModel, ir_response
 from .world import World
 
 Progress = Callable[[float, float], None]
+#: Where a control step's wall time goes (``Simulation.phase_seconds``; ``khepri bench sim`` prints it).
+PHASES = ("physics", "sensing", "behaviours", "radio", "evaluation")
 
 
 @dataclass
@@ -61,7 +62,7 @@ class Simulation:
         self.count = len(self.world.robots)
         self.period = 1.0 / scenario.physics.control_hz
         self.substeps = int(round(self.period / scenario.physics.dt_s))
-        self.frame = SensorFrame(inboxes=[[] for _ in range(self.count)], poses=[None] * self.count)
+        self.frame = SensorFrame(inboxes=[[] for _ in range(self.count)], pose_rows=[None] * self.count)
         self.ir = ProximityModel(self.world.spec.radius_m, self.world.spec.proximity_range_m)
         self.radio = RadioNetwork(self.count, scenario.comm.drop, scenario.comm.latency_s, self.period,
                                   self.rng_radio)
@@ -76,6 +77,7 @@ class Simulation:
         self.step_index = 0
         self.telemetry: List[Optional[Dict[str, Any]]] = [None] * self.count
         self.stop_reason = ""
+        self.phase_seconds: Dict[str, float] = dict.fromkeys(PHASES, 0.0)
 
     # --- sensing --------------------------------------------------------------------------------------
     def _sense(self, poses: np.ndarray, alive: np.ndarray) -> None:
@@ -84,14 +86,14 @@ class Simulation:
         frame.time_s = self.step_index * self.period
         true_ranges, true_bearings = pairwise_range_bearing(poses[:, :2], poses[:, 2])
         mask = neighbour_mask(true_ranges, comm.range_m) & alive[None, :] & alive[:, None]
-        frame.ranges = np.maximum(true_ranges + self.rng_sensors.normal(0.0, comm.range_noise_m, (n, n)), 0.0)
-        frame.bearings = wrap(true_bearings + self.rng_sensors.normal(0.0, comm.bearing_noise_rad, (n, n)))
-        frame.neighbour_ids = [np.nonzero(row)[0] for row in mask]
+        ranges = np.maximum(true_ranges + self.rng_sensors.normal(0.0, comm.range_noise_m, (n, n)), 0.0)
+        bearings = wrap(true_bearings + self.rng_sensors.normal(0.0, comm.bearing_noise_rad, (n, n)))
+        frame.set_neighbours(mask, ranges, bearings)
         distances = self.ir.distances(poses[:, :2], poses[:, 2], true_ranges, np.ones(n, dtype=bool),
                                       self.world.obstacle_groups())
         readings = ir_response(distances) + self.rng_sensors.normal(0.0, sensors.proximity_noise, (n, 8))
-        frame.proximity = np.clip(readings, 0.0, 1.0)
-        frame.odometry = np.array([(r.left_odo, r.right_odo) for r in self.world.robots])
+        frame.set_proximity(np.clip(readings, 0.0, 1.0))
+        frame.set_odometry(self.world.odometry())
         self._update_positioning(poses)
 
     def _update_positioning(self, poses: np.ndarray) -> None:
@@ -105,14 +107,18 @@ class Simulation:
         noise_xy = self.rng_pose.normal(0.0, s.pose_noise_m, (self.count, 2))
         noise_yaw = self.rng_pose.normal(0.0, s.pose_noise_rad, self.count)
         arrived = self.rng_pose.random(self.count) >= s.pose_dropout
-        for i in np.nonzero(arrived)[0]:
-            x, y = measured[i, :2] + noise_xy[i]
-            yaw = math.remainder(measured[i, 2] + noise_yaw[i], 2.0 * math.pi)
-            self.frame.poses[i] = Pose(float(x), float(y), yaw, stamp)
+        xy = (measured[:, :2] + noise_xy).tolist()
+        yaws = (measured[:, 2] + noise_yaw).tolist()
+        rows = self.frame.pose_rows
+        for i in np.nonzero(arrived)[0].tolist():
+            x, y = xy[i]
+            rows[i] = (x, y, math.remainder(yaws[i], 2.0 * math.pi), stamp)
 
     # --- one control step -----------------------------------------------------------------------------
     def step(self) -> None:
         t = self.step_index * self.period
+        clock, spent = time.perf_counter, self.phase_seconds
+        started = clock()
         while self.faults and self.faults[0][0] <= t + 1e-9:
             _, index = self.faults.pop(0)
             self.world.kill(index)
@@ -120,12 +126,33 @@ class Simulation:
         alive = self.world.alive()
         poses = self.world.robot_poses()
         self._sense(poses, alive)
+        sensed = clock()
         self.radio.deliver(self.step_index, self.frame.inboxes, alive)
+        delivered = clock()
+        self._step_behaviours(alive)
+        stepped = clock()
+        self._route_broadcasts(t)
+        routed = clock()
+        self.telemetry = [telemetry_of(b) if alive[i] else None for i, b in enumerate(self.behaviours)]
+        self.evaluator.on_step(t, self.telemetry)
+        self._record(t, poses, alive)
+        evaluated = clock()
+        self.world.step(self.substeps)
+        self.step_index += 1
+        spent["sensing"] += sensed - started
+        spent["radio"] += (delivered - sensed) + (routed - stepped)
+        spent["behaviours"] += stepped - delivered
+        spent["evaluation"] += evaluated - routed
+        spent["physics"] += clock() - evaluated
+
+    def _step_behaviours(self, alive: np.ndarray) -> None:
         for i, behaviour in enumerate(self.behaviours):
             if alive[i]:
                 behaviour.step()
                 wheels = self.robots[i].wheels
                 self.world.command(i, wheels.left, wheels.right)
+
+    def _route_broadcasts(self, t: float) -> None:
         for i, robot in enumerate(self.robots):
             outbox = robot.radio.outbox
             if outbox:
@@ -133,11 +160,15 @@ class Simulation:
                 for payload in outbox:
                     self.radio.send(self.step_index, i, payload, t, receivers)
                 outbox.clear()
-        self.telemetry = [telemetry_of(b) if alive[i] else None for i, b in enumerate(self.behaviours)]
-        self.evaluator.on_step(t, self.telemetry)
-        self._record(t, poses, alive)
-        self.world.step(self.substeps)
-        self.step_index += 1
+
+    def phase_times(self) -> Dict[str, float]:
+        """Wall seconds spent so far per phase; encoding broadcasts (inside the behaviours' steps) counts
+        as radio, not behaviours."""
+        encoding = sum(robot.radio.encode_seconds for robot in self.robots)
+        times = dict(self.phase_seconds)
+        times["behaviours"] -= encoding
+        times["radio"] += encoding
+        return times
 
     def _record(self, t: float, poses: np.ndarray, alive: np.ndarray) -> None:
         rec = self.recording

@@ -10,11 +10,11 @@ mu * m * g is reached -- it cannot push harder than its tyres grip.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import List, Optional
 
 import numpy as np
 import pymunk
+import pymunk.batch
 
 from onboard.config import ConfigError
 from onboard.hal import RobotSpec
@@ -30,15 +30,41 @@ OBJECT_CONTACT_FRICTION = 1.0
 WALL_THICKNESS_M = 0.02
 
 
-@dataclass
+# Body fields read and written once per substep for all bodies at once (pymunk.batch), in buffer order.
+_MOTION_FIELDS = pymunk.batch.BodyFields.ANGLE | pymunk.batch.BodyFields.VELOCITY | \
+    pymunk.batch.BodyFields.ANGULAR_VELOCITY
+_VELOCITY_FIELDS = pymunk.batch.BodyFields.VELOCITY | pymunk.batch.BodyFields.ANGULAR_VELOCITY
+_POSE_FIELDS = pymunk.batch.BodyFields.POSITION | pymunk.batch.BodyFields.ANGLE
+
+
 class SimRobot:
-    body: pymunk.Body
-    wheels: pymunk.Body          # kinematic "floor under the tyres"
-    alive: bool = True
-    left_cmd: float = 0.0
-    right_cmd: float = 0.0
-    left_odo: float = 0.0
-    right_odo: float = 0.0
+    """One robot's two bodies. Its command, odometry and alive flag live in the world's arrays, so that a
+    substep updates every robot with a few numpy operations instead of a Python loop."""
+
+    def __init__(self, world: World, index: int, body: pymunk.Body, wheels: pymunk.Body):
+        self._world, self.index = world, index
+        self.body = body
+        self.wheels = wheels         # kinematic "floor under the tyres"
+
+    @property
+    def alive(self) -> bool:
+        return bool(self._world._alive[self.index])
+
+    @property
+    def left_cmd(self) -> float:
+        return float(self._world._commands[self.index, 0])
+
+    @property
+    def right_cmd(self) -> float:
+        return float(self._world._commands[self.index, 1])
+
+    @property
+    def left_odo(self) -> float:
+        return float(self._world._odometry[self.index, 0])
+
+    @property
+    def right_odo(self) -> float:
+        return float(self._world._odometry[self.index, 1])
 
 
 class World:
@@ -54,14 +80,21 @@ class World:
         self.time_s = 0.0
         self.geometry: Optional[Geometry] = None
         self.object_body: Optional[pymunk.Body] = None
+        self._outline = None
         self.wall_segments = np.zeros((0, 4))
         if scenario.object is not None:
             self._add_object()
         if scenario.arena.walls is not None:
             self._add_walls(scenario.arena.walls)
         self.robots: List[SimRobot] = []
-        for x, y, yaw in self._spawn_poses(rng):
+        poses = self._spawn_poses(rng)
+        self._commands = np.zeros((len(poses), 2))     # commanded (left, right) wheel speeds
+        self._odometry = np.zeros((len(poses), 2))     # cumulative commanded wheel distances
+        self._alive = np.ones(len(poses), dtype=bool)
+        for x, y, yaw in poses:
             self._add_robot(x, y, yaw)
+        self._batch = pymunk.batch.Buffer()             # filled by pymunk when reading bodies
+        self._index_bodies()
 
     # --- construction -------------------------------------------------------------------------------
     def _add_object(self) -> None:
@@ -109,7 +142,22 @@ class World:
         traction = self.scenario.robots.traction * mass * GRAVITY
         # Each wheel carries half the weight at half the wheel base from the centre.
         self._tie_to_floor(body, wheels, traction, traction * spec.wheel_base_m / 2.0)
-        self.robots.append(SimRobot(body=body, wheels=wheels))
+        self.robots.append(SimRobot(self, len(self.robots), body, wheels))
+
+    def _index_bodies(self) -> None:
+        """Where each robot's body and wheels sit in pymunk's batch buffers (the space's body order)."""
+        self._batch.clear()
+        pymunk.batch.get_space_bodies(self.space, pymunk.batch.BodyFields.BODY_ID, self._batch)
+        ids = np.frombuffer(self._batch.int_buf(), dtype=np.uintp)
+        row_of = {int(body_id): row for row, body_id in enumerate(ids)}
+        self._body_count = len(ids)
+        self._robot_rows = np.array([row_of[r.body.id] for r in self.robots], dtype=np.intp)
+        self._wheel_rows = np.array([row_of[r.wheels.id] for r in self.robots], dtype=np.intp)
+        # Written by numpy and read by pymunk: a buffer of its own, since pymunk grows (reallocates) the
+        # arrays of a buffer it fills, which must therefore never wrap numpy memory.
+        self._velocities = np.zeros((len(ids), 3))      # vx, vy, omega of every body
+        self._velocity_batch = pymunk.batch.Buffer()
+        self._velocity_batch.set_float_buf(self._velocities)
 
     def _tie_to_floor(self, body: pymunk.Body, floor: pymunk.Body, max_force: float, max_torque: float) -> None:
         pivot = pymunk.PivotJoint(floor, body, (0.0, 0.0), (0.0, 0.0))
@@ -151,38 +199,58 @@ class World:
 
     # --- control and stepping -----------------------------------------------------------------------
     def command(self, index: int, left_m_s: float, right_m_s: float) -> None:
-        robot = self.robots[index]
-        if robot.alive:
-            robot.left_cmd, robot.right_cmd = left_m_s, right_m_s
+        if self._alive[index]:
+            self._commands[index] = (left_m_s, right_m_s)
 
     def kill(self, index: int) -> None:
         """The robot stops for good (battery out, crash): wheels locked, body stays as an obstacle."""
-        robot = self.robots[index]
-        robot.alive = False
-        robot.left_cmd = robot.right_cmd = 0.0
+        self._alive[index] = False
+        self._commands[index] = 0.0
 
     def step(self, substeps: int = 1) -> None:
-        half_base = self.spec.wheel_base_m / 2.0
+        forward = self._commands.mean(axis=1)
+        turn_rate = (self._commands[:, 1] - self._commands[:, 0]) / self.spec.wheel_base_m
         for _ in range(substeps):
-            for robot in self.robots:
-                v = 0.5 * (robot.left_cmd + robot.right_cmd)
-                omega = (robot.right_cmd - robot.left_cmd) / (2.0 * half_base)
-                angle = robot.body.angle
-                robot.wheels.velocity = (v * math.cos(angle), v * math.sin(angle))
-                robot.wheels.angular_velocity = omega
-                # Encoders count wheel rotation, slip included: odometry drifts when pushing hard.
-                robot.left_odo += robot.left_cmd * self.dt
-                robot.right_odo += robot.right_cmd * self.dt
+            self._drive_wheels(forward, turn_rate)
+            # Encoders count wheel rotation, slip included: odometry drifts when pushing hard.
+            self._odometry += self._commands * self.dt
             self.space.step(self.dt)
             self.time_s += self.dt
+
+    def _drive_wheels(self, forward: np.ndarray, turn_rate: np.ndarray) -> None:
+        """Set every wheels body to its robot's commanded motion along the robot's current heading.
+
+        pymunk.batch writes all bodies' velocities, so the other bodies get back the values just read."""
+        motion = self._read_bodies(_MOTION_FIELDS, 4)          # angle, vx, vy, omega per body
+        velocities = self._velocities
+        velocities[:] = motion[:, 1:]
+        heading = motion[self._robot_rows, 0]
+        rows = self._wheel_rows
+        velocities[rows, 0] = forward * np.cos(heading)
+        velocities[rows, 1] = forward * np.sin(heading)
+        velocities[rows, 2] = turn_rate
+        pymunk.batch.set_space_bodies(self.space, _VELOCITY_FIELDS, self._velocity_batch)
+
+    def _read_bodies(self, fields: pymunk.batch.BodyFields, width: int) -> np.ndarray:
+        """(bodies, width) copy of ``fields`` for every body in the space, in the space's body order."""
+        self._batch.clear()
+        pymunk.batch.get_space_bodies(self.space, fields, self._batch)
+        values = np.frombuffer(self._batch.float_buf(), dtype=float).reshape(-1, width).copy()
+        if len(values) != self._body_count:
+            raise RuntimeError("bodies were added to or removed from the space after the world was built")
+        return values
 
     # --- state ----------------------------------------------------------------------------------------
     def robot_poses(self) -> np.ndarray:
         """(N, 3) true x, y, yaw of every robot."""
-        return np.array([(r.body.position.x, r.body.position.y, r.body.angle) for r in self.robots])
+        return self._read_bodies(_POSE_FIELDS, 3)[self._robot_rows]
+
+    def odometry(self) -> np.ndarray:
+        """(N, 2) cumulative commanded (left, right) wheel distances, as the encoders count them."""
+        return self._odometry.copy()
 
     def alive(self) -> np.ndarray:
-        return np.array([r.alive for r in self.robots], dtype=bool)
+        return self._alive.copy()
 
     def object_pose(self) -> Optional[np.ndarray]:
         """True x, y, yaw of the object's centroid (ground truth: never given to behaviours)."""
@@ -191,6 +259,13 @@ class World:
         b = self.object_body
         return np.array([b.position.x, b.position.y, b.angle])
 
+    def _object_outline(self):
+        """The object's segments (K, 4) and circles (M, 3) in its own frame; fixed, so computed once."""
+        if self._outline is None:
+            circles = np.asarray(self.geometry.circles, dtype=float).reshape(-1, 3)
+            self._outline = (self.geometry.segments(), circles)
+        return self._outline
+
     def obstacle_groups(self) -> List[ObstacleGroup]:
         """The object (at its current pose) and the walls, in world coordinates, for the IR model."""
         groups = []
@@ -198,9 +273,8 @@ class World:
             x, y, yaw = self.object_pose()
             c, s = math.cos(yaw), math.sin(yaw)
             rot = np.array([[c, -s], [s, c]])
-            segs = self.geometry.segments()
+            segs, circ = self._object_outline()
             world_segs = np.hstack([segs[:, :2] @ rot.T + (x, y), segs[:, 2:] @ rot.T + (x, y)])
-            circ = np.asarray(self.geometry.circles, dtype=float).reshape(-1, 3)
             world_circ = np.column_stack([circ[:, :2] @ rot.T + (x, y), circ[:, 2]]) if len(circ) else circ
             groups.append(ObstacleGroup(world_circ, world_segs, np.array([x, y]), self.geometry.bounding_radius_m))
         if len(self.wall_segments):

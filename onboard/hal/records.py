@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Dict, Tuple
+from functools import cached_property
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
 
 PROXIMITY_SENSOR_COUNT = 8
 #: Angle of each proximity sensor in the robot frame: sensor 0 faces forward, index grows counter-clockwise.
@@ -38,13 +41,42 @@ class Neighbour:
     bearing_rad: float
     age_s: float = 0.0
 
-    @property
+    # Computed once per record (a cached_property lives in the instance, so frozen records can hold it).
+    @cached_property
     def x(self) -> float:
         return self.range_m * math.cos(self.bearing_rad)
 
-    @property
+    @cached_property
     def y(self) -> float:
         return self.range_m * math.sin(self.bearing_rad)
+
+    @classmethod
+    def many(cls, ids: Sequence[int], ranges_m: Sequence[float], bearings_rad: Sequence[float],
+             age_s: float = 0.0, xs: Optional[Sequence[float]] = None,
+             ys: Optional[Sequence[float]] = None) -> List[Neighbour]:
+        """One record per (id, range, bearing): the same records as the constructor makes, about twice as
+        fast, for backends that make hundreds per step. ``xs``/``ys``, if given, must be range * cos/sin
+        bearing (a backend may compute them for all robots at once); otherwise they are computed here."""
+        if xs is None or ys is None:
+            ranges, bearings = np.asarray(ranges_m, dtype=float), np.asarray(bearings_rad, dtype=float)
+            xs, ys = (ranges * np.cos(bearings)).tolist(), (ranges * np.sin(bearings)).tolist()
+            ids, ranges_m, bearings_rad = np.asarray(ids).tolist(), ranges.tolist(), bearings.tolist()
+        records = []
+        for neighbour_id, range_m, bearing, x, y in zip(ids, ranges_m, bearings_rad, xs, ys):
+            record = _new_instance(cls)
+            # Fills the instance as the frozen dataclass's own __init__ does, minus its per-field overhead.
+            fields = record.__dict__
+            fields["id"] = neighbour_id
+            fields["range_m"] = range_m
+            fields["bearing_rad"] = bearing
+            fields["age_s"] = age_s
+            fields["x"] = x
+            fields["y"] = y
+            records.append(record)
+        return records
+
+
+_new_instance = object.__new__
 
 
 @dataclass(frozen=True)
