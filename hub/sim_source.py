@@ -16,7 +16,7 @@ import numpy as np
 
 from onboard.hal import clamp_wheel_speeds
 from sim_backend.scenario import Scenario
-from sim_backend.sensing import ProximityModel, ir_response
+from sim_backend.sensing import ProximityModel
 from sim_backend.world import World
 
 from .sources import PoseFrame, PoseSource
@@ -72,13 +72,11 @@ class SimSource(PoseSource):
         alive = self.world.alive()
         xy, yaw = poses[:, :2], poses[:, 2]
         centre_ranges = np.hypot(*(xy[None, :, :] - xy[:, None, :]).transpose(2, 0, 1))
-        distances = self.ir.distances(xy, yaw, centre_ranges, np.ones(self.count, dtype=bool),
-                                      self.world.obstacle_groups())
-        noise = self.rng_ir.normal(0.0, self.scenario.sensors.proximity_noise, (self.count, 8))
-        ir = np.round(np.clip(ir_response(distances) + noise, 0.0, 1.0), 4).tolist()
-        extras: Dict[int, Dict[str, list]] = {}
-        for i, robot in enumerate(self.world.robots):
-            extras[i] = {"ir": ir[i], "odo": [round(robot.left_odo, 6), round(robot.right_odo, 6)]}
+        readings = self.ir.readings(xy, yaw, centre_ranges, self.world.obstacle_groups(), self.rng_ir,
+                                    self.scenario.sensors.proximity_noise)
+        ir = np.round(readings, 4).tolist()
+        odometry = np.round(self.world.odometry(), 6).tolist()
+        extras: Dict[int, Dict[str, list]] = {i: {"ir": ir[i], "odo": odometry[i]} for i in range(self.count)}
         live = np.nonzero(alive)[0]
         return PoseFrame(stamp, live.tolist(), poses[live], clock_s=round(t, 6), extras=extras,
                          killed=tuple(self.killed))

@@ -19,7 +19,7 @@ from .hal import SensorFrame, make_robot
 from .metrics import evaluator_for
 from .radio import RadioNetwork
 from .scenario import Scenario
-from .sensing import ProximityModel, ir_response
+from .sensing import ProximityModel
 from .world import World
 
 Progress = Callable[[float, float], None]
@@ -89,10 +89,8 @@ class Simulation:
         ranges = np.maximum(true_ranges + self.rng_sensors.normal(0.0, comm.range_noise_m, (n, n)), 0.0)
         bearings = wrap(true_bearings + self.rng_sensors.normal(0.0, comm.bearing_noise_rad, (n, n)))
         frame.set_neighbours(mask, ranges, bearings)
-        distances = self.ir.distances(poses[:, :2], poses[:, 2], true_ranges, np.ones(n, dtype=bool),
-                                      self.world.obstacle_groups())
-        readings = ir_response(distances) + self.rng_sensors.normal(0.0, sensors.proximity_noise, (n, 8))
-        frame.set_proximity(np.clip(readings, 0.0, 1.0))
+        frame.set_proximity(self.ir.readings(poses[:, :2], poses[:, 2], true_ranges, self.world.obstacle_groups(),
+                                             self.rng_sensors, sensors.proximity_noise))
         frame.set_odometry(self.world.odometry())
         self._update_positioning(poses)
 

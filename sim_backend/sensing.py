@@ -107,6 +107,13 @@ class ProximityModel:
         best[best > self.ir_range] = np.inf
         return best
 
+    def readings(self, xy: np.ndarray, yaw: np.ndarray, robot_ranges: np.ndarray,
+                 groups: Sequence[ObstacleGroup], rng: np.random.Generator, noise_std: float) -> np.ndarray:
+        """(N, 8) normalised readings as the HAL delivers them: response curve plus sensor noise, in [0, 1].
+        Every robot (also a dead one) blocks light."""
+        distances = self.distances(xy, yaw, robot_ranges, np.ones(len(xy), dtype=bool), groups)
+        return np.clip(ir_response(distances) + rng.normal(0.0, noise_std, (len(xy), 8)), 0.0, 1.0)
+
     @staticmethod
     def _static_hits(origins: np.ndarray, dirs: np.ndarray, circles: np.ndarray, segments: np.ndarray) -> np.ndarray:
         rays_o = origins.reshape(-1, 2)
