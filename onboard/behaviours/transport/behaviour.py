@@ -306,10 +306,13 @@ class Transport(TransportPhases, Behaviour):
         # Counter-clockwise around the object is perp(-normal); the left branch grows that way.
         return c.scale(c.perp(normal), -BRANCH_DIRECTION[branch])
 
+    def _next_target(self, branch: str) -> Vec:
+        """The successor's place on ``branch``: I_d along the object's tangent from here."""
+        return c.add(self.percept.position, c.scale(self._tangent(branch), self._spacing()))
+
     def _spawn(self, branch: str, index: int, now: float) -> None:
-        """Open the next target of ``branch``: I_d along the object's tangent from here."""
-        target = c.add(self.percept.position, c.scale(self._tangent(branch), self._spacing()))
-        self._open_task(branch, index, target, now)
+        """Open the next target of ``branch``."""
+        self._open_task(branch, index, self._next_target(branch), now)
 
     def _reaim_successor(self) -> None:
         """A pipelined target was extrapolated from this robot's *target*; now that it sits on the object,
@@ -318,8 +321,7 @@ class Transport(TransportPhases, Behaviour):
         task = self.board.task(self.spawned)
         if task is None or task.cancelled or task.pred != self.robot.id:
             return
-        target = c.add(self.percept.position, c.scale(self._tangent(task.branch), self._spacing()))
-        task.x, task.y = target
+        task.x, task.y = self._next_target(task.branch)
         self.board.put_task(task)
 
     def _open_task(self, branch: str, index: int, target: Vec, now: float) -> None:
