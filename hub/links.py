@@ -96,6 +96,8 @@ class RateMeter:
         self.last = -math.inf
 
     def tick(self, now: float) -> None:
+        if self.last == -math.inf:
+            self.window_start = now     # the first event starts the clock: stamps need not be monotonic()
         self.count += 1
         self.last = now
         elapsed = now - self.window_start
@@ -103,6 +105,8 @@ class RateMeter:
             self.hz = self.count / elapsed
             self.count = 0
             self.window_start = now
+        elif self.hz == 0.0 and elapsed >= 0.1 * self.window_s:
+            self.hz = (self.count - 1) / elapsed     # a provisional rate before the first full window
 
     def current(self, now: float) -> float:
         return 0.0 if now - self.last > 2.0 * self.window_s else self.hz
