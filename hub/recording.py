@@ -35,7 +35,7 @@ MOCAP_POSES = "/mocap/poses"
 CONTROL = "/control"
 HUB_DROPS = "/hub/drops"
 HUB_STATUS = "/hub/status"
-ROBOT_TOPIC_KINDS = ("frame", "broadcast", "relay", "telemetry", "command")
+ROBOT_TOPIC_KINDS = ("frame", "broadcast", "relay", "telemetry", "command", "wheels")
 
 PathLike = Union[str, Path]
 
@@ -82,7 +82,9 @@ SCHEMAS: Dict[str, dict] = {
          "clock_s": {"type": ["number", "null"], "description": "simulated time, with the sim source"}}),
     "khepri.RobotFrame": _object_schema("khepri.RobotFrame", "The downlink frame the hub sent to one robot."),
     "khepri.RobotBroadcast": _object_schema("khepri.RobotBroadcast", "A radio message one robot sent (uplink)."),
-    "khepri.RobotRelay": _object_schema("khepri.RobotRelay", "Radio messages the hub relayed to one robot."),
+    "khepri.RobotRelay": _object_schema("khepri.RobotRelay", "Which robots one robot's broadcast was relayed to.",
+                                        {"receivers": {"type": "array", "items": {"type": "integer"}}}),
+    "khepri.RobotWheels": _object_schema("khepri.RobotWheels", "Wheel speeds one robot asked the sim source for."),
     "khepri.RobotTelemetry": _object_schema("khepri.RobotTelemetry", "Telemetry one robot reported."),
     "khepri.RobotCommand": _object_schema("khepri.RobotCommand", "An operator or safety command sent to one robot."),
     "khepri.Control": _object_schema("khepri.Control", "An operator request to the hub, or the hub's reply."),
@@ -98,7 +100,7 @@ _FIXED_TOPIC_SCHEMAS = {MOCAP_POSES: "khepri.MocapPoses", CONTROL: "khepri.Contr
                         HUB_STATUS: "khepri.HubStatus"}
 _ROBOT_KIND_SCHEMAS = {"frame": "khepri.RobotFrame", "broadcast": "khepri.RobotBroadcast",
                        "relay": "khepri.RobotRelay", "telemetry": "khepri.RobotTelemetry",
-                       "command": "khepri.RobotCommand"}
+                       "command": "khepri.RobotCommand", "wheels": "khepri.RobotWheels"}
 
 
 def _schema_name_for(topic: str) -> str:

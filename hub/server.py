@@ -19,6 +19,7 @@ from onboard.protocol import MAX_MESSAGE_BYTES, UPLINK_TYPES, ProtocolError, che
 from .config import LabConfig
 from .control_service import ControlService
 from .links import DropLog, RateMeter, RobotLink
+from .recording import robot_topic
 from .relay import RadioRelay
 from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HubAuthenticator, KeyRing, make_curve_server
 from .sensors import SensingModel, VirtualSensors
@@ -261,7 +262,7 @@ class Hub:
             robot.routing = None
             return False
         if self.recorder is not None:
-            self.recorder.write(f"/robot/{robot.id}/{topic}", message)
+            self.recorder.write(robot_topic(robot.id, topic), message)
         return True
 
     def send_command_to_all(self, cmd: str, reason: str = "") -> None:
@@ -327,7 +328,7 @@ class Hub:
         robot.step_answered = message["step"]
         robot.run_id = message.get("run_id", robot.run_id)
         if self.recorder is not None:
-            self.recorder.write(f"/robot/{robot.id}/telemetry", message)
+            self.recorder.write(robot_topic(robot.id, "telemetry"), message)
 
     def _on_broadcast(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
         payload = message["payload"]
@@ -336,8 +337,8 @@ class Hub:
         if not self.relay.submit(robot.id, message["sent_s"], payload, size, receivers):
             self.drops.drop("refused broadcast", f"robot {robot.id}", f"{size} bytes > relay.max_bytes")
         elif self.recorder is not None:
-            self.recorder.write(f"/robot/{robot.id}/broadcast", message)
-            self.recorder.write(f"/robot/{robot.id}/relay", {"receivers": receivers})
+            self.recorder.write(robot_topic(robot.id, "broadcast"), message)
+            self.recorder.write(robot_topic(robot.id, "relay"), {"receivers": receivers})
 
     def _on_wheels(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
         command = getattr(self.source, "command", None)
@@ -346,7 +347,7 @@ class Hub:
         allowed = self.mode_for(robot)[0] == "run"
         command(robot.id, message["left"] if allowed else 0.0, message["right"] if allowed else 0.0)
         if self.recorder is not None:
-            self.recorder.write(f"/robot/{robot.id}/command", message)
+            self.recorder.write(robot_topic(robot.id, "wheels"), message)   # not /command: that is the operator's
 
     def _on_ack(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
         if robot.pending is not None and robot.pending["cmd"] == message["cmd"]:
