@@ -3,6 +3,7 @@ and the aggregation (summary.csv, report.md, figures) of known results."""
 import csv
 import json
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -181,6 +182,26 @@ def test_a_worker_process_that_dies_is_recorded_and_the_other_runs_complete(tmp_
     assert outcome.ran == 3 and outcome.failed == 1
     assert results["lab-6/seed-2"]["failed"] is True and results["lab-6/seed-2"]["error"] == WORKER_DIED
     assert results["lab-6/seed-1"]["failed"] is False and results["lab-6/seed-3"]["failed"] is False
+
+
+def quick_or_dying_later(spec, out_root):
+    """Seed 2's worker dies a moment after the others returned (no simulation: only the pool matters)."""
+    if spec.seed == 2:
+        time.sleep(0.3)
+        os._exit(3)
+    return {"seed": spec.seed, "failed": False}
+
+
+def test_a_worker_dying_while_the_driver_is_busy_does_not_break_the_study(tmp_path):
+    """The pool can break between two completions; the next submit must not raise BrokenProcessPool."""
+    spec = parse_study({"name": "late", "scenarios": ["lab-6"], "seeds": [1, 2, 3, 4], "time_limit_s": 1})
+    seen = {}
+    for result in LocalExecutor(2, quick_or_dying_later).results(expand(spec), str(tmp_path)):
+        seen[result["seed"]] = result
+        time.sleep(1.0)   # the driver writing files and printing, while seed 2's worker dies
+    assert sorted(seen) == [1, 2, 3, 4]
+    assert seen[2]["failed"] is True and seen[2]["error"] == WORKER_DIED
+    assert not any(seen[seed]["failed"] for seed in (1, 3, 4))
 
 
 def test_the_driver_writes_the_result_a_remote_worker_could_not(tmp_path):

@@ -68,15 +68,25 @@ class LocalExecutor:
 
     def results(self, runs: Iterable[RunSpec], out_root: str) -> Iterator[Dict[str, Any]]:
         queue = deque(runs)
-        pool = ProcessPoolExecutor(self.workers, mp_context=self.context)
+        pool = self._new_pool()
         in_flight: Dict[Future, RunSpec] = {}
         completed = False
         try:
             while queue or in_flight:
                 # Only as many runs in flight as workers: if the pool breaks, the suspects are few.
                 while queue and len(in_flight) < self.workers:
-                    spec = queue.popleft()
-                    in_flight[pool.submit(self.run_function, spec, out_root)] = spec
+                    spec = queue[0]
+                    try:
+                        future = pool.submit(self.run_function, spec, out_root)
+                    except BrokenProcessPool:
+                        # A worker died between two completions: its future is failing in flight; the
+                        # run not yet submitted waits for the next pool.
+                        if not in_flight:
+                            pool = self._replace(pool)
+                            continue
+                        break
+                    queue.popleft()
+                    in_flight[future] = spec
                 done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
                 suspects = []
                 for future in done:
@@ -92,13 +102,20 @@ class LocalExecutor:
                     in_flight.clear()
                     pool.shutdown(wait=True, cancel_futures=True)
                     yield from self._isolate(suspects, out_root)
-                    pool = ProcessPoolExecutor(self.workers, mp_context=self.context)
+                    pool = self._new_pool()
             completed = True
         finally:
             if completed:
                 pool.shutdown(wait=True)
             else:
                 stop_workers(pool)
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(self.workers, mp_context=self.context)
+
+    def _replace(self, pool: ProcessPoolExecutor) -> ProcessPoolExecutor:
+        pool.shutdown(wait=True, cancel_futures=True)
+        return self._new_pool()
 
     def _outcome(self, future: Future, spec: RunSpec) -> Optional[Dict[str, Any]]:
         """The run's result; a failed result if it raised; None if the pool broke under it."""
