@@ -50,6 +50,7 @@ class TransportParams:
     equalise_spacing: bool = True            # cage members even out their spacing after closure (settle)
     settle_time_s: float = 10.0              # after closure, time to even out spacing before pushing
     position_tolerance_m: float = 0.03       # arrival tolerance used instead of d_tol = 0.1 m
+    rotation_tolerance_deg: float = 4.0      # yaw arrival tolerance used instead of Orient. tol. (5.72°)
     slow_down_radius_m: float = 0.25         # scale speed down within this distance of a waypoint
     hold_yaw_while_pushing: bool = True      # add u_r (gain K_t) while pushing when the object has turned
     keep_contact: bool = True                # while pushing, a robot that lost the object returns to it first
@@ -63,6 +64,7 @@ class TransportParams:
             self.equalise_spacing = False
             self.settle_time_s = 0.0
             self.position_tolerance_m = self.push_tolerance_m
+            self.rotation_tolerance_deg = self.orientation_tolerance_deg
             self.slow_down_radius_m = 0.0
             self.hold_yaw_while_pushing = False
             self.soft_side_contact = False
@@ -72,7 +74,8 @@ class TransportParams:
     def _check(self, where: str) -> None:
         for name in ("safety_distance_m", "inter_robot_distance_m", "caging_tolerance_m", "closure_factor",
                      "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s",
-                     "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "position_tolerance_m"):
+                     "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "position_tolerance_m",
+                     "rotation_tolerance_deg"):
             check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
         check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
         check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)
