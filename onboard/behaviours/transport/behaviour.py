@@ -26,6 +26,10 @@ SETTLE_STEPS = 10          # a caging robot must hold its place this many steps 
 ATTACH_RADIUS_M = 0.25     # switch from travelling to attaching this close to the target
 # ... or already touching the object this close to it (a target estimated inside the object is unreachable).
 TOUCH_ATTACH_RADIUS_M = 0.6
+# ... or stuck this close to it: no 2 cm of progress for this long (a target estimated inside a concave
+# object, or behind a member that blocks the way, is unreachable; attaching slides along the surface instead).
+STALL_ATTACH_S = 20.0
+PROGRESS_STEP_M = 0.02
 
 
 @register("transport")
@@ -60,6 +64,7 @@ class Transport(TransportPhases, Behaviour):
         self.effective = False
         self.rotating = False
         self.last_step: Optional[float] = None
+        self.progress: Tuple[float, float] = (math.inf, 0.0)   # travel: (best distance to target, when)
         self.percept: Optional[Percept] = None
         estimate = p.object_estimate or (0.0, 0.0, 0.0)
         self.hint: Vec = (estimate[0], estimate[1])
@@ -161,6 +166,7 @@ class Transport(TransportPhases, Behaviour):
                 self.board.take(task, self.robot.id, float(best["bid"]))
                 self.task = task
                 self.state = "seed" if task.branch == "S" else "travel"
+                self.progress = (math.inf, now)
                 return True
         return False
 
@@ -216,8 +222,12 @@ class Transport(TransportPhases, Behaviour):
             return
         percept, p = self.percept, self.params
         to_target = c.sub(self.task.position, percept.position)
-        touching = percept.in_contact(p.proximity_threshold) and c.norm(to_target) < TOUCH_ATTACH_RADIUS_M
-        if c.norm(to_target) < ATTACH_RADIUS_M or touching:
+        remaining = c.norm(to_target)
+        touching = percept.in_contact(p.proximity_threshold) and remaining < TOUCH_ATTACH_RADIUS_M
+        if remaining < self.progress[0] - PROGRESS_STEP_M:
+            self.progress = (remaining, now)
+        stalled = now - self.progress[1] > STALL_ATTACH_S and remaining < TOUCH_ATTACH_RADIUS_M
+        if remaining < ATTACH_RADIUS_M or touching or stalled:
             self.state = "attach"
             self._maybe_pipeline(now)
             return
