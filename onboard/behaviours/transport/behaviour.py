@@ -19,6 +19,7 @@ from .control import Vec
 from .estimator import ObjectFilter, ring_centroid
 from .params import TransportParams
 from .perception import Percept, nearest, perceive, world_to_robot
+from .reinforce import ReinforcePhase
 from .tasks import BRANCH_DIRECTION, Task, TaskBoard, distance, new_space, task_id
 from .transport import TransportPhases
 
@@ -33,7 +34,7 @@ PROGRESS_STEP_M = 0.02
 
 
 @register("transport")
-class Transport(TransportPhases, Behaviour):
+class Transport(TransportPhases, ReinforcePhase, Behaviour):
     Params = TransportParams
 
     def __init__(self, robot, params: Optional[TransportParams] = None):
@@ -65,6 +66,7 @@ class Transport(TransportPhases, Behaviour):
         self.rotating = False
         self.last_step: Optional[float] = None
         self.progress: Tuple[float, float] = (math.inf, 0.0)   # travel: (best distance to target, when)
+        self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
         self.percept: Optional[Percept] = None
         estimate = p.object_estimate or (0.0, 0.0, 0.0)
         self.hint: Vec = (estimate[0], estimate[1])
@@ -142,8 +144,12 @@ class Transport(TransportPhases, Behaviour):
         if self._finish_if_done():
             return
         if "closed" in self.space:
-            self._caging_only_done()
-            self._keep_clear()
+            if self._caging_only_done():
+                self._keep_clear()
+            elif self.params.reinforce_push:
+                self._reinforce(now)
+            else:
+                self._keep_clear()
             return
         if not self._take_won_task(now):
             task = self._nearest_open_task()

@@ -54,6 +54,7 @@ class TransportParams:
     slow_down_radius_m: float = 0.25         # scale speed down within this distance of a waypoint
     hold_yaw_while_pushing: bool = True      # add u_r (gain K_t) while pushing when the object has turned
     keep_contact: bool = True                # while pushing, a robot that lost the object returns to it first
+    reinforce_push: bool = False             # robots left out of the cage push from behind (reinforce.py)
     soft_side_contact: bool = True           # scale u_cp by cos(angle(x_o, tau_p)) (min 0.25) while pushing
 
     def validate(self, where: str) -> None:
@@ -69,6 +70,7 @@ class TransportParams:
             self.hold_yaw_while_pushing = False
             self.soft_side_contact = False
             self.keep_contact = False
+            self.reinforce_push = False
         self._check(where)
 
     def _check(self, where: str) -> None:

@@ -201,15 +201,16 @@ class TransportPhases:
         self.effective = c.is_effective_pusher(x_o, to_target, math.radians(p.theta_p_deg))
         held_yaw = self._held_yaw()
         term_t = c.u_t(centre, (tau[0], tau[1]), p.k_t_push, p.position_tolerance_m)
+        term_f = c.u_f(self.percept.neighbours, self.formation, p.k_f_push, held_yaw - self.reference_yaw)
         if p.keep_contact and not self.percept.in_contact(LOST_CONTACT_READING):
             # Improvement: a robot that lost the object goes back to it instead of running on toward the
-            # target; a cage that outruns its object would also fool the centroid estimate.
-            term_t = c.ZERO
+            # target or keeping pace with its formation neighbours; a cage that outruns its object (a heavy
+            # one that its pushers move slowly) would also drag the centroid estimate ahead of it.
+            term_t = term_f = c.ZERO
         term_cp = c.u_cp(x_o, self.effective, p.k_cp_effective, p.k_cp_other)
         if p.soft_side_contact:
             term_cp = c.scale(term_cp, self._side_factor(x_o, to_target))
-        u = c.add(term_t, c.u_f(self.percept.neighbours, self.formation, p.k_f_push, held_yaw - self.reference_yaw),
-                  term_cp)
+        u = c.add(term_t, term_f, term_cp)
         if p.hold_yaw_while_pushing:
             # Improvement: a pushed object also turns; correct it on the way instead of only at waypoints.
             tolerance = math.radians(p.rotation_tolerance_deg)
