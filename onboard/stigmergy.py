@@ -35,6 +35,16 @@ class Entry:
     writer: int
 
 
+_new_instance = object.__new__
+
+
+def _entry(value: Any, timestamp: int, writer: int) -> Entry:
+    # Entry(value, timestamp, writer) without the frozen dataclass's per-field __setattr__ (merges make many).
+    entry = _new_instance(Entry)
+    entry.__dict__.update(value=value, timestamp=timestamp, writer=writer)
+    return entry
+
+
 ConflictRule = Callable[[str, Entry, Entry], Entry]
 """``(key, local, remote) -> winner``; must return one of its two entries, the same one in either order."""
 
@@ -166,13 +176,43 @@ class TupleSpace:
     """One robot's replica of the shared tuple space."""
 
     def __init__(self, owner: int, max_entries_per_message: int = 24, resend_rounds: int = 3,
-                 conflict_rules: Optional[Dict[str, ConflictRule]] = None, max_bytes: int = 6000) -> None:
+                 conflict_rules: Optional[Dict[str, ConflictRule]] = None, max_bytes: int = 6000,
+                 relay_rounds: Optional[int] = None, relay_delay_steps: int = 0, relay_quorum: int = 0,
+                 anti_entropy_period: int = 1) -> None:
+        """``resend_rounds``: how many messages carry an entry this robot wrote. The rest tunes traffic in
+        dense swarms; the defaults keep the plain protocol (every accepted entry relayed ``resend_rounds``
+        times at once, anti-entropy in every message):
+
+        - ``relay_rounds``: how many messages carry an entry accepted from a peer (default
+          ``resend_rounds``).
+        - ``relay_delay_steps`` and ``relay_quorum`` (counter-based flooding): an accepted entry waits 0 to
+          ``relay_delay_steps`` calls of ``outgoing()`` (spread over robots and entries, deterministically),
+          and is not relayed at all if meanwhile ``relay_quorum`` copies of the same version arrived from
+          robots other than its writer (0: never suppressed). Among 99 robots in range of each other a new
+          version is then relayed by a handful of them instead of by all 99; where few robots hear it,
+          nobody else relays it and they do.
+        - ``anti_entropy_period``: the round-robin share (repairs losses, informs newcomers) rides along in
+          one ``outgoing()`` of this many (staggered by owner); the others carry only changed entries, and
+          are empty when nothing changed.
+        """
         if max_entries_per_message < 1 or resend_rounds < 1 or max_bytes < 3:
             raise ValueError("max_entries_per_message and resend_rounds must be >= 1, max_bytes >= 3")
+        relay_rounds = resend_rounds if relay_rounds is None else relay_rounds
+        if relay_rounds < 1 or relay_delay_steps < 0 or relay_quorum < 0 or anti_entropy_period < 1:
+            raise ValueError("relay_rounds and anti_entropy_period must be >= 1, relay delay and quorum >= 0")
         self.owner = owner
         self.max_entries_per_message = max_entries_per_message
         self.resend_rounds = resend_rounds
+        self.relay_rounds = relay_rounds
+        self.relay_delay_steps = relay_delay_steps
+        self.relay_quorum = relay_quorum
+        self.anti_entropy_period = anti_entropy_period
         self.max_bytes = max_bytes
+        self._calls = 0                            # outgoing() calls so far: this replica's clock for relays
+        # Accepted entries waiting to be relayed: key -> [due call, copies heard, wire, writer]; and the
+        # wires of those versions, to spot copies in incoming Gossip with one set test.
+        self._pending: Dict[str, list] = {}
+        self._pending_wires: Dict[str, str] = {}
         # Longest prefix first, so the first match is the most specific rule.
         self._rules = sorted((conflict_rules or {}).items(), key=lambda item: -len(item[0]))
         self._entries: Dict[str, Entry] = {}
@@ -184,6 +224,7 @@ class TupleSpace:
         self._seen: set = set()
         self._keys_by_prefix: Dict[str, List[str]] = {}
         self._revisions: Dict[str, int] = {"": 0}   # family -> changes so far ("" counts every change)
+        self._journals: Dict[str, Dict[str, None]] = {}   # family -> keys changed since changed_keys(family)
         self._dirty: OrderedDict[str, int] = OrderedDict()   # key -> sends left; last = most recently changed
         self._order: List[str] = []                # round-robin order; keys are never removed, only appended
         self._cursor = 0
@@ -217,6 +258,18 @@ class TupleSpace:
         space (parsed tasks, member lists) and rebuild it only when this number moves."""
         return self._revisions.get(family, 0)
 
+    def changed_keys(self, family: str) -> List[str]:
+        """Keys of ``family`` stored or replaced since the previous call for the same family, in the order
+        they last changed; the first call returns every key of the family held so far. For a consumer that
+        follows a busy family (such as position heartbeats) without rescanning it every step. Each call
+        consumes the changes, so give each family one consumer."""
+        journal = self._journals.get(family)
+        if journal is None:
+            self._journals[family] = {}
+            return [key for key in self._entries if key.partition("/")[0] == family]
+        self._journals[family] = {}
+        return list(journal)
+
     def __contains__(self, key: object) -> bool:
         return key in self._entries
 
@@ -231,29 +284,35 @@ class TupleSpace:
         current = self._entries.get(key)
         timestamp = (current.timestamp if current is not None else 0) + 1
         # Store a decoded copy: the caller may mutate its object later, and every replica holds the same JSON.
-        entry = Entry(json.loads(canonical), timestamp, self.owner)
+        entry = _entry(json.loads(canonical), timestamp, self.owner)
         self._store(key, entry, _wire(key, canonical, timestamp, self.owner))
 
     def merge(self, entries: Any, sender: Optional[int] = None) -> List[str]:
         """Apply a peer's ``outgoing()``; return the keys whose entry changed. Never raises on bad input."""
+        if type(entries) is Gossip and len(entries.wires) == len(entries):
+            versions = entries.versions
+            if self._pending_wires and not versions.isdisjoint(self._pending_wires):
+                self._heard(versions, sender)
+            if versions <= self._seen:
+                return []                          # the usual case in a chatty swarm: nothing new at all
+            return self._merge_gossip(entries, sender)
         if not isinstance(entries, (list, tuple)):
             self._reject(sender)
             return []
-        if type(entries) is Gossip and len(entries.wires) == len(entries):
-            return self._merge_gossip(entries, sender)
         changed: Dict[str, None] = {}              # ordered set: a key may come twice in one message
         for raw in entries:
             if not self._known(raw):
                 key = self._merge_one(raw, sender)
                 if key is not None:
                     changed[key] = None
+            elif self._pending:
+                self._heard_plain(raw, sender)
         return list(changed)
 
     def _merge_gossip(self, entries: Gossip, sender: Optional[int]) -> List[str]:
-        """Merge only the entries whose exact version this replica has not seen, found with set operations."""
+        """Merge only the entries whose exact version this replica has not seen, found with set operations
+        (``merge`` has dismissed the message already if it holds no unseen version)."""
         unseen = entries.versions - self._seen
-        if not unseen:
-            return []                              # the usual case in a chatty swarm: nothing new at all
         wires = entries.wires
         changed: Dict[str, None] = {}
         for index in sorted(entries.position(version) for version in unseen):   # in message order
@@ -264,6 +323,32 @@ class TupleSpace:
             if self.rejected == rejected:          # held now, or outgrown by what is held: settled for good
                 self._seen.add(wires[index])       # (not a local: _store may have replaced the set)
         return list(changed)
+
+    def _heard(self, versions: Any, sender: Optional[int]) -> None:
+        """Copies of versions waiting to be relayed arrived: count them, and drop those heard often enough."""
+        for wire in [wire for wire in versions if wire in self._pending_wires]:
+            self._count_copy(self._pending_wires[wire], sender)
+
+    def _heard_plain(self, raw: Any, sender: Optional[int]) -> None:
+        """The same for an entry of a plain list that ``_known`` found held already (or stale)."""
+        key = raw[0] if type(raw) is list and len(raw) == 4 else None
+        waiting = self._pending.get(key) if type(key) is str else None
+        local = self._entries.get(key) if waiting is not None else None
+        if local is not None and raw[2] == local.timestamp and raw[3] == local.writer:
+            self._count_copy(key, sender)
+
+    def _count_copy(self, key: str, sender: Optional[int]) -> None:
+        waiting = self._pending[key]
+        if sender == waiting[3]:
+            return                                 # the writer's own resends say nothing about other relays
+        waiting[1] += 1
+        if self.relay_quorum and waiting[1] >= self.relay_quorum:
+            self._drop_pending(key)
+
+    def _drop_pending(self, key: str) -> None:
+        waiting = self._pending.pop(key, None)
+        if waiting is not None:
+            del self._pending_wires[waiting[2]]
 
     def _known(self, raw: Any) -> bool:
         """Fast path for the common case, a well-formed entry that is stale or that we hold already. False
@@ -309,10 +394,10 @@ class TupleSpace:
             return None                            # duplicate after all (e.g. a tuple for a list)
         # Rules judge exactly what a replica would hold, a fresh JSON decode (a Gossip's values already are).
         judged = value if canonical is None else json.loads(canonical)
-        if tie and self._resolve(key, local, Entry(judged, timestamp, writer)) is local:
+        if tie and self._resolve(key, local, _entry(judged, timestamp, writer)) is local:
             return None
         own = judged if canonical is not None else _copy(value)   # never the message's shared copy
-        self._store(key, Entry(own, timestamp, writer), wire)   # dirty again, so it travels on: multi-hop gossip
+        self._store(key, _entry(own, timestamp, writer), wire, relay=True)   # travels on: multi-hop gossip
         return key
 
     def _resolve(self, key: str, local: Entry, remote: Entry) -> Entry:
@@ -324,7 +409,7 @@ class TupleSpace:
             return default_rule(key, local, remote)
         return winner if winner is local or winner is remote else default_rule(key, local, remote)
 
-    def _store(self, key: str, entry: Entry, wire: str) -> None:
+    def _store(self, key: str, entry: Entry, wire: str, relay: bool = False) -> None:
         if key not in self._entries:
             self._order.append(key)
             self._keys_by_prefix.clear()
@@ -333,15 +418,27 @@ class TupleSpace:
         self._fingerprints.pop(key, None)
         family = key.partition("/")[0]
         self._revisions[family] = self._revisions.get(family, 0) + 1
+        journal = self._journals.get(family)
+        if journal is not None:
+            journal.pop(key, None)                 # re-inserted: the journal keeps the order of last change
+            journal[key] = None
         self._revisions[""] += 1
         if len(self._seen) > 4 * len(self._entries) + 4096:
             self._seen = set(self._wire.values())
         self._seen.add(wire)
+        if self._pending:
+            self._drop_pending(key)                # an older version waiting to be relayed is outdated
         if len(wire) + 2 > self.max_bytes:
             self.oversized += 1                    # alone it would break the radio's limit: keep it local
             self._dirty.pop(key, None)
             return
-        self._dirty[key] = self.resend_rounds
+        if relay and (self.relay_delay_steps or self.relay_quorum):
+            self._dirty.pop(key, None)
+            delay = (self.owner * 7919 + entry.timestamp * 31 + entry.writer) % (self.relay_delay_steps + 1)
+            self._pending[key] = [self._calls + delay, 0, wire, entry.writer]
+            self._pending_wires[wire] = key
+            return
+        self._dirty[key] = self.relay_rounds if relay else self.resend_rounds
         self._dirty.move_to_end(key)               # most recently changed goes out first
 
     def _reject(self, sender: Optional[int]) -> None:
@@ -349,14 +446,25 @@ class TupleSpace:
         self.last_rejected_sender = sender
 
     def outgoing(self) -> Gossip:
-        """This step's broadcast: dirty keys newest first, then round-robin over the others (anti-entropy)."""
+        """This step's broadcast: dirty keys newest first, then round-robin over the others (anti-entropy,
+        every ``anti_entropy_period`` calls). Empty when there is nothing to say: a caller may skip it."""
+        calls = self._calls = self._calls + 1
+        if self._pending:
+            self._release_relays(calls)
         chosen: List[str] = []
         size = self._take_dirty(chosen)
-        if size is not None:
+        if size is not None and (self.anti_entropy_period == 1 or (calls + self.owner) % self.anti_entropy_period == 0):
             self._take_round_robin(chosen, size)
         entries = self._entries
         return Gossip([[key, entries[key].value, entries[key].timestamp, entries[key].writer] for key in chosen],
                       [self._wire[key] for key in chosen])
+
+    def _release_relays(self, calls: int) -> None:
+        """Accepted entries whose wait is over (and that nobody relayed often enough meanwhile) become dirty."""
+        for key in [key for key, waiting in self._pending.items() if waiting[0] < calls]:
+            self._drop_pending(key)
+            self._dirty[key] = self.relay_rounds
+            self._dirty.move_to_end(key)
 
     def _take_dirty(self, chosen: List[str]) -> Optional[int]:
         """Fill ``chosen`` with dirty keys; return the message size so far, None if the byte budget is spent."""

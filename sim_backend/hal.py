@@ -14,21 +14,61 @@ from typing import Any, Dict, List, Mapping, Optional, Tuple
 import numpy as np
 
 from onboard import hal
-from onboard.hal import Message, Neighbour, Pose, ProximityReading, RobotSpec, WheelOdometry, clamp_wheel_speeds
+from onboard.hal import (
+    PROXIMITY_ANGLES_RAD,
+    Message,
+    Neighbours,
+    Pose,
+    ProximityReading,
+    RobotSpec,
+    WheelOdometry,
+    clamp_wheel_speeds,
+)
 from onboard.stigmergy import Gossip
+
+
+class PairColumns:
+    """One step's range-and-bearing pairs, robot after robot: neighbour ids, ranges and bearings (M,), and
+    their x, y (2, M) in the observer's frame, computed for all robots at once the first time a robot needs
+    them (a behaviour may never need them)."""
+
+    __slots__ = ("ids", "ranges", "bearings", "bounds", "_xy", "_nearest")
+
+    def __init__(self, ids: np.ndarray, ranges: np.ndarray, bearings: np.ndarray, bounds: np.ndarray) -> None:
+        self.ids, self.ranges, self.bearings, self.bounds = ids, ranges, bearings, bounds
+        self._xy: Optional[np.ndarray] = None
+        self._nearest: Optional[List[float]] = None
+
+    def nearest(self, index: int) -> float:
+        """Robot ``index``'s smallest range (inf without neighbours), for all robots at once on first use."""
+        if self._nearest is None:
+            starts, counts = self.bounds[:-1], np.diff(self.bounds)
+            nearest = np.full(len(counts), np.inf)
+            has = counts > 0
+            if has.any():
+                nearest[has] = np.minimum.reduceat(self.ranges, starts[has])
+            self._nearest = nearest.tolist()
+        return self._nearest[index]
+
+    def xy(self) -> np.ndarray:
+        if self._xy is None:
+            xy = np.empty((2, len(self.ranges)))
+            np.multiply(self.ranges, np.cos(self.bearings), out=xy[0])
+            np.multiply(self.ranges, np.sin(self.bearings), out=xy[1])
+            self._xy = xy
+        return self._xy
 
 
 @dataclass
 class SensorFrame:
     """What every robot senses at one control step; filled by the runner.
 
-    Per-robot data is kept as Python lists built once per step for all robots (``set_*``), so a device
-    read is a list lookup and a record, not several small numpy operations per robot.
+    Per-robot data is kept as Python lists or numpy columns built once per step for all robots (``set_*``),
+    so a device read is a list lookup or a slice, not several small numpy operations per robot.
     """
 
     time_s: float = 0.0
     proximity: Optional[np.ndarray] = None          # (N, 8) normalised readings
-    neighbour_ids: List[np.ndarray] = field(default_factory=list)   # per robot: ids in range
     ranges: Optional[np.ndarray] = None              # (N, N) noisy ranges
     bearings: Optional[np.ndarray] = None            # (N, N) noisy bearings
     # Per robot: the latest motion-capture pose as (x, y, yaw, stamp_s), or None before the first one.
@@ -38,21 +78,23 @@ class SensorFrame:
     odometry: Optional[np.ndarray] = None            # (N, 2) cumulative wheel distances
     proximity_rows: List[Tuple[float, ...]] = field(default_factory=list)
     odometry_rows: List[Tuple[float, float]] = field(default_factory=list)
-    # Every robot's neighbours, robot after robot: robot i's are items bounds[i]:bounds[i + 1] of each column.
+    # Every robot's neighbours, robot after robot: robot i's are items bounds[i]:bounds[i + 1] of each column
+    # of ``pairs``; a robot's device hands out slices (views).
     neighbour_bounds: List[int] = field(default_factory=list)
-    neighbour_columns: Tuple[list, ...] = ()         # ids, ranges, bearings, x, y
+    pairs: Optional[PairColumns] = None
 
     def set_neighbours(self, mask: np.ndarray, ranges: np.ndarray, bearings: np.ndarray) -> None:
         """``mask[i, j]``: j is i's neighbour; ``ranges``/``bearings`` (N, N) as i measures j."""
         self.ranges, self.bearings = ranges, bearings
         rows, cols = np.nonzero(mask)                # row-major: each robot's neighbours in id order
         bounds = np.searchsorted(rows, np.arange(len(mask) + 1))
-        self.neighbour_ids = [cols[start:end] for start, end in zip(bounds[:-1], bounds[1:])]
         self.neighbour_bounds = bounds.tolist()
-        pair_ranges, pair_bearings = ranges[mask], bearings[mask]     # also row-major, cheaper than [rows, cols]
-        self.neighbour_columns = (cols.tolist(), pair_ranges.tolist(), pair_bearings.tolist(),
-                                  (pair_ranges * np.cos(pair_bearings)).tolist(),
-                                  (pair_ranges * np.sin(pair_bearings)).tolist())
+        self.pairs = PairColumns(cols, ranges[mask], bearings[mask], bounds)   # row-major; cheaper than [rows, cols]
+
+    def receivers(self, index: int) -> np.ndarray:
+        """Ids of the robots within radio range of robot ``index`` (its neighbours), ascending."""
+        start, end = self.neighbour_bounds[index:index + 2]
+        return self.pairs.ids[start:end]
 
     def set_proximity(self, readings: np.ndarray) -> None:
         self.proximity = readings
@@ -63,22 +105,58 @@ class SensorFrame:
         self.odometry_rows = [tuple(row) for row in distances.tolist()]
 
 
+_new_instance = object.__new__
+
+
+def _record(cls: type, **fields: Any) -> Any:
+    """The frozen record ``cls(**fields)`` (every field given), filled without the dataclass __init__'s
+    per-field ``object.__setattr__``: 2-3x cheaper, and devices are read by every robot at every step."""
+    record = _new_instance(cls)
+    record.__dict__.update(fields)
+    return record
+
+
 class SimProximity(hal.ProximitySensor):
     def __init__(self, frame: SensorFrame, index: int):
         self.frame, self.index = frame, index
 
     def read(self) -> ProximityReading:
-        return ProximityReading(values=self.frame.proximity_rows[self.index])
+        return _record(ProximityReading, values=self.frame.proximity_rows[self.index], angles_rad=PROXIMITY_ANGLES_RAD)
 
 
 class SimRangeAndBearing(hal.RangeAndBearingSensor):
     def __init__(self, frame: SensorFrame, index: int):
         self.frame, self.index = frame, index
 
-    def neighbours(self) -> List[Neighbour]:
+    def neighbours(self) -> Neighbours:
+        # Views into the step's columns: no record is made, and no x/y computed, unless the behaviour asks.
         start, end = self.frame.neighbour_bounds[self.index:self.index + 2]
-        ids, ranges, bearings, xs, ys = (column[start:end] for column in self.frame.neighbour_columns)
-        return Neighbour.many(ids, ranges, bearings, xs=xs, ys=ys)
+        pairs = self.frame.pairs
+        return _PairNeighbours(pairs.ids[start:end], pairs.ranges[start:end], pairs.bearings[start:end], 0.0,
+                               pairs=pairs, index=self.index)
+
+
+class _PairNeighbours(Neighbours):
+    """A robot's slice of one step's pairs; its ``xy`` is the same slice of the pairs' x/y (the same values
+    as computing them from this robot's columns alone)."""
+
+    __slots__ = ("_pairs", "_index")
+
+    def __init__(self, *args: Any, pairs: PairColumns, index: int) -> None:
+        super().__init__(*args)
+        self._pairs, self._index = pairs, index
+        self._ascending = True                     # row-major pairs: each robot's neighbours in id order
+
+    @property
+    def xy(self) -> np.ndarray:
+        if self._xy is None:
+            start, end = self._pairs.bounds[self._index:self._index + 2]
+            self._xy = self._pairs.xy()[:, start:end]
+        return self._xy
+
+    @property
+    def nearest_m(self) -> float:
+        return self._pairs.nearest(self._index)
 
 
 class SimRadio(hal.Radio):
@@ -120,6 +198,11 @@ def encode_payload(payload: Mapping[str, Any]) -> Tuple[str, Dict[str, Any]]:
     A tuple-space message (``Gossip``) already knows its JSON text, so it is neither encoded again nor
     re-checked; it is decoded from that text, and stays a Gossip so the receivers' replicas merge it fast.
     """
+    if len(payload) == 1:                          # the usual tuple-space message: {"ts": Gossip}
+        ((key, value),) = payload.items()
+        if type(key) is str and type(value) is Gossip:
+            text = value.json_text()
+            return f"{{{_compact_json(key)}:{text}}}", {key: value.decoded_copy(text) if value else Gossip()}
     if not any(type(value) is Gossip for value in payload.values()) or \
             not all(type(key) is str for key in payload):
         encoded = _compact_json(payload)
@@ -153,7 +236,7 @@ class SimOdometry(hal.Odometry):
 
     def read(self) -> WheelOdometry:
         left, right = self.frame.odometry_rows[self.index]
-        return WheelOdometry(left, right)
+        return _record(WheelOdometry, left_m=left, right_m=right)
 
 
 class SimPositioning(hal.Positioning):
@@ -165,7 +248,7 @@ class SimPositioning(hal.Positioning):
         if row is None:
             return None
         x, y, yaw, stamp = row
-        return Pose(x, y, yaw, stamp, self.frame.time_s - stamp)
+        return _record(Pose, x=x, y=y, yaw_rad=yaw, stamp_s=stamp, age_s=self.frame.time_s - stamp)
 
 
 class SimClock(hal.Clock):

@@ -14,6 +14,8 @@ import numpy as np
 
 from onboard.hal import Message
 
+_new_instance = object.__new__
+
 
 class RadioNetwork:
     def __init__(self, count: int, drop: float, latency_s: float, period_s: float, rng: np.random.Generator):
@@ -36,7 +38,8 @@ class RadioNetwork:
             keep = self.rng.random(len(receivers)) >= self.drop
             self.dropped += int(len(receivers) - keep.sum())
             receivers = receivers[keep]
-        message = Message(sender=sender, payload=payload, sent_s=sent_s)
+        message = _new_instance(Message)             # Message(sender, payload, sent_s), minus the frozen
+        message.__dict__.update(sender=sender, payload=payload, sent_s=sent_s)   # dataclass's setattr calls
         self._queue.append((step + self.delay_steps, message, receivers.tolist()))
 
     def deliver(self, step: int, inboxes: List[List[Message]], alive: np.ndarray) -> None:

@@ -144,17 +144,19 @@ class Simulation:
         spent["physics"] += clock() - evaluated
 
     def _step_behaviours(self, alive: np.ndarray) -> None:
-        for i, behaviour in enumerate(self.behaviours):
-            if alive[i]:
-                behaviour.step()
-                wheels = self.robots[i].wheels
-                self.world.command(i, wheels.left, wheels.right)
+        robots, commands = self.robots, []
+        for i, living in enumerate(alive.tolist()):
+            if living:
+                self.behaviours[i].step()
+                wheels = robots[i].wheels
+                commands.append((i, wheels.left, wheels.right))
+        self.world.command_many(commands)
 
     def _route_broadcasts(self, t: float) -> None:
         for i, robot in enumerate(self.robots):
             outbox = robot.radio.outbox
             if outbox:
-                receivers = self.frame.neighbour_ids[i]   # radio reaches exactly the robots in d_C
+                receivers = self.frame.receivers(i)       # radio reaches exactly the robots in d_C
                 for payload in outbox:
                     self.radio.send(self.step_index, i, payload, t, receivers)
                 outbox.clear()

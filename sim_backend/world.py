@@ -37,6 +37,15 @@ _VELOCITY_FIELDS = pymunk.batch.BodyFields.VELOCITY | pymunk.batch.BodyFields.AN
 _POSE_FIELDS = pymunk.batch.BodyFields.POSITION | pymunk.batch.BodyFields.ANGLE
 
 
+def _as_slice(rows: np.ndarray):
+    """``rows`` as a slice when evenly spaced (indexing with it gives views, not copies), else unchanged."""
+    if len(rows) >= 2 and rows[1] > rows[0] and np.all(np.diff(rows) == rows[1] - rows[0]):
+        return slice(int(rows[0]), int(rows[-1]) + 1, int(rows[1] - rows[0]))
+    if len(rows) == 1:
+        return slice(int(rows[0]), int(rows[0]) + 1)
+    return rows
+
+
 class SimRobot:
     """One robot's two bodies. Its command, odometry and alive flag live in the world's arrays, so that a
     substep updates every robot with a few numpy operations instead of a Python loop."""
@@ -151,8 +160,8 @@ class World:
         ids = np.frombuffer(self._batch.int_buf(), dtype=np.uintp)
         row_of = {int(body_id): row for row, body_id in enumerate(ids)}
         self._body_count = len(ids)
-        self._robot_rows = np.array([row_of[r.body.id] for r in self.robots], dtype=np.intp)
-        self._wheel_rows = np.array([row_of[r.wheels.id] for r in self.robots], dtype=np.intp)
+        self._robot_rows = _as_slice(np.array([row_of[r.body.id] for r in self.robots], dtype=np.intp))
+        self._wheel_rows = _as_slice(np.array([row_of[r.wheels.id] for r in self.robots], dtype=np.intp))
         # Written by numpy and read by pymunk: a buffer of its own, since pymunk grows (reallocates) the
         # arrays of a buffer it fills, which must therefore never wrap numpy memory.
         self._velocities = np.zeros((len(ids), 3))      # vx, vy, omega of every body
@@ -207,13 +216,23 @@ class World:
         self._alive[index] = False
         self._commands[index] = 0.0
 
+    def command_many(self, commands: List[tuple]) -> None:
+        """``command`` for many robots at once: ``(index, left_m_s, right_m_s)`` rows (one numpy write)."""
+        if not commands:
+            return
+        rows = np.array(commands, dtype=float)
+        index = rows[:, 0].astype(np.intp)
+        living = self._alive[index]
+        self._commands[index[living]] = rows[living, 1:]
+
     def step(self, substeps: int = 1) -> None:
         forward = self._commands.mean(axis=1)
         turn_rate = (self._commands[:, 1] - self._commands[:, 0]) / self.spec.wheel_base_m
+        rolled = self._commands * self.dt          # wheel distance per substep
         for _ in range(substeps):
             self._drive_wheels(forward, turn_rate)
             # Encoders count wheel rotation, slip included: odometry drifts when pushing hard.
-            self._odometry += self._commands * self.dt
+            self._odometry += rolled
             self.space.step(self.dt)
             self.time_s += self.dt
 
@@ -221,14 +240,25 @@ class World:
         """Set every wheels body to its robot's commanded motion along the robot's current heading.
 
         pymunk.batch writes all bodies' velocities, so the other bodies get back the values just read."""
-        motion = self._read_bodies(_MOTION_FIELDS, 4)          # angle, vx, vy, omega per body
+        self._batch.clear()
+        pymunk.batch.get_space_bodies(self.space, _MOTION_FIELDS, self._batch)
+        # A view of pymunk's buffer: used up before the next batch call can reallocate it.
+        motion = np.frombuffer(self._batch.float_buf(), dtype=float).reshape(-1, 4)   # angle, vx, vy, omega
+        if len(motion) != self._body_count:
+            raise RuntimeError("bodies were added to or removed from the space after the world was built")
         velocities = self._velocities
         velocities[:] = motion[:, 1:]
         heading = motion[self._robot_rows, 0]
-        rows = self._wheel_rows
-        velocities[rows, 0] = forward * np.cos(heading)
-        velocities[rows, 1] = forward * np.sin(heading)
-        velocities[rows, 2] = turn_rate
+        wheels = velocities[self._wheel_rows]      # a view when the rows are evenly spaced (the usual case)
+        if wheels.base is velocities:
+            np.multiply(forward, np.cos(heading), out=wheels[:, 0])
+            np.multiply(forward, np.sin(heading), out=wheels[:, 1])
+            wheels[:, 2] = turn_rate
+        else:
+            rows = self._wheel_rows
+            velocities[rows, 0] = forward * np.cos(heading)
+            velocities[rows, 1] = forward * np.sin(heading)
+            velocities[rows, 2] = turn_rate
         pymunk.batch.set_space_bodies(self.space, _VELOCITY_FIELDS, self._velocity_batch)
 
     def _read_bodies(self, fields: pymunk.batch.BodyFields, width: int) -> np.ndarray:
@@ -243,7 +273,7 @@ class World:
     # --- state ----------------------------------------------------------------------------------------
     def robot_poses(self) -> np.ndarray:
         """(N, 3) true x, y, yaw of every robot."""
-        return self._read_bodies(_POSE_FIELDS, 3)[self._robot_rows]
+        return np.ascontiguousarray(self._read_bodies(_POSE_FIELDS, 3)[self._robot_rows])
 
     def odometry(self) -> np.ndarray:
         """(N, 2) cumulative commanded (left, right) wheel distances, as the encoders count them."""

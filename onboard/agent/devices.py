@@ -12,7 +12,7 @@ from typing import Any, Callable, Deque, Dict, List, Mapping, Optional
 
 from onboard import hal
 from onboard.drivers import Driver
-from onboard.hal import Message, Neighbour, Pose, ProximityReading, RobotSpec, WheelOdometry, clamp_wheel_speeds
+from onboard.hal import Message, Neighbours, Pose, ProximityReading, RobotSpec, WheelOdometry, clamp_wheel_speeds
 
 INBOX_LIMIT = 256    # relayed messages kept between two behaviour steps; the oldest go first
 
@@ -26,7 +26,7 @@ class HubState:
     reason: str = ""
     received_at: float = -math.inf          # local monotonic time of the last frame
     pose: Optional[Pose] = None
-    neighbours: List[Neighbour] = field(default_factory=list)
+    neighbours: Neighbours = field(default_factory=lambda: Neighbours([], [], []))
     neighbours_at: float = 0.0              # robot-clock time the neighbours were measured
     hub_clock_s: Optional[float] = None
     sim: Optional[Dict[str, Any]] = None    # IR and odometry from the hub's sim source
@@ -67,7 +67,8 @@ def apply_frame(state: HubState, frame: Dict[str, Any], clock: AgentClock, recei
     pose = frame.get("pose")
     if pose is not None:
         state.pose = Pose(pose[0], pose[1], pose[2], measured)
-    state.neighbours = [Neighbour(n[0], n[1], n[2]) for n in frame["neighbours"]]
+    rows = frame["neighbours"]
+    state.neighbours = Neighbours([n[0] for n in rows], [n[1] for n in rows], [n[2] for n in rows])
     state.neighbours_at = measured
     for sender, sent_s, payload in frame["messages"]:
         state.inbox.append(Message(sender, payload, sent_s))
@@ -88,9 +89,10 @@ class HubRangeAndBearing(hal.RangeAndBearingSensor):
     def __init__(self, state: HubState, clock: AgentClock):
         self.state, self.clock = state, clock
 
-    def neighbours(self) -> List[Neighbour]:
+    def neighbours(self) -> Neighbours:
         age = max(0.0, self.clock.now() - self.state.neighbours_at)
-        return [Neighbour(n.id, n.range_m, n.bearing_rad, age) for n in self.state.neighbours]
+        table = self.state.neighbours        # the frame's columns, shared: records are made only if asked for
+        return Neighbours(table.ids, table.ranges_m, table.bearings_rad, age, table.xy)
 
 
 class HubRadio(hal.Radio):

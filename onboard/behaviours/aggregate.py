@@ -16,6 +16,7 @@ from typing import Any, Dict
 
 from ..behaviour import Behaviour, register
 from ..config import check_range
+from ..hal import Neighbours
 from ..motion import proximity_vector, vector_to_wheels
 
 
@@ -39,11 +40,12 @@ class Aggregate(Behaviour):
 
     def step(self) -> None:
         p = self.params
-        neighbours = self.robot.range_and_bearing.neighbours()
+        neighbours = Neighbours.of(self.robot.range_and_bearing.neighbours())
         ux, uy = 0.0, 0.0
         if neighbours:
-            cx = sum(n.x for n in neighbours) / len(neighbours)
-            cy = sum(n.y for n in neighbours) / len(neighbours)
+            xs, ys = neighbours.xy.tolist()      # all neighbours' x and y at once, no record per neighbour
+            cx = sum(xs) / len(xs)
+            cy = sum(ys) / len(ys)
             if math.hypot(cx, cy) > p.gather_distance_m:
                 ux, uy = p.k_aggregate * cx, p.k_aggregate * cy
                 self.state = "gathering"

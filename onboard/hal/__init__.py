@@ -15,6 +15,7 @@ from .records import (
     PROXIMITY_SENSOR_COUNT,
     Message,
     Neighbour,
+    Neighbours,
     Pose,
     ProximityReading,
     RobotSpec,
@@ -25,5 +26,5 @@ from .records import (
 __all__ = [
     "Clock", "DifferentialSteering", "Odometry", "Positioning", "ProximitySensor", "Radio",
     "RangeAndBearingSensor", "Robot", "clamp_wheel_speeds", "PROXIMITY_ANGLES_RAD", "PROXIMITY_SENSOR_COUNT",
-    "Message", "Neighbour", "Pose", "ProximityReading", "RobotSpec", "WheelOdometry", "wrap_angle",
+    "Message", "Neighbour", "Neighbours", "Pose", "ProximityReading", "RobotSpec", "WheelOdometry", "wrap_angle",
 ]

@@ -9,7 +9,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, List, Mapping, Optional
 
-from .records import Message, Neighbour, Pose, ProximityReading, RobotSpec, WheelOdometry
+from .records import Message, Neighbours, Pose, ProximityReading, RobotSpec, WheelOdometry
 
 
 class ProximitySensor(ABC):
@@ -20,8 +20,10 @@ class ProximitySensor(ABC):
 
 class RangeAndBearingSensor(ABC):
     @abstractmethod
-    def neighbours(self) -> List[Neighbour]:
-        """Robots within communication range d_C at the latest measurement."""
+    def neighbours(self) -> Neighbours:
+        """Robots within communication range d_C at the latest measurement: a sequence of ``Neighbour``
+        records that also offers them as numpy columns (see :class:`Neighbours`; ``Neighbours.of(records)``
+        wraps a list of records)."""
 
 
 class Radio(ABC):

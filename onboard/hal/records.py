@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple, Union, overload
 
 import numpy as np
 
@@ -79,6 +79,109 @@ class Neighbour:
 _new_instance = object.__new__
 
 
+class Neighbours(Sequence):
+    """What :meth:`RangeAndBearingSensor.neighbours` returns: a read-only sequence of :class:`Neighbour`
+    records that also holds the same measurements as numpy columns, for code that handles every neighbour
+    at once.
+
+    With 100 robots each one sees 99 others every step; a behaviour that only needs sums, the nearest few
+    or a rotation of all of them can use the columns (``ids``, ``ranges_m``, ``bearings_rad``, ``xy``)
+    and never make the 99 Python records. Indexing or iterating makes them once, on first use.
+
+    ``xy`` is (2, n): row 0 the neighbours' x, row 1 their y in the observer's frame (range * cos/sin
+    bearing, the records' ``x``/``y``). Treat every column as read-only: a backend may share them.
+    """
+
+    __slots__ = ("ids", "ranges_m", "bearings_rad", "age_s", "_xy", "_records", "_id_list", "_ascending")
+
+    def __init__(self, ids: Any, ranges_m: Any, bearings_rad: Any, age_s: float = 0.0,
+                 xy: Optional[np.ndarray] = None) -> None:
+        self.ids = np.asarray(ids, dtype=np.int64)
+        self.ranges_m = np.asarray(ranges_m, dtype=float)
+        self.bearings_rad = np.asarray(bearings_rad, dtype=float)
+        self.age_s = age_s
+        self._xy = xy
+        self._records: Optional[List[Neighbour]] = None
+        self._id_list: Optional[List[int]] = None
+        self._ascending: Optional[bool] = None
+
+    @classmethod
+    def of(cls, records: Sequence[Neighbour]) -> Neighbours:
+        """A table holding ``records`` (for backends that make records one by one); ``age_s`` is the first
+        record's. The records themselves are kept and handed out unchanged."""
+        if isinstance(records, Neighbours):
+            return records
+        records = list(records)
+        table = cls([n.id for n in records], [n.range_m for n in records], [n.bearing_rad for n in records],
+                    records[0].age_s if records else 0.0,
+                    np.array([[n.x for n in records], [n.y for n in records]], dtype=float).reshape(2, -1))
+        table._records = records
+        return table
+
+    @property
+    def xy(self) -> np.ndarray:
+        if self._xy is None:
+            self._xy = np.array([self.ranges_m * np.cos(self.bearings_rad),
+                                 self.ranges_m * np.sin(self.bearings_rad)]).reshape(2, -1)
+        return self._xy
+
+    @property
+    def nearest_m(self) -> float:
+        """The smallest range (inf without neighbours): lets code skip a search for close neighbours."""
+        return float(self.ranges_m.min()) if len(self.ranges_m) else math.inf
+
+    def ids_ascending(self) -> bool:
+        """True if ``ids`` strictly increase (then an id can be found by bisection)."""
+        if self._ascending is None:
+            self._ascending = bool(np.all(self.ids[1:] > self.ids[:-1]))
+        return self._ascending
+
+    def known_xy(self) -> Optional[np.ndarray]:
+        """``xy`` if it was given or computed already, else None (then x, y = range * cos/sin bearing)."""
+        return self._xy
+
+    def id_list(self) -> List[int]:
+        """``ids`` as a list of Python ints (made once)."""
+        if self._id_list is None:
+            self._id_list = self.ids.tolist()
+        return self._id_list
+
+    def records(self) -> List[Neighbour]:
+        """The records as a list (made once; the list is shared, do not change it)."""
+        if self._records is None:
+            xs, ys = self.xy.tolist()
+            self._records = Neighbour.many(self.id_list(), self.ranges_m.tolist(), self.bearings_rad.tolist(),
+                                           self.age_s, xs=xs, ys=ys)
+        return self._records
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @overload
+    def __getitem__(self, index: int) -> Neighbour: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> List[Neighbour]: ...
+
+    def __getitem__(self, index: Union[int, slice]) -> Union[Neighbour, List[Neighbour]]:
+        return self.records()[index]
+
+    def __iter__(self) -> Iterator[Neighbour]:
+        return iter(self.records())
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, Neighbours):
+            return self.records() == other.records()
+        if isinstance(other, (list, tuple)):
+            return self.records() == list(other)
+        return NotImplemented
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        return f"Neighbours({self.records()!r})"
+
+
 @dataclass(frozen=True)
 class Message:
     """A radio message received from ``sender``; ``payload`` is a JSON-compatible mapping.
@@ -132,6 +235,6 @@ def wrap_angle(angle: float) -> float:
 
 
 __all__ = [
-    "PROXIMITY_SENSOR_COUNT", "PROXIMITY_ANGLES_RAD", "ProximityReading", "Neighbour", "Message", "Pose",
+    "PROXIMITY_SENSOR_COUNT", "PROXIMITY_ANGLES_RAD", "ProximityReading", "Neighbour", "Neighbours", "Message", "Pose",
     "WheelOdometry", "RobotSpec", "wrap_angle",
 ]

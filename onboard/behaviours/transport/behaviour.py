@@ -18,7 +18,7 @@ from . import control as c
 from .control import Vec
 from .estimator import ObjectFilter, ring_centroid
 from .params import TransportParams
-from .perception import Percept, nearest, perceive, world_to_robot
+from .perception import Percept, near, nearest, perceive, world_to_robot
 from .reinforce import ReinforcePhase
 from .tasks import BRANCH_DIRECTION, Task, TaskBoard, distance, new_space, task_id
 from .transport import TransportPhases
@@ -91,7 +91,9 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
             if self.state not in ("idle", "done"):
                 self.board.heartbeat(robot.id, pose.x, pose.y, self._contact_normal())
         self.last_step = now
-        robot.radio.broadcast({"ts": self.space.outgoing()})
+        gossip = self.space.outgoing()
+        if gossip:      # nothing new and no anti-entropy turn: stay quiet (most steps in a large swarm)
+            robot.radio.broadcast({"ts": gossip})
 
     def _contact_normal(self) -> Optional[float]:
         percept = self.percept
@@ -122,7 +124,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
 
     def _avoid(self, exclude: Optional[set] = None) -> Vec:
         p = self.params
-        vectors = [v for j, v in self.percept.neighbours.items() if not exclude or j not in exclude]
+        vectors = near(self.percept.neighbours, p.safety_distance_m, exclude)
         return c.u_avoid(vectors, p.safety_distance_m, 2.0)
 
     def _caging_only_done(self) -> bool:

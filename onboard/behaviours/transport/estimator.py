@@ -76,7 +76,8 @@ def edge_rotation(now: Dict[tuple, float], reference: Dict[tuple, float]) -> Opt
     turns = sorted(wrap_angle(now[k] - reference[k]) for k in now if k in reference)
     if len(turns) < 2:
         return None
-    return float(np.median(turns))
+    middle = len(turns) // 2          # the median of the sorted turns (np.median's value, without numpy)
+    return turns[middle] if len(turns) % 2 else (turns[middle - 1] + turns[middle]) / 2.0
 
 
 class ObjectFilter:
@@ -91,17 +92,21 @@ class ObjectFilter:
         kf.R = np.diag([position_noise_m, position_noise_m, yaw_noise_rad]) ** 2
         self.kf = kf
         self.accel_noise = accel_noise
+        self._model_dt: Optional[float] = None   # the dt that kf.F and kf.Q were built for
 
     def predict(self, dt: float) -> None:
         kf = self.kf
-        kf.F = np.eye(6)
-        kf.F[0, 3] = kf.F[1, 4] = kf.F[2, 5] = dt
-        # Piecewise-constant white acceleration: an object pushed by robots speeds up and stops gently.
-        q = self.accel_noise ** 2
-        block = np.array([[dt ** 4 / 4, dt ** 3 / 2], [dt ** 3 / 2, dt ** 2]]) * q
-        kf.Q = np.zeros((6, 6))
-        for i in range(3):
-            kf.Q[np.ix_([i, i + 3], [i, i + 3])] = block
+        if dt != self._model_dt:                 # robots step at a fixed rate: build F and Q once per dt
+            self._model_dt = dt
+            F = np.eye(6)
+            F[0, 3] = F[1, 4] = F[2, 5] = dt
+            # Piecewise-constant white acceleration: an object pushed by robots speeds up and stops gently.
+            q = self.accel_noise ** 2
+            block = np.array([[dt ** 4 / 4, dt ** 3 / 2], [dt ** 3 / 2, dt ** 2]]) * q
+            Q = np.zeros((6, 6))
+            for i in range(3):
+                Q[np.ix_([i, i + 3], [i, i + 3])] = block
+            kf.F, kf.Q = F, Q
         kf.predict()
 
     def update(self, x: float, y: float, yaw: Optional[float], members: int) -> None:

@@ -5,8 +5,10 @@ Keys (values are small JSON mappings):
   bid/<tid>/<e> {"robot", "bid"}      lowest bid wins (ties: lower robot id) -- conflict rule on "bid/"
   owner/<tid>   {"robot", "bid", "epoch"}  the robot that took the task; same conflict rule on "owner/"
   member/<rid>  {"tid", "branch", "index"}  a robot settled in the cage
-  pos/<rid>     [x, y, normal]              position heartbeat of members and travellers, every step, with the
-                                            world angle of the contact normal x_o (null when not touching)
+  pos/<rid>     [x, y, normal]              position heartbeat of members and travellers, with the world angle
+                                            of the contact normal x_o (null when not touching): written when
+                                            the robot moved HEARTBEAT_MOVE_M or the normal changed, and at
+                                            least every HEARTBEAT_PERIOD_S (liveness times out after 4 s)
   closed        {"pair": [a, b]}            the cage is closed (Proposition 1)
   grow          {"level": n}               out of robots: I_d grows by 2 % per level until closure
   path          [[x, y, yaw_deg], ...]      the agreed path
@@ -22,6 +24,14 @@ from typing import Any, Dict, List, Optional, Tuple
 from ...stigmergy import TupleSpace, lowest_field
 
 BRANCH_DIRECTION = {"L": 1, "R": -1, "S": 0}   # L grows counter-clockwise around the object, R clockwise
+
+# A heartbeat is a new tuple-space version that every robot merges and the swarm relays, so a robot that
+# holds still does not repeat it every step: it writes again when it moved this far from the position it
+# last wrote (a moving robot at cruise speed still writes every step), when its contact normal appeared,
+# vanished or turned this much, and at least this often, well inside the liveness timeout.
+HEARTBEAT_MOVE_M = 0.01
+HEARTBEAT_TURN_RAD = 0.1
+HEARTBEAT_PERIOD_S = 1.0
 
 
 @dataclass
@@ -45,8 +55,12 @@ def task_id(branch: str, index: int) -> str:
 
 
 def new_space(owner: int) -> TupleSpace:
+    """The transport's replica: relays and anti-entropy tuned for swarms where ~100 robots hear each other
+    (see TupleSpace: an accepted entry is relayed once, after 0-7 steps, unless two other robots relayed it
+    first; the round-robin share rides along once a second)."""
     rule = lowest_field("bid", "robot")
-    return TupleSpace(owner, conflict_rules={"bid/": rule, "owner/": rule})
+    return TupleSpace(owner, conflict_rules={"bid/": rule, "owner/": rule}, relay_rounds=1, relay_delay_steps=7,
+                      relay_quorum=2, anti_entropy_period=10)
 
 
 class TaskBoard:
@@ -56,6 +70,20 @@ class TaskBoard:
         self.space = space
         self.timeout = liveness_timeout_s
         self._heartbeats: Dict[int, Tuple[int, float]] = {}   # rid -> (timestamp seen, local time it changed)
+        self._now: Optional[float] = None          # the time of the latest refresh_liveness
+        self._beat_at: Optional[float] = None      # when this robot last wrote its heartbeat
+        # Views parsed from the space, rebuilt only when their family's revision moves (space.revision):
+        # behaviours ask for tasks, owners and members several times per step, and they rarely change.
+        self._tasks_at = -1
+        self._task_fields: Dict[str, Optional[Dict[str, Any]]] = {}   # tid -> Task fields, None if malformed
+        self._task_list: List[Dict[str, Any]] = []                   # fields of the valid tasks, by key
+        self._owners_at: Tuple[int, int] = (-1, -1)
+        self._owned: Dict[Any, List[str]] = {}                       # robot -> tids it validly owns
+        self._odd_owners: List[Tuple[Any, str]] = []                 # (unhashable robot value, tid)
+        self._members_at = -1
+        self._members: Dict[int, dict] = {}
+        self._arrivals: Dict[str, set] = {}
+        self._arrivals_at = -1
 
     # --- tasks and bids -----------------------------------------------------------------------------
     def put_task(self, task: Task) -> None:
@@ -64,18 +92,23 @@ class TaskBoard:
                                             "cancelled": task.cancelled})
 
     def task(self, tid: str) -> Optional[Task]:
-        value = self.space.get(f"task/{tid}")
-        if not isinstance(value, dict):
-            return None
-        try:
-            return Task(tid, float(value["x"]), float(value["y"]), str(value["branch"]), int(value["index"]),
-                        value.get("pred"), int(value.get("epoch", 0)), bool(value.get("cancelled", False)))
-        except (KeyError, TypeError, ValueError):
-            return None
+        """A fresh copy of task ``tid`` (callers may change it before ``put_task``), or None."""
+        fields = self._parsed_tasks().get(tid)
+        return None if fields is None else _task_from(fields)
 
     def tasks(self) -> List[Task]:
-        found = (self.task(key[len("task/"):]) for key, _ in self.space.items("task/"))
-        return [t for t in found if t is not None]
+        """Fresh copies of every well-formed task, in key order."""
+        self._parsed_tasks()
+        return [_task_from(fields) for fields in self._task_list]
+
+    def _parsed_tasks(self) -> Dict[str, Optional[Dict[str, Any]]]:
+        revision = self.space.revision("task")
+        if revision != self._tasks_at:
+            self._tasks_at = revision
+            self._task_fields = {key[len("task/"):]: _parse_task(key[len("task/"):], value)
+                                 for key, value in self.space.items("task/")}
+            self._task_list = [fields for fields in self._task_fields.values() if fields is not None]
+        return self._task_fields
 
     def owner(self, task: Task) -> Optional[dict]:
         value = self.space.get(f"owner/{task.tid}")
@@ -97,12 +130,36 @@ class TaskBoard:
     def busy(self, robot: Any, except_tid: str = "") -> bool:
         if f"member/{robot}" in self.space:
             return True
+        self._index_owners()
+        try:
+            owned = self._owned.get(robot, ())
+        except TypeError:                          # an unhashable robot value (a peer's malformed bid)
+            owned = ()
+        if owned and (len(owned) > 1 or owned[0] != except_tid):   # tids are distinct: two can't both match
+            return True
+        return bool(self._odd_owners) and \
+            any(tid != except_tid and value == robot for value, tid in self._odd_owners)
+
+    def _index_owners(self) -> None:
+        """Which robot validly owns which task: the owner entry's epoch is the live, uncancelled task's."""
+        revisions = (self.space.revision("owner"), self.space.revision("task"))
+        if revisions == self._owners_at:
+            return
+        self._owners_at = revisions
+        self._owned, self._odd_owners = {}, []
+        tasks = self._parsed_tasks()
         for key, value in self.space.items("owner/"):
-            if key != f"owner/{except_tid}" and isinstance(value, dict) and value.get("robot") == robot:
-                task = self.task(key[len("owner/"):])
-                if task is not None and not task.cancelled and task.epoch == value.get("epoch"):
-                    return True
-        return False
+            if not isinstance(value, dict):
+                continue
+            tid = key[len("owner/"):]
+            fields = tasks.get(tid)
+            if fields is None or fields["cancelled"] or fields["epoch"] != value.get("epoch"):
+                continue
+            robot = value.get("robot")
+            try:
+                self._owned.setdefault(robot, []).append(tid)
+            except TypeError:
+                self._odd_owners.append((robot, tid))
 
     def bid(self, task: Task, robot: int, amount: float) -> None:
         self.space.put(f"bid/{task.tid}/{task.epoch}", {"robot": robot, "bid": round(amount, 4)})
@@ -115,19 +172,35 @@ class TaskBoard:
         self.space.put(f"member/{robot}", {"tid": task.tid, "branch": task.branch, "index": task.index})
 
     def members(self) -> Dict[int, dict]:
-        found = {}
-        for key, value in self.space.items("member/"):
-            try:
-                found[int(key[len("member/"):])] = value
-            except ValueError:
-                continue
-        return found
+        revision = self.space.revision("member")
+        if revision != self._members_at:
+            self._members_at = revision
+            found = {}
+            for key, value in self.space.items("member/"):
+                try:
+                    found[int(key[len("member/"):])] = value
+                except ValueError:
+                    continue
+            self._members = found
+        return dict(self._members)
 
-    def heartbeat(self, robot: int, x: float, y: float, normal: Optional[float]) -> None:
-        self.space.put(f"pos/{robot}", [round(x, 4), round(y, 4), None if normal is None else round(normal, 3)])
+    def heartbeat(self, robot: int, x: float, y: float, normal: Optional[float], now: Optional[float] = None) -> None:
+        """Publish this robot's position (and contact normal) if it changed enough or the last one is getting
+        old; ``now`` defaults to the time given to the latest ``refresh_liveness``."""
+        now = self._now if now is None else now
+        key = f"pos/{robot}"
+        value = [round(x, 4), round(y, 4), None if normal is None else round(normal, 3)]
+        held = self.space.get(key)
+        if now is not None and self._beat_at is not None and now - self._beat_at < HEARTBEAT_PERIOD_S - 1e-9 \
+                and isinstance(held, list) and len(held) == 3 and _close_heartbeat(held, value):
+            return
+        self.space.put(key, value)
+        self._beat_at = now
 
     def refresh_liveness(self, now: float) -> None:
-        for key, _ in self.space.items("pos/"):
+        self._now = now
+        # Only the heartbeats that changed since the last call: an unchanged entry has nothing newer to say.
+        for key in self.space.changed_keys("pos"):
             entry = self.space.entry(key)
             try:
                 rid = int(key[len("pos/"):])
@@ -162,13 +235,55 @@ class TaskBoard:
         return int(value.get("level", 0)) if isinstance(value, dict) else 0
 
     def arrivals(self, waypoint: int, phase: str) -> set:
+        revision = self.space.revision("arrive")
+        if revision != self._arrivals_at:
+            self._arrivals_at, self._arrivals = revision, {}
         prefix = f"arrive/{waypoint}/{phase}/"
-        return {int(k[len(prefix):]) for k, _ in self.space.items(prefix) if k[len(prefix):].isdigit()}
+        found = self._arrivals.get(prefix)
+        if found is None:
+            found = self._arrivals[prefix] = {int(k[len(prefix):]) for k in self.space.keys(prefix)
+                                              if k[len(prefix):].isdigit()}
+        return set(found)
 
     def arrive(self, waypoint: int, phase: str, robot: int) -> None:
         key = f"arrive/{waypoint}/{phase}/{robot}"
         if key not in self.space:
             self.space.put(key, 1)
+
+
+def _close_heartbeat(held: list, value: list) -> bool:
+    """True if ``value`` says nothing new against the heartbeat ``held``: moved less than HEARTBEAT_MOVE_M, and
+    the same contact (both none, or normals within HEARTBEAT_TURN_RAD)."""
+    try:
+        if math.hypot(value[0] - held[0], value[1] - held[1]) >= HEARTBEAT_MOVE_M:
+            return False
+        if held[2] is None or value[2] is None:
+            return held[2] is None and value[2] is None
+        return abs(math.remainder(value[2] - held[2], math.tau)) < HEARTBEAT_TURN_RAD
+    except TypeError:                              # a malformed value in the space: write a good one
+        return False
+
+
+def _parse_task(tid: str, value: Any) -> Optional[Dict[str, Any]]:
+    """A task entry's fields as :class:`Task` holds them, or None if the entry is malformed."""
+    if not isinstance(value, dict):
+        return None
+    try:
+        return {"tid": tid, "x": float(value["x"]), "y": float(value["y"]), "branch": str(value["branch"]),
+                "index": int(value["index"]), "pred": value.get("pred"), "epoch": int(value.get("epoch", 0)),
+                "cancelled": bool(value.get("cancelled", False))}
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+_new_instance = object.__new__
+
+
+def _task_from(fields: Dict[str, Any]) -> Task:
+    # What Task(**fields) makes, without the dataclass __init__'s per-field cost (tasks() runs every step).
+    task = _new_instance(Task)
+    task.__dict__.update(fields)
+    return task
 
 
 def distance(a: Tuple[float, float], b: Tuple[float, float]) -> float:
