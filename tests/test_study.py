@@ -397,3 +397,29 @@ def test_workers_import_the_users_behaviour_module_too(tmp_path, monkeypatch, ca
     code = main(["--import", "study_user_behaviour", "study", "still-study.yaml", "--out", "out", "--workers", "1"])
     result = json.loads((tmp_path / "out" / "still-4" / "seed-1" / "result.json").read_text())
     assert (code, result["failed"], result["behaviour"]) == (0, False, "study-stand-still"), result.get("error")
+
+
+def test_sigterm_stops_the_study_and_its_workers_and_keeps_it_resumable(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    study = tmp_path / "long.yaml"
+    study.write_text("name: long\nscenarios: [lab-6]\nseeds: [1, 2, 3, 4]\n")
+    driver = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "study", str(study), "--out", str(out),
+                               "--workers", "2", "--no-figures"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    workers = []
+    deadline = time.monotonic() + 60
+    while len(workers) < 2 and time.monotonic() < deadline:   # the pool's two workers have started
+        time.sleep(0.2)
+        children = Path(f"/proc/{driver.pid}/task/{driver.pid}/children").read_text().split()
+        workers = [int(pid) for pid in children if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()]
+    assert len(workers) == 2
+    driver.send_signal(signal.SIGTERM)
+    assert driver.wait(timeout=30) == 130
+    time.sleep(0.5)
+    alive = [pid for pid in workers if Path(f"/proc/{pid}").exists()
+             and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2]]
+    assert alive == []
+    assert not list(out.glob("*/seed-*/result.json"))        # interrupted runs left no result: a resume reruns them
