@@ -59,7 +59,8 @@ def test_paper_scenarios(robots, kind):
     assert s.object is not None
     assert (s.object.shape, s.object.size, s.object.mass) == ("box", size, mass)
     assert s.object.position == (0.0, 0.0) and s.object.yaw_deg == 0.0 and not s.object.static
-    assert s.object.friction == 0.3   # the default
+    # 0.3 is the default; the 50/100-robot boxes need less to move at all (see their scenario files).
+    assert s.object.friction == {25: 0.3, 50: 0.1, 100: 0.05}[robots]
     assert s.comm.range_m == 7.0
     assert s.time_limit_s == limit
     assert len(s.path) == 10
