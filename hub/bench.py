@@ -1,47 +1,63 @@
 """``khepri bench hub``: a hub process fed by the motioncapture library's mock backend (N rigid bodies at R Hz)
-serves N light agents (DEALER sockets in this process that only timestamp what arrives).
+serves N light agents: DEALER sockets in this process, one connection each, that say hello and then only
+receive (no telemetry unless ``telemetry_hz`` is given), all polled by one thread.
 
-Latency is measured from a frame's arrival at the hub (its ``hub_t`` stamp, taken by the reader thread right
-after ``waitForNextFrame`` returns) to its arrival at an agent socket; both sides read the same monotonic
-clock, as they run on one machine. Hub CPU comes from the hub's own ``process_time`` over the window.
+Latency is measured for every frame, from its pose frame's arrival at the hub (``hub_t``, stamped by the
+hub's reader thread right after ``waitForNextFrame`` returns, before the bodies are converted) to the moment
+this process takes it off an agent socket (stamped right after ``recv``, before anything is parsed); both
+read the same monotonic clock, as they run on one machine. Once the window is over, each frame is decoded and
+validated with ``onboard.protocol.decode``, as an agent would; a frame without a pose (whose ``hub_t`` is
+its send time) does not count. With ``downlink_hz`` 20 and
+120 mocap frames a second, each pose frame is due for about a sixth of the robots, so the p99 is that of
+the last robots of each burst. Hub CPU is the hub process's ``process_time`` (all its threads, ZeroMQ's
+included) over the window.
 """
 from __future__ import annotations
 
+import math
 import os
 import re
-import socket
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict, Iterable, List, Tuple
 
 import numpy as np
 import yaml
 import zmq
 
-from onboard.protocol import encode
+from onboard.protocol import DOWNLINK_TYPES, ProtocolError, decode, encode
 
 from .control import request
 
 ROOT = Path(__file__).resolve().parents[1]
-HUB_T = re.compile(rb'"hub_t":([0-9.eE+-]+)')
+LISTENING = re.compile(r"^listening (robots|control) (\S+)$", re.MULTILINE)
 
 
-def bench_hub(robots: int, rate_hz: float, seconds: float, warmup_s: float = 1.0) -> Dict[str, Any]:
+def bench_hub(robots: int, rate_hz: float, seconds: float, warmup_s: float = 1.0,
+              telemetry_hz: float = 0.0, record: bool = False) -> Dict[str, Any]:
+    """``telemetry_hz`` > 0: every agent also sends a small telemetry message at that rate (a real agent's
+    load on the hub is 10 Hz), from the same thread, between receives. ``record``: the hub records
+    everything to an MCAP log in a temporary folder, as ``khepri hub --record`` does."""
     with tempfile.TemporaryDirectory(prefix="khepri-bench-hub-") as tmp:
-        robot_port, control_port = _free_port(), _free_port()
         config = Path(tmp) / "bench.yaml"
-        config.write_text(yaml.safe_dump(bench_config(robots, rate_hz, robot_port, control_port)))
-        hub = _start_hub(config)
-        control = f"tcp://127.0.0.1:{control_port}"
+        settings = bench_config(robots, rate_hz, 0, 0)     # port 0: the hub picks free ones
+        if record:
+            settings["record"] = str(Path(tmp) / "bench.mcap")
+        config.write_text(yaml.safe_dump(settings))
+        hub, endpoints = _start_hub(config)
+        control = endpoints["control"]
         try:
-            sockets = _connect_agents(f"tcp://127.0.0.1:{robot_port}", robots)
-            _collect(sockets, warmup_s)
+            sockets = _connect_agents(endpoints["robots"], robots)
+            poller = zmq.Poller()
+            for sock in sockets:
+                poller.register(sock, zmq.POLLIN)
+            _collect(sockets, poller, warmup_s, telemetry_hz)
             before = request(control, "status", timeout_s=5.0)["status"]
             started = time.monotonic()
-            latencies = _collect(sockets, seconds)
+            latencies, last = _collect(sockets, poller, seconds, telemetry_hz, since=started)
             after = request(control, "status", timeout_s=5.0)["status"]
             wall = time.monotonic() - started
             for sock in sockets:
@@ -52,10 +68,16 @@ def bench_hub(robots: int, rate_hz: float, seconds: float, warmup_s: float = 1.0
     if not latencies:
         raise RuntimeError("the hub sent no frames during the benchmark")
     values = np.asarray(latencies) * 1000.0
+    bursts = np.asarray(list(last.values())) * 1000.0
     return {"latency_p50_ms": round(float(np.percentile(values, 50)), 4),
             "latency_p99_ms": round(float(np.percentile(values, 99)), 4),
             "hub_cpu_percent": round(100.0 * (after["cpu_s"] - before["cpu_s"]) / wall, 2),
-            "frames_received": len(latencies), "mocap_hz": after["mocap_hz"]}
+            "frames_received": len(latencies), "mocap_hz": after["mocap_hz"],
+            "last_robot_p50_ms": round(float(np.percentile(bursts, 50)), 4),    # per pose frame, the slowest robot
+            "last_robot_p99_ms": round(float(np.percentile(bursts, 99)), 4),
+            "hub_drops": sum(after["drops"].values()) - sum(before["drops"].values()),
+            "frames_dropped": sum(r["frames_dropped"] for r in after["robots"])
+            - sum(r["frames_dropped"] for r in before["robots"])}
 
 
 def bench_config(robots: int, rate_hz: float, robot_port: int, control_port: int) -> Dict[str, Any]:
@@ -72,7 +94,7 @@ def bench_config(robots: int, rate_hz: float, robot_port: int, control_port: int
     }
 
 
-def _start_hub(config: Path) -> subprocess.Popen:
+def _start_hub(config: Path) -> Tuple[subprocess.Popen, Dict[str, str]]:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     log_path = config.with_suffix(".log")
     with open(log_path, "w", encoding="utf-8") as log:     # a file, not a pipe: nobody has to keep reading it
@@ -84,7 +106,7 @@ def _start_hub(config: Path) -> subprocess.Popen:
             hub.kill()
             raise RuntimeError(f"the hub did not start: {log_path.read_text(encoding='utf-8')[-500:]}")
         time.sleep(0.05)
-    return hub
+    return hub, dict(LISTENING.findall(log_path.read_text(encoding="utf-8")))
 
 
 def _connect_agents(endpoint: str, robots: int) -> List[zmq.Socket]:
@@ -102,28 +124,49 @@ def _connect_agents(endpoint: str, robots: int) -> List[zmq.Socket]:
     return sockets
 
 
-def _collect(sockets: List[zmq.Socket], seconds: float) -> List[float]:
-    """Receive for ``seconds``; the latency of every frame, from its hub stamp to its arrival here."""
-    poller = zmq.Poller()
-    for sock in sockets:
-        poller.register(sock, zmq.POLLIN)
+def _collect(sockets: List[zmq.Socket], poller: zmq.Poller, seconds: float, telemetry_hz: float = 0.0,
+             since: float = -math.inf):
+    """Receive for ``seconds``: the latency of every frame that carries a pose (from its hub stamp to its
+    arrival here), and per pose frame (``hub_t``) the latency of the last robot to get it. Only pose frames
+    that reached the hub at ``since`` or later count: frames of earlier ones waited in the sockets while this
+    process asked the hub for its status, which is the benchmark's delay, not the hub's."""
     latencies: List[float] = []
+    last: Dict[float, float] = {}
+    period = 1.0 / telemetry_hz if telemetry_hz > 0 else 1.0
+    next_telemetry = [time.monotonic() + period * i / len(sockets) for i in range(len(sockets))]
+    steps = [0] * len(sockets)
+    arrived: List[Tuple[bytes, float]] = []
     end = time.monotonic() + seconds
     while time.monotonic() < end:
-        for sock, _ in poller.poll(50):
+        # Only receive and stamp here: decoding waits until the window is over, so that this thread stays as
+        # light as a real agent's and no frame waits for another's decoding.
+        for sock, _ in poller.poll(5 if telemetry_hz > 0 else 50):
             while True:
                 try:
                     data = sock.recv(zmq.NOBLOCK)
                 except zmq.Again:
                     break
-                arrived = time.monotonic()
-                match = HUB_T.search(data)
-                if match and data.startswith(b'{"type":"frame"'):
-                    latencies.append(arrived - float(match.group(1)))
-    return latencies
+                arrived.append((data, time.monotonic()))      # stamped before anything is parsed
+        now = time.monotonic()
+        for i, sock in enumerate(sockets if telemetry_hz > 0 else ()):
+            if now >= next_telemetry[i]:
+                next_telemetry[i] += period
+                steps[i] += 1
+                sock.send(encode({"type": "telemetry", "id": i, "step": steps[i], "mode": "idle",
+                                  "loop": {"hz": 10.0, "steps": steps[i], "misses": 0}}), zmq.NOBLOCK)
+    _account(arrived, since, latencies, last)
+    return latencies, last
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _account(arrived: Iterable[Tuple[bytes, float]], since: float, latencies: List[float],
+             last: Dict[float, float]) -> None:
+    """Decode and validate what arrived (as an agent would) and add each pose frame's latency."""
+    for data, at in arrived:
+        try:
+            message = decode(data, "hub", accept=DOWNLINK_TYPES)
+        except ProtocolError as err:
+            raise RuntimeError(f"the hub sent a bad message: {err}") from None
+        if message["type"] == "frame" and message["pose"] is not None and message["hub_t"] >= since:
+            latency = at - message["hub_t"]
+            latencies.append(latency)
+            last[message["hub_t"]] = max(latency, last.get(message["hub_t"], 0.0))

@@ -57,6 +57,10 @@ class RadioRelay:
             queue.append((sender, sent_s, payload, size))
         return True
 
+    def pending(self, receiver: int) -> bool:
+        """Whether messages wait for this receiver (cheap: the frame path asks before building a tail)."""
+        return bool(self.queues.get(receiver))
+
     def take(self, receiver: int, budget_bytes: int) -> List[list]:
         """Messages for one frame, oldest first, as ``[sender, sent_s, payload]``, up to ``budget_bytes``."""
         queue = self.queues.get(receiver)

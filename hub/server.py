@@ -14,12 +14,24 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import numpy as np
 import zmq
 
-from onboard.protocol import MAX_MESSAGE_BYTES, UPLINK_TYPES, ProtocolError, check_payload_size, decode, encode
+from onboard.protocol import (
+    FRAME_HEADER,
+    MAX_MESSAGE_BYTES,
+    MODE_CODES,
+    NEIGHBOUR_DTYPE,
+    UPLINK_TYPES,
+    ProtocolError,
+    check_payload_size,
+    decode,
+    encode,
+    frame_tail,
+    pack_frame,
+)
 
 from .config import LabConfig
 from .control_service import ControlService
 from .links import DropLog, RateMeter, RobotLink
-from .recording import robot_topic
+from .recording import BackgroundRecorder, robot_topic
 from .relay import RadioRelay
 from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HubAuthenticator, KeyRing, make_curve_server
 from .sensors import SensingModel, VirtualSensors
@@ -27,6 +39,10 @@ from .sources import PoseFrame, PoseSource
 
 DOWNLINK_HWM = 8          # frames queued per robot; older data is useless, a full queue drops (latest-only)
 COMMAND_RETRY_S = 0.25    # an unacknowledged command is sent again this often
+UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting pose frame
+TAIL_SLACK_BYTES = 1024   # room kept in a frame for reason and sim beside the relayed messages
+_SEND_MORE = int(zmq.NOBLOCK | zmq.SNDMORE)   # plain ints: combining the flag enums costs a microsecond a send
+_SEND_LAST = int(zmq.NOBLOCK)
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
 
 
@@ -50,6 +66,8 @@ class Hub:
     def __init__(self, config: LabConfig, source: PoseSource, robot_ids: List[int], run: RunTemplate,
                  sensing: SensingModel, relay_drop: float, seed=None, keyring: Optional[KeyRing] = None,
                  recorder=None, log: Callable[[str], None] = print, context: Optional[zmq.Context] = None):
+        if recorder is not None and not isinstance(recorder, BackgroundRecorder):
+            recorder = BackgroundRecorder(recorder)     # the loop only queues; a thread of its own writes
         self.config, self.source, self.run, self.keyring, self.recorder, self.log = \
             config, source, run, keyring, recorder, log
         self.context = context or zmq.Context.instance()
@@ -79,6 +97,8 @@ class Hub:
         self.control_socket: Optional[zmq.Socket] = None
         self.endpoints: Dict[str, str] = {}
         self._next_status_record = 0.0
+        self._frame_ids: Optional[List[int]] = None
+        self._frame_rows: Tuple[np.ndarray, Optional[List[int]]] = (np.zeros(0, dtype=np.intp), None)
 
     # --- sockets --------------------------------------------------------------------------------------
     def bind(self) -> Dict[str, str]:
@@ -120,32 +140,38 @@ class Hub:
 
     # --- the real-time loop -----------------------------------------------------------------------------
     def serve(self, should_stop: Callable[[], bool] = lambda: False) -> None:
+        """The loop. Control requests first (an e-stop must not wait). With a source whose frames arrive on their
+        own (motion capture: it has a wake socket), a waiting pose frame then becomes downlink frames before the
+        uplink is read, and uplink reading stops as soon as another pose frame waits. With a source the hub paces
+        (sim, replay), uplink comes first, so wheel commands reach the physics before it steps. Recording
+        happens after the sends."""
         poller = zmq.Poller()
         poller.register(self.robot_socket, zmq.POLLIN)
         poller.register(self.control_socket, zmq.POLLIN)
-        if self.source.wake_socket is not None:
+        pose_first = self.source.wake_socket is not None
+        if pose_first:
             poller.register(self.source.wake_socket, zmq.POLLIN)
         period = 1.0 / self.config.network.downlink_hz
         while not should_stop():
             now = time.monotonic()
             timeout = min(self.source.next_due(now), period / 2.0, 0.05)
             events = dict(poller.poll(max(0.0, timeout) * 1000.0))
-            self.handle_sockets(events)
-            now = time.monotonic()
-            frames = self.source.poll(now)
+            self.handle_control(events)
+            if not pose_first:
+                self.handle_uplink_events(events)
+            frames = self.source.poll(time.monotonic())
             for frame in frames:
                 self.on_pose_frame(frame)
             self.send_due(time.monotonic(), fresh=bool(frames))
+            if pose_first:
+                self.handle_uplink_events(events)
             self.housekeeping(time.monotonic())
 
     def handle_sockets(self, events: Dict[Any, int], budget: int = 2000) -> None:
-        if self.robot_socket in events:
-            for _ in range(budget):
-                try:
-                    parts = self.robot_socket.recv_multipart(zmq.NOBLOCK, copy=False)
-                except zmq.Again:
-                    break
-                self.handle_uplink(parts)
+        self.handle_control(events, budget)
+        self.handle_uplink_events(events, budget)
+
+    def handle_control(self, events: Dict[Any, int], budget: int = 2000) -> None:
         if self.control_socket in events:
             for _ in range(budget):
                 try:
@@ -154,14 +180,29 @@ class Hub:
                     break
                 self.control.handle(parts)
 
+    def handle_uplink_events(self, events: Dict[Any, int], budget: int = 2000) -> None:
+        if self.robot_socket not in events:
+            return
+        wake = self.source.wake_socket
+        for count in range(budget):
+            if wake is not None and count % UPLINK_SLICE == UPLINK_SLICE - 1 \
+                    and wake.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                break             # a pose frame waits: serve it first, the rest of the uplink next time round
+            try:
+                parts = self.robot_socket.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                break
+            self.handle_uplink(parts)
+
     # --- poses -> sensors -------------------------------------------------------------------------------
     def on_pose_frame(self, frame: PoseFrame) -> None:
-        rows = [self.row[rid] for rid in frame.ids if rid in self.row]
-        if len(rows) == len(frame.ids):
-            self.poses[rows] = frame.poses
-        else:
-            keep = [k for k, rid in enumerate(frame.ids) if rid in self.row]
-            self.poses[rows] = frame.poses[keep]
+        if frame.ids != self._frame_ids:          # usually the same bodies as last time: reuse the row lookup
+            self._frame_ids = list(frame.ids)
+            rows = [self.row[rid] for rid in frame.ids if rid in self.row]
+            keep = None if len(rows) == len(frame.ids) else [k for k, rid in enumerate(frame.ids) if rid in self.row]
+            self._frame_rows = (np.asarray(rows, dtype=np.intp), keep)
+        rows, keep = self._frame_rows
+        self.poses[rows] = frame.poses if keep is None else frame.poses[keep]
         self.seen_at[rows] = frame.stamp
         self.killed = set(frame.killed)
         self.extras = frame.extras
@@ -174,8 +215,8 @@ class Hub:
         self.sensors.update(self.poses, present)
         self._check_geofence(present)
         self._hold_sim_wheels(frame.stamp)
-        if self.recorder is not None:
-            self.recorder.write("/mocap/poses", poses_record(frame))
+        if self.recorder is not None:      # encoded by the recorder's thread, after the frames went out
+            self.recorder.write_later("/mocap/poses", poses_record, (frame,))
 
     def _check_geofence(self, present: np.ndarray) -> None:
         fence = self.config.geofence
@@ -219,33 +260,56 @@ class Hub:
         period = 1.0 / self.config.network.downlink_hz
         slack = 0.0 if fresh else period / 2.0
         due = [r for r in self.robots.values() if r.routing is not None and now >= r.next_due + slack]
-        self.sensors.prepare([r.id for r in due])
+        if not due:
+            return
+        self.send_frames(due, now)
         for robot in due:
-            self.send_frame(robot, now)
             robot.next_due += period
             if robot.next_due <= now:
                 robot.next_due = now + period
 
     def send_frame(self, robot: RobotLink, now: float) -> None:
-        mode, reason = self.mode_for(robot)
-        row = self.row[robot.id]
-        present = bool(self.sensors.present[row])
-        neighbours = self.sensors.neighbours_of(robot.id) if present else []
-        budget = MAX_MESSAGE_BYTES - 1024 - 48 * len(neighbours)
-        robot.seq += 1
-        frame: Dict[str, Any] = {"type": "frame", "seq": robot.seq, "mode": mode,
-                                 "hub_t": round(self.last_frame_stamp, 6) if present else round(now, 6),
-                                 "pose": self.sensors.pose_of(robot.id),
-                                 "pose_age_s": round(max(0.0, now - self.seen_at[row]), 6) if present else 0.0,
-                                 "neighbours": neighbours, "messages": self.relay.take(robot.id, budget)}
-        if reason:
-            frame["reason"] = reason
-        if self.clock_s is not None:
-            frame["clock_s"] = self.clock_s
-        extra = self.extras.get(robot.id)
-        if extra is not None:
-            frame["sim"] = extra
-        self.send_to(robot, frame, topic="frame")
+        self.send_frames([robot], now)
+
+    def send_frames(self, robots: List[RobotLink], now: float) -> None:
+        """One frame to each of ``robots``, in that order. The sensor part of all of them is built in one
+        vectorised pass (:meth:`VirtualSensors.frames`); each frame is then a header pack, a slice of the
+        neighbour records and, only when it carries messages, a reason or sim readings, a small JSON tail
+        (docs/protocol.md). Nothing per neighbour happens in Python, and recording waits until all are sent."""
+        batch = self.sensors.frames([robot.id for robot in robots])
+        clock_s, stamp = self.clock_s, self.last_frame_stamp
+        ages = np.maximum(now - self.seen_at.take(batch.rows), 0.0).tolist()
+        recording = self.recorder is not None
+        for k, robot in enumerate(robots):
+            mode, reason = self.mode_for(robot)
+            tail: Dict[str, Any] = {}
+            if self.relay.pending(robot.id):
+                budget = MAX_MESSAGE_BYTES - FRAME_HEADER.size - TAIL_SLACK_BYTES \
+                    - NEIGHBOUR_DTYPE.itemsize * batch.count(k)
+                messages = self.relay.take(robot.id, budget)
+                if messages:
+                    tail["messages"] = messages
+            if reason:
+                tail["reason"] = reason
+            extra = self.extras.get(robot.id)
+            if extra is not None:
+                tail["sim"] = extra
+            robot.seq += 1
+            present = batch.present[k]
+            hub_t = stamp if present else now
+            age = ages[k] if present else 0.0
+            try:
+                data = pack_frame(robot.seq, MODE_CODES[mode], hub_t, age, batch.poses[k], batch.block(k),
+                                  frame_tail(tail) if tail else b"", clock_s)
+            except ProtocolError as err:
+                self.drops.drop("unencodable downlink", f"robot {robot.id}", str(err))
+                continue
+            if self._send(robot, data) and recording:
+                self.recorder.write_later(robot_topic(robot.id, "frame"), frame_record,
+                                          (robot.seq, mode, hub_t, age, batch, k, tail, clock_s))
+        if recording:
+            self.recorder.kick()    # encode and write them now, in the recorder's thread
+        self.sensors.refill()       # the next burst's noise, drawn now that this one is out
 
     def send_to(self, robot: RobotLink, message: Dict[str, Any], topic: str) -> bool:
         try:
@@ -253,16 +317,23 @@ class Hub:
         except ProtocolError as err:
             self.drops.drop("unencodable downlink", f"robot {robot.id}", str(err))
             return False
+        if not self._send(robot, data):
+            return False
+        if self.recorder is not None:
+            self.recorder.write(robot_topic(robot.id, topic), message)
+        return True
+
+    def _send(self, robot: RobotLink, data: bytes) -> bool:
+        sock = self.robot_socket
         try:
-            self.robot_socket.send_multipart([robot.routing, data], zmq.NOBLOCK)
+            sock.send(robot.routing, _SEND_MORE)
+            sock.send(data, _SEND_LAST)
         except zmq.Again:
             robot.frames_dropped += 1      # the agent is not reading: drop rather than queue stale data
             return False
         except zmq.ZMQError:               # EHOSTUNREACH: the agent's connection is gone
             robot.routing = None
             return False
-        if self.recorder is not None:
-            self.recorder.write(robot_topic(robot.id, topic), message)
         return True
 
     def send_command_to_all(self, cmd: str, reason: str = "") -> None:
@@ -383,6 +454,19 @@ def poses_record(frame: PoseFrame) -> Dict[str, Any]:
         bodies[str(rid)] = [round(x, 5), round(y, 5), 0.0, 0.0, 0.0, round(math.sin(yaw / 2.0), 6),
                             round(math.cos(yaw / 2.0), 6)]
     return {"bodies": bodies, "clock_s": frame.clock_s}
+
+
+def frame_record(seq: int, mode: str, hub_t: float, age: float, batch, k: int, tail: Dict[str, Any],
+                 clock_s: Optional[float]) -> Dict[str, Any]:
+    """``/robot/<id>/frame``: the frame as the agent decodes it (docs/recording.md), without ``v``."""
+    pose = batch.poses[k]
+    record: Dict[str, Any] = {"type": "frame", "seq": seq, "mode": mode, "hub_t": hub_t,
+                              "pose": None if pose is None else list(pose), "pose_age_s": age,
+                              "neighbours": batch.neighbours(k), "messages": []}
+    if clock_s is not None:
+        record["clock_s"] = clock_s
+    record.update(tail)
+    return record
 
 
 def _property(frame: zmq.Frame, name: str) -> Optional[str]:

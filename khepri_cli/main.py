@@ -38,11 +38,35 @@ def import_user_modules(names: List[str]) -> None:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    try:
+        return _run(argv)
+    except BrokenPipeError:
+        # The reader went away (`khepri sim list | head`): stop quietly, as the Python docs recommend ("Note on
+        # SIGPIPE"): point stdout at /dev/null so the interpreter's final flush does not fail a second time.
+        _silence_stdout()
+        return 1
+
+
+def _silence_stdout() -> None:
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):   # stdout without a file descriptor (e.g. captured in tests)
+        pass
+
+
+def _run(argv: Optional[List[str]]) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit:
+        sys.stdout.flush()          # --help into a closed pipe fails here, inside main(), not at exit
+        raise
     try:
         import_user_modules(args.imports)
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()          # buffered output meets a closed pipe here, inside main(), not at exit
+        return code
     except ConfigError as err:
         print(f"khepri: error: {err}", file=sys.stderr)
         return 2

@@ -1,9 +1,12 @@
 """The wire protocol between the hub and the robot agents (and the operator's ``khepri ctl``).
 
-One message is one ZeroMQ frame holding one compact JSON object with a version ``v`` and a ``type``.
-The hub and the agent import this module, so both sides check exactly the same rules:
-:func:`encode` refuses what the peer would reject, :func:`decode` rejects what does not fit a schema and
-raises :class:`ProtocolError` naming the sender and the field. docs/protocol.md documents every type.
+One message is one ZeroMQ frame. Downlink ``frame`` messages (the hub's 20 Hz sensor frames, the bulk of the
+traffic) are binary: a fixed little-endian header, the neighbours as packed records, and a JSON tail for the
+variable parts (relayed messages, ``reason``, ``sim``). Every other message is one compact JSON object with a
+version ``v`` and a ``type``. The hub and the agent import this module, so both sides check exactly the same
+rules: :func:`encode` refuses oversized messages and frames that do not fit their schema, :func:`decode`
+rejects what does not fit a schema and raises :class:`ProtocolError` naming the sender and the field.
+docs/protocol.md documents every type and the binary layout.
 
 Units: metres, seconds, radians, m/s. Poses are in the world (motion-capture) frame, z up; bearings are in
 the receiving robot's frame, counter-clockwise, in (-pi, pi].
@@ -12,9 +15,12 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any, Callable, Dict, Iterable, Optional
+import struct
+from typing import Any, Callable, Dict, Iterable, List, Optional
 
-PROTOCOL_VERSION = 1
+import numpy as np
+
+PROTOCOL_VERSION = 2
 #: Largest encoded message on any socket. Downlink frames pack relayed messages only up to this size.
 MAX_MESSAGE_BYTES = 65536
 #: Largest radio payload (compact JSON), the same limit as ``onboard.hal.Radio.MAX_PAYLOAD_BYTES``.
@@ -22,6 +28,21 @@ MAX_PAYLOAD_BYTES = 8192
 MODES = ("idle", "run", "hold", "estop")
 COMMANDS = ("start", "stop", "estop", "clear")
 CONTROL_COMMANDS = ("status", "start", "stop", "estop", "clear")
+
+# --- the binary frame (docs/protocol.md, "Binary frame layout") ----------------------------------------------
+FRAME_MAGIC = b"KF"
+#: magic, version, mode code, flags, 3 reserved bytes, seq, hub_t, pose_age_s, x, y, yaw, clock_s,
+#: neighbour count, tail bytes: 72 bytes, little-endian, no padding.
+FRAME_HEADER = struct.Struct("<2sBBB3xQddddddII")
+#: One neighbour: robot id (uint32), range_m (float64), bearing_rad (float64): 20 bytes, packed.
+NEIGHBOUR_DTYPE = np.dtype([("id", "<u4"), ("range", "<f8"), ("bearing", "<f8")])
+FLAG_POSE = 1        # the header's x, y, yaw hold the robot's pose (else pose is null)
+FLAG_CLOCK = 2       # the header's clock_s is set (sim source)
+_KNOWN_FLAGS = FLAG_POSE | FLAG_CLOCK
+#: Frame fields carried by the header and the neighbour block; the JSON tail must not repeat them.
+FRAME_BINARY_FIELDS = ("v", "type", "seq", "mode", "hub_t", "pose", "pose_age_s", "clock_s", "neighbours")
+MODE_CODES = {mode: code for code, mode in enumerate(MODES)}
+MAX_ROBOT_ID = 999_999
 
 
 class ProtocolError(ValueError):
@@ -189,7 +210,11 @@ UPLINK_TYPES = ("hello", "telemetry", "broadcast", "wheels", "ack")
 
 
 def encode(message: Dict[str, Any]) -> bytes:
-    """Compact JSON with the version added. Raises ProtocolError when too large or not JSON."""
+    """The wire bytes of one message, the version added: a binary frame for ``type: frame`` (validated against
+    its schema first), compact JSON for every other type. Raises ProtocolError when the peer would reject it:
+    too large, not JSON, or (frames) a field that does not fit."""
+    if message.get("type") == "frame":
+        return _encode_frame_message(message)
     body = dict(message)
     body["v"] = PROTOCOL_VERSION
     try:
@@ -202,28 +227,150 @@ def encode(message: Dict[str, Any]) -> bytes:
     return data
 
 
+def pack_frame(seq: int, mode_code: int, hub_t: float, pose_age_s: float, pose: Optional[Iterable[float]],
+               neighbours: Any = b"", tail: bytes = b"", clock_s: Optional[float] = None) -> bytes:
+    """A binary frame from its parts, without per-field checks: the hub's fast path (``encode`` validates a
+    frame dict and then calls this). ``neighbours`` is a bytes-like block of :data:`NEIGHBOUR_DTYPE` records
+    (e.g. ``array.tobytes()`` or a slice of it), ``tail`` the compact-JSON tail from :func:`frame_tail` or
+    ``b""``. The caller guarantees finite numbers, ranges >= 0 and robot ids; the size is checked here."""
+    flags, x, y, yaw = 0, 0.0, 0.0, 0.0
+    if pose is not None:
+        flags = FLAG_POSE
+        x, y, yaw = pose
+    if clock_s is None:
+        clock_s = 0.0
+    else:
+        flags |= FLAG_CLOCK
+    block = len(neighbours)
+    size = FRAME_HEADER.size + block + len(tail)
+    if size > MAX_MESSAGE_BYTES:
+        raise ProtocolError(f"message of {size} bytes exceeds {MAX_MESSAGE_BYTES}", "frame", "self")
+    if block % NEIGHBOUR_DTYPE.itemsize:
+        raise ProtocolError(f"a neighbour block of {block} bytes is not whole records", "frame.neighbours", "self")
+    try:
+        header = FRAME_HEADER.pack(FRAME_MAGIC, PROTOCOL_VERSION, mode_code, flags, seq, hub_t, pose_age_s,
+                                   x, y, yaw, clock_s, block // NEIGHBOUR_DTYPE.itemsize, len(tail))
+    except struct.error as err:
+        raise ProtocolError(f"cannot encode: {err}", "frame", "self") from None
+    return b"".join((header, neighbours, tail))
+
+
+def frame_tail(fields: Dict[str, Any]) -> bytes:
+    """The JSON tail of a frame (``messages``, ``reason``, ``sim``, future optional fields); ``b""`` when empty."""
+    if not fields:
+        return b""
+    try:
+        return json.dumps(fields, separators=(",", ":")).encode("utf-8")
+    except (TypeError, ValueError) as err:
+        raise ProtocolError(f"cannot encode: {err}", "frame", "self") from None
+
+
+def _encode_frame_message(message: Dict[str, Any]) -> bytes:
+    try:
+        _check_schema(message, "frame")
+        if "v" in message and message["v"] != PROTOCOL_VERSION:
+            _fail("frame.v", f"must be {PROTOCOL_VERSION} (got {_short(message['v'])})")
+    except ProtocolError as err:
+        raise ProtocolError(err.problem, err.field, "self") from None
+    neighbours = message["neighbours"]
+    block = np.array([tuple(n) for n in neighbours], dtype=NEIGHBOUR_DTYPE).tobytes() if neighbours else b""
+    tail = {k: v for k, v in message.items() if k not in FRAME_BINARY_FIELDS and not (k == "messages" and not v)}
+    return pack_frame(message["seq"], MODE_CODES[message["mode"]], message["hub_t"],
+                      message.get("pose_age_s", 0.0), message.get("pose"), block, frame_tail(tail),
+                      message.get("clock_s"))
+
+
 def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = None) -> Dict[str, Any]:
-    """Parse and validate one message. ``accept`` restricts the types this socket takes."""
+    """Parse and validate one message (binary frame or JSON). ``accept`` restricts the types this socket takes."""
     try:
         if len(data) > MAX_MESSAGE_BYTES:
             _fail("", f"message of {len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")
+        allowed = tuple(accept) if accept is not None else tuple(SCHEMAS)
+        if data[:2] == FRAME_MAGIC:
+            if "frame" not in allowed:
+                _fail("type", f"must be one of {', '.join(allowed)} (got a binary frame)")
+            return _decode_frame(data)
         try:
             message = json.loads(data)
         except (UnicodeDecodeError, ValueError, RecursionError):
-            _fail("", f"not a JSON message ({_short(bytes(data[:40]))})")
+            _fail("", f"not a JSON message or a binary frame ({_short(bytes(data[:40]))})")
         if not isinstance(message, dict):
             _fail("", f"must be a JSON object (got {_short(message)})")
         version = message.get("v")
         if version != PROTOCOL_VERSION:
             _fail("v", f"unsupported protocol version {_short(version)} (this side speaks {PROTOCOL_VERSION})")
         kind = message.get("type")
-        allowed = tuple(accept) if accept is not None else tuple(SCHEMAS)
         if kind not in allowed:
             _fail("type", f"must be one of {', '.join(allowed)} (got {_short(kind)})")
+        if kind == "frame":
+            _fail("type", "a frame must come in the binary frame encoding, not as JSON")
         _check_schema(message, kind)
         return message
     except ProtocolError as err:
         raise ProtocolError(err.problem, err.field, sender) from None
+
+
+def _decode_frame(data: bytes) -> Dict[str, Any]:
+    size, header = len(data), FRAME_HEADER.size
+    if size < header:
+        _fail("frame", f"binary frame of {size} bytes is shorter than its {header}-byte header")
+    _, version, mode_code, flags, seq, hub_t, pose_age_s, x, y, yaw, clock_s, count, tail_len = \
+        FRAME_HEADER.unpack_from(data)
+    if version != PROTOCOL_VERSION:
+        _fail("v", f"unsupported protocol version {version} (this side speaks {PROTOCOL_VERSION})")
+    expected = header + count * NEIGHBOUR_DTYPE.itemsize + tail_len
+    if size != expected:
+        _fail("frame", f"{size} bytes, but its header announces {count} neighbours and a {tail_len}-byte tail "
+                       f"({expected} bytes)")
+    if mode_code >= len(MODES):
+        _fail("frame.mode", f"must be one of {', '.join(MODES)} (got code {mode_code})")
+    if flags & ~_KNOWN_FLAGS:
+        _fail("frame.flags", f"unknown flag bits {flags & ~_KNOWN_FLAGS:#x}")
+    number(hub_t, "frame.hub_t")
+    non_negative(pose_age_s, "frame.pose_age_s")
+    pose = None
+    if flags & FLAG_POSE:
+        pose = [x, y, yaw]
+        numbers(3)(pose, "frame.pose")
+    message: Dict[str, Any] = {"v": version, "type": "frame", "seq": seq, "mode": MODES[mode_code],
+                               "hub_t": hub_t, "pose": pose, "pose_age_s": pose_age_s}
+    if flags & FLAG_CLOCK:
+        number(clock_s, "frame.clock_s")
+        message["clock_s"] = clock_s
+    message["neighbours"] = _decode_neighbours(data, count) if count else []
+    message["messages"] = []
+    if tail_len:
+        message.update(_decode_tail(data[size - tail_len:]))
+    return message
+
+
+def _decode_neighbours(data: bytes, count: int) -> List[list]:
+    block = np.frombuffer(data, NEIGHBOUR_DTYPE, count, FRAME_HEADER.size)
+    ids, ranges, bearings = block["id"], block["range"], block["bearing"]
+    for column, bad, problem in ((0, ids > MAX_ROBOT_ID, f"must be a robot id 0..{MAX_ROBOT_ID}"),
+                                 (1, ~(ranges >= 0.0) | ~np.isfinite(ranges), "must be a finite number >= 0"),
+                                 (2, ~np.isfinite(bearings), "must be a finite number")):
+        if bad.any():
+            i = int(np.argmax(bad))
+            _fail(f"frame.neighbours[{i}][{column}]", f"{problem} (got {block[i][column]})")
+    return [[i, r, b] for i, r, b in zip(ids.tolist(), ranges.tolist(), bearings.tolist())]
+
+
+def _decode_tail(data: bytes) -> Dict[str, Any]:
+    try:
+        tail = json.loads(data)
+    except (UnicodeDecodeError, ValueError, RecursionError):
+        _fail("frame.tail", f"not a JSON object ({_short(bytes(data[:40]))})")
+    if not isinstance(tail, dict):
+        _fail("frame.tail", f"must be a JSON object (got {_short(tail)})")
+    checks = {**SCHEMAS["frame"]["required"], **SCHEMAS["frame"]["optional"]}
+    for name, value in tail.items():
+        if name in FRAME_BINARY_FIELDS:
+            _fail(f"frame.{name}", "belongs in the binary header, not in the JSON tail")
+        check = checks.get(name)
+        if check is not None:
+            check(value, f"frame.{name}")
+    return tail
 
 
 def _check_schema(message: Dict[str, Any], kind: str) -> None:

@@ -1,7 +1,9 @@
 """Thousands of random, truncated, oversized and wrong-version messages to every socket: the hub and the agent
 count and drop them, stay up, and keep serving the real traffic."""
 import json
+import math
 import random
+import struct
 import time
 
 import pytest
@@ -9,7 +11,7 @@ import zmq
 
 from hub.config import parse_config
 from hub.harness import HubThread, ScriptedHub, spawn_agent, stop_processes
-from onboard.protocol import encode
+from onboard.protocol import FRAME_HEADER, FRAME_MAGIC, PROTOCOL_VERSION, encode
 
 VALID_UPLINK = encode({"type": "telemetry", "id": 0, "step": 1, "mode": "run"})
 VALID_REQUEST = encode({"type": "request", "cmd": "status"})
@@ -19,17 +21,22 @@ VALID_FRAME = encode({"type": "frame", "seq": 1, "mode": "run", "hub_t": 0.0, "n
 
 def garbage(rng: random.Random, valid: bytes):
     """One bad message of a random kind (as a list of frames)."""
-    kind = rng.randrange(9)
+    kind = rng.randrange(10)
+    binary = valid.startswith(FRAME_MAGIC)
     if kind == 0:
         return [bytes(rng.getrandbits(8) for _ in range(rng.randrange(0, 300)))]
     if kind == 1:
         return [valid[:rng.randrange(0, len(valid))]]                       # truncated
     if kind == 2:
-        return [json.dumps({**json.loads(valid), "v": rng.choice([0, 2, "1", None, 1.5])}).encode()]
+        if binary:
+            return [valid[:2] + bytes([rng.choice([0, 1, 3, 255])]) + valid[3:]]
+        return [json.dumps({**json.loads(valid), "v": rng.choice([0, 1, 3, "2", None, 1.5])}).encode()]
     if kind == 3:   # oversized: past the protocol's limit, and now and then past ZeroMQ's cut-off too
         size = 70_000 if rng.random() < 0.1 else 65_600
-        return [b'{"v":1,"type":"telemetry","pad":"' + b"x" * size + b'"}']
+        return [b'{"v":%d,"type":"telemetry","pad":"' % PROTOCOL_VERSION + b"x" * size + b'"}']
     if kind == 4:
+        if binary:
+            return [broken_frame(rng, valid)]
         message = json.loads(valid)
         key = rng.choice(sorted(message))
         message[key] = rng.choice([None, -1, "x", [], {}, 1e309, [1] * 5, True])
@@ -39,8 +46,35 @@ def garbage(rng: random.Random, valid: bytes):
     if kind == 6:
         return [b"[" * 5000 + b"]" * 5000]
     if kind == 7:
-        return [json.dumps({"v": 1, "type": rng.choice(["frame", "hello", "nope", "reply", 7])}).encode()]
+        kind_name = rng.choice(["frame", "hello", "nope", "reply", 7])
+        return [json.dumps({"v": PROTOCOL_VERSION, "type": kind_name}).encode()]
+    if kind == 8:
+        return [VALID_FRAME if not binary else VALID_UPLINK]                  # the other direction's message
     return [b""]
+
+
+def broken_frame(rng: random.Random, valid: bytes) -> bytes:
+    """A binary frame with one field made invalid: header values, counts that lie, neighbours, the JSON tail."""
+    data = bytearray(valid)
+    header = FRAME_HEADER.size
+    choice = rng.randrange(6)
+    if choice == 0:
+        data[3] = rng.randrange(4, 256)                                       # no such mode
+    elif choice == 1:
+        data[4] |= 1 << rng.randrange(2, 8)                                   # unknown flag bits
+    elif choice == 2:                                                         # hub_t, pose_age_s, x, y, yaw
+        struct.pack_into("<d", data, rng.choice([16, 24, 32, 40, 48]), rng.choice([math.nan, math.inf, -math.inf]))
+    elif choice == 3:
+        struct.pack_into("<I", data, rng.choice([64, 68]), rng.randrange(0, 1 << 32))   # counts that lie
+    elif choice == 4:                                                         # neighbour 0: id, range, bearing
+        offset, fmt, value = rng.choice([(0, "<I", 1 << 31), (4, "<d", -1.0), (4, "<d", math.nan),
+                                         (12, "<d", math.inf)])
+        struct.pack_into(fmt, data, header + offset, value)
+    else:
+        count, tail = struct.unpack_from("<II", data, 64)
+        start = header + 20 * count
+        data[start:start + tail] = bytes(rng.getrandbits(8) for _ in range(tail))   # a tail that is not JSON
+    return bytes(data)
 
 
 def fuzz(sock: zmq.Socket, valid: bytes, count: int, seed: int, timeout_s: float = 30.0) -> int:

@@ -1,13 +1,20 @@
-"""The commands as a user types them: `khepri hub --demo` with `khepri ctl status` and `khepri agent` defaults,
-`khepri keys init`, `khepri bench hub --json`."""
+"""The commands as a user types them: `khepri hub` with `khepri ctl status` and `khepri agent`, `khepri keys init`,
+`khepri bench hub --json`. The hub binds free ports (port 0) and the clients read them from its log, so parallel
+test runs cannot collide; the default ports are checked without binding them."""
 import json
 import os
+import re
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import pytest
+import yaml
+
+from hub.config import demo_config
 from hub.harness import stop_processes
+from khepri_cli.main import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -23,9 +30,20 @@ def spawn(*args, log):
                             env=ENV, text=True)
 
 
-def test_demo_hub_answers_ctl_and_takes_an_agent_with_defaults(tmp_path):
+def test_the_demo_hub_and_the_clients_agree_on_the_default_ports():
+    network = demo_config().network
+    assert (network.bind, network.robot_port, network.control_port) == ("127.0.0.1", 5560, 5561)
+    parser = build_parser()
+    assert parser.parse_args(["agent", "--id", "2", "--driver", "sim"]).port == network.robot_port
+    assert parser.parse_args(["ctl", "status"]).port == network.control_port
+
+
+def test_hub_answers_ctl_and_takes_an_agent(tmp_path):
+    config = tmp_path / "lab.yaml"     # the demo (sim source on lab-6, loopback) on free ports; --insecure below
+    config.write_text(yaml.safe_dump({"source": {"type": "sim", "scenario": "lab-6"},
+                                      "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}}))
     hub_log = open(tmp_path / "hub.log", "w")
-    hub = spawn("hub", "--demo", log=hub_log)
+    hub = spawn("hub", "--config", str(config), "--insecure", log=hub_log)
     agent = None
     try:
         deadline = time.monotonic() + 30
@@ -33,18 +51,20 @@ def test_demo_hub_answers_ctl_and_takes_an_agent_with_defaults(tmp_path):
             assert hub.poll() is None and time.monotonic() < deadline, (tmp_path / "hub.log").read_text()
             time.sleep(0.1)
         text = (tmp_path / "hub.log").read_text()
-        assert "listening robots tcp://127.0.0.1:5560" in text and "listening control tcp://127.0.0.1:5561" in text
+        ports = dict(re.findall(r"listening (robots|control) tcp://127\.0\.0\.1:(\d+)", text))
+        assert set(ports) == {"robots", "control"}, text
         assert "WARNING: --insecure" in text
-        agent = spawn("agent", "--id", "2", "--driver", "sim", log=open(tmp_path / "agent.log", "w"))
+        agent = spawn("agent", "--id", "2", "--driver", "sim", "--port", ports["robots"],
+                      log=open(tmp_path / "agent.log", "w"))
         while True:
-            status = khepri("ctl", "status", "--json")
+            status = khepri("ctl", "status", "--json", "--port", ports["control"])
             assert status.returncode == 0, status.stderr
             robots = json.loads(status.stdout)["robots"]
             if robots[2]["connected"]:
                 break
             assert time.monotonic() < deadline + 30, "the agent did not join"
             time.sleep(0.2)
-        table = khepri("ctl", "status").stdout
+        table = khepri("ctl", "status", "--port", ports["control"]).stdout
         assert table.splitlines()[0].startswith("hub: idle") and "INSECURE" in table
     finally:
         codes = stop_processes([p for p in (agent, hub) if p is not None])
@@ -68,3 +88,18 @@ def test_bench_hub_prints_the_three_figures():
     figures = json.loads(run.stdout)
     assert set(figures) >= {"latency_p50_ms", "latency_p99_ms", "hub_cpu_percent"}
     assert 0 < figures["latency_p50_ms"] <= figures["latency_p99_ms"] < 100
+
+
+@pytest.mark.parametrize("unbuffered", ["", "1"])
+def test_output_into_a_closed_pipe_ends_quietly(unbuffered):
+    """`khepri sim list | head -1`: no BrokenPipeError traceback when the reader goes away, whether the output
+    fails at a print (unbuffered) or at the final flush (a pipe's usual block buffering)."""
+    env = {k: v for k, v in ENV.items() if k != "PYTHONUNBUFFERED"}
+    if unbuffered:
+        env["PYTHONUNBUFFERED"] = unbuffered
+    reader = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "sim", "list"], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, env=env)
+    reader.stdout.close()          # gone before the first line is written
+    stderr = reader.stderr.read().decode()
+    assert reader.wait(timeout=60) == 1
+    assert "Traceback" not in stderr and "BrokenPipeError" not in stderr, stderr

@@ -7,6 +7,8 @@ import pytest
 from hub.relay import RadioRelay
 from hub.sensors import SensingModel, VirtualSensors
 from hub.sources import pose_from_mocap
+from onboard.geometry import neighbour_mask, pairwise_range_bearing
+from onboard.protocol import decode, pack_frame
 
 POSES = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, math.pi / 2], [0.0, 2.5, 0.0], [10.0, 0.0, 0.0]])
 IDS = [4, 7, 9, 12]
@@ -40,6 +42,34 @@ def test_noise_has_the_configured_spread():
         sensors.update(POSES, np.ones(4, dtype=bool))
         errors.append(sensors.neighbours_of(4)[0][1] - 1.0)
     assert np.std(errors) == pytest.approx(0.05, rel=0.2)
+
+
+def test_rows_are_the_simulators_geometry_bit_for_bit():
+    rng = np.random.default_rng(5)
+    poses = np.column_stack([rng.uniform(0, 6, 60), rng.uniform(0, 6, 60), rng.uniform(-np.pi, np.pi, 60)])
+    sensors = VirtualSensors(list(range(100, 160)), SensingModel(2.0, 0.0, 0.0), rng)
+    sensors.update(poses, np.ones(60, dtype=bool))
+    ranges, bearings = pairwise_range_bearing(poses[:, :2], poses[:, 2])
+    rows = [7, 0, 59, 31]
+    got_ranges, got_bearings, got_mask = sensors.geometry(rows)
+    np.testing.assert_array_equal(got_ranges, ranges[rows])
+    np.testing.assert_array_equal(got_bearings, bearings[rows])
+    np.testing.assert_array_equal(got_mask, neighbour_mask(ranges, 2.0)[rows])
+    batch = sensors.frames([100 + r for r in rows])      # no noise: the rounded true values, pair by pair
+    for k, row in enumerate(rows):
+        cols = np.nonzero(neighbour_mask(ranges, 2.0)[row])[0]
+        assert batch.neighbours(k) == [[100 + j, round(float(ranges[row, j]), 4), round(float(bearings[row, j]), 4)]
+                                       for j in cols]
+
+
+def test_a_batch_of_frames_decodes_to_what_the_sensors_computed():
+    sensors = exact_sensors(present=(True, False, True, True))
+    batch = sensors.frames([9, 7, 4, 12])
+    for k, rid in enumerate([9, 7, 4, 12]):
+        frame = decode(pack_frame(k, 1, 5.0, 0.001, batch.poses[k], batch.block(k)), "hub")
+        assert frame["neighbours"] == batch.neighbours(k) == sensors.neighbours_of(rid)
+        assert frame["pose"] == sensors.pose_of(rid)
+    assert batch.poses[1] is None and batch.count(1) == 0 and batch.neighbours(2) == [[9, 2.5, 1.5708]]
 
 
 def test_relay_reaches_only_receivers_and_respects_limits():

@@ -9,8 +9,8 @@ import zmq
 from hub.config import parse_config
 from hub.factory import build_hub
 from hub.harness import HubThread
-from hub.recording import Recorder
-from hub.server import poses_record
+from hub.recording import Recorder, read_log
+from hub.server import UPLINK_SLICE, poses_record
 from hub.sources import PoseFrame
 from onboard.protocol import decode, encode
 
@@ -73,6 +73,42 @@ def test_stale_bodies_lose_their_pose_and_are_held():
         assert hub.mode_for(hub.robots[1]) == ("hold", "not tracked by motion capture")
     finally:
         hub.source.close()
+
+
+def test_a_waiting_pose_frame_interrupts_uplink_reading():
+    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0)"), log=lambda line: None)
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    try:
+        hub.bind()
+        sock.connect(hub.endpoints["robots"])
+        for step in range(1, 101):
+            sock.send(encode({"type": "telemetry", "id": 0, "step": step, "mode": "idle"}))
+        deadline = time.monotonic() + 5.0
+        while hub.robot_socket.getsockopt(zmq.EVENTS) & zmq.POLLIN == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)                       # all 100 queued at the hub
+        hub.source.wake.poke()                # a pose frame waits
+        hub.handle_uplink_events({hub.robot_socket: zmq.POLLIN})
+        assert hub.robots[0].step_answered == UPLINK_SLICE - 1
+        hub.source.running = False            # no more pose frames: the rest is read in one go
+        hub.source.thread.join()
+        hub.source.wake.drain()
+        hub.handle_uplink_events({hub.robot_socket: zmq.POLLIN})
+        assert hub.robots[0].step_answered == 100
+    finally:
+        sock.close(0)
+        hub.close()
+
+
+def test_the_log_holds_each_frame_as_the_agent_decoded_it(tmp_path):
+    log = tmp_path / "hub.mcap"
+    with HubThread(mock_config("kh0(1.0,2.0,0.05,1,0,0,0);kh1(1.5,2.0,0.05,1,0,0,0)", record=str(log))) as hub:
+        frame = first_frame_for(hub.endpoints["robots"], 0)
+    records = list(read_log(log))
+    recorded = next(r.payload for r in records if r.topic == "/robot/0/frame" and r.payload["seq"] == frame["seq"])
+    assert {**recorded, "v": frame["v"]} == frame
+    poses = next(r for r in records if r.topic == "/mocap/poses")
+    assert set(poses.payload["bodies"]) == {"0", "1"}
 
 
 def test_replay_serves_recorded_poses(tmp_path):

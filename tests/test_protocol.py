@@ -1,17 +1,22 @@
 """The wire protocol: every message type round-trips, and bad messages are rejected naming sender and field."""
 import json
 import math
+import struct
 
 import pytest
 
 from onboard.protocol import (
     DOWNLINK_TYPES,
+    FRAME_HEADER,
     MAX_MESSAGE_BYTES,
+    NEIGHBOUR_DTYPE,
     PROTOCOL_VERSION,
     UPLINK_TYPES,
     ProtocolError,
     decode,
     encode,
+    frame_tail,
+    pack_frame,
 )
 
 EXAMPLES = {
@@ -43,6 +48,36 @@ def test_encoding_is_compact_json():
     data = encode(EXAMPLES["wheels"])
     assert b" " not in data
     assert json.loads(data)["type"] == "wheels"
+
+
+def test_a_frame_is_binary_with_the_documented_layout():
+    data = encode(EXAMPLES["frame"])
+    magic, version, mode, flags, seq, hub_t, age, x, y, yaw, clock_s, count, tail = FRAME_HEADER.unpack_from(data)
+    assert FRAME_HEADER.size == 72 and NEIGHBOUR_DTYPE.itemsize == 20
+    assert (magic, version, mode, flags, seq, hub_t, age) == (b"KF", PROTOCOL_VERSION, 1, 3, 7, 12.5, 0.004)
+    assert (x, y, yaw, clock_s, count) == (0.1, -0.2, 1.5, 10.2, 2)
+    assert struct.unpack_from("<Idd", data, 72) == (3, 0.42, -1.2)
+    assert json.loads(data[72 + 40:]) == {"messages": [[3, 10.1, {"task": [1, 2]}]],
+                                          "sim": {"ir": [0.0] * 8, "odo": [0.5, 0.6]}}
+    assert len(data) == 72 + 40 + tail
+
+
+def test_a_frame_without_pose_messages_or_extras_has_no_tail():
+    data = encode({"type": "frame", "seq": 1, "mode": "hold", "hub_t": 3.0, "pose": None, "neighbours": [],
+                   "messages": [], "reason": ""})
+    assert len(data) == FRAME_HEADER.size + len(b'{"reason":""}')
+    decoded = decode(encode({"type": "frame", "seq": 1, "mode": "idle", "hub_t": 3.0, "neighbours": [],
+                             "messages": []}), "hub")
+    assert decoded == {"v": PROTOCOL_VERSION, "type": "frame", "seq": 1, "mode": "idle", "hub_t": 3.0,
+                       "pose": None, "pose_age_s": 0.0, "neighbours": [], "messages": []}
+
+
+def test_the_hubs_fast_path_gives_what_encode_gives():
+    frame = EXAMPLES["frame"]
+    block = b"".join(struct.pack("<Idd", *n) for n in frame["neighbours"])
+    fast = pack_frame(7, 1, 12.5, 0.004, (0.1, -0.2, 1.5), memoryview(block),
+                      frame_tail({"messages": frame["messages"], "sim": frame["sim"]}), 10.2)
+    assert fast == encode(frame)
 
 
 def reject(data, accept=None, sender="robot 3"):
@@ -85,8 +120,51 @@ def test_garbage_is_rejected(data, field):
 def test_bad_fields_are_named(kind, field, value):
     message = dict(EXAMPLES[kind])
     message[field] = value
+    if kind == "frame":          # binary: encode refuses it, naming the field, as decode would
+        with pytest.raises(ProtocolError, match=f"from self: {kind}.{field}"):
+            encode(message)
+        return
     text = reject(with_v(message))
     assert f"{kind}.{field}" in text
+
+
+def corrupt(offset, fmt, value, frame=None):
+    data = bytearray(encode(frame or EXAMPLES["frame"]))
+    struct.pack_into(fmt, data, offset, value)
+    return bytes(data)
+
+
+@pytest.mark.parametrize("data, field", [
+    (corrupt(2, "<B", 1), "v: unsupported protocol version 1"),
+    (corrupt(3, "<B", 4), "frame.mode"),
+    (corrupt(4, "<B", 0x83), "frame.flags"),
+    (corrupt(16, "<d", math.nan), "frame.hub_t"),
+    (corrupt(24, "<d", -0.1), "frame.pose_age_s"),
+    (corrupt(40, "<d", math.inf), "frame.pose[1]"),
+    (corrupt(56, "<d", math.nan), "frame.clock_s"),
+    (corrupt(64, "<I", 3), "frame: "),                       # announces 3 neighbours, carries 2
+    (corrupt(68, "<I", 1), "frame: "),                       # announces a 1-byte tail
+    (corrupt(72 + 20, "<I", 1_000_000), "frame.neighbours[1][0]"),
+    (corrupt(72 + 4, "<d", -0.5), "frame.neighbours[0][1]"),
+    (corrupt(72 + 20 + 12, "<d", math.nan), "frame.neighbours[1][2]"),
+    (encode(EXAMPLES["frame"])[:60], "frame: "),             # shorter than the header
+    (encode(EXAMPLES["frame"])[:-1] + b"]", "frame.tail"),   # a tail that is not JSON
+])
+def test_bad_binary_frames_are_rejected_naming_the_field(data, field):
+    assert reject(data, accept=DOWNLINK_TYPES, sender="hub").startswith(f"from hub: {field}")
+
+
+@pytest.mark.parametrize("tail, field", [
+    (b"[1]", "frame.tail"), (b'{"seq": 3}', "frame.seq"), (b'{"messages": [[1, 0.0, 5]]}', "frame.messages[0][2]"),
+    (b'{"sim": {"ir": [0.0], "odo": [0.0, 0.0]}}', "frame.sim.ir"), (b'{"reason": 5}', "frame.reason"),
+])
+def test_bad_frame_tails_are_rejected_naming_the_field(tail, field):
+    data = pack_frame(1, 0, 0.0, 0.0, None, b"", tail)
+    assert reject(data, sender="hub").startswith(f"from hub: {field}")
+
+
+def test_a_json_frame_is_refused():
+    assert "binary" in reject(with_v(EXAMPLES["frame"]))
 
 
 def test_missing_required_field_is_named():
@@ -108,6 +186,12 @@ def test_oversized_messages_are_refused_both_ways():
         encode(huge)
     raw = json.dumps(with_v(huge)).encode()
     assert "exceeds" in reject(raw)
+    crowded = {**EXAMPLES["frame"], "neighbours": [[i, 1.0, 0.0] for i in MAX_MESSAGE_BYTES // 20 * [1]]}
+    with pytest.raises(ProtocolError, match="exceeds"):
+        encode(crowded)
+    block = b"\0" * (MAX_MESSAGE_BYTES // 20 * 20)
+    oversized = FRAME_HEADER.pack(b"KF", PROTOCOL_VERSION, 0, 0, 1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, len(block) // 20, 0)
+    assert "exceeds" in reject(oversized + block)
 
 
 def test_radio_payload_limit_is_the_hal_limit():
