@@ -146,9 +146,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         if self._finish_if_done():
             return
         if "closed" in self.space:
-            if self._caging_only_done():
-                self._keep_clear()
-            elif self.params.reinforce_push:
+            if not self._caging_only_done() and self.params.reinforce_push:
                 self._reinforce(now)
             else:
                 self._keep_clear()

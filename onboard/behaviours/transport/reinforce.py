@@ -32,38 +32,34 @@ ARRIVED_M = 0.05           # closer than this to the waypoint, the cage is arriv
 class ReinforcePhase:
     def _reinforce(self, now: float) -> None:
         """One step of an idle robot helping the cage push (called from idle once the cage has closed)."""
-        members = self._members_alive(now)
-        ring = [self.board.position(m) for m in members]
-        ring = [q for q in ring if q is not None]
+        ring = list(self._member_positions(now).values())    # every live member has a heartbeat
         path = self.space.get("path") or self.params.path
         if len(ring) < 3 or not path:
             self._keep_clear()
             return
         centre = ring_centroid(np.asarray(ring))
-        leg = self._cage_leg(len(members), path)
+        needed = self._barrier_needed(len(ring))
+        leg = self._cage_leg(needed, path)
         if leg is None:
             self._keep_clear()
             return
         target = (float(path[leg][0]), float(path[leg][1]))
         to_target = c.sub(target, centre)
-        if c.norm(to_target) < ARRIVED_M or not self._cage_pushing(leg, len(members)):
+        if c.norm(to_target) < ARRIVED_M or not self._cage_pushing(leg, needed):
             self._hold()
             return
         self._drive(self._reinforce_input(centre, c.unit(to_target), ring))
 
-    def _cage_leg(self, live: int, path: List) -> Optional[int]:
+    def _cage_leg(self, needed: int, path: List) -> Optional[int]:
         """The first waypoint whose rotate barrier the cage has not passed (None once all are done)."""
-        needed = math.ceil(self.params.barrier_fraction * live - 1e-9)
         for k in range(len(path)):
             if len(self.board.arrivals(k, "r")) < needed:
                 return k
         return None
 
-    def _cage_pushing(self, leg: int, live: int) -> bool:
+    def _cage_pushing(self, leg: int, needed: int) -> bool:
         """The cage pushes toward ``leg`` until its push barrier passed (then it rotates there)."""
-        if not self.board.members() or "done" in self.space:
-            return False
-        return len(self.board.arrivals(leg, "p")) < math.ceil(self.params.barrier_fraction * live - 1e-9)
+        return "done" not in self.space and len(self.board.arrivals(leg, "p")) < needed
 
     def _reinforce_input(self, centre: Vec, direction: Vec, ring: List[Tuple[float, float]]) -> Vec:
         me = self.percept.position

@@ -180,7 +180,11 @@ class TransportPhases:
     def _barrier_passed(self, now: float) -> bool:
         live = self._members_alive(now)
         arrived = self.board.arrivals(self.waypoint, self.phase)
-        return len(arrived & set(live)) >= math.ceil(self.params.barrier_fraction * len(live) - 1e-9)
+        return len(arrived & set(live)) >= self._barrier_needed(len(live))
+
+    def _barrier_needed(self, live: int) -> int:
+        """Arrivals that pass a barrier among ``live`` members: ⌈barrier_fraction × live⌉."""
+        return math.ceil(self.params.barrier_fraction * live - 1e-9)
 
     def _object_direction(self, centre: Vec) -> Vec:
         """x_o: from the IR when the object is seen, else toward the estimated centroid."""
