@@ -14,8 +14,9 @@ def test_sil_lab6_cages_and_reaches_every_waypoint(tmp_path):
     result = run_sil(scenario, tmp_path, SilOptions(plot=False))
     print(json.dumps({k: v for k, v in result.items() if k != "waypoints"}, indent=1))
     assert "error" not in result
-    assert result["caged"] is True
+    assert result["caged"] is True and result["completed"] is True, result["failures"]
     assert [w["index"] for w in result["waypoints"]] == list(range(len(scenario.path)))
+    assert result["final_position_error_m"] <= 0.05
     sil = result["sil"]
     assert sil["lockstep"] and sil["agents"] == 6 and sil["agent_exit_codes"] == [0] * 6
     assert sil["step_timeouts"] == 0 and sil["missing_answers"] == 0

@@ -6,6 +6,7 @@ import pytest
 
 from onboard.behaviour import build_params, get_behaviour
 from onboard.behaviours.transport import control as c
+from onboard.behaviours.transport.approach import seed_heading
 from onboard.behaviours.transport.estimator import ring_centroid, ring_rotation
 from onboard.config import ConfigError
 from sim_backend.runner import Simulation
@@ -24,8 +25,8 @@ def test_lab6_cages_the_box_and_brings_it_to_the_last_waypoint(lab6_run):
     assert result["caged"]
     assert result["cage_size"] >= 4
     assert [w["index"] for w in result["waypoints"]] == [0, 1, 2]
-    # The paper's d_tol (0.1 m). Issue #3 asks for 0.05 m on every seed: not met yet (see docs/behaviour.md).
-    assert result["final_position_error_m"] <= 0.1
+    assert result["completed"], result["failures"]
+    assert result["final_position_error_m"] <= 0.05          # issue #3's bar for lab-6 (d_tol is 0.1 m)
     assert result["cage_spacing_m"]["std"] <= 0.05
     for waypoint in result["waypoints"]:
         assert waypoint["centroid_estimation_error_m"] <= 0.05
@@ -126,3 +127,21 @@ def test_centroid_and_rotation_from_the_cage_ring():
     reference = {i: (math.cos(a), math.sin(a)) for i, a in enumerate((0.0, 1.5, 3.0, 4.5))}
     turned = {i: (math.cos(a + 0.3), math.sin(a + 0.3)) for i, a in enumerate((0.0, 1.5, 3.0, 4.5))}
     assert ring_rotation(turned, reference, (0, 0), (0, 0)) == pytest.approx(0.3)
+
+
+@pytest.mark.parametrize("start_deg", [0, 45, 90, 135, 180, 225, 300])
+def test_the_seed_meets_the_object_behind_its_first_leg(start_deg):
+    """seed_from_rear: from any side, the seed circles round and touches a 0.2 m disc on the line of travel
+    through the centroid, on the side away from the first waypoint; a robot already behind drives straight in."""
+    centre, waypoint = (1.0, 2.0), (1.0, 3.0)             # travel +y: the rear is -y
+    start = math.radians(start_deg)
+    x, y = centre[0] + 1.2 * math.cos(start), centre[1] + 1.2 * math.sin(start)
+    travelled = 0.0
+    while math.hypot(x - centre[0], y - centre[1]) > 0.2:
+        step = c.scale(c.unit(seed_heading((x, y), centre, waypoint, 0.8)), 0.01)
+        x, y, travelled = x + step[0], y + step[1], travelled + 0.01
+        assert travelled < 6.0, "the seed never reached the object"
+    contact = math.degrees(math.atan2(y - centre[1], x - centre[0]))
+    assert contact == pytest.approx(-90.0, abs=6.0)
+    # No direction of travel (the first waypoint is a turn on the spot): straight at the centroid.
+    assert c.unit(seed_heading((2.0, 2.0), centre, centre, 0.8)) == pytest.approx((-1.0, 0.0))

@@ -15,13 +15,14 @@ from ...behaviour import Behaviour, register
 from ...localisation import PoseTracker
 from ...motion import vector_to_wheels
 from . import control as c
+from .approach import seed_heading
 from .control import Vec
 from .estimator import ObjectFilter, ring_centroid
 from .params import TransportParams
 from .perception import Percept, near, nearest, perceive, world_to_robot
 from .reinforce import ReinforcePhase
 from .tasks import BRANCH_DIRECTION, Task, TaskBoard, distance, new_space, task_id
-from .transport import TransportPhases
+from .transport import GAP_GAIN, GAP_READING, TransportPhases
 
 SETTLE_STEPS = 10          # a caging robot must hold its place this many steps to count as settled
 ATTACH_RADIUS_M = 0.25     # switch from travelling to attaching this close to the target
@@ -211,7 +212,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         self.task = task        # the predecessor may have re-aimed the target (same epoch, new position)
         return True
 
-    # --- seed: drive to the estimated centroid until the IR sees the object ----------------------------------
+    # --- seed: drive to the estimated centroid (improved: from behind it) until the IR sees the object -------
     def _on_seed(self, now: float) -> None:
         if not self._still_mine():
             return
@@ -219,8 +220,13 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         if percept.in_contact(p.proximity_threshold):
             self._settle_as_member(now)
             return
-        toward = c.unit(c.sub(self.task.position, percept.position))
-        self._drive(c.add(toward, self._avoid()))
+        path = self.space.get("path") or p.path
+        if p.seed_from_rear and path:
+            toward = seed_heading(percept.position, self.task.position, (path[0][0], path[0][1]),
+                                  p.seed_approach_radius_m)
+        else:
+            toward = c.sub(self.task.position, percept.position)
+        self._drive(c.add(c.unit(toward), self._avoid()))
 
     # --- travel: reach the branch target by following the cage ---------------------------------------------
     def _on_travel(self, now: float) -> None:
@@ -265,6 +271,8 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
             # u = perp(x_o): slide along the object until the predecessor is I_d away. No push inward: the
             # object must not move while the cage forms.
             u = c.u_distance_correction(percept.object_vector, error * direction, 4.0)
+            if p.keep_gap_while_caging:
+                u = c.add(u, c.u_keep_gap(percept.object_vector, percept.object_peak, GAP_READING, GAP_GAIN))
             settled = abs(error) < p.caging_tolerance_m
         else:
             toward = percept.object_vector if percept.object_peak > 0 else c.sub(self._centre_guess(), percept.position)

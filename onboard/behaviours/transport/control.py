@@ -116,6 +116,14 @@ def u_distance_correction(x_o: Vec, distance_error: float, gain: float) -> Vec:
     return scale(perp(unit(x_o)), gain * distance_error)
 
 
+def u_keep_gap(x_o: Vec, reading: float, target_reading: float, gain: float) -> Vec:
+    """Not in the paper: hold the strongest IR reading of the object at ``target_reading`` -- in when
+    farther, out when closer. A robot sliding along the object with the pure tangent perp(x_o) drifts into
+    it (x_o is only as good as a few saturated sensors), and the drag turns a light object while the cage
+    forms, where no robot can see it."""
+    return scale(unit(x_o), gain * (target_reading - reading))
+
+
 def u_avoid(neighbours: Iterable[Vec], safety_distance: float, gain: float) -> Vec:
     """Local collision avoidance: push away from robots closer than d_s, harder the closer they are."""
     total = ZERO

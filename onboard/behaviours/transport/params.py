@@ -49,13 +49,16 @@ class TransportParams:
     pipeline_allocation: bool = True         # open the next branch target while the previous robot travels
     equalise_spacing: bool = True            # cage members even out their spacing after closure (settle)
     settle_time_s: float = 10.0              # after closure, time to even out spacing before pushing
-    position_tolerance_m: float = 0.03       # arrival tolerance used instead of d_tol = 0.1 m
+    position_tolerance_m: float = 0.015      # arrival tolerance used instead of d_tol = 0.1 m
     rotation_tolerance_deg: float = 4.0      # yaw arrival tolerance used instead of Orient. tol. (5.72°)
     slow_down_radius_m: float = 0.25         # scale speed down within this distance of a waypoint
     hold_yaw_while_pushing: bool = True      # add u_r (gain K_t) while pushing when the object has turned
     keep_contact: bool = True                # while pushing, a robot that lost the object returns to it first
     reinforce_push: bool = False             # robots left out of the cage push from behind (reinforce.py)
     soft_side_contact: bool = True           # scale u_cp by cos(angle(x_o, tau_p)) (min 0.25) while pushing
+    seed_from_rear: bool = True              # the seed meets the object from behind its first leg (approach.py)
+    seed_approach_radius_m: float = 0.8      # ... circling the estimated centroid at this distance to get there
+    keep_gap_while_caging: bool = True       # caging robots hold their IR reading of the object at 0.85
 
     def validate(self, where: str) -> None:
         if self.profile not in PROFILES:
@@ -71,13 +74,15 @@ class TransportParams:
             self.soft_side_contact = False
             self.keep_contact = False
             self.reinforce_push = False
+            self.seed_from_rear = False
+            self.keep_gap_while_caging = False
         self._check(where)
 
     def _check(self, where: str) -> None:
         for name in ("safety_distance_m", "inter_robot_distance_m", "caging_tolerance_m", "closure_factor",
                      "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s",
                      "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "position_tolerance_m",
-                     "rotation_tolerance_deg"):
+                     "rotation_tolerance_deg", "seed_approach_radius_m"):
             check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
         check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
         check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)

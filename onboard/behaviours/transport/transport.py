@@ -22,6 +22,10 @@ CONTACT_GAIN = 0.3            # gentle push toward the object while holding a ca
 SPACING_GAIN = 4.0
 LOST_CONTACT_READING = 0.3    # below this IR reading (~8 cm) a cage robot has lost touch with the object
 EDGE_FACTOR = 1.5             # edges between cage neighbours longer than 1.5 I_d are gaps, not faces
+# keep_gap_while_caging: the IR reading a caging robot holds while it slides along the object or holds its
+# place (about 4.7 cm from it on the KheperaIV curve, inside the 0.7 contact threshold), and the gain.
+GAP_READING = 0.85
+GAP_GAIN = 3.0
 
 
 class TransportPhases:
@@ -55,11 +59,17 @@ class TransportPhases:
             error = self._predecessor_error() * BRANCH_DIRECTION[self.task.branch]
         else:
             error = 0.0
-        if abs(error) < self.params.caging_tolerance_m / 2 and percept.in_contact(self.params.proximity_threshold):
+        contact = percept.in_contact(self.params.proximity_threshold)
+        if abs(error) < self.params.caging_tolerance_m / 2 and contact:
             self._hold()
             return
-        inward = 0.0 if percept.in_contact(self.params.proximity_threshold) else CONTACT_GAIN
-        u = c.add(c.u_distance_correction(x_o, error, SPACING_GAIN), c.scale(c.unit(x_o), inward))
+        if not contact:
+            toward = c.scale(c.unit(x_o), CONTACT_GAIN)
+        elif self.params.keep_gap_while_caging:
+            toward = c.u_keep_gap(x_o, percept.object_peak, GAP_READING, GAP_GAIN)
+        else:
+            toward = c.ZERO
+        u = c.add(c.u_distance_correction(x_o, error, SPACING_GAIN), toward)
         self._drive(u, speed_scale=min(1.0, 0.3 + 4.0 * abs(error)))
 
     def _distance_to(self, robot: Optional[int]) -> Optional[float]:
