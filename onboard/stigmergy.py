@@ -19,11 +19,13 @@ Runs on the robots: standard library only, Python 3.9; no randomness, no clock, 
 """
 from __future__ import annotations
 
+import bisect
+import itertools
 import json
 import marshal
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple
 
 
 @dataclass(frozen=True)
@@ -172,6 +174,17 @@ class Gossip(list):
         return Gossip(json.loads(self.json_text() if text is None else text), self.wires)
 
 
+_EMPTY_VERSIONS: frozenset = frozenset()
+_ZEROS = itertools.repeat(0)                       # endless defaults for map(dict.get, keys, _ZEROS)
+
+
+def _empty_gossip() -> Gossip:
+    # Gossip() without the constructor's tuple and frozenset calls: outgoing() returns one on most calls.
+    gossip = Gossip.__new__(Gossip)
+    gossip.wires, gossip.versions, gossip._positions = (), _EMPTY_VERSIONS, None
+    return gossip
+
+
 class TupleSpace:
     """One robot's replica of the shared tuple space."""
 
@@ -213,8 +226,10 @@ class TupleSpace:
         # wires of those versions, to spot copies in incoming Gossip with one set test.
         self._pending: Dict[str, list] = {}
         self._pending_wires: Dict[str, str] = {}
+        self._next_due = 0                         # no waiting entry falls due before this outgoing() call
         # Longest prefix first, so the first match is the most specific rule.
         self._rules = sorted((conflict_rules or {}).items(), key=lambda item: -len(item[0]))
+        self._rule_of: Dict[str, ConflictRule] = {}   # key -> its rule, found on the key's first conflict
         self._entries: Dict[str, Entry] = {}
         self._wire: Dict[str, str] = {}            # cached compact JSON of each entry: sizes and duplicates
         self._fingerprints: Dict[str, bytes] = {}  # cached _fingerprint of each value, made on first need
@@ -244,7 +259,7 @@ class TupleSpace:
         found = self._keys_by_prefix.get(prefix)
         if found is None:
             # Behaviours ask for the same few prefixes many times per step; keys are never removed, so a
-            # prefix's sorted list only changes when a new key arrives (_store forgets the lists then).
+            # prefix's sorted list only changes when a new key arrives (_store inserts it then).
             found = self._keys_by_prefix[prefix] = sorted(key for key in self._entries if key.startswith(prefix))
         return list(found)
 
@@ -257,6 +272,10 @@ class TupleSpace:
         is "task"); without a family, whenever any entry changes. Callers cache what they derive from the
         space (parsed tasks, member lists) and rebuild it only when this number moves."""
         return self._revisions.get(family, 0)
+
+    def revisions(self, families: Tuple[str, ...]) -> Tuple[int, ...]:
+        """``revision`` of each family, as a tuple: one call for a view that depends on several families."""
+        return tuple(map(self._revisions.get, families, _ZEROS))
 
     def changed_keys(self, family: str) -> List[str]:
         """Keys of ``family`` stored or replaced since the previous call for the same family, in the order
@@ -309,6 +328,26 @@ class TupleSpace:
                 self._heard_plain(raw, sender)
         return list(changed)
 
+    def merge_messages(self, messages: Iterable[Any], field: str) -> None:
+        """``merge(message.payload.get(field), message.sender)`` for every radio message (anything with
+        ``payload`` and ``sender``, such as the HAL's Message) whose payload is a dict, in order: the same
+        as that loop, with the usual case (a Gossip of versions seen before) handled inline. A robot among
+        a hundred others gets a dozen or more such messages per step."""
+        pending_wires = self._pending_wires        # never replaced (unlike _seen, which _store may reset)
+        for message in messages:
+            payload = message.payload
+            if not isinstance(payload, dict):
+                continue
+            entries = payload.get(field)
+            if type(entries) is Gossip and len(entries.wires) == len(entries):
+                versions = entries.versions
+                if pending_wires and not versions.isdisjoint(pending_wires):
+                    self._heard(versions, message.sender)
+                if not versions <= self._seen:
+                    self._merge_gossip(entries, message.sender)
+            else:
+                self.merge(entries, message.sender)
+
     def _merge_gossip(self, entries: Gossip, sender: Optional[int]) -> List[str]:
         """Merge only the entries whose exact version this replica has not seen, found with set operations
         (``merge`` has dismissed the message already if it holds no unseen version)."""
@@ -325,9 +364,16 @@ class TupleSpace:
         return list(changed)
 
     def _heard(self, versions: Any, sender: Optional[int]) -> None:
-        """Copies of versions waiting to be relayed arrived: count them, and drop those heard often enough."""
-        for wire in [wire for wire in versions if wire in self._pending_wires]:
-            self._count_copy(self._pending_wires[wire], sender)
+        """Copies of versions waiting to be relayed arrived: count them, and drop those heard often enough.
+        (Each waiting version belongs to its own key, so the order they are counted in does not matter.)"""
+        pending_wires = self._pending_wires
+        for wire in versions.intersection(pending_wires):   # dropping one leaves the others' entries in place
+            key = pending_wires[wire]
+            waiting = self._pending[key]
+            if sender != waiting[3]:               # the writer's own resends say nothing about other relays
+                waiting[1] += 1
+                if self.relay_quorum and waiting[1] >= self.relay_quorum:
+                    self._drop_pending(key)
 
     def _heard_plain(self, raw: Any, sender: Optional[int]) -> None:
         """The same for an entry of a plain list that ``_known`` found held already (or stale)."""
@@ -401,7 +447,10 @@ class TupleSpace:
         return key
 
     def _resolve(self, key: str, local: Entry, remote: Entry) -> Entry:
-        rule = next((rule for prefix, rule in self._rules if key.startswith(prefix)), default_rule)
+        rule = self._rule_of.get(key)
+        if rule is None:                           # rules are fixed: look a key's rule up once
+            rule = self._rule_of[key] = next((rule for prefix, rule in self._rules if key.startswith(prefix)),
+                                             default_rule)
         try:
             winner = rule(key, local, remote)
         except Exception:  # a peer's odd value must not crash the robot; default_rule is total
@@ -412,7 +461,11 @@ class TupleSpace:
     def _store(self, key: str, entry: Entry, wire: str, relay: bool = False) -> None:
         if key not in self._entries:
             self._order.append(key)
-            self._keys_by_prefix.clear()
+            if len(self._keys_by_prefix) > 32:
+                self._keys_by_prefix.clear()       # many prefixes asked once: rebuild on demand instead
+            for prefix, keys in self._keys_by_prefix.items():   # keep the cached sorted lists up to date
+                if key.startswith(prefix):
+                    bisect.insort(keys, key)
         self._entries[key] = entry
         self._wire[key] = wire
         self._fingerprints.pop(key, None)
@@ -435,8 +488,11 @@ class TupleSpace:
         if relay and (self.relay_delay_steps or self.relay_quorum):
             self._dirty.pop(key, None)
             delay = (self.owner * 7919 + entry.timestamp * 31 + entry.writer) % (self.relay_delay_steps + 1)
-            self._pending[key] = [self._calls + delay, 0, wire, entry.writer]
+            due = self._calls + delay
+            self._pending[key] = [due, 0, wire, entry.writer]
             self._pending_wires[wire] = key
+            if due < self._next_due or len(self._pending) == 1:
+                self._next_due = due
             return
         self._dirty[key] = self.relay_rounds if relay else self.resend_rounds
         self._dirty.move_to_end(key)               # most recently changed goes out first
@@ -449,8 +505,10 @@ class TupleSpace:
         """This step's broadcast: dirty keys newest first, then round-robin over the others (anti-entropy,
         every ``anti_entropy_period`` calls). Empty when there is nothing to say: a caller may skip it."""
         calls = self._calls = self._calls + 1
-        if self._pending:
+        if self._pending and self._next_due < calls:
             self._release_relays(calls)
+        if not self._dirty and self.anti_entropy_period != 1 and (calls + self.owner) % self.anti_entropy_period:
+            return _empty_gossip()                 # nothing changed and no anti-entropy turn (most calls)
         chosen: List[str] = []
         size = self._take_dirty(chosen)
         if size is not None and (self.anti_entropy_period == 1 or (calls + self.owner) % self.anti_entropy_period == 0):
@@ -461,10 +519,13 @@ class TupleSpace:
 
     def _release_relays(self, calls: int) -> None:
         """Accepted entries whose wait is over (and that nobody relayed often enough meanwhile) become dirty."""
-        for key in [key for key, waiting in self._pending.items() if waiting[0] < calls]:
+        due = [key for key, waiting in self._pending.items() if waiting[0] < calls]
+        for key in due:
             self._drop_pending(key)
             self._dirty[key] = self.relay_rounds
             self._dirty.move_to_end(key)
+        # The earliest call at which a waiting entry falls due, so that outgoing() skips this scan until then.
+        self._next_due = min((waiting[0] for waiting in self._pending.values()), default=0)
 
     def _take_dirty(self, chosen: List[str]) -> Optional[int]:
         """Fill ``chosen`` with dirty keys; return the message size so far, None if the byte budget is spent."""

@@ -129,29 +129,61 @@ class SimRangeAndBearing(hal.RangeAndBearingSensor):
         self.frame, self.index = frame, index
 
     def neighbours(self) -> Neighbours:
-        # Views into the step's columns: no record is made, and no x/y computed, unless the behaviour asks.
+        # Views into the step's columns, sliced when first read: no record is made, and no x/y computed,
+        # unless the behaviour asks.
         start, end = self.frame.neighbour_bounds[self.index:self.index + 2]
-        pairs = self.frame.pairs
-        return _PairNeighbours(pairs.ids[start:end], pairs.ranges[start:end], pairs.bearings[start:end], 0.0,
-                               pairs=pairs, index=self.index)
+        return _PairNeighbours(self.frame.pairs, self.index, start, end)
+
+
+_MISSING: Any = object()
 
 
 class _PairNeighbours(Neighbours):
     """A robot's slice of one step's pairs; its ``xy`` is the same slice of the pairs' x/y (the same values
-    as computing them from this robot's columns alone)."""
+    as computing them from this robot's columns alone). The columns are sliced on first use: many steps
+    only ask for ``nearest_m`` or a neighbour's vector."""
 
-    __slots__ = ("_pairs", "_index")
+    __slots__ = ("_pairs", "_index", "_start", "_end", "_columns")
 
-    def __init__(self, *args: Any, pairs: PairColumns, index: int) -> None:
-        super().__init__(*args)
-        self._pairs, self._index = pairs, index
+    def __init__(self, pairs: PairColumns, index: int, start: int, end: int) -> None:
+        # Neighbours.__init__ minus its conversions, which the pairs' columns (int64 ids, float ranges and
+        # bearings) do not need; the columns themselves are made by the properties below.
+        self._pairs, self._index, self._start, self._end = pairs, index, start, end
+        self._columns: Any = _MISSING
+        self.age_s = 0.0
+        self._xy = None
+        self._records = None
+        self._id_list = None
         self._ascending = True                     # row-major pairs: each robot's neighbours in id order
+
+    def _slice(self) -> Any:
+        start, end, pairs = self._start, self._end, self._pairs
+        self._columns = (np.asarray(pairs.ids[start:end], dtype=np.int64), pairs.ranges[start:end],
+                         pairs.bearings[start:end])
+        return self._columns
+
+    @property
+    def ids(self) -> np.ndarray:               # type: ignore[override]
+        columns = self._columns
+        return (self._slice() if columns is _MISSING else columns)[0]
+
+    @property
+    def ranges_m(self) -> np.ndarray:          # type: ignore[override]
+        columns = self._columns
+        return (self._slice() if columns is _MISSING else columns)[1]
+
+    @property
+    def bearings_rad(self) -> np.ndarray:      # type: ignore[override]
+        columns = self._columns
+        return (self._slice() if columns is _MISSING else columns)[2]
+
+    def __len__(self) -> int:
+        return self._end - self._start
 
     @property
     def xy(self) -> np.ndarray:
         if self._xy is None:
-            start, end = self._pairs.bounds[self._index:self._index + 2]
-            self._xy = self._pairs.xy()[:, start:end]
+            self._xy = self._pairs.xy()[:, self._start:self._end]
         return self._xy
 
     @property
@@ -228,6 +260,9 @@ class SimWheels(hal.DifferentialSteering):
         if not (math.isfinite(left_m_s) and math.isfinite(right_m_s)):   # math: ~20x cheaper than numpy here
             raise ValueError(f"wheel speeds must be finite (got {left_m_s}, {right_m_s})")
         self.left, self.right = clamp_wheel_speeds(float(left_m_s), float(right_m_s), self.spec.max_wheel_speed_m_s)
+
+    def stop(self) -> None:
+        self.left = self.right = 0.0               # what set_speeds(0.0, 0.0) stores, without its checks
 
 
 class SimOdometry(hal.Odometry):

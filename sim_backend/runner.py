@@ -51,6 +51,19 @@ def mission_params(behaviour_cls, scenario: Scenario) -> Dict[str, Any]:
     return params
 
 
+_SURELY_WRAPPED = 3.0     # |angle| below this (< pi): geometry.wrap returns the angle itself, bit for bit
+
+
+def _wrap_noisy(angles: np.ndarray) -> None:
+    """``angles[:] = wrap(angles)`` for bearings plus noise, which are mostly inside (-pi, pi] already: there
+    wrap's arithmetic gives back the same float (x - 2 pi * floor((x + pi) / 2 pi) = x - 0.0), so only the
+    few beyond +-3 rad go through it."""
+    flat = angles.reshape(-1)
+    outside = np.flatnonzero(np.abs(flat) >= _SURELY_WRAPPED)
+    if len(outside):
+        flat[outside] = wrap(flat[outside])
+
+
 class Simulation:
     def __init__(self, scenario: Scenario, seed: Optional[int] = None):
         self.scenario = scenario
@@ -78,16 +91,22 @@ class Simulation:
         self.telemetry: List[Optional[Dict[str, Any]]] = [None] * self.count
         self.stop_reason = ""
         self.phase_seconds: Dict[str, float] = dict.fromkeys(PHASES, 0.0)
+        self._noise = np.empty((2, self.count, self.count))   # range and bearing noise of one step
 
     # --- sensing --------------------------------------------------------------------------------------
     def _sense(self, poses: np.ndarray, alive: np.ndarray) -> None:
         comm, sensors, frame = self.scenario.comm, self.scenario.sensors, self.frame
-        n = self.count
         frame.time_s = self.step_index * self.period
         true_ranges, true_bearings = pairwise_range_bearing(poses[:, :2], poses[:, 2])
         mask = neighbour_mask(true_ranges, comm.range_m) & alive[None, :] & alive[:, None]
-        ranges = np.maximum(true_ranges + self.rng_sensors.normal(0.0, comm.range_noise_m, (n, n)), 0.0)
-        bearings = wrap(true_bearings + self.rng_sensors.normal(0.0, comm.bearing_noise_rad, (n, n)))
+        # normal(0, s) is 0 + s * standard_normal, drawn one after the other: one draw of both matrices gives
+        # the same numbers from the same stream, into a buffer reused every step.
+        noise = self._noise
+        self.rng_sensors.standard_normal(out=noise)
+        ranges = true_ranges + noise[0] * comm.range_noise_m
+        np.maximum(ranges, 0.0, out=ranges)
+        bearings = true_bearings + noise[1] * comm.bearing_noise_rad
+        _wrap_noisy(bearings)
         frame.set_neighbours(mask, ranges, bearings)
         frame.set_proximity(self.ir.readings(poses[:, :2], poses[:, 2], true_ranges, self.world.obstacle_groups(),
                                              self.rng_sensors, sensors.proximity_noise))

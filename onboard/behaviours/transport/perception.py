@@ -105,6 +105,42 @@ class NeighbourVectors(Mapping):
             vectors.append((c * x - s * y, s * x + c * y))
         return vectors
 
+    def nearest_among(self, among: Collection[int]) -> Any:
+        """``nearest(self, among)`` rotating only the neighbours in ``among`` (found by bisection), in the
+        sensor's order with the same floats; ``_UNSURE`` when ids cannot be bisected (then ask ``nearest``)."""
+        if self._dict is not None or not self.table.ids_ascending():
+            return _UNSURE
+        ids = self.ids
+        count = len(ids)
+        indices = []
+        for key in among:
+            if type(key) is not int:
+                return _UNSURE
+            index = bisect_left(ids, key)
+            if index < count and ids[index] == key:
+                indices.append(index)
+        if not indices:
+            return None
+        indices.sort()
+        if self._xs is not None:
+            xs, ys = self._xs, self._ys
+            vectors = [(xs[i], ys[i]) for i in indices]
+        else:
+            # The x, y the full rotation would use (the table's xy, made now as it would be), rotated with
+            # the same arithmetic as _rotate: products and differences of the same floats.
+            xy = self.table.xy
+            c, s = self._cos, self._sin
+            vectors = []
+            for i in indices:
+                x, y = xy.item(0, i), xy.item(1, i)
+                vectors.append((c * x - s * y, s * x + c * y))
+        best, best_d = None, math.inf
+        for i, v in zip(indices, vectors):
+            d = math.hypot(v[0], v[1])
+            if d < best_d:
+                best, best_d = ids[i], d
+        return best
+
     def _mapping(self) -> Dict[int, Vec]:
         if self._dict is None:
             self._dict = dict(zip(self.ids, zip(self.xs, self.ys)))
@@ -167,6 +203,9 @@ class NeighbourVectors(Mapping):
         return f"NeighbourVectors({self._mapping()!r})"
 
 
+_UNSURE: Any = object()
+
+
 def near(neighbours: Mapping, radius: float, exclude: Optional[Collection[int]] = None) -> List[Vec]:
     """The vectors of ``neighbours`` (a Percept's) within about ``radius``, minus ``exclude``: what
     ``control.u_avoid`` needs, without touching the far ones when ``neighbours`` is a NeighbourVectors.
@@ -204,15 +243,17 @@ def perceive(x: float, y: float, yaw: float, neighbours: Sequence[Neighbour],
         if value < DETECTION_FLOOR:
             continue
         direction = angle + yaw
-        ax += value * math.cos(direction)
-        ay += value * math.sin(direction)
+        vx, vy = value * math.cos(direction), value * math.sin(direction)
+        ax += vx
+        ay += vy
         if echoes is None:
             echoes = _close_neighbours(table)
-        if _is_robot_echo(angle, echoes):
+        if echoes and _is_robot_echo(angle, echoes):
             continue
-        ox += value * math.cos(direction)
-        oy += value * math.sin(direction)
-        peak = max(peak, value)
+        ox += vx
+        oy += vy
+        if value > peak:
+            peak = value
     object_vector = (ox, oy) if peak > 0.0 else ZERO
     return Percept(x, y, yaw, world_neighbours, object_vector, peak, (ax, ay))
 
@@ -235,6 +276,10 @@ def world_to_robot(v: Vec, yaw: float) -> Vec:
 
 
 def nearest(neighbours: Mapping, among: Optional[set] = None) -> Optional[int]:
+    if among is not None and isinstance(neighbours, NeighbourVectors):
+        found = neighbours.nearest_among(among)
+        if found is not _UNSURE:
+            return found
     best, best_d = None, math.inf
     for j, v in neighbours.items():
         if among is not None and j not in among:

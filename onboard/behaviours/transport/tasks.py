@@ -84,6 +84,12 @@ class TaskBoard:
         self._members: Dict[int, dict] = {}
         self._arrivals: Dict[str, set] = {}
         self._arrivals_at = -1
+        # best_bid per (tid, epoch), and the open tasks with their best bids (what an idle robot looks at
+        # every step): both depend only on the task, owner, bid and member families.
+        self._bids_at: Tuple[int, ...] = ()
+        self._best_bids: Dict[Tuple[str, int], Optional[dict]] = {}
+        self._open_at: Tuple[int, ...] = ()
+        self._open: List[Tuple[Dict[str, Any], str, Optional[dict]]] = []
 
     # --- tasks and bids -----------------------------------------------------------------------------
     def put_task(self, task: Task) -> None:
@@ -122,10 +128,38 @@ class TaskBoard:
     def best_bid(self, task: Task) -> Optional[dict]:
         """The lowest valid bid: a bid by a robot that meanwhile took another task or joined the cage is
         void (it will never take this one), so the task is not lost."""
-        value = self.space.get(f"bid/{task.tid}/{task.epoch}")
+        revisions = self.space.revisions(_BID_FAMILIES)
+        if revisions != self._bids_at:
+            self._bids_at, self._best_bids = revisions, {}
+        if type(task.epoch) is not int or type(task.tid) is not str:   # a caller's odd Task: no caching
+            return self._best_bid(task.tid, task.epoch)
+        slot = (task.tid, task.epoch)
+        best = self._best_bids.get(slot, _MISSING)
+        if best is _MISSING:
+            best = self._best_bids[slot] = self._best_bid(task.tid, task.epoch)
+        return best
+
+    def _best_bid(self, tid: str, epoch: Any) -> Optional[dict]:
+        value = self.space.get(f"bid/{tid}/{epoch}")
         if not isinstance(value, dict) or "bid" not in value:
             return None
-        return None if self.busy(value.get("robot"), task.tid) else value
+        return None if self.busy(value.get("robot"), tid) else value
+
+    def open_tasks(self) -> List[Tuple[Dict[str, Any], str, Optional[dict]]]:
+        """``(fields, "tid/epoch", best_bid)`` of every open task (``is_open``), in key order: the same tasks as
+        filtering ``tasks()``, without making a Task per task per step. ``fields`` are the task's fields as
+        :class:`Task` holds them (read-only: ``task_from(fields)`` makes a Task). Rebuilt only when a task,
+        owner, bid or member changes."""
+        revisions = self.space.revisions(_BID_FAMILIES)
+        if revisions != self._open_at:
+            self._parsed_tasks()
+            found = []
+            for fields in self._task_list:
+                task = _task_from(fields)
+                if self.is_open(task):
+                    found.append((fields, f"{task.tid}/{task.epoch}", self.best_bid(task)))
+            self._open_at, self._open = revisions, found
+        return self._open
 
     def busy(self, robot: Any, except_tid: str = "") -> bool:
         if f"member/{robot}" in self.space:
@@ -277,6 +311,13 @@ def _parse_task(tid: str, value: Any) -> Optional[Dict[str, Any]]:
 
 
 _new_instance = object.__new__
+_BID_FAMILIES = ("task", "owner", "bid", "member")
+_MISSING: Any = object()
+
+
+def task_from(fields: Dict[str, Any]) -> Task:
+    """A fresh Task from the ``fields`` that ``TaskBoard.open_tasks`` hands out."""
+    return _task_from(fields)
 
 
 def _task_from(fields: Dict[str, Any]) -> Task:

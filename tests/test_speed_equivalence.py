@@ -1,0 +1,190 @@
+"""The second round of fast paths (issue #5) give exactly what the plain paths give: the batched receive loop,
+the lazy relay scan, the cached rules, prefix lists and bid views, nearest among members, the lazy neighbour
+columns, and the simulator's noise draw and bearing wrap."""
+import math
+import random
+
+import numpy as np
+import pytest
+
+from onboard.behaviours.transport.perception import NeighbourVectors, nearest
+from onboard.behaviours.transport.tasks import Task, TaskBoard, new_space, task_from
+from onboard.geometry import wrap
+from onboard.hal import Message, Neighbours
+from onboard.stigmergy import TupleSpace, lowest_field
+from sim_backend.hal import encode_payload
+from sim_backend.runner import Simulation, _wrap_noisy
+
+
+class PlainSpace(TupleSpace):
+    """The transport's replica with every new shortcut turned off: relays scanned at every call, prefix
+    lists rebuilt, conflict rules looked up afresh."""
+
+    def outgoing(self):
+        self._next_due = -1
+        return super().outgoing()
+
+    def keys(self, prefix=""):
+        self._keys_by_prefix.clear()
+        return super().keys(prefix)
+
+    def _resolve(self, key, local, remote):
+        self._rule_of.clear()
+        return super()._resolve(key, local, remote)
+
+
+def plain_space(owner):
+    rule = lowest_field("bid", "robot")
+    return PlainSpace(owner, conflict_rules={"bid/": rule, "owner/": rule}, relay_rounds=1, relay_delay_steps=7,
+                      relay_quorum=2, anti_entropy_period=10)
+
+
+def state(space):
+    return ({key: space.entry(key) for key in space.keys()}, dict(space._pending), list(space._dirty.items()),
+            space.keys("pos/"), space.keys("bid/"), space.rejected)
+
+
+def message(sender, payload):
+    return Message(sender=sender, payload=payload, sent_s=0.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_batched_receive_and_lazy_relays_match_the_plain_replica(seed):
+    """Two swarms step by step: one merges its inbox with merge_messages and the shortcuts, the other merges
+    message by message with none. They send the same messages and hold the same state throughout."""
+    rng = random.Random(seed)
+    robots = 7
+    fast = [new_space(r) for r in range(robots)]
+    slow = [plain_space(r) for r in range(robots)]
+    inboxes = {kind: [[] for _ in range(robots)] for kind in ("fast", "slow")}
+    for step in range(150):
+        for r in range(robots):
+            if step < 60 and (step + r) % 3 == 0:
+                for spaces in (fast, slow):
+                    spaces[r].put(f"pos/{r}", [round(step * 0.01 * r, 4), r, None])
+            if step in (10, 11, 30) and r % 2 == 0:
+                for spaces in (fast, slow):
+                    spaces[r].put("bid/S/0", {"robot": r, "bid": float(9 - r)})
+                    spaces[r].put(f"owner/L{r}", {"robot": r, "bid": 1.0, "epoch": 0})
+        for kind, spaces in (("fast", fast), ("slow", slow)):
+            for r in range(robots):
+                inbox, inboxes[kind][r] = inboxes[kind][r], []
+                if kind == "fast":
+                    spaces[r].merge_messages(inbox, "ts")
+                else:
+                    for m in inbox:
+                        if isinstance(m.payload, dict):
+                            spaces[r].merge(m.payload.get("ts"), m.sender)
+        for r in range(robots):
+            sent_fast, sent_slow = fast[r].outgoing(), slow[r].outgoing()
+            assert sent_fast == sent_slow and sent_fast.wires == sent_slow.wires
+            if not sent_fast and step % 17:
+                continue
+            copies = {"fast": encode_payload({"ts": sent_fast})[1], "slow": encode_payload({"ts": sent_slow})[1]}
+            for receiver in range(robots):
+                if receiver != r and rng.random() < 0.8:
+                    for kind in ("fast", "slow"):
+                        inboxes[kind][receiver].append(message(r, copies[kind]))
+            if step % 13 == 0:                     # odd payloads: not a dict, no "ts", a plain list
+                for kind in ("fast", "slow"):
+                    inboxes[kind][(r + 1) % robots] += [message(r, [1, 2]), message(r, {"other": 1}),
+                                                        message(r, {"ts": [["pos/99", [0, 0, None], 1, 99]]})]
+        for a, b in zip(fast, slow):
+            assert state(a) == state(b)
+    assert state(fast[0])[0] == state(fast[-1])[0]
+
+
+def uncached_best_bid(board, task):
+    value = board.space.get(f"bid/{task.tid}/{task.epoch}")
+    if not isinstance(value, dict) or "bid" not in value:
+        return None
+    return None if board.busy(value.get("robot"), task.tid) else value
+
+
+def test_bid_views_follow_every_change():
+    space = new_space(1)
+    board, peer = TaskBoard(space, 4.0), TaskBoard(new_space(2), 4.0)
+    rng = random.Random(3)
+    for step in range(60):
+        tid = rng.choice(["S", "L1", "L2", "R1"])
+        task = Task(tid, rng.random(), rng.random(), tid[0], int(tid[1:] or 0), None, rng.randint(0, 1),
+                    cancelled=rng.random() < 0.1)
+        action = step % 5
+        if action == 0:
+            peer.put_task(task)
+        elif action == 1:
+            peer.bid(task, rng.randint(3, 8), rng.random())
+        elif action == 2:
+            peer.take(task, rng.randint(3, 8), 0.5)
+        elif action == 3:
+            peer.join_cage(rng.randint(3, 8), task)
+        else:
+            board.bid(task, 1, rng.random())
+        space.merge(encode_payload({"ts": peer.space.outgoing()})[1]["ts"], 2)
+        expected = [(t, f"{t.tid}/{t.epoch}", uncached_best_bid(board, t)) for t in board.tasks() if board.is_open(t)]
+        got = board.open_tasks()
+        assert [(task_from(f), key, best) for f, key, best in got] == expected
+        for t in board.tasks():
+            for epoch in (t.epoch, t.epoch + 1):
+                probe = Task(t.tid, 0.0, 0.0, t.branch, t.index, None, epoch)
+                assert board.best_bid(probe) is uncached_best_bid(board, probe)
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.7, -2.9])
+def test_nearest_among_members_matches_the_full_scan_to_the_last_bit(yaw):
+    rng = np.random.default_rng(4)
+    for trial in range(30):
+        count = int(rng.integers(0, 30))
+        ids = np.sort(rng.choice(200, count, replace=False))
+        ranges, bearings = rng.uniform(0.1, 3.0, count), rng.uniform(-math.pi, math.pi, count)
+        if count > 3 and trial % 3 == 0:
+            ranges[1] = ranges[2]                  # ties: the first in sensor order wins
+            bearings[1] = bearings[2]
+        among = set(rng.choice(200, int(rng.integers(0, 40)), replace=False).tolist())
+        among |= set(ids[: count // 3].tolist())
+        for given_xy in (False, True):
+            table = Neighbours(ids, ranges, bearings)
+            if given_xy:
+                assert table.xy.shape == (2, count)   # xy made already (as by another robot's use of the pairs)
+            fast = NeighbourVectors(table, yaw)
+            reference = dict(NeighbourVectors(Neighbours(ids, ranges, bearings), yaw).items())
+            assert nearest(fast, among) == nearest(reference, among)
+            found = nearest(fast, among)
+            if found is not None:
+                assert fast[found] == reference[found]
+            assert dict(fast.items()) == reference
+
+
+def test_noisy_bearings_wrap_exactly_as_geometry_wrap():
+    rng = np.random.default_rng(5)
+    edges = np.array([0.0, -0.0, math.pi, -math.pi, 3.0, -3.0, np.nextafter(3.0, 0), np.nextafter(-3.0, 0),
+                      math.pi + 1e-12, -math.pi - 1e-12, 7.0, -7.0, 1e-300])
+    angles = np.concatenate([edges, rng.uniform(-math.pi, math.pi, 5000) + rng.normal(0.0, 0.3, 5000)])
+    fast = angles.copy().reshape(1, -1)
+    _wrap_noisy(fast)
+    expected = wrap(angles)
+    assert np.array_equal(fast.ravel(), expected) and np.array_equal(np.signbit(fast.ravel()), np.signbit(expected))
+
+
+def test_one_standard_normal_draw_gives_the_two_normal_draws():
+    a, b = np.random.default_rng(6), np.random.default_rng(6)
+    ranges, bearings, after = a.normal(0.0, 0.02, (9, 9)), a.normal(0.0, 0.05, (9, 9)), a.random(3)
+    noise = np.empty((2, 9, 9))
+    b.standard_normal(out=noise)
+    assert np.array_equal(noise[0] * 0.02, ranges) and np.array_equal(noise[1] * 0.05, bearings)
+    assert np.array_equal(b.random(3), after)      # the stream goes on from the same place
+
+
+def test_lazy_neighbour_columns_are_the_frame_slices(make_scenario):
+    sim = Simulation(make_scenario(robots={"count": 7, "spawn": {"x": [0, 1.2], "y": [0, 1.2]}}, comm={"range_m": 0.8}))
+    for _ in range(3):
+        sim.step()
+    frame = sim.frame
+    for i, robot in enumerate(sim.robots):
+        table = robot.range_and_bearing.neighbours()
+        ids = [j for j in range(7) if j != i and frame.pairs is not None and j in frame.receivers(i).tolist()]
+        plain = Neighbours(ids, frame.ranges[i, ids], frame.bearings[i, ids])
+        assert len(table) == len(ids) and table.id_list() == ids
+        assert np.array_equal(table.ranges_m, plain.ranges_m) and np.array_equal(table.bearings_rad, plain.bearings_rad)
+        assert table.ids.dtype == np.int64 and np.array_equal(table.xy, plain.xy)
+        assert table == plain and table.nearest_m == plain.nearest_m
