@@ -7,7 +7,7 @@ import pytest
 from onboard.behaviour import build_params, get_behaviour
 from onboard.behaviours.transport import control as c
 from onboard.behaviours.transport.approach import seed_heading
-from onboard.behaviours.transport.estimator import ring_centroid, ring_rotation
+from onboard.behaviours.transport.estimator import encloses, ring_centroid, ring_rotation
 from onboard.config import ConfigError
 from sim_backend.runner import Simulation
 from sim_backend.scenario import load_scenario
@@ -145,3 +145,13 @@ def test_the_seed_meets_the_object_behind_its_first_leg(start_deg):
     assert contact == pytest.approx(-90.0, abs=6.0)
     # No direction of travel (the first waypoint is a turn on the spot): straight at the centroid.
     assert c.unit(seed_heading((2.0, 2.0), centre, centre, 0.8)) == pytest.approx((-1.0, 0.0))
+
+
+def test_a_ring_that_does_not_enclose_the_estimate_is_not_a_cage():
+    """The closure guard's geometry: a ring round the object encloses C_o(0); a folded branch (all members on
+    one side of the object) does not, however close its two tips are."""
+    around = [(1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)]
+    folded = [(-1.5, -0.3), (-1.2, -0.9), (-0.6, -1.3), (-1.3, -0.5)]
+    assert encloses(around, (0.0, 0.0)) and encloses(around, (0.3, 0.2))
+    assert not encloses(folded, (0.0, 0.0))
+    assert not encloses(around, (2.0, 0.0))

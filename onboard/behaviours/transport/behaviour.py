@@ -7,7 +7,7 @@ See docs/behaviour.md for the diagram and the equations' code locations.
 from __future__ import annotations
 
 import math
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -17,11 +17,11 @@ from ...motion import vector_to_wheels
 from . import control as c
 from .approach import seed_heading
 from .control import Vec
-from .estimator import ObjectFilter, ring_centroid
+from .estimator import ObjectFilter, encloses, ring_centroid
 from .params import TransportParams
 from .perception import Percept, near, nearest, perceive, world_to_robot
 from .reinforce import ReinforcePhase
-from .tasks import BRANCH_DIRECTION, Task, TaskBoard, distance, new_space, task_id
+from .tasks import BRANCH_DIRECTION, Task, TaskBoard, distance, new_space, task_from, task_id
 from .transport import GAP_GAIN, GAP_READING, TransportPhases
 
 SETTLE_STEPS = 10          # a caging robot must hold its place this many steps to count as settled
@@ -32,6 +32,7 @@ TOUCH_ATTACH_RADIUS_M = 0.6
 # object, or behind a member that blocks the way, is unreachable; attaching slides along the surface instead).
 STALL_ATTACH_S = 20.0
 PROGRESS_STEP_M = 0.02
+CHAIN_LINK_FACTOR = 2.0    # a branch member farther than this times I_d from its predecessor breaks the chain
 
 
 @register("transport")
@@ -76,9 +77,8 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
     # --- the loop ---------------------------------------------------------------------------------------
     def step(self) -> None:
         robot, now = self.robot, self.robot.clock.now()
-        for message in robot.radio.receive():
-            if isinstance(message.payload, dict):
-                self.space.merge(message.payload.get("ts"), message.sender)
+        # For each message with a dict payload: space.merge(payload.get("ts"), sender).
+        self.space.merge_messages(robot.radio.receive(), "ts")
         self.board.refresh_liveness(now)
         self._publish_mission()
         pose = self.tracker.update()
@@ -126,7 +126,8 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
     def _avoid(self, exclude: Optional[set] = None) -> Vec:
         p = self.params
         vectors = near(self.percept.neighbours, p.safety_distance_m, exclude)
-        return c.u_avoid(vectors, p.safety_distance_m, 2.0)
+        # u_avoid of no vectors is ZERO itself (the usual case: nobody within d_s)
+        return c.u_avoid(vectors, p.safety_distance_m, 2.0) if vectors else c.ZERO
 
     def _caging_only_done(self) -> bool:
         """Without a path (a caging-only run) a closed cage is the end of the job."""
@@ -161,15 +162,13 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
     def _take_won_task(self, now: float) -> bool:
         """After T_a with a valid bid stored, the robot whose id is stored takes the task -- whichever open
         task that is, even if another one is nearer now."""
-        for task in self.board.tasks():
-            if not self.board.is_open(task):
+        for fields, key, best in self.board.open_tasks():   # the open tasks with their best bids, cached
+            if best is None:
                 continue
-            best = self.board.best_bid(task)
-            key = f"{task.tid}/{task.epoch}"
-            if best is not None:
-                self.bid_seen.setdefault(key, now)
-            won = best is not None and best.get("robot") == self.robot.id
+            self.bid_seen.setdefault(key, now)
+            won = best.get("robot") == self.robot.id
             if won and now - self.bid_seen[key] >= self.params.allocation_time_s:
+                task = task_from(fields)
                 self.board.take(task, self.robot.id, float(best["bid"]))
                 self.task = task
                 self.state = "seed" if task.branch == "S" else "travel"
@@ -185,9 +184,14 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
             self._hold()
 
     def _nearest_open_task(self) -> Optional[Task]:
-        me = self.percept.position
-        open_tasks = [t for t in self.board.tasks() if self.board.is_open(t)]
-        return min(open_tasks, key=lambda t: (distance(me, t.position), t.tid), default=None)
+        x, y = self.percept.x, self.percept.y
+        best, best_key = None, None
+        for fields, _, _ in self.board.open_tasks():
+            # min by (distance, tid), the first of equals: math.hypot as in tasks.distance
+            key = (math.hypot(x - fields["x"], y - fields["y"]), fields["tid"])
+            if best_key is None or key < best_key:
+                best, best_key = fields, key
+        return None if best is None else task_from(best)
 
     def _bid(self, task: Task, now: float) -> None:
         key = f"{task.tid}/{task.epoch}"
@@ -383,17 +387,48 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         tip = c.add(me, to_tip)
         return distance(closest, centre) < 0.5 * min(distance(me, centre), distance(tip, centre))
 
+    def _ring_encloses_estimate(self) -> bool:
+        """Deviation from the paper: Proposition 1 assumes the branches went round the object in opposite
+        directions. On a concave object a branch can fold back (its tangent flips in a notch), and its tip
+        then meets the other tip on the same side, with the object outside the ring. Close only a ring (L tip
+        .. L1, S, R1 .. R tip, each branch up to its first gap) that encloses C_o(0), where the seed was sent."""
+        members = self.board.members()
+        seed = [rid for rid, v in members.items() if v.get("branch") == "S"]
+        order = self._chain("L")[::-1] + seed[:1] + self._chain("R")
+        ring = [q for q in (self._member_position(rid) for rid in order) if q is not None]
+        return len(ring) >= 3 and encloses(ring, self.hint)
+
     def _opposite_tip(self) -> Optional[int]:
         """The last robot of the other branch's unbroken chain from the seed (the seed belongs to both)."""
         other = "R" if self.task.branch == "L" else "L"
         return self._chain_tip(other)
 
     def _chain_tip(self, branch: str) -> Optional[int]:
-        slots = {v.get("index"): rid for rid, v in self.board.members().items() if v.get("branch") == branch}
-        index, tip = 1, None
-        while index in slots:
-            tip, index = slots[index], index + 1
-        return tip
+        chain = self._chain(branch)
+        return chain[-1] if chain else None
+
+    def _chain(self, branch: str) -> List[int]:
+        """The members of ``branch`` in order from index 1 up to the first missing index, or up to the first
+        one that sits farther than CHAIN_LINK_FACTOR * I_d from its predecessor: a robot that attached
+        somewhere else (early attach on a concave outline) does not continue the branch."""
+        members = self.board.members()
+        slots = {v.get("index"): rid for rid, v in members.items() if v.get("branch") == branch}
+        previous = next((rid for rid, v in members.items() if v.get("branch") == "S"), None)
+        chain: List[int] = []
+        while len(chain) + 1 in slots:
+            rid = slots[len(chain) + 1]
+            here, there = self._member_position(rid), self._member_position(previous)
+            if here is not None and there is not None and \
+                    distance(here, there) > CHAIN_LINK_FACTOR * self._spacing():
+                break
+            chain.append(rid)
+            previous = rid
+        return chain
+
+    def _member_position(self, rid: Optional[int]) -> Optional[Vec]:
+        if rid is None:
+            return None
+        return self.percept.position if rid == self.robot.id else self.board.position(rid)
 
     def _try_close(self) -> bool:
         """Proposition 1: the cage is closed when the two branch tips are within d_T."""
@@ -410,7 +445,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
             vector = c.sub(where, self.percept.position)
         if vector is None or c.norm(vector) > self.params.closure_factor * self._spacing():
             return False
-        if self._gap_crosses_object(vector):
+        if self._gap_crosses_object(vector) or not self._ring_encloses_estimate():
             return False
         self.space.put("closed", {"pair": sorted([self.robot.id, tip])})
         if self.spawned is not None:

@@ -39,6 +39,17 @@ def ring_centroid(points: np.ndarray) -> Tuple[float, float]:
     return float(cx + mean[0]), float(cy + mean[1])
 
 
+def encloses(polygon: Sequence[Sequence[float]], point: Sequence[float]) -> bool:
+    """True if ``point`` lies inside the polygon through ``polygon``'s vertices in order (ray casting)."""
+    inside = False
+    x, y = point[0], point[1]
+    for i in range(len(polygon)):
+        (x0, y0), (x1, y1) = polygon[i - 1][:2], polygon[i][:2]
+        if (y0 > y) != (y1 > y) and x < x0 + (y - y0) * (x1 - x0) / (y1 - y0):
+            inside = not inside
+    return inside
+
+
 def ring_rotation(now: Dict[int, Sequence[float]], reference: Dict[int, Sequence[float]],
                   centre_now: Sequence[float], centre_ref: Sequence[float]) -> Optional[float]:
     """Circular mean of how far each member turned around the centroid since the reference (rad)."""
