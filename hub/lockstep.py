@@ -1,10 +1,11 @@
 """Lockstep pacing for the ``sim`` source: one control step of physics only after every live agent answered.
 
-Each step: snapshot the world (faults, poses, IR, odometry) -> virtual sensors -> one frame to every agent ->
-wait until each expected agent's telemetry answers that frame (wheel commands and broadcasts arrive before
-it on the same socket) or the wall-clock timeout passes -> advance physics by one control period. A dead or
-hung agent costs at most the timeout per step, and after three silent steps it is no longer waited for
-(until it answers again). The agents run their normal loop; only their pacing follows the frames.
+Each step: snapshot the world (faults, poses, IR, odometry) -> virtual sensors -> one frame to every agent,
+all built and sent in one batch -> wait until each expected agent's telemetry answers that frame (wheel
+commands and broadcasts arrive before it on the same socket) or the wall-clock timeout passes -> advance
+physics by one control period. A dead or hung agent costs at most the timeout per step, and after three
+silent steps it is no longer waited for (until it answers again). The agents run their normal loop; only
+their pacing follows the frames.
 """
 from __future__ import annotations
 
@@ -51,11 +52,13 @@ class Lockstep:
         frame = source.snapshot(now)
         hub.on_pose_frame(frame)
         report = StepReport(frame.clock_s or 0.0)
-        sent_at = {}
-        for robot in hub.robots.values():
-            if robot.routing is not None:
-                hub.send_frame(robot, time.monotonic())
-                sent_at[robot.id] = (time.monotonic(), robot.seq)
+        # One batch: the sensor part of every frame in one vectorised pass (Hub.send_frames). A frame counts as
+        # sent once the whole batch is out, so a round trip never includes time before its frame left.
+        connected = [robot for robot in hub.robots.values() if robot.routing is not None]
+        if connected:
+            hub.send_frames(connected, time.monotonic())
+        sent = time.monotonic()
+        sent_at = {robot.id: (sent, robot.seq) for robot in connected}
         waiting = set(self.expected(now))
         deadline = time.monotonic() + self.timeout_s
         while waiting and time.monotonic() < deadline:

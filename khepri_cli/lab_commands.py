@@ -27,6 +27,12 @@ def add_bench_hub(bench_commands) -> None:
     bench.add_argument("--robots", type=int, default=100, help="robots (default 100)")
     bench.add_argument("--rate", type=float, default=120.0, help="motion-capture frames per second (default 120)")
     bench.add_argument("--seconds", type=float, default=5.0, help="measurement time (default 5)")
+    bench.add_argument("--telemetry-hz", type=float, default=0.0, metavar="HZ",
+                       help="every agent also sends a small telemetry message at this rate, as a real agent does "
+                            "at 10 (default 0: agents only receive)")
+    bench.add_argument("--record", action=argparse.BooleanOptionalAction, default=False,
+                       help="the hub records everything to an MCAP log in a temporary folder, as `khepri hub "
+                            "--record` does (default --no-record)")
     bench.add_argument("--json", action="store_true", help="print JSON only")
     bench.set_defaults(func=cmd_bench_hub)
 
@@ -205,11 +211,15 @@ def cmd_bench_hub(args: argparse.Namespace) -> int:
 
     if args.robots < 1 or args.rate <= 0 or args.seconds <= 0:
         raise ConfigError("--robots", "give --robots >= 1, --rate > 0 and --seconds > 0")
-    result = bench_hub(args.robots, args.rate, args.seconds)
+    if not args.telemetry_hz >= 0 or args.telemetry_hz == float("inf"):
+        raise ConfigError("--telemetry-hz", f"give a rate >= 0 (0: no telemetry), not {args.telemetry_hz:g}")
+    result = bench_hub(args.robots, args.rate, args.seconds, telemetry_hz=args.telemetry_hz, record=args.record)
     if args.json:
         print(json.dumps({key: result[key] for key in ("latency_p50_ms", "latency_p99_ms", "hub_cpu_percent")}))
         return 0
-    print(f"hub with {args.robots} robots at {args.rate:g} Hz for {args.seconds:g} s: "
+    load = "".join((f", agents sending telemetry at {args.telemetry_hz:g} Hz" if args.telemetry_hz > 0 else "",
+                    ", recording to MCAP" if args.record else ""))
+    print(f"hub with {args.robots} robots at {args.rate:g} Hz for {args.seconds:g} s{load}: "
           f"mocap-frame-to-agent latency p50 {result['latency_p50_ms']:.3f} ms, p99 {result['latency_p99_ms']:.3f} ms; "
           f"hub CPU {result['hub_cpu_percent']:.1f} % of a core ({result['frames_received']} frames received)")
     return 0

@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import math
 import struct
-from typing import Any, Callable, Dict, Iterable, List, Optional
+from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
@@ -280,8 +280,13 @@ def _encode_frame_message(message: Dict[str, Any]) -> bytes:
                       message.get("clock_s"))
 
 
-def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = None) -> Dict[str, Any]:
-    """Parse and validate one message (binary frame or JSON). ``accept`` restricts the types this socket takes."""
+def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = None,
+           neighbour_columns: bool = False) -> Dict[str, Any]:
+    """Parse and validate one message (binary frame or JSON). ``accept`` restricts the types this socket takes.
+
+    ``neighbour_columns``: a binary frame's ``neighbours`` come as the columns the block already holds, a tuple
+    ``(ids, ranges_m, bearings_rad)`` of numpy arrays (int64, float64, float64), instead of a list of
+    ``[id, range_m, bearing_rad]``; same checks, same values, no Python object per neighbour (the agent's path)."""
     try:
         if len(data) > MAX_MESSAGE_BYTES:
             _fail("", f"message of {len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")
@@ -289,7 +294,7 @@ def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = Non
         if data[:2] == FRAME_MAGIC:
             if "frame" not in allowed:
                 _fail("type", f"must be one of {', '.join(allowed)} (got a binary frame)")
-            return _decode_frame(data)
+            return _decode_frame(data, neighbour_columns)
         try:
             message = json.loads(data)
         except (UnicodeDecodeError, ValueError, RecursionError):
@@ -310,7 +315,7 @@ def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = Non
         raise ProtocolError(err.problem, err.field, sender) from None
 
 
-def _decode_frame(data: bytes) -> Dict[str, Any]:
+def _decode_frame(data: bytes, neighbour_columns: bool = False) -> Dict[str, Any]:
     size, header = len(data), FRAME_HEADER.size
     if size < header:
         _fail("frame", f"binary frame of {size} bytes is shorter than its {header}-byte header")
@@ -337,14 +342,18 @@ def _decode_frame(data: bytes) -> Dict[str, Any]:
     if flags & FLAG_CLOCK:
         number(clock_s, "frame.clock_s")
         message["clock_s"] = clock_s
-    message["neighbours"] = _decode_neighbours(data, count) if count else []
+    if neighbour_columns:
+        message["neighbours"] = _neighbour_columns(data, count)
+    else:
+        message["neighbours"] = _decode_neighbours(data, count) if count else []
     message["messages"] = []
     if tail_len:
         message.update(_decode_tail(data[size - tail_len:]))
     return message
 
 
-def _decode_neighbours(data: bytes, count: int) -> List[list]:
+def _checked_block(data: bytes, count: int) -> np.ndarray:
+    """The frame's neighbour records (a read-only view of ``data``), checked: ids, ranges >= 0, finite."""
     block = np.frombuffer(data, NEIGHBOUR_DTYPE, count, FRAME_HEADER.size)
     ids, ranges, bearings = block["id"], block["range"], block["bearing"]
     for column, bad, problem in ((0, ids > MAX_ROBOT_ID, f"must be a robot id 0..{MAX_ROBOT_ID}"),
@@ -353,7 +362,18 @@ def _decode_neighbours(data: bytes, count: int) -> List[list]:
         if bad.any():
             i = int(np.argmax(bad))
             _fail(f"frame.neighbours[{i}][{column}]", f"{problem} (got {block[i][column]})")
-    return [[i, r, b] for i, r, b in zip(ids.tolist(), ranges.tolist(), bearings.tolist())]
+    return block
+
+
+def _decode_neighbours(data: bytes, count: int) -> List[list]:
+    block = _checked_block(data, count)
+    return [[i, r, b] for i, r, b in zip(block["id"].tolist(), block["range"].tolist(), block["bearing"].tolist())]
+
+
+def _neighbour_columns(data: bytes, count: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    block = _checked_block(data, count)
+    return (block["id"].astype(np.int64), block["range"].astype(np.float64),
+            block["bearing"].astype(np.float64))     # contiguous, writable copies in native byte order
 
 
 def _decode_tail(data: bytes) -> Dict[str, Any]:

@@ -3,13 +3,17 @@ import signal
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from hub.harness import ScriptedHub, spawn_agent, stop_processes
+from onboard.agent.devices import AgentClock, HubState, apply_frame
 from onboard.agent.link import HubLink
 from onboard.agent.loop import Agent
 from onboard.behaviour import Behaviour, register
 from onboard.drivers.sim import SimDriver
+from onboard.protocol import DOWNLINK_TYPES, ProtocolError, encode
+from onboard.protocol import decode as decode_message
 
 RUN = {"run_id": "r1", "behaviour": "aggregate", "params": {}, "control_hz": 10.0, "lockstep": False,
        "clock": "local", "spec": {"max_wheel_speed_m_s": 0.81}}
@@ -151,3 +155,69 @@ def test_an_exception_in_the_behaviour_stops_the_wheels_and_ends_the_agent(scrip
     wheels = [m for m in scripted.received if m["type"] == "wheels"]
     assert any(m["left"] == 0.2 for m in wheels), "the behaviour never drove"
     assert (wheels[-1]["left"], wheels[-1]["right"]) == (0.0, 0.0)
+
+
+NEIGHBOURS = [[3, 0.5, -1.25], [7, 2.9999, 3.1416], [12, 0.0, 0.0], [999_999, 1.0, -3.1415]]
+
+
+def encoded_frame(neighbours=NEIGHBOURS):
+    return encode({"type": "frame", "seq": 4, "mode": "run", "hub_t": 12.5, "pose": [1.0, 2.0, 0.5],
+                   "pose_age_s": 0.002, "neighbours": neighbours, "messages": [[3, 1.0, {"k": 1}]]})
+
+
+def test_the_agents_decoder_gives_the_neighbours_as_columns_of_the_same_values():
+    rows = decode_message(encoded_frame(), "hub", accept=DOWNLINK_TYPES)
+    columns = decode_message(encoded_frame(), "hub", accept=DOWNLINK_TYPES, neighbour_columns=True)
+    ids, ranges, bearings = columns.pop("neighbours")
+    assert ids.dtype == np.int64 and ranges.dtype == np.float64 and bearings.dtype == np.float64
+    assert [[i, r, b] for i, r, b in zip(ids.tolist(), ranges.tolist(), bearings.tolist())] == rows.pop("neighbours")
+    assert columns == rows                      # everything else as before
+    empty = decode_message(encoded_frame([]), "hub", neighbour_columns=True)["neighbours"]
+    assert [len(column) for column in empty] == [0, 0, 0]
+    hello = encode({"type": "hello", "id": 3, "driver": "kh4"})
+    assert decode_message(hello, "robot 3", neighbour_columns=True) == decode_message(hello, "robot 3")
+
+
+@pytest.mark.parametrize("column, value", [(0, 1_000_000), (1, -0.5), (1, float("nan")), (2, float("inf"))])
+def test_the_columns_decoder_rejects_what_the_rows_decoder_rejects(column, value):
+    data = bytearray(encoded_frame())
+    record = np.frombuffer(data, dtype=[("id", "<u4"), ("range", "<f8"), ("bearing", "<f8")], count=1, offset=72)
+    record[0][column] = value
+    errors = []
+    for columns in (False, True):
+        with pytest.raises(ProtocolError) as err:
+            decode_message(bytes(data), "hub", neighbour_columns=columns)
+        errors.append(str(err.value))
+    assert errors[0] == errors[1] and f"frame.neighbours[0][{column}]" in errors[0]
+
+
+def test_the_devices_see_the_same_neighbours_from_columns_and_from_rows():
+    tables = []
+    for columns in (False, True):
+        state = HubState()
+        apply_frame(state, decode_message(encoded_frame(), "hub", neighbour_columns=columns), AgentClock(state), 1.0)
+        tables.append(state.neighbours)
+    rows, columns = tables
+    assert list(columns) == list(rows) and len(columns) == len(NEIGHBOURS)
+    np.testing.assert_array_equal(columns.ids, rows.ids)
+    np.testing.assert_array_equal(columns.xy, rows.xy)
+    assert [n.id for n in columns] == [3, 7, 12, 999_999]
+
+
+def test_the_link_hands_frames_over_with_neighbour_columns(scripted):
+    link = HubLink(0, scripted.endpoint)
+    try:
+        deadline = time.monotonic() + 10.0
+        while scripted.routing is None and time.monotonic() < deadline:   # nothing is queued until connected
+            link.send({"type": "hello", "driver": "test"})
+            scripted.pump(0.1)
+        scripted.frame(neighbours=NEIGHBOURS)
+        deadline = time.monotonic() + 5.0
+        frames = []
+        while not frames and time.monotonic() < deadline:
+            frames = [m for m in link.receive(0.1) if m["type"] == "frame"]
+    finally:
+        link.close()
+    ids, ranges, bearings = frames[0]["neighbours"]
+    assert ids.tolist() == [n[0] for n in NEIGHBOURS] and ranges.tolist() == [n[1] for n in NEIGHBOURS]
+    assert bearings.tolist() == [n[2] for n in NEIGHBOURS]

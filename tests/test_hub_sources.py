@@ -11,7 +11,7 @@ from hub.factory import build_hub
 from hub.harness import HubThread
 from hub.recording import Recorder, read_log
 from hub.server import UPLINK_SLICE, poses_record
-from hub.sources import PoseFrame
+from hub.sources import MotionCaptureSource, PoseFrame, pose_from_mocap
 from onboard.protocol import decode, encode
 
 NETWORK = {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}
@@ -57,6 +57,95 @@ def test_motioncapture_bodies_become_robot_poses_and_neighbours(up_axis, bodies)
         status = hub.wait_until(lambda s: s["mocap_hz"] > 0)
         assert 40 < status["mocap_hz"] < 130          # the mock's 100 Hz, as measured on arrival
         assert any("ignoring rigid body 'stray'" in line for line in hub.lines)
+
+
+class FakeQuaternion:
+    def __init__(self, w, x, y, z):
+        self.w, self.x, self.y, self.z = w, x, y, z
+
+
+class FakeBody:
+    """What the motioncapture SDK hands out per rigid body: a float32 position and a quaternion object."""
+
+    def __init__(self, position, quaternion_wxyz):
+        self.position = np.asarray(position, dtype=np.float32)
+        self.rotation = FakeQuaternion(*quaternion_wxyz)
+
+
+class FakeMocap:
+    rigidBodies: dict = {}
+
+    def waitForNextFrame(self):
+        time.sleep(0.01)
+
+
+def fake_source(bodies, up_axis, lines):
+    return MotionCaptureSource(zmq.Context.instance(), "fake", {}, bodies, up_axis, log=lines.append,
+                               connect=lambda system, options: FakeMocap())
+
+
+def reference_convert(bodies, names_to_ids, up_axis):
+    """The conversion body by body: listed names only, world pose per body, non-finite poses dropped."""
+    ids, poses = [], []
+    for name, body in bodies.items():
+        if name in names_to_ids:
+            q = body.rotation
+            pose = pose_from_mocap(body.position.tolist(), (q.w, q.x, q.y, q.z), up_axis)
+            if all(math.isfinite(v) for v in pose):
+                ids.append(names_to_ids[name])
+                poses.append(pose)
+    return ids, np.asarray(poses, dtype=float).reshape(-1, 3)
+
+
+def random_bodies(rng, names, occluded=()):
+    bodies = {}
+    for name in names:
+        q = rng.normal(size=4)
+        position = rng.uniform(-3.0, 3.0, 3)
+        if name in occluded:
+            position = np.full(3, np.nan)
+        bodies[name] = FakeBody(position, q / np.linalg.norm(q))
+    return bodies
+
+
+@pytest.mark.parametrize("up_axis", ["z", "y"])
+def test_converting_rigid_bodies_matches_the_body_by_body_conversion(up_axis):
+    listed = {f"kh{i}": 10 + i for i in range(6)}
+    lines = []
+    source = fake_source(listed, up_axis, lines)
+    try:
+        rng = np.random.default_rng(4)
+        frames = [
+            random_bodies(rng, ["kh0", "kh1", "stray", "kh2", "kh3", "kh4", "kh5"]),
+            random_bodies(rng, ["kh0", "kh1", "stray", "kh2", "kh3", "kh4", "kh5"], occluded={"kh2"}),
+            random_bodies(rng, ["kh5", "kh4", "kh0"]),                 # bodies left and changed order
+            random_bodies(rng, ["kh0", "kh1", "kh2", "kh3", "kh4", "kh5", "other"]),
+            random_bodies(rng, ["kh0", "kh1", "kh2", "kh3", "kh4", "kh5"]),
+            {},
+        ]
+        for k, bodies in enumerate(frames):
+            frame = source._convert(100.0 + k, bodies)
+            ids, poses = reference_convert(bodies, listed, up_axis)
+            assert frame.stamp == 100.0 + k
+            assert frame.ids == ids
+            assert frame.poses.shape == (len(ids), 3)
+            np.testing.assert_allclose(frame.poses, poses, rtol=0, atol=1e-12)
+    finally:
+        source.close()
+    ignored = [line for line in lines if "ignoring rigid body" in line]
+    assert ignored == ["hub: ignoring rigid body 'stray' (not listed in source.bodies)",
+                       "hub: ignoring rigid body 'other' (not listed in source.bodies)"]   # once per name
+
+
+def test_a_y_up_body_is_placed_on_the_z_up_floor():
+    source = fake_source({"kh0": 0}, "y", [])
+    try:
+        quarter = (math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0)    # a quarter turn about +y
+        frame = source._convert(1.0, {"kh0": FakeBody((1.0, 0.05, -2.0), quarter)})
+    finally:
+        source.close()
+    assert frame.ids == [0]
+    np.testing.assert_allclose(frame.poses, [[1.0, 2.0, math.pi / 2]], atol=1e-6)
 
 
 def test_stale_bodies_lose_their_pose_and_are_held():

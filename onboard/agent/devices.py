@@ -54,7 +54,8 @@ class AgentClock(hal.Clock):
 
 def apply_frame(state: HubState, frame: Dict[str, Any], clock: AgentClock, received_at: float) -> None:
     """Fold one downlink frame into the state (messages accumulate; everything else is latest-only).
-    The frame's mode is applied by the agent, which must act on a change (stop the wheels)."""
+    The frame's mode is applied by the agent, which must act on a change (stop the wheels). ``neighbours`` is
+    either the decoder's columns ``(ids, ranges_m, bearings_rad)``, used as they are, or a list of rows."""
     if state.seq and frame["seq"] > state.seq + 1:
         state.frames_lost += frame["seq"] - state.seq - 1
     state.seq = frame["seq"]
@@ -67,8 +68,12 @@ def apply_frame(state: HubState, frame: Dict[str, Any], clock: AgentClock, recei
     pose = frame.get("pose")
     if pose is not None:
         state.pose = Pose(pose[0], pose[1], pose[2], measured)
-    rows = frame["neighbours"]
-    state.neighbours = Neighbours([n[0] for n in rows], [n[1] for n in rows], [n[2] for n in rows])
+    neighbours = frame["neighbours"]
+    if isinstance(neighbours, tuple):        # the decoder's columns (HubLink decodes with neighbour_columns)
+        state.neighbours = Neighbours(*neighbours)
+    else:                                    # [[id, range_m, bearing_rad], ...]
+        state.neighbours = Neighbours([n[0] for n in neighbours], [n[1] for n in neighbours],
+                                      [n[2] for n in neighbours])
     state.neighbours_at = measured
     for sender, sent_s, payload in frame["messages"]:
         state.inbox.append(Message(sender, payload, sent_s))

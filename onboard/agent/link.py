@@ -101,7 +101,8 @@ class HubLink:
             except zmq.Again:
                 break
             try:
-                out.append(decode(data, "hub", accept=DOWNLINK_TYPES))
+                # Frames keep their neighbours as the decoder's numpy columns: the devices use them as they are.
+                out.append(decode(data, "hub", accept=DOWNLINK_TYPES, neighbour_columns=True))
             except ProtocolError as err:
                 self._bad(str(err))
         return out

@@ -1,0 +1,62 @@
+"""``khepri bench hub``: its options reach the benchmark, and a short run with agents' telemetry and recording
+reports the three figures."""
+import json
+
+import pytest
+
+import hub.bench
+from khepri_cli.main import build_parser, main
+from onboard.config import ConfigError
+
+FIGURES = {"latency_p50_ms": 0.5, "latency_p99_ms": 0.9, "hub_cpu_percent": 7.0, "frames_received": 1200}
+
+
+@pytest.fixture
+def calls(monkeypatch):
+    seen = []
+
+    def fake_bench_hub(robots, rate_hz, seconds, warmup_s=1.0, telemetry_hz=0.0, record=False):
+        seen.append({"robots": robots, "rate_hz": rate_hz, "seconds": seconds, "telemetry_hz": telemetry_hz,
+                     "record": record})
+        return dict(FIGURES)
+
+    monkeypatch.setattr(hub.bench, "bench_hub", fake_bench_hub)
+    return seen
+
+
+def test_telemetry_and_recording_are_off_by_default(calls, capsys):
+    assert main(["bench", "hub", "--json"]) == 0
+    assert calls == [{"robots": 100, "rate_hz": 120.0, "seconds": 5.0, "telemetry_hz": 0.0, "record": False}]
+    assert json.loads(capsys.readouterr().out) == {k: FIGURES[k] for k in
+                                                   ("latency_p50_ms", "latency_p99_ms", "hub_cpu_percent")}
+
+
+def test_telemetry_hz_and_record_reach_the_benchmark(calls, capsys):
+    assert main(["bench", "hub", "--robots", "20", "--telemetry-hz", "10", "--record"]) == 0
+    assert calls[-1] == {"robots": 20, "rate_hz": 120.0, "seconds": 5.0, "telemetry_hz": 10.0, "record": True}
+    out = capsys.readouterr().out
+    assert "agents sending telemetry at 10 Hz" in out and "recording to MCAP" in out
+    assert main(["bench", "hub", "--record", "--no-record"]) == 0
+    assert calls[-1]["record"] is False
+
+
+@pytest.mark.parametrize("rate", ["-1", "nan", "inf"])
+def test_a_bad_telemetry_rate_is_refused(calls, rate):
+    args = build_parser().parse_args(["bench", "hub", "--telemetry-hz", rate])
+    with pytest.raises(ConfigError, match="--telemetry-hz"):
+        args.func(args)
+    assert calls == []
+
+
+def test_the_options_are_in_the_help(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "hub", "--help"])
+    help_text = capsys.readouterr().out
+    assert "--telemetry-hz" in help_text and "--record" in help_text and "--no-record" in help_text
+
+
+def test_a_short_run_with_telemetry_and_recording_reports_its_figures():
+    result = hub.bench.bench_hub(5, 60.0, 1.0, warmup_s=0.5, telemetry_hz=10.0, record=True)
+    assert result["frames_received"] > 0 and result["hub_drops"] == 0
+    assert 0 < result["latency_p50_ms"] <= result["latency_p99_ms"]
+    assert result["hub_cpu_percent"] > 0
