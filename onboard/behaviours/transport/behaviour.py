@@ -294,14 +294,21 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
 
     def _predecessor_error(self) -> float:
         """|x_pred| - I_d_eff: positive when too far from the predecessor."""
-        pred = self.task.pred
-        vector = self.percept.neighbours.get(pred) if pred is not None else None
-        if vector is None and pred is not None:
-            where = self.board.position(pred)
-            vector = c.sub(where, self.percept.position) if where else None
+        vector = self._vector_to(self.task.pred)
         if vector is None:
             return 0.0
         return c.norm(vector) - self._spacing()
+
+    def _vector_to(self, robot: Optional[int]) -> Optional[Vec]:
+        """World-frame vector from this robot to ``robot``: its range and bearing when in range, else its
+        shared position; None when neither is known."""
+        if robot is None:
+            return None
+        vector = self.percept.neighbours.get(robot)
+        if vector is None:
+            where = self.board.position(robot)
+            vector = c.sub(where, self.percept.position) if where is not None else None
+        return vector
 
     def _spacing(self) -> float:
         return self.params.inter_robot_distance_m * (1.0 + 0.02 * self.board.grow_level())
@@ -439,10 +446,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         tip = self._opposite_tip()
         if tip is None:
             return False
-        vector = self.percept.neighbours.get(tip)
-        where = self.board.position(tip)
-        if vector is None and where is not None:
-            vector = c.sub(where, self.percept.position)
+        vector = self._vector_to(tip)
         if vector is None or c.norm(vector) > self.params.closure_factor * self._spacing():
             return False
         if self._gap_crosses_object(vector) or not self._ring_encloses_estimate():

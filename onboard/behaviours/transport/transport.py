@@ -73,13 +73,8 @@ class TransportPhases:
         self._drive(u, speed_scale=min(1.0, 0.3 + 4.0 * abs(error)))
 
     def _distance_to(self, robot: Optional[int]) -> Optional[float]:
-        if robot is None:
-            return None
-        vector = self.percept.neighbours.get(robot)
-        if vector is not None:
-            return c.norm(vector)
-        where = self.board.position(robot)
-        return math.hypot(where[0] - self.percept.x, where[1] - self.percept.y) if where else None
+        vector = self._vector_to(robot)
+        return None if vector is None else c.norm(vector)
 
     def _cage_ring_neighbours(self) -> Tuple[Optional[int], Optional[int]]:
         """(clockwise, counter-clockwise) neighbours in the ring S, L1, L2, ... (ccw) and R1, R2, ... (cw)."""
@@ -161,7 +156,7 @@ class TransportPhases:
     def _member_positions(self, now: float) -> Dict[int, Vec]:
         positions = {}
         for rid in self._members_alive(now):
-            where = self.percept.position if rid == self.robot.id else self.board.position(rid)
+            where = self._member_position(rid)
             if where is not None:
                 positions[rid] = where
         return positions
