@@ -1,16 +1,18 @@
 """Software in the loop, end to end: the hub's sim source and one real agent process per robot over loopback
-CURVE sockets run lab-6 in lockstep; evaluated like `khepri sim run`, with the MCAP log beside it."""
+CURVE sockets run lab-6 and lab-6-payload in lockstep; evaluated like `khepri sim run`, with the MCAP log beside it."""
 import json
 
 import numpy as np
+import pytest
 
 from hub.recording import read_log
 from hub.sil import SilOptions, run_sil
 from sim_backend.scenario import load_scenario
 
 
-def test_sil_lab6_cages_and_reaches_every_waypoint(tmp_path):
-    scenario = load_scenario("lab-6")
+@pytest.mark.parametrize("name", ["lab-6", "lab-6-payload"])
+def test_sil_lab6_cages_and_reaches_every_waypoint(tmp_path, name):
+    scenario = load_scenario(name)
     result = run_sil(scenario, tmp_path, SilOptions(plot=False))
     print(json.dumps({k: v for k, v in result.items() if k != "waypoints"}, indent=1))
     assert "error" not in result

@@ -32,6 +32,16 @@ def test_lab6_cages_the_box_and_brings_it_to_the_last_waypoint(lab6_run):
         assert waypoint["centroid_estimation_error_m"] <= 0.05
 
 
+def test_lab6_payload_is_slower_but_reaches_every_waypoint(lab6_run):
+    """The 4.3 kg box: same bar as lab-6, and it takes the cage longer than the empty box."""
+    result = Simulation(load_scenario("lab-6-payload"), seed=1).run()
+    assert result["caged"] and result["completed"], result["failures"]
+    assert result["final_position_error_m"] <= 0.05
+    assert result["cage_spacing_m"]["std"] <= 0.05
+    assert all(w["centroid_estimation_error_m"] <= 0.05 for w in result["waypoints"])
+    assert result["time_to_complete_s"] > lab6_run[1]["time_to_complete_s"]
+
+
 def test_no_task_is_given_twice(lab6_run):
     sim, _ = lab6_run
     space = sim.behaviours[0].space
