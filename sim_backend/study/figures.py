@@ -90,7 +90,8 @@ def plot_times(cells: List[Cell], target: Path) -> Path:
             if reference(cell.case) is not None:
                 ax.plot([i], [reference(cell.case)], "D", color="red", markersize=8,
                         label="paper (median)" if "paper (median)" not in ax.get_legend_handles_labels()[1] else None)
-        ax.set_xticks(range(len(shown)), [short_label(c) for c in shown], fontsize=8)
+        # Slanted, right-aligned labels: cell names such as "irregular-box_rotation" overlap when level.
+        ax.set_xticks(range(len(shown)), [short_label(c) for c in shown], fontsize=8, rotation=30, ha="right")
         ax.set_xlim(-0.7, max(len(shown), 1) - 0.3)
         ax.set_title(title)
         ax.set_ylabel("simulated time (s)")
