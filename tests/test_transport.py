@@ -8,6 +8,7 @@ from onboard.behaviour import build_params, get_behaviour
 from onboard.behaviours.transport import control as c
 from onboard.behaviours.transport.approach import seed_heading
 from onboard.behaviours.transport.estimator import encloses, ring_centroid, ring_rotation
+from onboard.behaviours.transport.params import IMPROVEMENT_FLAGS
 from onboard.config import ConfigError
 from sim_backend.runner import Simulation
 from sim_backend.scenario import load_scenario
@@ -103,6 +104,8 @@ def test_profiles_and_bad_parameters():
     cls = get_behaviour("transport")
     faithful = build_params(cls, {"profile": "faithful"})
     assert not faithful.pipeline_allocation and not faithful.equalise_spacing
+    assert not any(getattr(faithful, flag) for flag in IMPROVEMENT_FLAGS)
+    assert all(isinstance(getattr(faithful, flag), bool) for flag in IMPROVEMENT_FLAGS)
     assert faithful.position_tolerance_m == faithful.push_tolerance_m == 0.1
     improved = build_params(cls, {})
     assert improved.inter_robot_distance_m == 0.45 and improved.theta_p_deg == 115.0

@@ -11,6 +11,9 @@ from typing import List, Optional, Tuple
 from ...config import ConfigError, check_range
 
 PROFILES = ("improved", "faithful")
+# The on/off improvements over the paper: the faithful profile turns every one of them off (a new one goes here).
+IMPROVEMENT_FLAGS = ("pipeline_allocation", "equalise_spacing", "hold_yaw_while_pushing", "soft_side_contact",
+                     "keep_contact", "reinforce_push", "seed_from_rear", "keep_gap_while_caging")
 
 
 @dataclass
@@ -64,18 +67,12 @@ class TransportParams:
         if self.profile not in PROFILES:
             raise ConfigError(f"{where}.profile", f"must be one of {', '.join(PROFILES)} (got {self.profile!r})")
         if self.profile == "faithful":
-            self.pipeline_allocation = False
-            self.equalise_spacing = False
+            for flag in IMPROVEMENT_FLAGS:
+                setattr(self, flag, False)
             self.settle_time_s = 0.0
             self.position_tolerance_m = self.push_tolerance_m
             self.rotation_tolerance_deg = self.orientation_tolerance_deg
             self.slow_down_radius_m = 0.0
-            self.hold_yaw_while_pushing = False
-            self.soft_side_contact = False
-            self.keep_contact = False
-            self.reinforce_push = False
-            self.seed_from_rear = False
-            self.keep_gap_while_caging = False
         self._check(where)
 
     def _check(self, where: str) -> None:
