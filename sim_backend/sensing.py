@@ -1,8 +1,7 @@
 """Vectorised IR proximity: one ray per sensor, against circles (robots, round object parts) and segments
 (object outlines, walls), with a broad phase so only nearby pairs are tested.
 
-Response curve from ARGoS's KheperaIV model (distance d in metres from the sensor):
-1 for d < 0.04, 4.14 * exp(-33 d) - 0.085 up to 0.12, 0 beyond; clipped to [0, 1].
+Response curve: onboard/hal/ir_curve.py (ARGoS's KheperaIV model), shared with the behaviours.
 """
 from __future__ import annotations
 
@@ -12,20 +11,9 @@ from typing import Optional, Sequence
 import numpy as np
 
 from onboard.hal import PROXIMITY_ANGLES_RAD
+from onboard.hal.ir_curve import IR_RANGE_M, ir_response
 
 SENSOR_ANGLES = np.asarray(PROXIMITY_ANGLES_RAD)
-IR_RANGE_M = 0.12
-IR_SATURATION_M = 0.04
-
-
-def ir_response(distance: np.ndarray) -> np.ndarray:
-    """Normalised reading for a distance from the sensor (inf = nothing seen)."""
-    d = np.asarray(distance, dtype=float)
-    with np.errstate(over="ignore", invalid="ignore"):
-        value = 4.14 * np.exp(-33.0 * d) - 0.085
-    value = np.where(d < IR_SATURATION_M, 1.0, value)
-    value = np.where(d > IR_RANGE_M, 0.0, value)
-    return np.clip(value, 0.0, 1.0)
 
 
 def ray_circle(origins: np.ndarray, dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:

@@ -326,6 +326,14 @@ def test_a_heartbeat_is_written_when_it_says_something_new():
         writes.append(space.entry("pos/3") is not before)
     assert writes[:8] == [True, False, False, True, True, False, True, True]
     assert writes[8:].count(True) == 1 and writes[17]             # still: once a second (last write at step 7)
+    writes = []
+    for step, surface in enumerate([None, (0.2, 0.0), (0.205, 0.0), (0.215, 0.0), None], start=20):
+        board.refresh_liveness(step * 0.1)
+        before = space.entry("pos/3")
+        board.heartbeat(3, 0.011, 0.0, None, surface)
+        writes.append(space.entry("pos/3") is not before)
+    assert writes == [False, True, False, True, True]             # the surface point seen, moved 1 cm, lost
+    assert board.surface_point(3) is None and board.position(3) == (0.011, 0.0)
 
 
 # --- traffic options of the tuple space --------------------------------------------------------------------

@@ -7,9 +7,16 @@ import pytest
 from onboard.behaviour import build_params, get_behaviour
 from onboard.behaviours.transport import control as c
 from onboard.behaviours.transport.approach import seed_heading
-from onboard.behaviours.transport.estimator import encloses, ring_centroid, ring_rotation
+from onboard.behaviours.transport.estimator import (
+    encloses,
+    normal_displacement,
+    ring_centroid,
+    ring_rotation,
+    surface_normals,
+)
 from onboard.behaviours.transport.params import IMPROVEMENT_FLAGS
 from onboard.config import ConfigError
+from onboard.hal.ir_curve import ir_distance_m, ir_response
 from sim_backend.runner import Simulation
 from sim_backend.scenario import load_scenario
 
@@ -41,6 +48,15 @@ def test_lab6_payload_is_slower_but_reaches_every_waypoint(lab6_run):
     assert result["cage_spacing_m"]["std"] <= 0.05
     assert all(w["centroid_estimation_error_m"] <= 0.05 for w in result["waypoints"])
     assert result["time_to_complete_s"] > lab6_run[1]["time_to_complete_s"]
+
+
+def test_paper25_centroid_estimate_stays_within_5cm_at_every_waypoint():
+    """Issue #3's bar for the 25-robot cage (the paper's median error was 0.10-0.61 m): the swarm's filtered
+    centroid, from the surface points its IR sees, against the simulator's true centroid at each waypoint."""
+    result = Simulation(load_scenario("paper-25-straight"), seed=1).run()
+    assert result["caged"] and result["completed"], result["failures"]
+    assert len(result["waypoints"]) == 10
+    assert max(w["centroid_estimation_error_m"] for w in result["waypoints"]) <= 0.05
 
 
 def test_no_task_is_given_twice(lab6_run):
@@ -140,6 +156,39 @@ def test_centroid_and_rotation_from_the_cage_ring():
     reference = {i: (math.cos(a), math.sin(a)) for i, a in enumerate((0.0, 1.5, 3.0, 4.5))}
     turned = {i: (math.cos(a + 0.3), math.sin(a + 0.3)) for i, a in enumerate((0.0, 1.5, 3.0, 4.5))}
     assert ring_rotation(turned, reference, (0, 0), (0, 0)) == pytest.approx(0.3)
+
+
+def test_a_reading_turns_back_into_the_distance_it_came_from():
+    for distance in (0.045, 0.06, 0.08, 0.11):
+        assert ir_distance_m(float(ir_response(np.array([distance]))[0])) == pytest.approx(distance, abs=1e-9)
+    assert ir_distance_m(1.0) == ir_distance_m(0.97) == 0.0       # saturated: touching
+    assert ir_distance_m(0.0) is None                             # nothing in range
+
+
+def test_the_surface_estimate_ignores_robots_sliding_along_the_faces():
+    """Members see points on a 2 x 2 m box's faces; the box moves and turns a little, and half of the points
+    slide along their faces (robots dragged sideways): the translation comes out, the ring centroid drifts."""
+    faces = [((1.0, t), (1.0, 0.0)) for t in (-0.6, 0.0, 0.6)] + [((-1.0, t), (-1.0, 0.0)) for t in (-0.6, 0.0, 0.6)] \
+        + [((t, 1.0), (0.0, 1.0)) for t in (-0.5, 0.5)] + [((t, -1.0), (0.0, -1.0)) for t in (-0.5, 0.5)]
+    reference = {i: point for i, (point, _) in enumerate(faces)}
+    yaw, shift = 0.04, (0.3, -0.1)
+
+    def placed(point):
+        x, y = c.rotate(point, yaw)
+        return (x + shift[0], y + shift[1])
+
+    now = {}
+    for i, (point, normal) in enumerate(faces):
+        slide = 0.15 if i % 2 else 0.0                             # along the face: perpendicular to its normal
+        now[i] = placed((point[0] - normal[1] * slide, point[1] + normal[0] * slide))
+    robots = {i: (point[0] + 0.1 * normal[0], point[1] + 0.1 * normal[1]) for i, (point, normal) in enumerate(faces)}
+    normals = surface_normals(reference, robots)
+    assert normals[1] == pytest.approx((1.0, 0.0)) and normals[6] == pytest.approx((0.0, 1.0))
+    moved = normal_displacement(now, reference, normals, (0.0, 0.0), yaw)
+    assert moved == pytest.approx(shift, abs=1e-9)
+    drifted = np.subtract(ring_centroid(np.asarray(list(now.values()))), shift)
+    assert np.hypot(*drifted) > 0.02                              # what the positions' centroid would say
+    assert normal_displacement({0: now[0], 3: now[3]}, reference, normals, (0.0, 0.0), yaw) is None  # one axis only
 
 
 @pytest.mark.parametrize("start_deg", [0, 45, 90, 135, 180, 225, 300])

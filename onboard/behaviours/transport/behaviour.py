@@ -12,6 +12,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from ...behaviour import Behaviour, register
+from ...hal.ir_curve import ir_distance_m
 from ...localisation import PoseTracker
 from ...motion import vector_to_wheels
 from . import control as c
@@ -59,6 +60,8 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         self.filter: Optional[ObjectFilter] = None
         self.reference_ring: Dict[int, Vec] = {}
         self.reference_centre: Vec = (0.0, 0.0)
+        self.reference_normals: Dict[int, Vec] = {}
+        self.reference_surface: Dict[int, Vec] = {}
         self.reference_yaw = 0.0
         self.reference_edges: Dict[tuple, float] = {}
         self.formation: Dict[int, Vec] = {}
@@ -90,7 +93,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
                                     robot.proximity.read())
             getattr(self, f"_on_{self.state}")(now)
             if self.state not in ("idle", "done"):
-                self.board.heartbeat(robot.id, pose.x, pose.y, self._contact_normal())
+                self.board.heartbeat(robot.id, pose.x, pose.y, self._contact_normal(), self._surface_point())
         self.last_step = now
         gossip = self.space.outgoing()
         if gossip:      # nothing new and no anti-entropy turn: stay quiet (most steps in a large swarm)
@@ -101,6 +104,17 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         if percept is None or not percept.in_contact(self.params.proximity_threshold):
             return None
         return math.atan2(percept.object_vector[1], percept.object_vector[0])
+
+    def _surface_point(self) -> Optional[Vec]:
+        """The point of the object's surface this robot's IR sees (world frame): from its centre along x_o,
+        a body radius plus the distance the strongest object reading stands for (hal.ir_curve)."""
+        percept = self.percept
+        gap = ir_distance_m(percept.object_peak) if percept is not None and percept.object_peak > 0 else None
+        if gap is None:
+            return None
+        reach = self.robot.spec.radius_m + gap
+        direction = c.unit(percept.object_vector)
+        return (percept.position[0] + direction[0] * reach, percept.position[1] + direction[1] * reach)
 
     @property
     def finished(self) -> bool:

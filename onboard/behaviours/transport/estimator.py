@@ -2,7 +2,9 @@
 
 The robots never see the object's true pose. Once the cage is closed they sit around the object at a
 roughly constant offset, so the area centroid of the polygon through their positions approximates the
-object's centroid (exactly, for symmetric objects and even spacing). How far the object turned comes from
+object's centroid (exactly, for symmetric objects and even spacing). While they push, robots slide along
+the faces and open or close their gap to the object, which drags that centroid; how far the points of the
+surface their IR sees moved along the object's normals (normal_displacement) does not follow them. How far the object turned comes from
 how the edges between neighbouring members turned (edge_rotation): robots on the same face stay on a line
 parallel to it. The ring's angular displacement about the centroid (ring_rotation) is the fallback.
 A constant-velocity Kalman filter (filterpy) smooths both: measurement noise comes from the positioning
@@ -89,6 +91,51 @@ def edge_rotation(now: Dict[tuple, float], reference: Dict[tuple, float]) -> Opt
         return None
     middle = len(turns) // 2          # the median of the sorted turns (np.median's value, without numpy)
     return turns[middle] if len(turns) % 2 else (turns[middle - 1] + turns[middle]) / 2.0
+
+
+def surface_normals(surfaces: Dict[int, Sequence[float]], positions: Dict[int, Sequence[float]]
+                    ) -> Dict[int, Tuple[float, float]]:
+    """Outward unit normal of the object at each surface point: from the point back to the robot that saw it
+    (the IR's direction to the object is the face's inward normal, to within how the readings spread)."""
+    normals = {}
+    for k, point in surfaces.items():
+        if k in positions:
+            nx, ny = positions[k][0] - point[0], positions[k][1] - point[1]
+            length = math.hypot(nx, ny)
+            if length > 1e-9:
+                normals[k] = (nx / length, ny / length)
+    return normals
+
+
+def normal_displacement(now: Dict[int, Sequence[float]], reference: Dict[int, Sequence[float]],
+                        normals: Dict[int, Sequence[float]], centre_ref: Sequence[float], rotation: float,
+                        min_information: float = 0.5) -> Optional[Tuple[float, float]]:
+    """The object's translation since the reference, from how far its surface points moved along the
+    object's normals (least squares over the points seen both now and then, after turning the reference
+    points and normals by ``rotation`` about ``centre_ref``).
+
+    A robot that slides along a face -- a side robot running ahead of a heavy object, a rear pusher pushed
+    sideways -- sees a point that moves along the face, not across it, so it does not drag this estimate;
+    the centroid of the robots' positions follows it. And a surface point does not move when its robot
+    falls back from the object or closes in on it. None when the normals do not pin both axes
+    (``min_information``: the smallest eigenvalue of sum n n^T, about half a point's worth of normals
+    along the weaker axis).
+    """
+    c, s = math.cos(rotation), math.sin(rotation)
+    a11 = a12 = a22 = b1 = b2 = 0.0
+    for k, p in now.items():
+        if k not in reference or k not in normals:
+            continue
+        qx, qy = reference[k][0] - centre_ref[0], reference[k][1] - centre_ref[1]
+        nx, ny = c * normals[k][0] - s * normals[k][1], s * normals[k][0] + c * normals[k][1]
+        along = nx * (p[0] - centre_ref[0] - (c * qx - s * qy)) + ny * (p[1] - centre_ref[1] - (s * qx + c * qy))
+        a11, a12, a22 = a11 + nx * nx, a12 + nx * ny, a22 + ny * ny
+        b1, b2 = b1 + nx * along, b2 + ny * along
+    half_trace, det = (a11 + a22) / 2.0, a11 * a22 - a12 * a12
+    weaker = half_trace - math.sqrt(max(half_trace * half_trace - det, 0.0))
+    if weaker < min_information:
+        return None
+    return (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
 
 
 class ObjectFilter:

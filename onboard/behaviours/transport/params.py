@@ -13,7 +13,8 @@ from ...config import ConfigError, check_range
 PROFILES = ("improved", "faithful")
 # The on/off improvements over the paper: the faithful profile turns every one of them off (a new one goes here).
 IMPROVEMENT_FLAGS = ("pipeline_allocation", "equalise_spacing", "hold_yaw_while_pushing", "soft_side_contact",
-                     "keep_contact", "reinforce_push", "seed_from_rear", "keep_gap_while_caging")
+                     "keep_contact", "reinforce_push", "seed_from_rear", "keep_gap_while_caging",
+                     "surface_estimate")
 
 
 @dataclass
@@ -62,6 +63,8 @@ class TransportParams:
     seed_from_rear: bool = True              # the seed meets the object from behind its first leg (approach.py)
     seed_approach_radius_m: float = 0.8      # ... circling the estimated centroid at this distance to get there
     keep_gap_while_caging: bool = True       # caging robots hold their IR reading of the object at 0.85
+    surface_estimate: bool = True            # centroid from how the IR-seen surface points moved (estimator.py)
+    surface_estimate_min_points: int = 6     # ... when at least this many members see the object, else the ring
 
     def validate(self, where: str) -> None:
         if self.profile not in PROFILES:
@@ -86,3 +89,4 @@ class TransportParams:
         check_range(f"{where}.barrier_fraction", self.barrier_fraction, 0.0, 1.0, low_open=True)
         check_range(f"{where}.settle_time_s", self.settle_time_s, 0.0)
         check_range(f"{where}.slow_down_radius_m", self.slow_down_radius_m, 0.0)
+        check_range(f"{where}.surface_estimate_min_points", self.surface_estimate_min_points, 3)

@@ -5,10 +5,12 @@ Keys (values are small JSON mappings):
   bid/<tid>/<e> {"robot", "bid"}      lowest bid wins (ties: lower robot id) -- conflict rule on "bid/"
   owner/<tid>   {"robot", "bid", "epoch"}  the robot that took the task; same conflict rule on "owner/"
   member/<rid>  {"tid", "branch", "index"}  a robot settled in the cage
-  pos/<rid>     [x, y, normal]              position heartbeat of members and travellers, with the world angle
-                                            of the contact normal x_o (null when not touching): written when
-                                            the robot moved HEARTBEAT_MOVE_M or the normal changed, and at
-                                            least every HEARTBEAT_PERIOD_S (liveness times out after 4 s)
+  pos/<rid>     [x, y, normal, [sx, sy]]    position heartbeat of members and travellers, with the world angle
+                                            of the contact normal x_o (null when not touching) and the point
+                                            of the object's surface the IR sees (null when unseen): written
+                                            when the robot or that point moved HEARTBEAT_MOVE_M or the normal
+                                            changed, and at least every HEARTBEAT_PERIOD_S (liveness times
+                                            out after 4 s)
   closed        {"pair": [a, b]}            the cage is closed (Proposition 1)
   grow          {"level": n}               out of robots: I_d grows by 2 % per level until closure
   path          [[x, y, yaw_deg], ...]      the agreed path
@@ -218,15 +220,18 @@ class TaskBoard:
             self._members = found
         return dict(self._members)
 
-    def heartbeat(self, robot: int, x: float, y: float, normal: Optional[float], now: Optional[float] = None) -> None:
-        """Publish this robot's position (and contact normal) if it changed enough or the last one is getting
-        old; ``now`` defaults to the time given to the latest ``refresh_liveness``."""
+    def heartbeat(self, robot: int, x: float, y: float, normal: Optional[float],
+                  surface: Optional[Tuple[float, float]] = None, now: Optional[float] = None) -> None:
+        """Publish this robot's position, contact normal and the point of the object's surface its IR sees,
+        if one of them changed enough or the last heartbeat is getting old; ``now`` defaults to the time
+        given to the latest ``refresh_liveness``."""
         now = self._now if now is None else now
         key = f"pos/{robot}"
-        value = [round(x, 4), round(y, 4), None if normal is None else round(normal, 3)]
+        value = [round(x, 4), round(y, 4), None if normal is None else round(normal, 3),
+                 None if surface is None else [round(surface[0], 4), round(surface[1], 4)]]
         held = self.space.get(key)
         if now is not None and self._beat_at is not None and now - self._beat_at < HEARTBEAT_PERIOD_S - 1e-9 \
-                and isinstance(held, list) and len(held) == 3 and _close_heartbeat(held, value):
+                and isinstance(held, list) and len(held) == 4 and _close_heartbeat(held, value):
             return
         self.space.put(key, value)
         self._beat_at = now
@@ -255,6 +260,16 @@ class TaskBoard:
         value = self.space.get(f"pos/{robot}")
         if isinstance(value, list) and len(value) >= 2:
             return (float(value[0]), float(value[1]))
+        return None
+
+    def surface_point(self, robot: int) -> Optional[Tuple[float, float]]:
+        """Where the robot's IR last saw the object's surface (world frame), if it saw it."""
+        value = self.space.get(f"pos/{robot}")
+        if isinstance(value, list) and len(value) >= 4 and isinstance(value[3], list) and len(value[3]) == 2:
+            try:
+                return (float(value[3][0]), float(value[3][1]))
+            except (TypeError, ValueError):
+                return None
         return None
 
     def contact_normal(self, robot: int) -> Optional[float]:
@@ -287,14 +302,19 @@ class TaskBoard:
 
 def _close_heartbeat(held: list, value: list) -> bool:
     """True if ``value`` says nothing new against the heartbeat ``held``: moved less than HEARTBEAT_MOVE_M, and
-    the same contact (both none, or normals within HEARTBEAT_TURN_RAD)."""
+    the same contact (both none, or normals within HEARTBEAT_TURN_RAD), and the same surface point (both none,
+    or within HEARTBEAT_MOVE_M)."""
     try:
         if math.hypot(value[0] - held[0], value[1] - held[1]) >= HEARTBEAT_MOVE_M:
+            return False
+        if (held[3] is None) != (value[3] is None):
+            return False
+        if held[3] is not None and math.hypot(value[3][0] - held[3][0], value[3][1] - held[3][1]) >= HEARTBEAT_MOVE_M:
             return False
         if held[2] is None or value[2] is None:
             return held[2] is None and value[2] is None
         return abs(math.remainder(value[2] - held[2], math.tau)) < HEARTBEAT_TURN_RAD
-    except TypeError:                              # a malformed value in the space: write a good one
+    except (TypeError, IndexError):                # a malformed value in the space: write a good one
         return False
 
 

@@ -13,7 +13,15 @@ import numpy as np
 from ...hal import wrap_angle
 from . import control as c
 from .control import Vec
-from .estimator import ObjectFilter, edge_rotation, ring_centroid, ring_edges, ring_rotation
+from .estimator import (
+    ObjectFilter,
+    edge_rotation,
+    normal_displacement,
+    ring_centroid,
+    ring_edges,
+        ring_rotation,
+    surface_normals,
+)
 from .tasks import BRANCH_DIRECTION
 
 GROW_PERIOD_S = 1.0           # out of robots: I_d grows one level (2 %) per second
@@ -140,6 +148,8 @@ class TransportPhases:
         self.reference_centre = ring_centroid(np.asarray(list(ring.values()))) if ring else self.hint
         self.reference_yaw = self.initial_yaw
         self.reference_edges = ring_edges(ring, self.reference_centre, EDGE_FACTOR * self._spacing())
+        self.reference_surface = self._member_surfaces(ring)
+        self.reference_normals = surface_normals(self.reference_surface, ring)
         noise = 0.02
         self.filter = ObjectFilter(self.reference_centre[0], self.reference_centre[1], self.reference_yaw, noise)
         self.formation = self._formation_now()
@@ -161,6 +171,16 @@ class TransportPhases:
                 positions[rid] = where
         return positions
 
+    def _member_surfaces(self, members: Dict[int, Vec]) -> Dict[int, Vec]:
+        """The object's surface points that ``members`` last saw with their IR (those that saw it), as
+        published: this robot's own too, so that every member estimates from the same points."""
+        surfaces = {}
+        for rid in members:
+            point = self.board.surface_point(rid)
+            if point is not None:
+                surfaces[rid] = point
+        return surfaces
+
     def _rotation_since_reference(self, ring: Dict[int, Vec], centre: Vec) -> Optional[float]:
         """How far the object turned since transport began: from the edges between neighbouring members
         (estimator.edge_rotation), else from how the ring turned about the centroid."""
@@ -179,8 +199,27 @@ class TransportPhases:
             centre = ring_centroid(np.asarray(list(ring.values())))
             turned = self._rotation_since_reference(ring, centre)
             yaw = None if turned is None else self.reference_yaw + turned
+            surface = self._surface_centre(ring, turned)
+            if surface is not None:
+                centre = surface
             self.filter.update(centre[0], centre[1], yaw, len(ring))
         return self.filter.pose
+
+    def _surface_centre(self, ring: Dict[int, Vec], turned: Optional[float]) -> Optional[Vec]:
+        """Improvement: the centroid moved as far as the object's IR-seen surface points moved along its
+        normals since transport began (estimator.normal_displacement). Robots sliding along a face, falling
+        back from it or closing in on it drag the ring centroid; they do not move this. None (use the ring)
+        when it is off or fewer than ``surface_estimate_min_points`` members see the object now and did then:
+        with 3 or 4 points one odd reading (a corner, a neighbour) carries the whole fit."""
+        p = self.params
+        if not p.surface_estimate:
+            return None
+        surfaces = self._member_surfaces(ring)
+        if sum(1 for k in surfaces if k in self.reference_surface) < p.surface_estimate_min_points:
+            return None
+        moved = normal_displacement(surfaces, self.reference_surface, self.reference_normals,
+                                    self.reference_centre, turned or 0.0)
+        return None if moved is None else c.add(self.reference_centre, moved)
 
     def _barrier_passed(self, now: float) -> bool:
         live = self._members_alive(now)
