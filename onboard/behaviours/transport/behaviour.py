@@ -93,7 +93,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
                                     robot.proximity.read())
             getattr(self, f"_on_{self.state}")(now)
             if self.state not in ("idle", "done"):
-                self.board.heartbeat(robot.id, pose.x, pose.y, self._contact_normal(), self._surface_point())
+                self.board.heartbeat(robot.id, pose.x, pose.y, self._contact_normal(), self._published_surface())
         self.last_step = now
         gossip = self.space.outgoing()
         if gossip:      # nothing new and no anti-entropy turn: stay quiet (most steps in a large swarm)
@@ -104,6 +104,13 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         if percept is None or not percept.in_contact(self.params.proximity_threshold):
             return None
         return math.atan2(percept.object_vector[1], percept.object_vector[0])
+
+    def _published_surface(self) -> Optional[Vec]:
+        """The surface point for the heartbeat: only from members about to push or pushing, the only ones
+        whose points the estimate uses; caging robots keep their heartbeats (and radio traffic) as before."""
+        if not self.params.surface_estimate or self.state not in ("settle", "push", "rotate"):
+            return None
+        return self._surface_point()
 
     def _surface_point(self) -> Optional[Vec]:
         """The point of the object's surface this robot's IR sees (world frame): from its centre along x_o,

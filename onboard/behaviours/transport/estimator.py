@@ -4,9 +4,10 @@ The robots never see the object's true pose. Once the cage is closed they sit ar
 roughly constant offset, so the area centroid of the polygon through their positions approximates the
 object's centroid (exactly, for symmetric objects and even spacing). While they push, robots slide along
 the faces and open or close their gap to the object, which drags that centroid; how far the points of the
-surface their IR sees moved along the object's normals (normal_displacement) does not follow them. How far the object turned comes from
-how the edges between neighbouring members turned (edge_rotation): robots on the same face stay on a line
-parallel to it. The ring's angular displacement about the centroid (ring_rotation) is the fallback.
+surface their IR sees moved along the object's normals (normal_displacement) does not follow them.
+How far the object turned comes from how the edges between neighbouring members turned (edge_rotation):
+robots on the same face stay on a line parallel to it. The ring's angular displacement about the centroid
+(ring_rotation) is the fallback.
 A constant-velocity Kalman filter (filterpy) smooths both: measurement noise comes from the positioning
 noise, process noise from how fast a pushed object can plausibly accelerate.
 """
