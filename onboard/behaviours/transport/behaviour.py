@@ -106,9 +106,12 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         return math.atan2(percept.object_vector[1], percept.object_vector[0])
 
     def _published_surface(self) -> Optional[Vec]:
-        """The surface point for the heartbeat: only from members about to push or pushing, the only ones
-        whose points the estimate uses; caging robots keep their heartbeats (and radio traffic) as before."""
-        if not self.params.surface_estimate or self.state not in ("settle", "push", "rotate"):
+        """The surface point for the heartbeat: only from members about to push or pushing, in a cage
+        large enough for the estimate to use them; other robots keep their heartbeats (and radio traffic)
+        as they were without it."""
+        p = self.params
+        if not p.surface_estimate or self.state not in ("settle", "push", "rotate") \
+                or len(self.board.members()) < p.surface_estimate_min_points:
             return None
         return self._surface_point()
 

@@ -7,10 +7,10 @@ Keys (values are small JSON mappings):
   member/<rid>  {"tid", "branch", "index"}  a robot settled in the cage
   pos/<rid>     [x, y, normal, [sx, sy]]    position heartbeat of members and travellers, with the world angle
                                             of the contact normal x_o (null when not touching) and the point
-                                            of the object's surface the IR sees (null when unseen): written
-                                            when the robot or that point moved HEARTBEAT_MOVE_M or the normal
-                                            changed, and at least every HEARTBEAT_PERIOD_S (liveness times
-                                            out after 4 s)
+                                            of the object's surface the IR sees (null when unseen, and
+                                            outside settle/push/rotate): written when the robot or that
+                                            point moved HEARTBEAT_MOVE_M or the normal changed, and at
+                                            least every HEARTBEAT_PERIOD_S (liveness times out after 4 s)
   closed        {"pair": [a, b]}            the cage is closed (Proposition 1)
   grow          {"level": n}               out of robots: I_d grows by 2 % per level until closure
   path          [[x, y, yaw_deg], ...]      the agreed path
