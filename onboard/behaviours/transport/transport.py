@@ -19,7 +19,7 @@ from .estimator import (
     normal_displacement,
     ring_centroid,
     ring_edges,
-        ring_rotation,
+    ring_rotation,
     surface_normals,
 )
 from .tasks import BRANCH_DIRECTION
