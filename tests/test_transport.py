@@ -50,13 +50,15 @@ def test_lab6_payload_is_slower_but_reaches_every_waypoint(lab6_run):
     assert result["time_to_complete_s"] > lab6_run[1]["time_to_complete_s"]
 
 
-def test_paper25_centroid_estimate_stays_within_5cm_at_every_waypoint():
+def test_paper25_centroid_estimate_stays_within_3cm_at_every_waypoint():
     """Issue #3's bar for the 25-robot cage (the paper's median error was 0.10-0.61 m): the swarm's filtered
     centroid, from the surface points its IR sees, against the simulator's true centroid at each waypoint."""
     result = Simulation(load_scenario("paper-25-straight"), seed=1).run()
     assert result["caged"] and result["completed"], result["failures"]
     assert len(result["waypoints"]) == 10
-    assert max(w["centroid_estimation_error_m"] for w in result["waypoints"]) <= 0.05
+    # Issue #3's bar is 0.05 m; the ring centroid of the members' positions alone reaches 0.050 m on this run,
+    # the surface points stay under 0.02 m: 0.03 m tells the two apart.
+    assert max(w["centroid_estimation_error_m"] for w in result["waypoints"]) <= 0.03
 
 
 def test_no_task_is_given_twice(lab6_run):
