@@ -34,7 +34,6 @@ TOUCH_ATTACH_RADIUS_M = 0.6
 STALL_ATTACH_S = 20.0
 PROGRESS_STEP_M = 0.02
 CHAIN_LINK_FACTOR = 2.0    # a branch member farther than this times I_d from its predecessor breaks the chain
-PREDECESSOR_SIDE_M = 0.05  # attach: the predecessor counts as on one side when this far off the line of x_o
 
 
 @register("transport")
@@ -299,7 +298,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         if percept.in_contact(p.proximity_threshold):
             # u = perp(x_o): slide along the object until the predecessor is I_d away. No push inward: the
             # object must not move while the cage forms.
-            u = c.u_distance_correction(percept.object_vector, error * self._side_of_predecessor(direction), 4.0)
+            u = c.u_distance_correction(percept.object_vector, error * direction, 4.0)
             if p.keep_gap_while_caging:
                 u = c.add(u, c.u_keep_gap(percept.object_vector, percept.object_peak, GAP_READING, GAP_GAIN))
             settled = abs(error) < p.caging_tolerance_m
@@ -316,18 +315,6 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
             self._hold()
         else:
             self._drive(u, speed_scale=0.6)
-
-    def _side_of_predecessor(self, branch_direction: float) -> float:
-        """+1 or -1: the way along the object (perp(x_o)) to the predecessor, where it really is. A robot that
-        reached the object on the wrong side of its predecessor (a concave lobe, a crowded corner) would
-        otherwise slide away from it along the branch's nominal direction, and on round the whole object.
-        The branch's direction when the predecessor is not known or sits straight across x_o."""
-        to_pred = self._vector_to(self.task.pred)
-        if to_pred is None:
-            return branch_direction
-        along = c.perp(c.unit(self.percept.object_vector))
-        offset = to_pred[0] * along[0] + to_pred[1] * along[1]
-        return branch_direction if abs(offset) <= PREDECESSOR_SIDE_M else math.copysign(1.0, offset)
 
     def _predecessor_error(self) -> float:
         """|x_pred| - I_d_eff: positive when too far from the predecessor."""
