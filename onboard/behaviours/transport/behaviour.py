@@ -111,7 +111,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         as they were without it."""
         p = self.params
         if not p.surface_estimate or self.state not in ("settle", "push", "rotate") \
-                or len(self.board.members()) < p.surface_estimate_min_points:
+                or self.board.member_count() < p.surface_estimate_min_points:
             return None
         return self._surface_point()
 

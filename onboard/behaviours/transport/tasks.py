@@ -208,6 +208,13 @@ class TaskBoard:
         self.space.put(f"member/{robot}", {"tid": task.tid, "branch": task.branch, "index": task.index})
 
     def members(self) -> Dict[int, dict]:
+        return dict(self._current_members())
+
+    def member_count(self) -> int:
+        """len(members()), without copying them (asked every step by every pushing robot)."""
+        return len(self._current_members())
+
+    def _current_members(self) -> Dict[int, dict]:
         revision = self.space.revision("member")
         if revision != self._members_at:
             self._members_at = revision
@@ -218,7 +225,7 @@ class TaskBoard:
                 except ValueError:
                     continue
             self._members = found
-        return dict(self._members)
+        return self._members
 
     def heartbeat(self, robot: int, x: float, y: float, normal: Optional[float],
                   surface: Optional[Tuple[float, float]] = None, now: Optional[float] = None) -> None:
