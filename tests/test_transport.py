@@ -193,6 +193,19 @@ def test_the_surface_estimate_ignores_robots_sliding_along_the_faces():
     assert normal_displacement({0: now[0], 3: now[3]}, reference, normals, (0.0, 0.0), yaw) is None  # one axis only
 
 
+def test_a_branch_skips_a_slot_whose_robot_is_still_attaching():
+    """L2's robot is still attaching (no member entry): the branch goes on past it to L3 and L4, and still
+    ends at a member more than 2 I_d (0.9 m) from the one before it (L5)."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    space = transport.space
+    layout = {10: ("S", 0, 0.0), 11: ("L", 1, 0.45), 13: ("L", 3, 1.3), 14: ("L", 4, 1.75), 15: ("L", 5, 5.0)}
+    for rid, (branch, index, x) in layout.items():
+        space.put(f"member/{rid}", {"tid": f"{branch}{index}", "branch": branch, "index": index})
+        space.put(f"pos/{rid}", [x, 0.0, None, None])
+    assert transport._chain("L") == [11, 13, 14]
+    assert transport._chain("R") == []
+
+
 @pytest.mark.parametrize("start_deg", [0, 45, 90, 135, 180, 225, 300])
 def test_the_seed_meets_the_object_behind_its_first_leg(start_deg):
     """seed_from_rear: from any side, the seed circles round and touches a 0.2 m disc on the line of travel
