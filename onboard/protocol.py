@@ -295,12 +295,7 @@ def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = Non
             if "frame" not in allowed:
                 _fail("type", f"must be one of {', '.join(allowed)} (got a binary frame)")
             return _decode_frame(data, neighbour_columns)
-        try:
-            message = json.loads(data)
-        except (UnicodeDecodeError, ValueError, RecursionError):
-            _fail("", f"not a JSON message or a binary frame ({_short(bytes(data[:40]))})")
-        if not isinstance(message, dict):
-            _fail("", f"must be a JSON object (got {_short(message)})")
+        message = _json_object(data, "", "not a JSON message or a binary frame")
         version = message.get("v")
         if version != PROTOCOL_VERSION:
             _fail("v", f"unsupported protocol version {_short(version)} (this side speaks {PROTOCOL_VERSION})")
@@ -376,13 +371,19 @@ def _neighbour_columns(data: bytes, count: int) -> Tuple[np.ndarray, np.ndarray,
             block["bearing"].astype(np.float64))     # contiguous, writable copies in native byte order
 
 
-def _decode_tail(data: bytes) -> Dict[str, Any]:
+def _json_object(data: bytes, field: str, unreadable: str) -> Dict[str, Any]:
+    """``data`` parsed as a JSON object; a ProtocolError naming ``field`` if it is not JSON or not an object."""
     try:
-        tail = json.loads(data)
+        value = json.loads(data)
     except (UnicodeDecodeError, ValueError, RecursionError):
-        _fail("frame.tail", f"not a JSON object ({_short(bytes(data[:40]))})")
-    if not isinstance(tail, dict):
-        _fail("frame.tail", f"must be a JSON object (got {_short(tail)})")
+        _fail(field, f"{unreadable} ({_short(bytes(data[:40]))})")
+    if not isinstance(value, dict):
+        _fail(field, f"must be a JSON object (got {_short(value)})")
+    return value
+
+
+def _decode_tail(data: bytes) -> Dict[str, Any]:
+    tail = _json_object(data, "frame.tail", "not a JSON object")
     checks = {**SCHEMAS["frame"]["required"], **SCHEMAS["frame"]["optional"]}
     for name, value in tail.items():
         if name in FRAME_BINARY_FIELDS:
