@@ -15,6 +15,8 @@ from onboard.behaviours.transport.estimator import (
     surface_normals,
 )
 from onboard.behaviours.transport.params import IMPROVEMENT_FLAGS
+from onboard.behaviours.transport.perception import Percept
+from onboard.behaviours.transport.tasks import Task
 from onboard.config import ConfigError
 from onboard.hal.ir_curve import ir_distance_m, ir_response
 from sim_backend.runner import Simulation
@@ -125,6 +127,7 @@ def test_profiles_and_bad_parameters():
     assert not any(getattr(faithful, flag) for flag in IMPROVEMENT_FLAGS)
     assert all(isinstance(getattr(faithful, flag), bool) for flag in IMPROVEMENT_FLAGS)
     assert faithful.position_tolerance_m == faithful.push_tolerance_m == 0.1
+    assert faithful.attach_timeout_s == math.inf            # the paper's robots never give a task back
     improved = build_params(cls, {})
     assert improved.inter_robot_distance_m == 0.45 and improved.theta_p_deg == 115.0
     with pytest.raises(ConfigError, match=r"^params.profile: must be one of improved, faithful"):
@@ -232,3 +235,41 @@ def test_a_ring_that_does_not_enclose_the_estimate_is_not_a_cage():
     assert encloses(around, (0.0, 0.0)) and encloses(around, (0.3, 0.2))
     assert not encloses(folded, (0.0, 0.0))
     assert not encloses(around, (2.0, 0.0))
+
+
+def test_a_robot_stuck_attaching_gives_its_task_back_and_leaves_it_to_others():
+    """attach_timeout_s: after that long in attach the robot re-opens its task as a new epoch, cancels the
+    successor target it opened (its robot has not joined), goes idle and does not bid for the task again for
+    as long -- the next nearest open task gets its bid instead."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    board, me = transport.board, transport.robot.id
+    task = Task("L2", 1.0, 0.0, "L", 2, 11, 0)
+    board.put_task(task)
+    board.take(task, me, 0.3)
+    board.put_task(Task("L3", 1.4, 0.0, "L", 3, me, 0))
+    board.put_task(Task("R1", 3.0, 0.0, "R", 1, 11, 0))
+    transport.task, transport.spawned, transport.state, transport.attach_since = task, "L3", "attach", 0.0
+    transport.percept = Percept(1.0, 0.1, 0.0, {}, (0.0, -1.0), 0.9, (0.0, 0.0))
+    timeout = transport.params.attach_timeout_s
+    transport._on_attach(timeout + 0.1)
+    assert (transport.state, transport.task, transport.spawned) == ("idle", None, None)
+    reopened = board.task("L2")
+    assert reopened.epoch == 1 and board.is_open(reopened)
+    assert board.task("L3").cancelled
+    assert transport._nearest_open_task(timeout + 1.0).tid == "R1"      # L2 is nearer, but given back
+    assert transport._nearest_open_task(2 * timeout + 1.0).tid == "L2"  # ... for attach_timeout_s only
+
+
+def test_a_robot_attaching_past_the_timeout_keeps_its_slot_when_the_branch_grew_past_it():
+    """Its successor already joined the cage: the branch goes on without it (_chain), and a fresh robot in
+    this slot would open a second L3 behind the settled one, so the robot keeps attaching."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    board, me = transport.board, transport.robot.id
+    task = Task("L2", 1.0, 0.0, "L", 2, 11, 0)
+    board.put_task(task)
+    board.take(task, me, 0.3)
+    board.join_cage(12, Task("L3", 1.4, 0.0, "L", 3, me, 0))
+    transport.task, transport.state, transport.attach_since = task, "attach", 0.0
+    transport.percept = Percept(1.0, 0.1, 0.0, {}, (0.0, -1.0), 0.9, (0.0, 0.0))
+    transport._on_attach(transport.params.attach_timeout_s + 0.1)
+    assert transport.state == "attach" and board.task("L2").epoch == 0

@@ -71,6 +71,8 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         self.rotating = False
         self.last_step: Optional[float] = None
         self.progress: Tuple[float, float] = (math.inf, 0.0)   # travel: (best distance to target, when)
+        self.attach_since = 0.0                  # when this robot last went from travel to attach
+        self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
         self.percept: Optional[Percept] = None
         estimate = p.object_estimate or (0.0, 0.0, 0.0)
@@ -178,7 +180,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
                 self._keep_clear()
             return
         if not self._take_won_task(now):
-            task = self._nearest_open_task()
+            task = self._nearest_open_task(now)
             if task is not None:
                 self._bid(task, now)
         self._keep_clear()
@@ -207,10 +209,12 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         else:
             self._hold()
 
-    def _nearest_open_task(self) -> Optional[Task]:
+    def _nearest_open_task(self, now: float) -> Optional[Task]:
         x, y = self.percept.x, self.percept.y
         best, best_key = None, None
         for fields, _, _ in self.board.open_tasks():
+            if self.given_back.get(fields["tid"], -math.inf) > now:
+                continue   # this robot timed out attaching there: leave it to another robot for a while
             # min by (distance, tid), the first of equals: math.hypot as in tasks.distance
             key = (math.hypot(x - fields["x"], y - fields["y"]), fields["tid"])
             if best_key is None or key < best_key:
@@ -234,8 +238,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         owner = self.board.owner(task) if task else None
         if task is None or task.cancelled or task.epoch != self.task.epoch or "closed" in self.space or \
                 (owner is not None and owner.get("robot") != self.robot.id):
-            self.task = None
-            self.state = "idle"
+            self._drop_task()
             return False
         self.task = task        # the predecessor may have re-aimed the target (same epoch, new position)
         return True
@@ -269,6 +272,7 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         stalled = now - self.progress[1] > STALL_ATTACH_S and remaining < TOUCH_ATTACH_RADIUS_M
         if remaining < ATTACH_RADIUS_M or touching or stalled:
             self.state = "attach"
+            self.attach_since = now
             self._maybe_pipeline(now)
             return
         members = set(self.board.members())
@@ -291,6 +295,9 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
     # --- attach: touch the object and correct the distance to the branch predecessor ----------------------
     def _on_attach(self, now: float) -> None:
         if not self._still_mine():
+            return
+        if now - self.attach_since > self.params.attach_timeout_s and not self._branch_grew_past():
+            self._give_back(now)
             return
         p, percept = self.params, self.percept
         error = self._predecessor_error()
@@ -315,6 +322,43 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
             self._hold()
         else:
             self._drive(u, speed_scale=0.6)
+
+    def _give_back(self, now: float) -> None:
+        """attach_timeout_s: this robot has not found its place beside its predecessor (typically it met the
+        object on the wrong side of it and slides away round the object). Re-open the task as a new epoch,
+        as _reopen_orphans does for a dead owner, so that its slot and the branch behind it are not held any
+        longer, and go back to idle without bidding for it for a while: another robot, arriving from
+        elsewhere, gets the chance to take it."""
+        task = self.task
+        task.epoch += 1
+        self.board.put_task(task)
+        self.given_back[task.tid] = now + self.params.attach_timeout_s
+        self._drop_task()
+        self._hold()
+
+    def _branch_grew_past(self) -> bool:
+        """A member farther out on this robot's branch: the branch already goes on past this slot (_chain
+        skips a slot still attaching), so holding it blocks nothing, while a robot given the slot afresh
+        would open a second successor behind a settled one. Such a robot keeps attaching."""
+        branch, index = self.task.branch, self.task.index
+        return any(v.get("branch") == branch and isinstance(v.get("index"), int) and v["index"] > index
+                   for v in self.board.members().values())
+
+    def _drop_task(self) -> None:
+        """Back to idle without a task. The successor target this robot opened (pipeline_allocation) is
+        measured from this robot, which is leaving: cancel it unless its robot already joined the cage, so
+        that the next robot in this slot opens it afresh (a new epoch) from where it attaches, instead of
+        two robots ending up in one slot. After closure nothing needs cancelling."""
+        successor = self.board.task(self.spawned) if self.spawned is not None else None
+        if successor is not None and not successor.cancelled and successor.pred == self.robot.id \
+                and "closed" not in self.space and not self._owner_joined(successor):
+            successor.cancelled = True
+            self.board.put_task(successor)
+        self.task, self.spawned, self.state, self.settled_steps = None, None, "idle", 0
+
+    def _owner_joined(self, task: Task) -> bool:
+        owner = self.board.owner(task)
+        return owner is not None and f"member/{owner.get('robot')}" in self.space
 
     def _predecessor_error(self) -> float:
         """|x_pred| - I_d_eff: positive when too far from the predecessor."""

@@ -5,6 +5,7 @@ Scenario ``params:`` overrides any of them by name (e.g. ``params: {inter_robot_
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
@@ -45,6 +46,11 @@ class TransportParams:
     cruise_speed_m_s: float = 0.1            # wheel speed the normalised control input is scaled to
     formation_range_factor: float = 1.5      # k: neighbours within k * I_d enter the formation set N_f
     liveness_timeout_s: float = 4.0          # a robot whose position stops updating this long counts as dead
+    # Ours: a robot still in attach after this long gives its task back (a new epoch, open for bidding) and
+    # does not bid for it again for as long. On the irregular objects a robot attaches in 10-30 s, at worst
+    # in 100 s; one that met the object on the wrong side of its predecessor (a lobe junction) slides away
+    # round the object and held its slot, and the successor measured from it, for 400-1300 s.
+    attach_timeout_s: float = 120.0
     # --- The mission: given by the operator (scenario path and the paper's assumed initial estimate) ---
     path: List[Tuple[float, float, float]] = field(default_factory=list)   # waypoints [x, y, yaw_deg]
     object_estimate: Optional[Tuple[float, float, float]] = None             # C_o(0) guess [x, y, yaw_deg]
@@ -76,13 +82,14 @@ class TransportParams:
             self.position_tolerance_m = self.push_tolerance_m
             self.rotation_tolerance_deg = self.orientation_tolerance_deg
             self.slow_down_radius_m = 0.0
+            self.attach_timeout_s = math.inf      # the paper's robots attach for as long as it takes
         self._check(where)
 
     def _check(self, where: str) -> None:
         for name in ("safety_distance_m", "inter_robot_distance_m", "caging_tolerance_m", "closure_factor",
                      "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s",
-                     "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "position_tolerance_m",
-                     "rotation_tolerance_deg", "seed_approach_radius_m"):
+                     "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "attach_timeout_s",
+                     "position_tolerance_m", "rotation_tolerance_deg", "seed_approach_radius_m"):
             check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
         check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
         check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)
