@@ -1,5 +1,6 @@
 """The transport behaviour: what works today, and the rule that robots never see the object's true pose."""
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -207,6 +208,61 @@ def test_a_branch_skips_a_slot_whose_robot_is_still_attaching():
         space.put(f"pos/{rid}", [x, 0.0, None, None])
     assert transport._chain("L") == [11, 13, 14]
     assert transport._chain("R") == []
+
+
+def test_a_robot_beside_the_object_slows_down_as_it_gets_ahead_of_its_formation():
+    """pace_formation: the way is +y; this robot's formation neighbours (the rear pusher, the robot across the
+    object) fell back by the same distance along the way as it slid forward."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    transport.formation = {1: (0.2, -0.3), 2: (0.45, 0.0), 3: (-0.2, -0.3)}
+    for rid, slot in ((1, "S0"), (2, "L1"), (3, "R1")):
+        transport.space.put(f"member/{rid}", {"tid": slot, "branch": slot[0], "index": int(slot[1])})
+    transport.space.put("member/4", {"tid": "L2", "branch": "L", "index": 2})
+    transport.formation[4] = (0.3, -0.1)
+    for rid, normal in ((1, 1.57), (2, 3.14), (4, None)):        # robot 3 died: no heartbeat; 4 lost the object
+        transport.space.put(f"pos/{rid}", [0.0, 0.0, normal, None])
+    transport.board.refresh_liveness(0.0)
+    way = (0.0, 1.0)
+
+    def pace_when_ahead_by(metres: float, rotation: float = 0.0) -> float:
+        shifted = {j: c.rotate((r[0], r[1] - metres), rotation) for j, r in transport.formation.items()}
+        shifted[3] = transport.formation[3]                        # the dead robot stays where it stopped
+        shifted[4] = (0.3, -0.3)                                   # ... and 4 falls back, driving to the object
+        transport.percept = SimpleNamespace(neighbours=shifted)
+        return transport._pace(way, rotation, 0.0)
+
+    assert pace_when_ahead_by(0.0) == 1.0
+    assert pace_when_ahead_by(-0.05) == 1.0                        # behind: catch up at full speed
+    assert pace_when_ahead_by(0.02) == pytest.approx(0.6)
+    assert pace_when_ahead_by(0.04) == pytest.approx(0.2)
+    assert pace_when_ahead_by(0.10) == pytest.approx(0.2)          # never stops: it still has to keep up
+    assert pace_when_ahead_by(0.04, rotation=0.3) < 0.3            # the formation turned with the object
+    transport.percept = SimpleNamespace(neighbours={})
+    assert transport._pace(way, 0.0, 0.0) == 1.0                   # nobody to pace against
+
+
+def test_a_robot_outside_the_tight_tolerance_arrives_with_the_majority():
+    """Six live members hold still at waypoint 0 once arrived; this robot's estimate (a few mm off theirs) is
+    outside position_tolerance_m but inside the paper's d_tol. With fewer than half arrived it pushes on;
+    with half arrived it arrives too, instead of pushing an object it cannot move alone, forever."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    me = transport.robot.id
+    for rid in range(6):
+        transport.space.put(f"member/{rid}", {"tid": f"L{rid}", "branch": "L", "index": rid})
+        transport.space.put(f"pos/{rid}", [float(rid), 0.0, 0.0, None])
+    transport.board.refresh_liveness(0.0)
+    transport.waypoint, transport.phase = 0, "p"
+    others = [rid for rid in range(6) if rid != me]
+    for rid in others[:2]:
+        transport.board.arrive(0, "p", rid)
+    assert transport._waypoint_gate(0.0, False, True) is False      # 2 of 6 arrived: keep pushing
+    assert me not in transport.board.arrivals(0, "p")
+    assert transport._waypoint_gate(0.0, False, False) is False
+    transport.board.arrive(0, "p", others[2])
+    assert transport._waypoint_gate(0.0, False, False) is False      # 3 of 6, but outside d_tol too
+    assert me not in transport.board.arrivals(0, "p")
+    assert transport._waypoint_gate(0.0, False, True) is True        # 3 of 6 and inside d_tol: arrive
+    assert me in transport.board.arrivals(0, "p")
 
 
 @pytest.mark.parametrize("start_deg", [0, 45, 90, 135, 180, 225, 300])

@@ -34,6 +34,9 @@ EDGE_FACTOR = 1.5             # edges between cage neighbours longer than 1.5 I_
 # place (about 4.7 cm from it on the KheperaIV curve, inside the 0.7 contact threshold), and the gain.
 GAP_READING = 0.85
 GAP_GAIN = 3.0
+PACE_AHEAD_M = 0.04   # pace_formation: this far ahead of its formation a non-pushing robot is down to PACE_MIN
+PACE_MIN = 0.2
+PACE_ANGLE = math.radians(45.0)   # ... a robot whose object lies more than this off its way (not behind it)
 
 
 class TransportPhases:
@@ -243,7 +246,8 @@ class TransportPhases:
         p, centre = self.params, (x, y)
         tau = self.path[self.waypoint]
         to_target = c.sub((tau[0], tau[1]), centre)
-        if self._waypoint_gate(now, c.norm(to_target) <= p.position_tolerance_m):
+        remaining = c.norm(to_target)
+        if self._waypoint_gate(now, remaining <= p.position_tolerance_m, remaining <= p.push_tolerance_m):
             return
         x_o = self._object_direction(centre)
         self.effective = c.is_effective_pusher(x_o, to_target, math.radians(p.theta_p_deg))
@@ -263,7 +267,43 @@ class TransportPhases:
             # Improvement: a pushed object also turns; correct it on the way instead of only at waypoints.
             tolerance = math.radians(p.rotation_tolerance_deg)
             u = c.add(u, c.u_r(self.percept.position, centre, wrap_angle(held_yaw - yaw), p.k_t_push, tolerance))
-        self._drive(u, self._ramp(c.norm(to_target)))
+        speed = self._ramp(c.norm(to_target))
+        leg = self._leg()
+        small = self.board.member_count() < p.surface_estimate_min_points
+        if p.pace_formation and small and c.norm(leg) > 0 and c.angle_between(x_o, leg) > PACE_ANGLE:
+            speed *= self._pace(leg, held_yaw - self.reference_yaw, now)
+        self._drive(u, speed)
+
+    def _leg(self) -> Vec:
+        """The way from the previous waypoint (the start, for the first) to the current one: unlike the way
+        from the estimate, it does not swing round when the estimate is within centimetres of the target."""
+        start = self.reference_centre if self.waypoint == 0 else self.path[self.waypoint - 1]
+        target = self.path[self.waypoint]
+        return (target[0] - start[0], target[1] - start[1])
+
+    def _pace(self, leg: Vec, rotation: float, now: float) -> float:
+        """Improvement for small cages: a robot that does not push (beside or ahead of the object) slows down
+        as it gets ahead of its formation neighbours along the leg, down to PACE_MIN of its speed
+        PACE_AHEAD_M ahead. At full speed it outruns a heavy object that the pushers move slowly, sliding
+        along its faces: the cage's spacing spreads and the ring centroid runs ahead of the object. Large
+        cages (surface_estimate_min_points members or more) do not pace: their surface estimate does not
+        follow a sliding robot, and pacing 16-18 robots against each other slowed a paper-25 cage with two
+        dead members to a crawl and let its estimate fall 0.24 m behind. Only live members that
+        touch the object count: a dead robot stays where it stopped, and one that lost the object drives
+        back to it (keep_contact), so everyone would seem to run ahead of them."""
+        direction = c.unit(leg)
+        leads = []
+        live = set(self._members_alive(now))
+        for j, r_ref in self.formation.items():
+            touching = j in live and self.board.contact_normal(j) is not None
+            r_now = self.percept.neighbours.get(j) if touching else None
+            if r_now is not None:
+                error = c.sub(r_now, c.rotate(r_ref, rotation))    # < 0 along the way: j fell behind me
+                leads.append(-(error[0] * direction[0] + error[1] * direction[1]))
+        if not leads:
+            return 1.0
+        ahead = sum(leads) / len(leads)
+        return float(np.clip(1.0 - (1.0 - PACE_MIN) * ahead / PACE_AHEAD_M, PACE_MIN, 1.0))
 
     @staticmethod
     def _side_factor(x_o: Vec, to_target: Vec) -> float:
@@ -291,7 +331,7 @@ class TransportPhases:
         # is not the truth); the faithful profile arrives at Orient. tol. itself.
         tolerance = math.radians(p.rotation_tolerance_deg)
         error = wrap_angle(math.radians(self.path[self.waypoint][2]) - yaw)
-        if self._waypoint_gate(now, abs(error) <= tolerance):
+        if self._waypoint_gate(now, abs(error) <= tolerance, abs(error) <= math.radians(p.orientation_tolerance_deg)):
             return
         x_o = self._object_direction(centre)
         term_r = c.u_r(self.percept.position, centre, error, p.k_r, tolerance)
@@ -301,9 +341,18 @@ class TransportPhases:
                   c.u_cr(x_o, p.k_cr))
         self._drive(u, self._ramp(abs(error) * c.norm(c.sub(self.percept.position, centre))))
 
-    def _waypoint_gate(self, now: float, within: bool) -> bool:
+    def _waypoint_gate(self, now: float, within: bool, within_paper_tolerance: bool) -> bool:
         """The barrier of the current waypoint and phase: flag arrival, move on once enough live members
-        arrived, and hold still meanwhile. True when this robot must not drive this step."""
+        arrived, and hold still meanwhile. True when this robot must not drive this step.
+
+        ``within`` is this robot's estimate inside our tight arrival tolerance. Once half the live members
+        arrived and hold still, the few still pushing cannot move the object alone, and their estimates
+        (a few millimetres apart from the others' after lost messages) would never get there: a robot then
+        also arrives within the paper's own tolerance (d_tol, Orient. tol.), so the cage cannot deadlock."""
+        arrivals = self.board.arrivals(self.waypoint, self.phase)
+        if not within and within_paper_tolerance and self.robot.id not in arrivals:
+            live = self._members_alive(now)
+            within = 2 * len(arrivals & set(live)) >= len(live)
         if within:
             self.board.arrive(self.waypoint, self.phase, self.robot.id)
         if self._barrier_passed(now):
