@@ -7,7 +7,7 @@ See docs/behaviour.md for the diagram and the equations' code locations.
 from __future__ import annotations
 
 import math
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -16,28 +16,18 @@ from ...hal.ir_curve import ir_distance_m
 from ...localisation import PoseTracker
 from ...motion import vector_to_wheels
 from . import control as c
-from .approach import seed_heading
+from .caging import CagingPhases
 from .control import Vec
-from .estimator import ObjectFilter, encloses, ring_centroid
+from .estimator import ObjectFilter, ring_centroid
 from .params import TransportParams
-from .perception import Percept, near, nearest, perceive, world_to_robot
+from .perception import Percept, near, perceive, world_to_robot
 from .reinforce import ReinforcePhase
-from .tasks import BRANCH_DIRECTION, Task, TaskBoard, distance, new_space, task_from, task_id
-from .transport import GAP_GAIN, GAP_READING, TransportPhases
-
-SETTLE_STEPS = 10          # a caging robot must hold its place this many steps to count as settled
-ATTACH_RADIUS_M = 0.25     # switch from travelling to attaching this close to the target
-# ... or already touching the object this close to it (a target estimated inside the object is unreachable).
-TOUCH_ATTACH_RADIUS_M = 0.6
-# ... or stuck this close to it: no 2 cm of progress for this long (a target estimated inside a concave
-# object, or behind a member that blocks the way, is unreachable; attaching slides along the surface instead).
-STALL_ATTACH_S = 20.0
-PROGRESS_STEP_M = 0.02
-CHAIN_LINK_FACTOR = 2.0    # a branch member farther than this times I_d from its predecessor breaks the chain
+from .tasks import Task, TaskBoard, distance, new_space, task_from
+from .transport import TransportPhases
 
 
 @register("transport")
-class Transport(TransportPhases, ReinforcePhase, Behaviour):
+class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
     Params = TransportParams
 
     def __init__(self, robot, params: Optional[TransportParams] = None):
@@ -243,130 +233,6 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
         self.task = task        # the predecessor may have re-aimed the target (same epoch, new position)
         return True
 
-    # --- seed: drive to the estimated centroid (improved: from behind it) until the IR sees the object -------
-    def _on_seed(self, now: float) -> None:
-        if not self._still_mine():
-            return
-        percept, p = self.percept, self.params
-        if percept.in_contact(p.proximity_threshold):
-            self._settle_as_member(now)
-            return
-        path = self.space.get("path") or p.path
-        if p.seed_from_rear and path:
-            toward = seed_heading(percept.position, self.task.position, (path[0][0], path[0][1]),
-                                  p.seed_approach_radius_m)
-        else:
-            toward = c.sub(self.task.position, percept.position)
-        self._drive(c.add(c.unit(toward), self._avoid()))
-
-    # --- travel: reach the branch target by following the cage ---------------------------------------------
-    def _on_travel(self, now: float) -> None:
-        if not self._still_mine():
-            return
-        percept, p = self.percept, self.params
-        to_target = c.sub(self.task.position, percept.position)
-        remaining = c.norm(to_target)
-        touching = percept.in_contact(p.proximity_threshold) and remaining < TOUCH_ATTACH_RADIUS_M
-        if remaining < self.progress[0] - PROGRESS_STEP_M:
-            self.progress = (remaining, now)
-        stalled = now - self.progress[1] > STALL_ATTACH_S and remaining < TOUCH_ATTACH_RADIUS_M
-        if remaining < ATTACH_RADIUS_M or touching or stalled:
-            self.state = "attach"
-            self.attach_since = now
-            self._maybe_pipeline(now)
-            return
-        members = set(self.board.members())
-        n = nearest(percept.neighbours, members)
-        direction = BRANCH_DIRECTION[self.task.branch]
-        if n is not None and c.norm(percept.neighbours[n]) < p.inter_robot_distance_m + 0.1:
-            # Edge-follow the cage: orbit the nearest member at I_d (the paper's x_n input).
-            u = c.u_edge_follow(percept.neighbours[n], p.inter_robot_distance_m, direction)
-            u = c.add(c.unit(u), c.scale(c.unit(to_target), 0.3))
-        else:
-            u = c.unit(to_target)
-        if percept.object_peak > 0.2:
-            # The object is in the way: slide along it toward the target.
-            tangent = c.perp(c.unit(percept.object_vector))
-            if tangent[0] * to_target[0] + tangent[1] * to_target[1] < 0:
-                tangent = c.scale(tangent, -1.0)
-            u = c.add(tangent, c.scale(c.unit(percept.object_vector), -0.3))
-        self._drive(c.add(u, self._avoid()))
-
-    # --- attach: touch the object and correct the distance to the branch predecessor ----------------------
-    def _on_attach(self, now: float) -> None:
-        if not self._still_mine():
-            return
-        if now - self.attach_since > self.params.attach_timeout_s and not self._branch_grew_past():
-            self._give_back(now)
-            return
-        p, percept = self.params, self.percept
-        error = self._predecessor_error()
-        direction = BRANCH_DIRECTION[self.task.branch]
-        if percept.in_contact(p.proximity_threshold):
-            # u = perp(x_o): slide along the object until the predecessor is I_d away. No push inward: the
-            # object must not move while the cage forms.
-            u = c.u_distance_correction(percept.object_vector, error * direction, 4.0)
-            if p.keep_gap_while_caging:
-                u = c.add(u, c.u_keep_gap(percept.object_vector, percept.object_peak, GAP_READING, GAP_GAIN))
-            settled = abs(error) < p.caging_tolerance_m
-        else:
-            toward = percept.object_vector if percept.object_peak > 0 else c.sub(self._centre_guess(), percept.position)
-            u = c.add(c.unit(toward), c.scale(c.unit(c.sub(self.task.position, percept.position)), 0.2))
-            settled = False
-        self.settled_steps = self.settled_steps + 1 if settled else 0
-        if self.settled_steps >= SETTLE_STEPS:
-            self._hold()
-            self._settle_as_member(now)
-            return
-        if c.norm(u) < 0.05 or (settled and abs(error) < p.caging_tolerance_m / 2):
-            self._hold()
-        else:
-            self._drive(u, speed_scale=0.6)
-
-    def _give_back(self, now: float) -> None:
-        """attach_timeout_s: this robot has not found its place beside its predecessor (typically it met the
-        object on the wrong side of it and slides away round the object). Re-open the task as a new epoch,
-        as _reopen_orphans does for a dead owner, so that its slot and the branch behind it are not held any
-        longer, and go back to idle without bidding for it for a while: another robot, arriving from
-        elsewhere, gets the chance to take it."""
-        task = self.task
-        task.epoch += 1
-        self.board.put_task(task)
-        self.given_back[task.tid] = now + self.params.attach_timeout_s
-        self._drop_task()
-        self._hold()
-
-    def _branch_grew_past(self) -> bool:
-        """A member farther out on this robot's branch: the branch already goes on past this slot (_chain
-        skips a slot still attaching), so holding it blocks nothing, while a robot given the slot afresh
-        would open a second successor behind a settled one. Such a robot keeps attaching."""
-        branch, index = self.task.branch, self.task.index
-        return any(v.get("branch") == branch and isinstance(v.get("index"), int) and v["index"] > index
-                   for v in self.board.members().values())
-
-    def _drop_task(self) -> None:
-        """Back to idle without a task. The successor target this robot opened (pipeline_allocation) is
-        measured from this robot, which is leaving: cancel it unless its robot already joined the cage, so
-        that the next robot in this slot opens it afresh (a new epoch) from where it attaches, instead of
-        two robots ending up in one slot. After closure nothing needs cancelling."""
-        successor = self.board.task(self.spawned) if self.spawned is not None else None
-        if successor is not None and not successor.cancelled and successor.pred == self.robot.id \
-                and "closed" not in self.space and not self._owner_joined(successor):
-            successor.cancelled = True
-            self.board.put_task(successor)
-        self.task, self.spawned, self.state, self.settled_steps = None, None, "idle", 0
-
-    def _owner_joined(self, task: Task) -> bool:
-        owner = self.board.owner(task)
-        return owner is not None and f"member/{owner.get('robot')}" in self.space
-
-    def _predecessor_error(self) -> float:
-        """|x_pred| - I_d_eff: positive when too far from the predecessor."""
-        vector = self._vector_to(self.task.pred)
-        if vector is None:
-            return 0.0
-        return c.norm(vector) - self._spacing()
-
     def _vector_to(self, robot: Optional[int]) -> Optional[Vec]:
         """World-frame vector from this robot to ``robot``: its range and bearing when in range, else its
         shared position; None when neither is known."""
@@ -389,144 +255,10 @@ class Transport(TransportPhases, ReinforcePhase, Behaviour):
             return ring_centroid(np.asarray(points))
         return self.hint
 
-    # --- becoming a cage member, spawning the next branch target, closing the cage ---------------------------
-    def _settle_as_member(self, now: float) -> None:
-        self.board.join_cage(self.robot.id, self.task)
-        self.state = "caged"
-        self.settled_steps = 0
-        if self.task.branch == "S":
-            for branch in ("L", "R"):
-                self._spawn(branch, 1, now)
-        elif not self._try_close():
-            if self.spawned is None:
-                self._spawn(self.task.branch, self.task.index + 1, now)
-            else:
-                self._reaim_successor()
-
-    def _tangent(self, branch: str) -> Vec:
-        normal = c.unit(self.percept.object_vector) if self.percept.object_peak > 0 else \
-            c.unit(c.sub(self._centre_guess(), self.percept.position))
-        # Counter-clockwise around the object is perp(-normal); the left branch grows that way.
-        return c.scale(c.perp(normal), -BRANCH_DIRECTION[branch])
-
-    def _next_target(self, branch: str) -> Vec:
-        """The successor's place on ``branch``: I_d along the object's tangent from here."""
-        return c.add(self.percept.position, c.scale(self._tangent(branch), self._spacing()))
-
-    def _spawn(self, branch: str, index: int, now: float) -> None:
-        """Open the next target of ``branch``."""
-        self._open_task(branch, index, self._next_target(branch), now)
-
-    def _reaim_successor(self) -> None:
-        """A pipelined target was extrapolated from this robot's *target*; now that it sits on the object,
-        move the successor's target to I_d along the real tangent from here. Same epoch: the successor
-        keeps its task and no new bidding round is needed (its robot picks the new position up)."""
-        task = self.board.task(self.spawned)
-        if task is None or task.cancelled or task.pred != self.robot.id:
-            return
-        task.x, task.y = self._next_target(task.branch)
-        self.board.put_task(task)
-
-    def _open_task(self, branch: str, index: int, target: Vec, now: float) -> None:
-        """Put a caging target (a new epoch if the slot existed before) with this robot as predecessor."""
-        tid = task_id(branch, index)
-        existing = self.board.task(tid)
-        epoch = existing.epoch + 1 if existing is not None else 0
-        self.board.put_task(Task(tid, target[0], target[1], branch, index, self.robot.id, epoch))
-        self.spawned_times[(tid, epoch)] = now
-        if branch == self.task.branch:
-            self.spawned = tid
-
-    def _maybe_pipeline(self, now: float) -> None:
-        """Improvement: open the successor's target as soon as this robot is near its own."""
-        if not self.params.pipeline_allocation or self.task.branch == "S" or self.spawned is not None:
-            return
-        # Continue round the object, not straight on: step along the tangent of the circle about the
-        # estimated centre through this robot's own target (bends round corners of convex objects).
-        radial = c.unit(c.sub(self.task.position, self._centre_guess()))
-        heading = c.scale(c.perp(radial), BRANCH_DIRECTION[self.task.branch])
-        target = c.add(self.task.position, c.scale(heading, self._spacing()))
-        self._open_task(self.task.branch, self.task.index + 1, target, now)
-
-    def _gap_crosses_object(self, to_tip: Vec) -> bool:
-        """Deviation from the paper: two tips facing each other *across* a small object are close too, but
-        the ring is not closed. A closing gap lies on the rim, far from the centre; a chord through the
-        object passes near it. Reject gaps whose chord comes closer to the estimated centre than half the
-        robots' own distance from it."""
-        me = self.percept.position
-        centre = self._centre_guess()
-        length_sq = to_tip[0] ** 2 + to_tip[1] ** 2
-        rel = c.sub(centre, me)
-        t = max(0.0, min(1.0, (rel[0] * to_tip[0] + rel[1] * to_tip[1]) / length_sq)) if length_sq > 0 else 0.0
-        closest = c.add(me, c.scale(to_tip, t))
-        tip = c.add(me, to_tip)
-        return distance(closest, centre) < 0.5 * min(distance(me, centre), distance(tip, centre))
-
-    def _ring_encloses_estimate(self) -> bool:
-        """Deviation from the paper: Proposition 1 assumes the branches went round the object in opposite
-        directions. On a concave object a branch can fold back (its tangent flips in a notch), and its tip
-        then meets the other tip on the same side, with the object outside the ring. Close only a ring (L tip
-        .. L1, S, R1 .. R tip, each branch up to its first gap) that encloses C_o(0), where the seed was sent."""
-        members = self.board.members()
-        seed = [rid for rid, v in members.items() if v.get("branch") == "S"]
-        order = self._chain("L")[::-1] + seed[:1] + self._chain("R")
-        ring = [q for q in (self._member_position(rid) for rid in order) if q is not None]
-        return len(ring) >= 3 and encloses(ring, self.hint)
-
-    def _opposite_tip(self) -> Optional[int]:
-        """The last robot of the other branch's unbroken chain from the seed (the seed belongs to both)."""
-        other = "R" if self.task.branch == "L" else "L"
-        return self._chain_tip(other)
-
-    def _chain_tip(self, branch: str) -> Optional[int]:
-        chain = self._chain(branch)
-        return chain[-1] if chain else None
-
-    def _chain(self, branch: str) -> List[int]:
-        """The members of ``branch`` in index order, up to the first one that sits farther than
-        CHAIN_LINK_FACTOR * I_d from the member before it: a robot that attached somewhere else (early
-        attach on a concave outline) does not continue the branch. An index whose robot has not settled yet
-        is skipped: one robot stuck attaching must not hide the rest of its branch from the closure test."""
-        members = self.board.members()
-        slots = {v.get("index"): rid for rid, v in members.items() if v.get("branch") == branch}
-        previous = next((rid for rid, v in members.items() if v.get("branch") == "S"), None)
-        chain: List[int] = []
-        for index in sorted(k for k in slots if isinstance(k, int) and k >= 1):
-            rid = slots[index]
-            here, there = self._member_position(rid), self._member_position(previous)
-            if here is not None and there is not None and \
-                    distance(here, there) > CHAIN_LINK_FACTOR * self._spacing():
-                break
-            chain.append(rid)
-            previous = rid
-        return chain
-
     def _member_position(self, rid: Optional[int]) -> Optional[Vec]:
         if rid is None:
             return None
         return self.percept.position if rid == self.robot.id else self.board.position(rid)
-
-    def _try_close(self) -> bool:
-        """Proposition 1: the cage is closed when the two branch tips are within d_T."""
-        if self.task is None or self.task.branch == "S" or "closed" in self.space:
-            return "closed" in self.space
-        if self._chain_tip(self.task.branch) != self.robot.id:
-            return False   # only the tip of an unbroken branch may close the ring
-        tip = self._opposite_tip()
-        if tip is None:
-            return False
-        vector = self._vector_to(tip)
-        if vector is None or c.norm(vector) > self.params.closure_factor * self._spacing():
-            return False
-        if self._gap_crosses_object(vector) or not self._ring_encloses_estimate():
-            return False
-        self.space.put("closed", {"pair": sorted([self.robot.id, tip])})
-        if self.spawned is not None:
-            task = self.board.task(self.spawned)
-            if task is not None and not task.cancelled:
-                task.cancelled = True
-                self.board.put_task(task)
-        return True
 
     def telemetry(self) -> Dict[str, Any]:
         # Everything the evaluator and the operator need travels here (also over the wire from real robots).
