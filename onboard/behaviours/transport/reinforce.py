@@ -27,6 +27,7 @@ BEHIND_MARGIN_M = 0.2      # queue this far behind the cage ring before moving i
 LATERAL_GAIN = 10.0        # pull toward the line of travel through the centroid (per metre of offset)
 LINE_UP_M = 0.1           # push forward only this close to the line (full speed on it)
 ARRIVED_M = 0.05           # closer than this to the waypoint, the cage is arriving: stop pushing
+NEAR_OBJECT_READING = 0.3  # an object IR reading this strong (~8 cm): no more lining up sideways, push on
 
 
 class ReinforcePhase:
@@ -76,5 +77,9 @@ class ReinforcePhase:
         # Behind: line up with the centroid first (sideways), then push along the direction of travel;
         # pushing off the line would turn the object, or only shove a cage member along its side.
         self.reinforcing = True
+        if self.percept.object_peak >= NEAR_OBJECT_READING:
+            # At the object already (beside the rear member, say): straight on. Sliding sideways to the line
+            # here shoved the rear member along the face, round the corner, and the box spun.
+            return direction
         forward = max(0.0, 1.0 - c.norm(lateral) / LINE_UP_M)
         return c.add(c.scale(direction, forward), c.scale(lateral, -LATERAL_GAIN))
