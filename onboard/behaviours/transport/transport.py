@@ -267,7 +267,7 @@ class TransportPhases:
             # Improvement: a pushed object also turns; correct it on the way instead of only at waypoints.
             tolerance = math.radians(p.rotation_tolerance_deg)
             u = c.add(u, c.u_r(self.percept.position, centre, wrap_angle(held_yaw - yaw), p.k_t_push, tolerance))
-        speed = self._ramp(c.norm(to_target))
+        speed = self._ramp(remaining)
         leg = self._leg()
         small = self.board.member_count() < p.surface_estimate_min_points
         if p.pace_formation and small and c.norm(leg) > 0 and c.angle_between(x_o, leg) > PACE_ANGLE:
