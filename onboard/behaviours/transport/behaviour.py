@@ -263,7 +263,7 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
     def telemetry(self) -> Dict[str, Any]:
         # Everything the evaluator and the operator need travels here (also over the wire from real robots).
         data: Dict[str, Any] = {"state": self.state, "waypoint": self.waypoint,
-                                "member": f"member/{self.robot.id}" in self.space, "closed": "closed" in self.space,
+                                "member": self.board.is_member(self.robot.id), "closed": "closed" in self.space,
                                 "effective": bool(self.effective), "rotating": bool(self.rotating)}
         if self.task is not None:
             data["task"] = self.task.tid

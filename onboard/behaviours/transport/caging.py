@@ -143,7 +143,7 @@ class CagingPhases:
 
     def _owner_joined(self, task: Task) -> bool:
         owner = self.board.owner(task)
-        return owner is not None and f"member/{owner.get('robot')}" in self.space
+        return owner is not None and self.board.is_member(owner.get("robot"))
 
     def _predecessor_error(self) -> float:
         """|x_pred| - I_d_eff: positive when too far from the predecessor."""

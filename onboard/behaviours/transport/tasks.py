@@ -164,7 +164,7 @@ class TaskBoard:
         return self._open
 
     def busy(self, robot: Any, except_tid: str = "") -> bool:
-        if f"member/{robot}" in self.space:
+        if self.is_member(robot):
             return True
         self._index_owners()
         try:
@@ -206,6 +206,10 @@ class TaskBoard:
     # --- members and heartbeats ---------------------------------------------------------------------
     def join_cage(self, robot: int, task: Task) -> None:
         self.space.put(f"member/{robot}", {"tid": task.tid, "branch": task.branch, "index": task.index})
+
+    def is_member(self, robot: Any) -> bool:
+        """``robot`` has joined the cage (its ``member/<rid>`` entry is in this replica)."""
+        return f"member/{robot}" in self.space
 
     def members(self) -> Dict[int, dict]:
         return dict(self._current_members())
