@@ -15,7 +15,7 @@ from sim_backend.study import paper_reference as paper
 from sim_backend.study.aggregate import load_results
 from sim_backend.study.driver import StudyProgress, run_study
 from sim_backend.study.executors import WORKER_DIED, LocalExecutor
-from sim_backend.study.grid import expand, paper_study, parse_study
+from sim_backend.study.grid import expand, load_study_file, paper_study, parse_study
 from sim_backend.study.report import write_study_outputs
 from sim_backend.study.worker import execute_run
 
@@ -52,6 +52,15 @@ def test_the_paper_grid_is_nine_transport_cases_and_three_irregular_objects():
         "irregular-cloud", "irregular-box_rotation", "irregular-clover"]
     assert [r.seed for r in runs if r.cell == "irregular-clover"] == [1, 2]
     assert len(runs) == 24
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).parent.parent / "sim_backend" / "studies").glob("*.yaml")),
+                         ids=lambda p: p.stem)
+def test_every_shipped_study_file_expands_to_valid_cells(path):
+    """The study files docs/behaviour.md points to: each scenario and override is built and checked."""
+    runs = expand(load_study_file(path))
+    assert runs and len({r.cell for r in runs}) >= 2
+    assert all(r.seed >= 1 for r in runs)
 
 
 def test_overrides_make_a_cartesian_product_of_cells(tmp_path):
