@@ -102,8 +102,7 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
         large enough for the estimate to use them; other robots keep their heartbeats (and radio traffic)
         as they were without it."""
         p = self.params
-        if not p.surface_estimate or self.state not in ("settle", "push", "rotate") \
-                or self.board.member_count() < p.surface_estimate_min_points:
+        if not p.surface_estimate or self.state not in ("settle", "push", "rotate") or self._small_cage():
             return None
         return self._surface_point()
 
@@ -243,6 +242,11 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
             where = self.board.position(robot)
             vector = c.sub(where, self.percept.position) if where is not None else None
         return vector
+
+    def _small_cage(self) -> bool:
+        """Fewer than ``surface_estimate_min_points`` members: too few surface points for the surface
+        estimate (the ring centroid is used), and the cage whose side robots pace_formation slows."""
+        return self.board.member_count() < self.params.surface_estimate_min_points
 
     def _spacing(self) -> float:
         return self.params.inter_robot_distance_m * (1.0 + 0.02 * self.board.grow_level())

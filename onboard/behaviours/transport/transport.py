@@ -268,10 +268,10 @@ class TransportPhases:
             tolerance = math.radians(p.rotation_tolerance_deg)
             u = c.add(u, c.u_r(self.percept.position, centre, wrap_angle(held_yaw - yaw), p.k_t_push, tolerance))
         speed = self._ramp(remaining)
-        leg = self._leg()
-        small = self.board.member_count() < p.surface_estimate_min_points
-        if p.pace_formation and small and c.norm(leg) > 0 and c.angle_between(x_o, leg) > PACE_ANGLE:
-            speed *= self._pace(leg, held_yaw - self.reference_yaw, now)
+        if p.pace_formation and self._small_cage():
+            leg = self._leg()
+            if c.norm(leg) > 0 and c.angle_between(x_o, leg) > PACE_ANGLE:
+                speed *= self._pace(leg, held_yaw - self.reference_yaw, now)
         self._drive(u, speed)
 
     def _leg(self) -> Vec:
