@@ -352,3 +352,31 @@ def test_a_robot_attaching_past_the_timeout_keeps_its_slot_when_the_branch_grew_
     transport.percept = Percept(1.0, 0.1, 0.0, {}, (0.0, -1.0), 0.9, (0.0, 0.0))
     transport._on_attach(transport.params.attach_timeout_s + 0.1)
     assert transport.state == "attach" and board.task("L2").epoch == 0
+
+
+@pytest.mark.parametrize("profile", ["improved", "faithful"])
+def test_a_robot_far_from_its_branch_target_travels_fast_and_arrives_at_cruise_speed(profile):
+    """travel_speed_m_s: a long trip to a branch target (the 100-robot ring's are 10-25 m) goes at the travel
+    speed; the last metres, and any stretch where the IR sees the object, go at the cruise speed. The
+    faithful profile travels at the cruise speed throughout."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    transport.params = build_params(get_behaviour("transport"), {"profile": profile})
+    board, me = transport.board, transport.robot.id
+    task = Task("L2", 10.0, 0.0, "L", 2, 11, 0)
+    board.put_task(task)
+    board.take(task, me, 10.0)
+    transport.task, transport.state, transport.progress = task, "travel", (math.inf, 0.0)
+    wheels, p = transport.robot.wheels, transport.params
+
+    def forward_speed_at(x: float, object_peak: float = 0.0) -> float:
+        # Heading straight at the target (the object, if seen, to the left), nobody around.
+        transport.percept = Percept(x, 0.0, 0.0, {}, (0.0, 1.0), object_peak, (0.0, 0.0))
+        transport._on_travel(1.0)
+        return (wheels.left + wheels.right) / 2.0
+
+    fast = p.travel_speed_m_s if profile == "improved" else p.cruise_speed_m_s
+    assert forward_speed_at(0.0) == pytest.approx(fast)                   # 10 m to go
+    assert forward_speed_at(9.0) == pytest.approx(p.cruise_speed_m_s)     # 1 m to go
+    # The object in the way (it slides along it, turning): no faster than cruise, even 10 m out.
+    assert 0.0 < forward_speed_at(0.0, object_peak=0.3) <= p.cruise_speed_m_s
+    assert p.travel_speed_m_s == (0.2 if profile == "improved" else p.cruise_speed_m_s)

@@ -25,6 +25,10 @@ TOUCH_ATTACH_RADIUS_M = 0.6
 STALL_ATTACH_S = 20.0
 PROGRESS_STEP_M = 0.02
 CHAIN_LINK_FACTOR = 2.0    # a branch member farther than this times I_d from its predecessor breaks the chain
+# travel_speed_m_s applies farther than this from the target; it eases down to the cruise speed over the
+# next metre, so a robot reaches the cage's crowded rim and its target at the cruise speed.
+TRAVEL_FAST_BEYOND_M = 3.0
+TRAVEL_EASE_M = 1.0
 
 
 class CagingPhases:
@@ -75,7 +79,16 @@ class CagingPhases:
             if tangent[0] * to_target[0] + tangent[1] * to_target[1] < 0:
                 tangent = c.scale(tangent, -1.0)
             u = c.add(tangent, c.scale(c.unit(percept.object_vector), -0.3))
-        self._drive(c.add(u, self._avoid()))
+        self._drive(c.add(u, self._avoid()), self._travel_speed_scale(remaining))
+
+    def _travel_speed_scale(self, remaining: float) -> float:
+        """travel_speed_m_s over the cruise speed far from the target, easing to 1 (cruise) between
+        TRAVEL_FAST_BEYOND_M and TRAVEL_FAST_BEYOND_M - TRAVEL_EASE_M; 1 whenever the object is in the way."""
+        p = self.params
+        if self.percept.object_peak > 0.0 or p.travel_speed_m_s <= p.cruise_speed_m_s:
+            return 1.0
+        ease = min(1.0, max(0.0, (remaining - TRAVEL_FAST_BEYOND_M + TRAVEL_EASE_M) / TRAVEL_EASE_M))
+        return 1.0 + ease * (p.travel_speed_m_s / p.cruise_speed_m_s - 1.0)
 
     # --- attach: touch the object and correct the distance to the branch predecessor ----------------------
     def _on_attach(self, now: float) -> None:
