@@ -95,8 +95,8 @@ class TransportParams:
     def _check(self, where: str) -> None:
         for name in ("safety_distance_m", "inter_robot_distance_m", "caging_tolerance_m", "closure_factor",
                      "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s",
-                     "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "attach_timeout_s", "travel_speed_m_s",
-                     "position_tolerance_m", "rotation_tolerance_deg", "seed_approach_radius_m"):
+                     "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "attach_timeout_s",
+                     "travel_speed_m_s", "position_tolerance_m", "rotation_tolerance_deg", "seed_approach_radius_m"):
             check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
         check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
         check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)
