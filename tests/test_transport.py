@@ -380,3 +380,28 @@ def test_a_robot_far_from_its_branch_target_travels_fast_and_arrives_at_cruise_s
     # The object in the way (it slides along it, turning): no faster than cruise, even 10 m out.
     assert 0.0 < forward_speed_at(0.0, object_peak=0.3) <= p.cruise_speed_m_s
     assert p.travel_speed_m_s == (0.2 if profile == "improved" else p.cruise_speed_m_s)
+
+
+def test_i_d_grows_only_when_no_open_target_gets_a_bid():
+    """Out of robots: a target this member opened has waited 3 T_a without a bid. While idle robots are
+    bidding for another open target (they bid for the nearest one only, so targets wait their turn), that is
+    a queue and I_d stays; once no open target has had a bid for 3 T_a, I_d grows one level."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    board, me = transport.board, transport.robot.id
+    patience = 3 * transport.params.allocation_time_s
+    waiting = Task("L3", 1.0, 0.0, "L", 3, me, 0)
+    other = Task("R2", -1.0, 0.0, "R", 2, 11, 0)
+    board.put_task(waiting)
+    board.put_task(other)
+    board.bid(other, 5, 2.0)                                  # robot 5 is idle and bidding for R2
+    transport.spawned_times[("L3", 0)] = 0.0
+    for now in range(1, 60):
+        transport._grow_if_out_of_robots(float(now))
+    assert board.grow_level() == 0
+    board.take(other, 5, 2.0)                                 # R2 taken: nothing is bid for any more
+    for now in range(60, 60 + int(patience)):
+        transport._grow_if_out_of_robots(float(now))
+    assert board.grow_level() == 0                            # not before 3 T_a without any bid
+    for now in range(60 + int(patience), 60 + int(patience) + 5):
+        transport._grow_if_out_of_robots(float(now) + 0.5)
+    assert board.grow_level() >= 1

@@ -46,6 +46,7 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
         self.path: list = []
         self.estimated_at = 0.0
         self.grow_at = 0.0
+        self.bidding_seen_at = -math.inf         # last local time some open task had a valid bid
         self.closed_at: Optional[float] = None
         self.filter: Optional[ObjectFilter] = None
         self.reference_ring: Dict[int, Vec] = {}

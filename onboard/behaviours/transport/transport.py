@@ -126,15 +126,25 @@ class TransportPhases:
                 self.spawned_times[(task.tid, task.epoch)] = now
 
     def _grow_if_out_of_robots(self, now: float) -> None:
-        """Nobody bids for the next target: grow I_d so the branches spread until the cage closes."""
+        """Nobody bids for the next target: grow I_d so the branches spread until the cage closes.
+
+        Only when no open task has had a valid bid for OUT_OF_ROBOTS_FACTOR * T_a either. Idle robots bid
+        for their nearest open task only, so while one target is being bid for, the others wait their turn
+        unbid; that is a queue, not a swarm out of robots. (Without this check the 100-robot ring, with
+        several targets open at once, grew I_d a level a second to 5 I_d with 60 robots idle.)"""
+        if any(best is not None for _, _, best in self.board.open_tasks()):
+            self.bidding_seen_at = now
+        patience = OUT_OF_ROBOTS_FACTOR * self.params.allocation_time_s
+        if now - self.bidding_seen_at <= patience or now - self.grow_at < GROW_PERIOD_S:
+            return
         for task in self.board.tasks():
             if task.pred != self.robot.id or task.cancelled or not self.board.is_open(task):
                 continue
             opened = self.spawned_times.get((task.tid, task.epoch), now)
-            waiting = now - opened > OUT_OF_ROBOTS_FACTOR * self.params.allocation_time_s
-            if waiting and self.board.best_bid(task) is None and now - self.grow_at >= GROW_PERIOD_S:
+            if now - opened > patience and self.board.best_bid(task) is None:
                 self.space.put("grow", {"level": self.board.grow_level() + 1})
                 self.grow_at = now
+                return
 
     # --- settle: even out the spacing once the ring is closed --------------------------------------------
     def _on_settle(self, now: float) -> None:
