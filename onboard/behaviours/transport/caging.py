@@ -25,6 +25,8 @@ TOUCH_ATTACH_RADIUS_M = 0.6
 STALL_ATTACH_S = 20.0
 PROGRESS_STEP_M = 0.02
 CHAIN_LINK_FACTOR = 2.0    # a branch member farther than this times I_d from its predecessor breaks the chain
+# A predecessor this far (cosine) round the object on the wrong side: slide toward it, not the branch's way.
+WRONG_SIDE_COS = 0.5
 # travel_speed_m_s applies farther than this from the target; it eases down to the cruise speed over the
 # next metre, so a robot reaches the cage's crowded rim and its target at the cruise speed.
 TRAVEL_FAST_BEYOND_M = 3.0
@@ -99,14 +101,17 @@ class CagingPhases:
             return
         p, percept = self.params, self.percept
         error = self._predecessor_error()
-        direction = BRANCH_DIRECTION[self.task.branch]
         if percept.in_contact(p.proximity_threshold):
             # u = perp(x_o): slide along the object until the predecessor is I_d away. No push inward: the
             # object must not move while the cage forms.
-            u = c.u_distance_correction(percept.object_vector, error * direction, 4.0)
+            x_o = percept.object_vector
+            sign = self._slide_sign(x_o)
+            u = c.u_distance_correction(x_o, error * sign, 4.0)
             if p.keep_gap_while_caging:
                 u = c.add(u, c.u_keep_gap(percept.object_vector, percept.object_peak, GAP_READING, GAP_GAIN))
-            settled = abs(error) < p.caging_tolerance_m
+            # Never settle beyond the predecessor: the branch would run back over itself. Such a robot holds
+            # there until attach_timeout_s gives its task back.
+            settled = abs(error) < p.caging_tolerance_m and sign == BRANCH_DIRECTION[self.task.branch]
         else:
             toward = percept.object_vector if percept.object_peak > 0 else c.sub(self._centre_guess(), percept.position)
             u = c.add(c.unit(toward), c.scale(c.unit(c.sub(self.task.position, percept.position)), 0.2))
@@ -120,6 +125,20 @@ class CagingPhases:
             self._hold()
         else:
             self._drive(u, speed_scale=0.6)
+
+    def _slide_sign(self, x_o: Vec) -> float:
+        """Which way along perp(x_o) brings this robot nearer its predecessor: the branch direction, as the
+        paper has it, unless the predecessor sits clearly on the other side (a robot that met the object
+        beyond its predecessor, or a member shoved past it). Sliding the branch's way there would take the
+        robot away from the predecessor for ever: in paper-100-straight seed 1 a member shoved round a
+        corner slid along the 12 m face and up the next one, pushing its neighbours before it."""
+        direction = BRANCH_DIRECTION[self.task.branch]
+        vector = self._vector_to(self.task.pred)
+        if vector is None or direction == 0:
+            return direction
+        toward, tangent = c.unit(vector), c.perp(c.unit(x_o))
+        along = toward[0] * tangent[0] + toward[1] * tangent[1]
+        return -direction if along * direction < -WRONG_SIDE_COS else direction
 
     def _give_back(self, now: float) -> None:
         """attach_timeout_s: this robot has not found its place beside its predecessor (typically it met the

@@ -22,7 +22,6 @@ from .estimator import (
     ring_rotation,
     surface_normals,
 )
-from .tasks import BRANCH_DIRECTION
 
 GROW_PERIOD_S = 1.0           # out of robots: I_d grows one level (2 %) per second
 OUT_OF_ROBOTS_FACTOR = 3.0    # a target nobody took for 3 T_a means the swarm has no robot left for it
@@ -67,7 +66,7 @@ class TransportPhases:
         if equalise and d_cw is not None and d_ccw is not None:
             error = 0.5 * (d_cw - d_ccw)                 # > 0: move clockwise, toward the farther neighbour
         elif self.task.pred is not None:
-            error = self._predecessor_error() * BRANCH_DIRECTION[self.task.branch]
+            error = self._predecessor_error() * self._slide_sign(x_o)
         else:
             error = 0.0
         contact = percept.in_contact(self.params.proximity_threshold)
