@@ -356,11 +356,11 @@ def test_a_robot_attaching_past_the_timeout_keeps_its_slot_when_the_branch_grew_
 
 @pytest.mark.parametrize("profile", ["improved", "faithful"])
 def test_a_robot_far_from_its_branch_target_travels_fast_and_arrives_at_cruise_speed(profile):
-    """travel_speed_m_s: a long trip to a branch target (the 100-robot ring's are 10-25 m) goes at the travel
-    speed; the last metres, and any stretch where the IR sees the object, go at the cruise speed. The
-    faithful profile travels at the cruise speed throughout."""
+    """travel_speed_m_s (0.2 m/s in the paper-50 and paper-100 scenarios): a long trip to a branch target
+    (the 100-robot ring's are 5-25 m) goes at the travel speed; the last metres, and any stretch where the
+    IR sees the object, go at the cruise speed. The faithful profile travels at the cruise speed throughout."""
     transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
-    transport.params = build_params(get_behaviour("transport"), {"profile": profile})
+    transport.params = build_params(get_behaviour("transport"), {"profile": profile, "travel_speed_m_s": 0.2})
     board, me = transport.board, transport.robot.id
     task = Task("L2", 10.0, 0.0, "L", 2, 11, 0)
     board.put_task(task)
