@@ -407,34 +407,23 @@ def test_i_d_grows_only_when_no_open_target_gets_a_bid():
     assert board.grow_level() >= 1
 
 
-def test_a_robot_beyond_its_predecessor_slides_back_toward_it_and_does_not_settle_there():
-    """The paper's slide along perp(x_o) assumes the predecessor is behind, against the branch direction.
-    A robot that is beyond it (met the object past it, or was shoved round a corner) would slide away for
-    ever: it slides toward the predecessor instead, and never settles on that side."""
+def test_a_member_shoved_beyond_its_predecessor_slides_back_toward_it():
+    """A cage member corrects its distance to its predecessor by sliding along perp(x_o), the branch's way
+    as the paper has it when the predecessor is behind. A member shoved past its predecessor (round a corner)
+    would slide away for ever that way: it slides toward the predecessor instead."""
     transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
-    board, me = transport.board, transport.robot.id
     task = Task("L2", 0.0, 0.0, "L", 2, 11, 0)
-    board.put_task(task)
-    board.take(task, me, 0.3)
-    transport.task, transport.state, transport.attach_since = task, "attach", 0.0
+    transport.task, transport.state = task, "caged"
     up = (0.0, 1.0)            # on the bottom face: the object is above, L grows toward +x
-    spacing = transport._spacing()
-
-    def attach_with_predecessor_at(dx: float) -> None:
-        # Facing the object (+y), touching it.
-        transport.percept = Percept(0.0, 0.0, math.pi / 2, {11: (dx, 0.0)}, up, 0.9, (0.0, 0.0))
-        transport._on_attach(1.0)
-
-    transport.percept = Percept(0.0, 0.0, 0.0, {11: (-spacing, 0.0)}, up, 0.9, (0.0, 0.0))
-    assert transport._slide_sign(up) == 1                       # behind: the paper's direction
-    transport.percept = Percept(0.0, 0.0, 0.0, {11: (spacing, 0.0)}, up, 0.9, (0.0, 0.0))
-    assert transport._slide_sign(up) == -1                      # beyond it: the other way
-    for _ in range(15):
-        attach_with_predecessor_at(spacing)                      # I_d away, but on the wrong side
-    assert transport.state == "attach" and transport.settled_steps == 0
-    attach_with_predecessor_at(spacing + 0.2)                    # too far, predecessor at +x: slide to +x
+    too_far = transport._spacing() + 0.2
     wheels = transport.robot.wheels
-    assert wheels.right < wheels.left                            # turning right, toward +x
-    for _ in range(15):
-        attach_with_predecessor_at(-spacing)                     # the right side, I_d away: settles
-    assert transport.state == "caged"
+
+    def hold_with_predecessor_at(dx: float) -> None:
+        # Facing the object (+y), touching it, the predecessor too far away along the face.
+        transport.percept = Percept(0.0, 0.0, math.pi / 2, {11: (dx, 0.0)}, up, 0.9, (0.0, 0.0))
+        transport._hold_position(equalise=False)
+
+    hold_with_predecessor_at(-too_far)                 # behind (-x): the paper's case
+    assert transport._slide_sign(up) == 1 and wheels.left < wheels.right      # turns left, toward -x
+    hold_with_predecessor_at(too_far)                  # beyond it (+x)
+    assert transport._slide_sign(up) == -1 and wheels.right < wheels.left     # turns right, toward +x

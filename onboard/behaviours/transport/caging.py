@@ -104,14 +104,14 @@ class CagingPhases:
         if percept.in_contact(p.proximity_threshold):
             # u = perp(x_o): slide along the object until the predecessor is I_d away. No push inward: the
             # object must not move while the cage forms.
-            x_o = percept.object_vector
-            sign = self._slide_sign(x_o)
-            u = c.u_distance_correction(x_o, error * sign, 4.0)
+            # (The branch's direction, as the paper has it, even beyond the predecessor: a robot there slides
+            # away round the object until attach_timeout_s gives its task back. _slide_sign here made robots
+            # in the notches of irregular-box_rotation, whose predecessor is across the notch, never settle.)
+            direction = BRANCH_DIRECTION[self.task.branch]
+            u = c.u_distance_correction(percept.object_vector, error * direction, 4.0)
             if p.keep_gap_while_caging:
                 u = c.add(u, c.u_keep_gap(percept.object_vector, percept.object_peak, GAP_READING, GAP_GAIN))
-            # Never settle beyond the predecessor: the branch would run back over itself. Such a robot holds
-            # there until attach_timeout_s gives its task back.
-            settled = abs(error) < p.caging_tolerance_m and sign == BRANCH_DIRECTION[self.task.branch]
+            settled = abs(error) < p.caging_tolerance_m
         else:
             toward = percept.object_vector if percept.object_peak > 0 else c.sub(self._centre_guess(), percept.position)
             u = c.add(c.unit(toward), c.scale(c.unit(c.sub(self.task.position, percept.position)), 0.2))
@@ -127,11 +127,11 @@ class CagingPhases:
             self._drive(u, speed_scale=0.6)
 
     def _slide_sign(self, x_o: Vec) -> float:
-        """Which way along perp(x_o) brings this robot nearer its predecessor: the branch direction, as the
-        paper has it, unless the predecessor sits clearly on the other side (a robot that met the object
-        beyond its predecessor, or a member shoved past it). Sliding the branch's way there would take the
-        robot away from the predecessor for ever: in paper-100-straight seed 1 a member shoved round a
-        corner slid along the 12 m face and up the next one, pushing its neighbours before it."""
+        """For a cage member holding its place: which way along perp(x_o) brings it nearer its predecessor.
+        The branch direction, as the paper has it, unless the predecessor sits clearly on the other side (the
+        member was shoved past it). Sliding the branch's way there takes the member away from its predecessor
+        for ever: in paper-100-straight seed 1 a member shoved round a corner slid along the 12 m face and up
+        the next one, pushing its neighbours before it."""
         direction = BRANCH_DIRECTION[self.task.branch]
         vector = self._vector_to(self.task.pred)
         if vector is None or direction == 0:
