@@ -216,7 +216,7 @@ def test_validation_error_names_the_field(data, field, message):
 def test_unknown_params_key_lists_the_known_names():
     err = error_of({"params": {"inter_robot_distance": 0.65}})
     assert err.problem.startswith("unknown key (known: allocation_time_s, attach_timeout_s, barrier_fraction, ")
-    assert "inter_robot_distance_m" in err.problem and err.problem.endswith("theta_p_deg)")
+    assert "inter_robot_distance_m" in err.problem and err.problem.endswith("travel_speed_m_s)")
 
 
 def test_not_a_mapping():
