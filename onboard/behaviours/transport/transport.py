@@ -129,8 +129,8 @@ class TransportPhases:
 
         Only when no open task has had a valid bid for OUT_OF_ROBOTS_FACTOR * T_a either. Idle robots bid
         for their nearest open task only, so while one target is being bid for, the others wait their turn
-        unbid; that is a queue, not a swarm out of robots. (Without this check the 100-robot ring, with
-        several targets open at once, grew I_d a level a second to 5 I_d with 60 robots idle.)"""
+        unbid; that is a queue, not a swarm out of robots. A member cut off from the swarm's messages still
+        sees stale bids and can grow I_d for nothing (docs/behaviour.md section 3)."""
         if any(best is not None for _, _, best in self.board.open_tasks()):
             self.bidding_seen_at = now
         patience = OUT_OF_ROBOTS_FACTOR * self.params.allocation_time_s
