@@ -14,6 +14,7 @@ from onboard.behaviours.transport.estimator import (
     ring_centroid,
     ring_rotation,
     surface_normals,
+    surrounds,
 )
 from onboard.behaviours.transport.params import IMPROVEMENT_FLAGS
 from onboard.behaviours.transport.perception import Percept
@@ -427,3 +428,28 @@ def test_a_member_shoved_beyond_its_predecessor_slides_back_toward_it():
     assert transport._slide_sign(up) == 1 and wheels.left < wheels.right      # turns left, toward -x
     hold_with_predecessor_at(too_far)                  # beyond it (+x)
     assert transport._slide_sign(up) == -1 and wheels.right < wheels.left     # turns right, toward +x
+
+
+def test_the_centre_guess_waits_until_the_members_lie_all_round_the_estimate():
+    """Before the cage closes, tangents and pipelined targets are taken about _centre_guess(). Members along
+    one face of a 7.2 x 12 m object (paper-100) do not surround its centre: their ring centroid lies on that
+    face, so the guess stays C_o(0). Once members lie all round it, the ring centroid is used (it follows an
+    object that is not where C_o(0) said)."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    transport.hint = (0.0, 0.0)
+    board = transport.board
+
+    def member(rid: int, x: float, y: float) -> None:
+        board.join_cage(rid, Task(f"L{rid}", x, y, "L", rid, None, 0))
+        transport.space.put(f"pos/{rid}", [x, y, None, None])
+
+    for k in range(6):                                   # the left face, near its bottom end
+        member(k + 1, -3.7, -5.5 + 0.45 * k)
+    assert transport._centre_guess() == (0.0, 0.0)
+    for k, (x, y) in enumerate([(3.7, -3.0), (3.7, 3.0), (0.0, 6.3)]):    # now all round, shifted by +0.5 m
+        member(k + 10, x + 0.5, y)
+    guess = transport._centre_guess()
+    assert guess != (0.0, 0.0) and -3.7 < guess[0] < 3.7 and -6.0 < guess[1] < 6.0
+    assert surrounds([(1, 0), (0, 1), (-1, 0), (0, -1)], (0.0, 0.0))
+    assert not surrounds([(1, 0), (0, 1), (-1, 0.1)], (0.0, 0.0))          # a half turn open below
+

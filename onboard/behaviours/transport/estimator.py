@@ -42,6 +42,18 @@ def ring_centroid(points: np.ndarray) -> Tuple[float, float]:
     return float(cx + mean[0]), float(cy + mean[1])
 
 
+def surrounds(points: Sequence[Sequence[float]], centre: Sequence[float]) -> bool:
+    """True if ``points`` lie all round ``centre``: no gap of half a turn or more between their directions
+    seen from it. Points along one face of a large object do not surround its centre; their ring centroid
+    lies on that face."""
+    if len(points) < 3:
+        return False
+    angles = sorted(math.atan2(q[1] - centre[1], q[0] - centre[0]) for q in points)
+    gaps = [b - a for a, b in zip(angles, angles[1:])]
+    gaps.append(angles[0] + 2.0 * math.pi - angles[-1])
+    return max(gaps) < math.pi
+
+
 def encloses(polygon: Sequence[Sequence[float]], point: Sequence[float]) -> bool:
     """True if ``point`` lies inside the polygon through ``polygon``'s vertices in order (ray casting)."""
     inside = False
