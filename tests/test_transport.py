@@ -453,3 +453,27 @@ def test_the_centre_guess_waits_until_the_members_lie_all_round_the_estimate():
     assert surrounds([(1, 0), (0, 1), (-1, 0), (0, -1)], (0.0, 0.0))
     assert not surrounds([(1, 0), (0, 1), (-1, 0.1)], (0.0, 0.0))          # a half turn open below
 
+
+def test_a_robot_that_gets_no_nearer_its_target_gives_the_task_back():
+    """A traveller wedged behind a member, or led past its target round the cage, held its slot for good
+    (paper-100-zigzag: one held R9 for 5000 s while 60 robots waited without an open task). After
+    attach_timeout_s without getting 2 cm nearer, it re-opens the task and goes idle; the faithful profile
+    (no timeout) travels for as long as it takes."""
+    for profile in ("improved", "faithful"):
+        transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+        transport.params = build_params(get_behaviour("transport"), {"profile": profile})
+        board, me = transport.board, transport.robot.id
+        task = Task("R9", 5.0, 0.0, "R", 9, 11, 0)
+        board.put_task(task)
+        board.take(task, me, 5.0)
+        transport.task, transport.state, transport.progress = task, "travel", (math.inf, 0.0)
+        transport.percept = Percept(0.0, 0.0, 0.0, {}, (0.0, 1.0), 0.0, (0.0, 0.0))
+        transport._on_travel(0.0)                        # 5 m to go: progress noted at t = 0
+        transport._on_travel(60.0)                       # stuck where it was
+        assert transport.state == "travel"
+        transport._on_travel(1000.0)                     # far past attach_timeout_s (120 s improved)
+        if profile == "faithful":
+            assert transport.state == "travel"
+            continue
+        assert (transport.state, transport.task) == ("idle", None)
+        assert board.task("R9").epoch == 1 and board.is_open(board.task("R9"))

@@ -61,6 +61,12 @@ class CagingPhases:
         if remaining < self.progress[0] - PROGRESS_STEP_M:
             self.progress = (remaining, now)
         stalled = now - self.progress[1] > STALL_ATTACH_S and remaining < TOUCH_ATTACH_RADIUS_M
+        if now - self.progress[1] > self.params.attach_timeout_s:
+            # Deviation: no 2 cm nearer the target for attach_timeout_s (wedged behind a member, or led past
+            # the target round the cage): give the task back, as attach does, instead of holding the slot
+            # and the branch behind it for good while idle robots wait for an open task.
+            self._give_back(now)
+            return
         if remaining < ATTACH_RADIUS_M or touching or stalled:
             self.state = "attach"
             self.attach_since = now
@@ -142,10 +148,10 @@ class CagingPhases:
 
     def _give_back(self, now: float) -> None:
         """attach_timeout_s: this robot has not found its place beside its predecessor (typically it met the
-        object on the wrong side of it and slides away round the object). Re-open the task as a new epoch,
-        as _reopen_orphans does for a dead owner, so that its slot and the branch behind it are not held any
-        longer, and go back to idle without bidding for it for a while: another robot, arriving from
-        elsewhere, gets the chance to take it."""
+        object on the wrong side of it and slides away round the object), or travelling got it no nearer.
+        Re-open the task as a new epoch, as _reopen_orphans does for a dead owner, so that its slot and the
+        branch behind it are not held any longer, and go back to idle without bidding for it for a while:
+        another robot, arriving from elsewhere, gets the chance to take it."""
         task = self.task
         task.epoch += 1
         self.board.put_task(task)
