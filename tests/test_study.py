@@ -13,7 +13,7 @@ from PIL import Image
 from khepri_cli.main import main
 from sim_backend.study import paper_reference as paper
 from sim_backend.study.aggregate import load_results
-from sim_backend.study.driver import StudyProgress, run_study
+from sim_backend.study.driver import StudyProgress, longest_first, run_study
 from sim_backend.study.executors import WORKER_DIED, LocalExecutor
 from sim_backend.study.grid import expand, load_study_file, paper_study, parse_study
 from sim_backend.study.report import write_study_outputs
@@ -52,6 +52,16 @@ def test_the_paper_grid_is_nine_transport_cases_and_three_irregular_objects():
         "irregular-cloud", "irregular-box_rotation", "irregular-clover"]
     assert [r.seed for r in runs if r.cell == "irregular-clover"] == [1, 2]
     assert len(runs) == 24
+
+
+def test_the_runs_that_may_take_longest_go_to_the_workers_first():
+    """Three 100-robot runs queued behind 24 short ones would each finish alone on a worker at the end; first
+    in the queue, they run beside the short ones. Equals keep the grid's order."""
+    runs = longest_first(expand(paper_study(2)))
+    robots = [r.scenario_data["robots"]["count"] for r in runs]
+    assert robots == sorted(robots, reverse=True) and robots[:6] == [100] * 6
+    assert [(r.cell, r.seed) for r in runs[:3]] == [("paper-100-straight", 1), ("paper-100-straight", 2),
+                                                  ("paper-100-zigzag", 1)]
 
 
 @pytest.mark.parametrize("path", sorted((Path(__file__).parent.parent / "sim_backend" / "studies").glob("*.yaml")),

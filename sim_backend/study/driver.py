@@ -50,6 +50,24 @@ def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) ->
     return plan
 
 
+def expected_cost(run: RunSpec) -> float:
+    """Robots x simulated seconds allowed: how long a run may take, roughly (a step's cost grows with the
+    robots; most paper runs end well before their limit, but the 100-robot ones go on for thousands of s)."""
+    data = run.scenario_data
+    robots = (data.get("robots") or {}).get("count", 6)
+    limit = run.time_limit_s or data.get("time_limit_s", 900.0)
+    try:
+        return float(robots) * float(limit)
+    except (TypeError, ValueError):
+        return 0.0
+
+
+def longest_first(runs: List[RunSpec]) -> List[RunSpec]:
+    """The runs, those that may take longest first (stable within equals), so that a pool of workers does
+    not finish the short runs together and then wait for three 100-robot runs on one worker each."""
+    return sorted(runs, key=expected_cost, reverse=True)
+
+
 def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, retry_failed: bool = False,
               command: str = "", stream: Optional[TextIO] = None) -> StudyOutcome:
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -66,7 +84,7 @@ def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, ret
     by_key = {(run.cell, run.seed): run for run in plan.to_run}
     progress = StudyProgress(len(plan.to_run), stream)
     try:
-        for result in executor.results(plan.to_run, str(out_dir.resolve())):
+        for result in executor.results(longest_first(plan.to_run), str(out_dir.resolve())):
             run = by_key[(result["study"]["cell"], result["seed"])]
             run_dir = out_dir / run.run_dir
             if not (run_dir / RESULT_FILE).is_file():
