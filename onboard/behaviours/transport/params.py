@@ -49,7 +49,8 @@ class TransportParams:
     # Ours: a robot still in attach after this long gives its task back (a new epoch, open for bidding) and
     # does not bid for it again for as long. On the irregular objects a robot attaches in 10-30 s, at worst
     # in 100 s; one that met the object on the wrong side of its predecessor (a lobe junction) slides away
-    # round the object and held its slot, and the successor measured from it, for 400-1300 s.
+    # round the object and held its slot, and the successor measured from it, for 400-1300 s. A robot in
+    # travel that got no 2 cm nearer its target for this long gives it back too (caging.py:_on_travel).
     attach_timeout_s: float = 120.0
     # Ours: a robot travelling to its branch target drives this fast while it is far from it (caging.py,
     # TRAVEL_FAST_BEYOND_M) and the object is not in its way. Targets open one after another on each branch,
