@@ -387,6 +387,20 @@ def test_progress_lines_show_each_run_and_an_eta_from_the_pace_so_far(tmp_path):
                      "[2/4] lab-6 seed 2: FAILED: RuntimeError: boom, 1 failed | ETA 0:00:20"]
 
 
+def test_the_eta_weighs_runs_by_their_expected_cost(tmp_path):
+    """Longest first: one 100-robot run done in 20 minutes, with another as long and two short ones left,
+    is about 20 minutes more, not three times the pace of the first run."""
+    clock = FakeClock()
+    costs = {("paper-100-straight", 1): 600_000.0, ("paper-100-zigzag", 1): 600_000.0,
+             ("lab-6", 1): 3_600.0, ("lab-6", 2): 3_600.0}
+    with (tmp_path / "log.txt").open("w+") as stream:
+        progress = StudyProgress(4, stream, clock, costs)
+        clock.now = 1200.0
+        progress.update({"seed": 1, "failed": False, "caged": True, "time_to_cage_s": 3718.0, "completed": True,
+                         "time_to_complete_s": 150.0, "study": {"cell": "paper-100-straight"}})
+        assert progress.eta_text() == "ETA 0:20:14"
+
+
 USER_BEHAVIOUR = '''
 from dataclasses import dataclass
 

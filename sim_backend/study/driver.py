@@ -11,7 +11,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, TextIO
+from typing import Any, Dict, List, Optional, TextIO, Tuple
 
 from onboard.config import to_mapping
 
@@ -82,7 +82,8 @@ def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, ret
         stream.write(f"warning: {len(plan.other_limit)} runs already in {out_dir} ran with another time limit "
                      f"and are kept; use another --out to run them again\n")
     by_key = {(run.cell, run.seed): run for run in plan.to_run}
-    progress = StudyProgress(len(plan.to_run), stream)
+    progress = StudyProgress(len(plan.to_run), stream,
+                             costs={(run.cell, run.seed): expected_cost(run) for run in plan.to_run})
     try:
         for result in executor.results(longest_first(plan.to_run), str(out_dir.resolve())):
             run = by_key[(result["study"]["cell"], result["seed"])]
@@ -142,10 +143,13 @@ def duration_text(seconds: float) -> str:
 class StudyProgress:
     """Runs done out of the total, failures and an ETA from the pace so far.
 
+    ``costs`` (run key (cell, seed) -> :func:`expected_cost`) weighs the runs: after one 100-robot run the
+    pace is that of 600 000 robot-seconds, not of one run in twelve. Without it every run weighs the same.
     On a terminal: one bar redrawn in place. Otherwise (a log file, a CI job): one line per finished run.
     """
 
-    def __init__(self, total: int, stream: TextIO, clock=time.monotonic):
+    def __init__(self, total: int, stream: TextIO, clock=time.monotonic,
+                 costs: Optional[Dict[Tuple[str, int], float]] = None):
         self.total = total
         self.stream = stream
         self.clock = clock
@@ -153,16 +157,21 @@ class StudyProgress:
         self.done = 0
         self.failed = 0
         self.is_terminal = stream.isatty()
+        self.costs = costs or {}
+        self.total_cost = sum(self.costs.values()) if costs else float(total)
+        self.done_cost = 0.0
 
     def eta_text(self) -> str:
-        if self.done == 0:
+        if self.done == 0 or self.done_cost <= 0.0:
             return "ETA --:--:--"
-        remaining = (self.clock() - self.started) / self.done * (self.total - self.done)
+        remaining = (self.clock() - self.started) / self.done_cost * max(0.0, self.total_cost - self.done_cost)
         return f"ETA {duration_text(remaining)}"
 
     def update(self, result: Dict[str, Any]) -> None:
         self.done += 1
         self.failed += bool(result.get("failed"))
+        key = ((result.get("study") or {}).get("cell"), result.get("seed"))
+        self.done_cost += self.costs.get(key, 0.0) if self.costs else 1.0
         failed = f", {self.failed} failed" if self.failed else ""
         if self.is_terminal:
             width = 30
