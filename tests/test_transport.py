@@ -477,3 +477,27 @@ def test_a_robot_that_gets_no_nearer_its_target_gives_the_task_back():
             continue
         assert (transport.state, transport.task) == ("idle", None)
         assert board.task("R9").epoch == 1 and board.is_open(board.task("R9"))
+
+
+def test_a_spare_robot_out_of_reach_of_the_closed_cage_counts_as_finished():
+    """After closure a spare robot in range of the cage hears the members' heartbeats (one a second at
+    least). One that heard nothing new for LEFT_BEHIND_S was left behind and will never hear `done`: it
+    counts as finished, so a simulation ends with the mission instead of at its time limit. It keeps
+    keeping clear, and anything new makes it unfinished again."""
+    from onboard.behaviours.transport.behaviour import LEFT_BEHIND_S
+
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    transport.space.put("closed", {"pair": [1, 2]})
+    transport.state = "idle"
+    transport.percept = Percept(0.0, 0.0, 0.0, {}, (0.0, 1.0), 0.0, (0.0, 0.0))
+    for now in range(0, int(LEFT_BEHIND_S) - 1, 5):
+        transport._on_idle(float(now))
+        if now % 10 == 0:
+            transport.space.put("pos/7", [1.0, float(now), None, None])   # a member's heartbeat arrives
+    assert not transport.finished
+    for now in range(int(LEFT_BEHIND_S), int(3 * LEFT_BEHIND_S), 5):
+        transport._on_idle(float(now))                                  # silence from here on
+    assert transport.finished and transport.state == "idle"
+    transport.space.put("pos/7", [2.0, 0.0, None, None])                # the cage comes back in range
+    transport._on_idle(3 * LEFT_BEHIND_S)
+    assert not transport.finished

@@ -25,6 +25,10 @@ from .reinforce import ReinforcePhase
 from .tasks import Task, TaskBoard, distance, new_space, task_from
 from .transport import TransportPhases
 
+# A robot left out of a closed cage that has heard nothing new this long is out of reach of the mission (left
+# behind as the cage pushed away): it counts as finished, though it goes on keeping clear.
+LEFT_BEHIND_S = 60.0
+
 
 @register("transport")
 class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
@@ -65,6 +69,8 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
         self.attach_since = 0.0                  # when this robot last went from travel to attach
         self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
+        self.quiet_since: Tuple[int, float] = (-1, 0.0)   # idle after closure: (space revision, since when)
+        self.left_behind = False
         self.percept: Optional[Percept] = None
         estimate = p.object_estimate or (0.0, 0.0, 0.0)
         self.hint: Vec = (estimate[0], estimate[1])
@@ -120,7 +126,8 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
 
     @property
     def finished(self) -> bool:
-        return self.state == "done"
+        """Done, or left behind (see _note_left_behind): the simulator stops once every robot is finished."""
+        return self.state == "done" or (self.state == "idle" and self.left_behind)
 
     def _publish_mission(self) -> None:
         if "task/S" not in self.space and self.params.object_estimate is not None:
@@ -168,12 +175,25 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
                 self._reinforce(now)
             else:
                 self._keep_clear()
+                self._note_left_behind(now)
             return
         if not self._take_won_task(now):
             task = self._nearest_open_task(now)
             if task is not None:
                 self._bid(task, now)
         self._keep_clear()
+
+    def _note_left_behind(self, now: float) -> None:
+        """A spare robot after closure hears every member's heartbeat while it is within radio range of the
+        cage. Nothing new in its tuple space for LEFT_BEHIND_S means the cage pushed out of its range, and
+        `done` will never reach it (paper-100-straight_rot seed 1: one robot stranded 7.4 m from everyone
+        kept the run going to its time limit, 1900 s after the last waypoint). Anything new clears the flag."""
+        revision = self.space.revision()
+        if revision != self.quiet_since[0]:
+            self.quiet_since = (revision, now)
+            self.left_behind = False
+        elif now - self.quiet_since[1] >= LEFT_BEHIND_S:
+            self.left_behind = True
 
     def _take_won_task(self, now: float) -> bool:
         """After T_a with a valid bid stored, the robot whose id is stored takes the task -- whichever open
