@@ -107,8 +107,8 @@ def test_bid_views_follow_every_change():
     rng = random.Random(3)
     for step in range(60):
         tid = rng.choice(["S", "L1", "L2", "R1"])
-        task = Task(tid, rng.random(), rng.random(), tid[0], int(tid[1:] or 0), None, rng.randint(0, 1),
-                    cancelled=rng.random() < 0.1)
+        task = Task(tid, rng.random(), rng.random(), tid[0], int(tid[1:] or 0), rng.choice([None, 1, 2]),
+                    rng.randint(0, 1), cancelled=rng.random() < 0.1)
         action = step % 5
         if action == 0:
             peer.put_task(task)
@@ -124,6 +124,8 @@ def test_bid_views_follow_every_change():
         expected = [(t, f"{t.tid}/{t.epoch}", uncached_best_bid(board, t)) for t in board.tasks() if board.is_open(t)]
         got = board.open_tasks()
         assert [(task_from(f), key, best) for f, key, best in got] == expected
+        for robot in (1, 2):     # what a member looks after every step: the same as filtering tasks()
+            assert board.tasks_opened_by(robot) == [t for t in board.tasks() if t.pred == robot and not t.cancelled]
         for t in board.tasks():
             for epoch in (t.epoch, t.epoch + 1):
                 probe = Task(t.tid, 0.0, 0.0, t.branch, t.index, None, epoch)

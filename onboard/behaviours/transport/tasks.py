@@ -109,6 +109,13 @@ class TaskBoard:
         self._parsed_tasks()
         return [_task_from(fields) for fields in self._task_list]
 
+    def tasks_opened_by(self, robot: Any) -> List[Task]:
+        """Fresh copies of the tasks ``robot`` opened (its ``pred``) that are not cancelled, in key order: the
+        ones a cage member looks after every step, without copying every other task of the cage first."""
+        self._parsed_tasks()
+        return [_task_from(fields) for fields in self._task_list
+                if fields["pred"] == robot and not fields["cancelled"]]
+
     def _parsed_tasks(self) -> Dict[str, Optional[Dict[str, Any]]]:
         revision = self.space.revision("task")
         if revision != self._tasks_at:

@@ -111,9 +111,7 @@ class TransportPhases:
     def _reopen_orphans(self, now: float) -> None:
         """A robot that died on its way to a target this robot opened: open the target again."""
         members = self.board.members()
-        for task in self.board.tasks():
-            if task.pred != self.robot.id or task.cancelled:
-                continue
+        for task in self.board.tasks_opened_by(self.robot.id):
             self.spawned_times.setdefault((task.tid, task.epoch), now)
             owner = self.board.owner(task)
             if owner is None:
@@ -136,8 +134,8 @@ class TransportPhases:
         patience = OUT_OF_ROBOTS_FACTOR * self.params.allocation_time_s
         if now - self.bidding_seen_at <= patience or now - self.grow_at < GROW_PERIOD_S:
             return
-        for task in self.board.tasks():
-            if task.pred != self.robot.id or task.cancelled or not self.board.is_open(task):
+        for task in self.board.tasks_opened_by(self.robot.id):
+            if not self.board.is_open(task):
                 continue
             opened = self.spawned_times.get((task.tid, task.epoch), now)
             if now - opened > patience and self.board.best_bid(task) is None:
