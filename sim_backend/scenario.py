@@ -276,13 +276,14 @@ def builtin_names() -> List[str]:
 def resolve(name_or_path: str) -> Path:
     """A built-in scenario's file, or the given path; ConfigError when neither exists."""
     path = Path(name_or_path)
-    if path.suffix in (".yaml", ".yml") or path.exists():
-        if not path.is_file():
-            raise ConfigError("scenario", f"no such file: {name_or_path}")
+    if path.is_file():
         return path
+    is_yaml = path.suffix in (".yaml", ".yml")
     builtin = BUILTIN_DIR / f"{name_or_path}.yaml"
-    if builtin.is_file():
-        return builtin
+    if not is_yaml and builtin.is_file():
+        return builtin     # even when a folder of that name is here (a run's output, say)
+    if is_yaml or path.exists():
+        raise ConfigError("scenario", f"no such file: {name_or_path}")
     raise ConfigError("scenario", f"unknown scenario {name_or_path!r}: not a file and not built in "
                       f"(see `khepri sim list`)")
 

@@ -253,3 +253,13 @@ def test_missing_yaml_file(tmp_path):
     with pytest.raises(ConfigError) as info:
         load_scenario(missing)
     assert str(info.value) == f"scenario: no such file: {missing}"
+
+
+def test_builtin_name_wins_over_a_folder_of_that_name(tmp_path, monkeypatch):
+    """A folder named like a built-in (say, a run's output copied here) must not hide the built-in."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lab-6").mkdir()
+    assert load_scenario("lab-6").name == "lab-6"
+    (tmp_path / "not-a-scenario").mkdir()
+    with pytest.raises(ConfigError, match="no such file: not-a-scenario"):
+        load_scenario("not-a-scenario")
