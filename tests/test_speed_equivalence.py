@@ -3,6 +3,7 @@ the lazy relay scan, the cached rules, prefix lists and bid views, nearest among
 columns, and the simulator's noise draw and bearing wrap."""
 import math
 import random
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -190,3 +191,55 @@ def test_lazy_neighbour_columns_are_the_frame_slices(make_scenario):
         assert np.array_equal(table.ranges_m, plain.ranges_m) and np.array_equal(table.bearings_rad, plain.bearings_rad)
         assert table.ids.dtype == np.int64 and np.array_equal(table.xy, plain.xy)
         assert table == plain and table.nearest_m == plain.nearest_m
+
+
+def walked_chain(transport, branch):
+    """The closure test's chain as it was before the cached slots: members parsed and sorted afresh."""
+    members = transport.board.members()
+    slots = {v.get("index"): rid for rid, v in members.items() if v.get("branch") == branch}
+    previous = next((rid for rid, v in members.items() if v.get("branch") == "S"), None)
+    chain = []
+    for index in sorted(k for k in slots if isinstance(k, int) and k >= 1):
+        rid = slots[index]
+        here, there = transport._member_position(rid), transport._member_position(previous)
+        if here is not None and there is not None and math.dist(here, there) > 2.0 * transport._spacing():
+            break
+        chain.append(rid)
+        previous = rid
+    return chain
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_tip_shortcut_and_cached_slots_give_the_walked_chain(seed):
+    """_may_be_tip lets most branch members skip the walk each step; it must never skip the real tip, and the
+    cached slots (and the ring slots behind _cage_ring_neighbours) must follow every change of the members:
+    gaps, unsettled robots, two robots on one index, malformed indices, the robot's own moves."""
+    from sim_backend.scenario import load_scenario
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    space, me, rng = transport.space, transport.robot.id, random.Random(seed)
+    transport.percept = SimpleNamespace(position=(0.0, 0.0))
+    tips_seen = []
+    for step in range(800):
+        rid = rng.choice([me] * 3 + list(range(10, 22)))
+        roll = rng.random()
+        if roll < 0.6:
+            branch = rng.choice("LLRRS")
+            index = rng.choice([rng.randint(1, 12)] * 8 + [0, "3", None])
+            space.put(f"member/{rid}", {"tid": f"{branch}{index}", "branch": branch, "index": index})
+        elif roll < 0.9 and rid != me:
+            angle = rng.uniform(0.0, 2.0 * math.pi)
+            radius = rng.choice([0.2, 0.2, 0.2, 3.0])
+            xy = [round(radius * math.cos(angle), 4), round(radius * math.sin(angle), 4)]
+            space.put(f"pos/{rid}", xy + [None, None])
+        else:
+            transport.percept = SimpleNamespace(position=(rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 3)))
+        for branch in "LR":
+            expected = walked_chain(transport, branch)
+            assert transport._chain(branch) == expected, (step, branch)
+            is_tip = bool(expected) and expected[-1] == me
+            tips_seen.append(is_tip)
+            assert (transport._may_be_tip(branch) and transport._chain_tip(branch) == me) == is_tip, (step, branch)
+        by_slot = {(v.get("branch"), v.get("index")): r for r, v in transport.board.members().items()}
+        tips = {b: max((i for (bb, i) in by_slot if bb == b and type(i) is int), default=None) for b in "LR"}
+        assert transport.board.ring_slots() == (by_slot, tips), step
+    assert 20 < sum(tips_seen) < len(tips_seen) - 20      # this robot was the tip often, and often not

@@ -268,9 +268,8 @@ class CagingPhases:
         directions. On a concave object a branch can fold back (its tangent flips in a notch), and its tip
         then meets the other tip on the same side, with the object outside the ring. Close only a ring (L tip
         .. L1, S, R1 .. R tip, each branch up to its first gap) that encloses C_o(0), where the seed was sent."""
-        members = self.board.members()
-        seed = [rid for rid, v in members.items() if v.get("branch") == "S"]
-        order = self._chain("L")[::-1] + seed[:1] + self._chain("R")
+        seed = self.board.seed_member()
+        order = self._chain("L")[::-1] + ([] if seed is None else [seed]) + self._chain("R")
         ring = [q for q in (self._member_position(rid) for rid in order) if q is not None]
         return len(ring) >= 3 and encloses(ring, self.hint)
 
@@ -288,25 +287,36 @@ class CagingPhases:
         CHAIN_LINK_FACTOR * I_d from the member before it: a robot that attached somewhere else (early
         attach on a concave outline) does not continue the branch. An index whose robot has not settled yet
         is skipped: one robot stuck attaching must not hide the rest of its branch from the closure test."""
-        members = self.board.members()
-        slots = {v.get("index"): rid for rid, v in members.items() if v.get("branch") == branch}
-        previous = next((rid for rid, v in members.items() if v.get("branch") == "S"), None)
+        previous = self.board.seed_member()
         chain: List[int] = []
-        for index in sorted(k for k in slots if isinstance(k, int) and k >= 1):
-            rid = slots[index]
-            here, there = self._member_position(rid), self._member_position(previous)
-            if here is not None and there is not None and \
-                    distance(here, there) > CHAIN_LINK_FACTOR * self._spacing():
+        for _, rid in self.board.branch_slots(branch):
+            if self._breaks_chain(rid, previous):
                 break
             chain.append(rid)
             previous = rid
         return chain
 
+    def _breaks_chain(self, rid: int, previous: Optional[int]) -> bool:
+        here, there = self._member_position(rid), self._member_position(previous)
+        return here is not None and there is not None and \
+            distance(here, there) > CHAIN_LINK_FACTOR * self._spacing()
+
+    def _may_be_tip(self, branch: str) -> bool:
+        """False when this robot is surely not the tip of ``branch``'s chain: it holds no slot there, or the
+        next slot's member continues the chain from it. Only the few robots left need the whole walk
+        (_chain), which every branch member would otherwise do every step."""
+        slots = self.board.branch_slots(branch)
+        me = self.robot.id
+        for k, (_, rid) in enumerate(slots):
+            if rid == me:
+                return k + 1 == len(slots) or self._breaks_chain(slots[k + 1][1], me)
+        return False
+
     def _try_close(self) -> bool:
         """Proposition 1: the cage is closed when the two branch tips are within d_T."""
         if self.task is None or self.task.branch == "S" or "closed" in self.space:
             return "closed" in self.space
-        if self._chain_tip(self.task.branch) != self.robot.id:
+        if not self._may_be_tip(self.task.branch) or self._chain_tip(self.task.branch) != self.robot.id:
             return False   # only the tip of an unbroken branch may close the ring
         tip = self._opposite_tip()
         if tip is None:

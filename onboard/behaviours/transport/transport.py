@@ -88,10 +88,8 @@ class TransportPhases:
 
     def _cage_ring_neighbours(self) -> Tuple[Optional[int], Optional[int]]:
         """(clockwise, counter-clockwise) neighbours in the ring S, L1, L2, ... (ccw) and R1, R2, ... (cw)."""
-        members = self.board.members()
-        by_slot = {(v.get("branch"), v.get("index")): rid for rid, v in members.items()}
+        by_slot, tips = self.board.ring_slots()
         closed = "closed" in self.space
-        tips = {b: max((i for (bb, i) in by_slot if bb == b), default=None) for b in ("L", "R")}
 
         def slot(branch: str, index: int) -> Optional[int]:
             if index == 0:
