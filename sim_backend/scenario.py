@@ -264,6 +264,27 @@ class Scenario:
             raise ConfigError("path", "a path needs an object to move")
         if self.path and self.object is not None and self.object.static:
             raise ConfigError("path", "a static object cannot follow a path (object.static is true)")
+        if self.arena.walls is not None:
+            self._check_inside_walls(self.arena.walls)
+
+    def _check_inside_walls(self, walls: Tuple[float, float, float, float]) -> None:
+        """Where robots start, where the object starts and every waypoint must lie inside the walls: a run
+        with any of them outside cannot succeed, and would only say so at its time limit."""
+        xmin, ymin, xmax, ymax = walls
+        box = f"the arena walls [{xmin:g}, {ymin:g}, {xmax:g}, {ymax:g}]"
+
+        def check(field_name: str, x: float, y: float) -> None:
+            if not (xmin < x < xmax and ymin < y < ymax):
+                raise ConfigError(field_name, f"({x:g}, {y:g}) is outside {box}")
+
+        spawn = self.robots.spawn
+        for x in spawn.x:
+            for y in spawn.y:
+                check("robots.spawn", x, y)
+        if self.object is not None:
+            check("object.position", *self.object.position)
+        for i, (x, y, _yaw) in enumerate(self.path):
+            check(f"path[{i}]", x, y)
 
     def with_overrides(self, **changes: Any) -> Scenario:
         return dataclasses.replace(self, **changes)
