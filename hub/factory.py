@@ -27,7 +27,12 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
 
         from .sim_source import SimSource
 
-        scenario = scenario or load_scenario(config.source.scenario)
+        try:
+            scenario = scenario or load_scenario(config.source.scenario)
+        except ConfigError as err:
+            if err.field != "scenario":
+                raise          # a field inside the scenario file: its own path says which
+            raise ConfigError("source.scenario", err.problem) from None   # the lab config's field
         source: PoseSource = SimSource(scenario, config.source.seed, config.source.frame_hz)
         seed = source.hub_seed
     elif config.source.type == "motioncapture":

@@ -12,6 +12,7 @@ from hub.harness import HubThread
 from hub.recording import Recorder, read_log
 from hub.server import UPLINK_SLICE, poses_record
 from hub.sources import MotionCaptureSource, PoseFrame, pose_from_mocap
+from onboard.config import ConfigError
 from onboard.protocol import decode, encode
 
 NETWORK = {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}
@@ -214,3 +215,16 @@ def test_replay_serves_recorded_poses(tmp_path):
         assert y == pytest.approx(0.0, abs=1e-4) and yaw == pytest.approx(math.pi / 4, abs=1e-4)
         assert 0.0 <= x <= 1.9 + 1e-6
         assert frame["neighbours"][0][:2] == [1, pytest.approx(1.0, abs=0.05)]
+
+
+def test_an_unknown_sim_scenario_names_the_lab_configs_field():
+    """The lab config's field is source.scenario; a field inside a scenario file keeps its own path."""
+    for scenario, field in (("no-such-scenario", "source.scenario"), ("lab-6", None)):
+        config = parse_config({"source": {"type": "sim", "scenario": scenario}, "network": NETWORK,
+                               "security": {"insecure": True}})
+        if field is None:
+            build_hub(config, log=lambda line: None).close()
+            continue
+        with pytest.raises(ConfigError) as info:
+            build_hub(config, log=lambda line: None)
+        assert info.value.field == field and "not built in" in str(info.value)
