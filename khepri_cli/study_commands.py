@@ -45,14 +45,18 @@ def cmd_study(args: argparse.Namespace) -> int:
         return cmd_report(args)
     if args.folder is not None:
         raise ConfigError("study", f"unexpected argument {str(args.folder)!r} (only `report` takes a folder)")
+    from sim_backend.study.executors import make_executor, parse_executor
+
+    choice = parse_executor(args.executor)     # bad --executor / --workers: said before anything else
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError("--workers", f"must be >= 1 (got {args.workers})")
     spec, runs = study_grid(args)
     out = args.out or Path("out") / f"study-{spec.name}"
     if args.dry_run:
         return print_dry_run(runs, out, args.retry_failed)
     from sim_backend.study.driver import run_study
-    from sim_backend.study.executors import make_executor, parse_executor
 
-    executor = make_executor(parse_executor(args.executor), args.workers)
+    executor = make_executor(choice, args.workers)
     print(f"study {spec.name}: {len(runs)} runs on {executor.describe()}, writing to {out}")
     # `kill` (SIGTERM) ends a study like Ctrl-C: workers stopped, finished runs kept, resumable. Without
     # this the driver died alone and its pool's workers ran on, orphaned, until their runs finished.

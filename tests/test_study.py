@@ -110,11 +110,15 @@ def test_a_bad_study_file_is_refused_with_the_field_named(tmp_path, capsys, text
     (["--scenarios", "paper-25-straight"], "--scenarios: not in the study: paper-25-straight"),
     (["--time-limit", "0"], "--time-limit: must be > 0"),
     (["--reps", "0"], "--reps: must be an integer >= 1"),
+    (["--workers", "0"], "--workers: must be >= 1 (got 0)"),
+    (["--workers", "-2", "--dry-run"], "--workers: must be >= 1 (got -2)"),
+    (["--executor", "spark", "--dry-run"], "--executor: must be local, dask or dask:ADDRESS"),
 ])
 def test_bad_options_are_refused(tmp_path, capsys, options, message):
     study = write(tmp_path / "tiny.yaml", TINY_STUDY)
     assert main(["study", str(study), "--out", str(tmp_path / "out"), *options]) == 2
     assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 def test_dry_run_prints_the_grid_and_runs_nothing(tmp_path, capsys):

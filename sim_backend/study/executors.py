@@ -47,7 +47,7 @@ def default_workers() -> int:
 
 
 def make_executor(choice: ExecutorChoice, workers: Optional[int] = None, run_function: RunFunction = execute_run):
-    workers = workers or default_workers()
+    workers = default_workers() if workers is None else workers
     if workers < 1:
         raise ConfigError("--workers", f"must be >= 1 (got {workers})")
     if choice.kind == "dask":
