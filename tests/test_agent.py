@@ -221,3 +221,32 @@ def test_the_link_hands_frames_over_with_neighbour_columns(scripted):
     ids, ranges, bearings = frames[0]["neighbours"]
     assert ids.tolist() == [n[0] for n in NEIGHBOURS] and ranges.tolist() == [n[1] for n in NEIGHBOURS]
     assert bearings.tolist() == [n[2] for n in NEIGHBOURS]
+
+
+def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
+    """Nothing listens on the port: the agent keeps trying and says what to check, instead of sitting quiet.
+    An address ZeroMQ refuses is a one-line error naming --hub."""
+    import socket as sockets
+
+    from onboard.agent.cli import run_agent
+    from onboard.config import ConfigError
+
+    with sockets.socket() as probe:          # a free port, closed again: nothing listens there
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    lines = []
+    link = HubLink(0, f"tcp://127.0.0.1:{port}")
+    agent = Agent(0, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=lines.append)
+    started = time.monotonic()
+    agent.serve(should_stop=lambda: any("no frame from the hub" in line for line in lines)
+                or time.monotonic() - started > 10.0)
+    link.close()
+    waiting = [line for line in lines if "no frame from the hub" in line]
+    assert waiting and f"at tcp://127.0.0.1:{port} yet; still trying" in waiting[0]
+    assert time.monotonic() - started < 5.0
+
+    class Args:
+        robot_id, hub, port, keys, quiet, watchdog, driver = 0, "tcp://bad host", 5560, None, True, 0.25, "sim"
+
+    with pytest.raises(ConfigError, match=r"--hub: cannot connect to 'tcp://bad host'"):
+        run_agent(Args())

@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 from typing import List, Optional
 
+import zmq
+
 from onboard.behaviour import behaviour_names
 from onboard.config import ConfigError
 from onboard.drivers import Driver
@@ -44,7 +46,10 @@ def run_agent(args: argparse.Namespace) -> int:
     behaviour_names()       # import the behaviours now, not when the hub says start (that takes a while)
     log = _logger(args.quiet)
     endpoint = args.hub if "://" in args.hub else f"tcp://{args.hub}:{args.port}"
-    link = HubLink(args.robot_id, endpoint, keys, log=log)
+    try:
+        link = HubLink(args.robot_id, endpoint, keys, log=log)
+    except zmq.ZMQError as err:     # e.g. a space or a stray colon in --hub: ZeroMQ refuses the address
+        raise ConfigError("--hub", f"cannot connect to {endpoint!r}: {err.strerror}") from None
     if keys is None and not args.quiet:
         log(f"agent {args.robot_id}: no --keys: connecting unencrypted (only a hub run with --insecure accepts this)")
 

@@ -28,6 +28,7 @@ from .link import HubLink
 
 HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
 RESET_AFTER_S = 2.0       # this long without a frame: reopen the socket (a connection can be stuck for good)
+WAITING_LOG_S = 10.0      # while the hub stays silent, say so this often
 
 
 @dataclass
@@ -78,6 +79,7 @@ class Agent:
         self.watchdog_tripped = False
         self.last_hello = -math.inf
         self.last_reset = time.monotonic()
+        self.last_waiting_log = -math.inf
         self.stop_requested = False
 
     # --- main loop ----------------------------------------------------------------------------------------
@@ -103,11 +105,22 @@ class Agent:
         if silent_s > RESET_AFTER_S:
             self.last_reset = now
             self.link.reset()
+            self._say_still_waiting(now)
         if silent_s > self.watchdog_s or (self.state.mode != "idle" and self.run is None):
             if now - self.last_hello >= HELLO_PERIOD_S:
                 self.hello(now)
         if self._tick_due(now):
             self.tick(now)
+
+    def _say_still_waiting(self, now: float) -> None:
+        """Every WAITING_LOG_S of silence, one line, so that a wrong --hub, a hub not running or keys it does
+        not list show up on the robot's console instead of a quiet robot."""
+        if now - self.last_waiting_log < WAITING_LOG_S:
+            return
+        self.last_waiting_log = now
+        since = "yet" if self.state.received_at == -math.inf else f"for {now - self.state.received_at:.0f} s"
+        self.log(f"agent {self.robot_id}: no frame from the hub at {self.link.endpoint} {since}; still trying "
+                 "(is the hub running, is --hub right, does the hub list this robot's key?)")
 
     def _lockstep(self) -> bool:
         return bool(self.run and self.run.get("lockstep"))
