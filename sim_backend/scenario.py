@@ -125,12 +125,12 @@ def validate_dimensions(spec: Any, where: str) -> None:
     elif shape == "polygon":
         if not spec.vertices or len(spec.vertices) < 3:
             raise ConfigError(join(where, "vertices"), "a polygon needs at least 3 vertices [[x, y], ...]")
-        if abs(polygon_area(spec.vertices)) < 1e-6:
-            raise ConfigError(join(where, "vertices"), "the polygon has no area (collinear or repeated points)")
-        crossing = first_self_intersection(spec.vertices)
+        crossing = first_self_intersection(spec.vertices)   # first: a bow-tie's area is 0 too, but this says why
         if crossing is not None:
             raise ConfigError(join(where, "vertices"), f"edges {crossing[0]} and {crossing[1]} cross: the outline "
                               "must not intersect itself (split it into compound parts)")
+        if abs(polygon_area(spec.vertices)) < 1e-6:
+            raise ConfigError(join(where, "vertices"), "the polygon has no area (collinear or repeated points)")
 
 
 def first_self_intersection(vertices: List[Tuple[float, float]]) -> Optional[Tuple[int, int]]:

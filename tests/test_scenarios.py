@@ -168,6 +168,8 @@ def test_docs_list_every_builtin():
      "object.vertices: a polygon needs at least 3 vertices [[x, y], ...]"),
     ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [2, 0]]}}, "object.vertices",
      "object.vertices: the polygon has no area (collinear or repeated points)"),
+    ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 1], [1, 0], [0, 1]]}}, "object.vertices",
+     "object.vertices: edges 0 and 2 cross: the outline must not intersect itself (split it into compound parts)"),
     ({"object": {"shape": "cloud", "size": [3, 3]}}, "object.size", "object.size: not used by shape: cloud"),
     ({"object": {**BOX, "scale": 2}}, "object.scale",
      "object.scale: only for shapes cloud, box_rotation, clover (shape is box)"),
