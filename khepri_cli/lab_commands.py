@@ -209,8 +209,11 @@ def cmd_sil(args: argparse.Namespace) -> int:
 def cmd_bench_hub(args: argparse.Namespace) -> int:
     from hub.bench import bench_hub
 
-    if args.robots < 1 or args.rate <= 0 or args.seconds <= 0:
-        raise ConfigError("--robots", "give --robots >= 1, --rate > 0 and --seconds > 0")
+    for option, value, ok, want in (("--robots", args.robots, args.robots >= 1, ">= 1"),
+                                    ("--rate", args.rate, args.rate > 0, "> 0"),
+                                    ("--seconds", args.seconds, args.seconds > 0, "> 0")):
+        if not ok:
+            raise ConfigError(option, f"must be {want} (got {value:g})")
     if not args.telemetry_hz >= 0 or args.telemetry_hz == float("inf"):
         raise ConfigError("--telemetry-hz", f"give a rate >= 0 (0: no telemetry), not {args.telemetry_hz:g}")
     result = bench_hub(args.robots, args.rate, args.seconds, telemetry_hz=args.telemetry_hz, record=args.record)

@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
+from typing import Optional
 
 
 def add_sim(groups) -> None:
@@ -71,6 +73,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
     sim = Simulation(scenario, seed=args.seed)
     out = args.out or Path("out") / f"{scenario.name}-seed{sim.seed}"
+    problem = out_folder_problem(out)
+    if problem:                 # said now, not after a long run whose results could not be written
+        print(f"khepri: error: --out: {problem}", file=sys.stderr)
+        return 2
     bar = ProgressBar(f"{scenario.name} seed {sim.seed}")
     try:
         result = sim.run(time_limit_s=args.time_limit, progress=bar)
@@ -84,6 +90,17 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"khepri: error: the run crashed: {result['error']}", file=sys.stderr)
         return 1
     return 0
+
+
+def out_folder_problem(out: Path) -> Optional[str]:
+    """Create the output folder now; what is wrong with it, or None."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        return f"cannot create the folder {out}: {err.strerror or err}"
+    if not os.access(out, os.W_OK | os.X_OK):
+        return f"cannot write into {out}"
+    return None
 
 
 def video_problem(path: Path):

@@ -1,0 +1,39 @@
+"""`khepri sim run` and `khepri bench` from the command line: outputs land where --out says, and bad options
+are refused before any simulated second is spent."""
+import json
+
+import pytest
+
+from khepri_cli.main import main
+
+
+def test_sim_run_writes_its_outputs_into_out(tmp_path, capsys):
+    out = tmp_path / "runs" / "lab6"            # parents are made
+    assert main(["sim", "run", "lab-6", "--time-limit", "3", "--no-plot", "--out", str(out)]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["scenario"] == "lab-6" and result["sim_time_s"] == pytest.approx(3.0)
+    assert (out / "trajectory.npz").is_file()
+    assert "lab-6 seed 1: 6 robots" in capsys.readouterr().out
+
+
+def test_an_out_folder_that_cannot_be_made_is_refused_before_the_run(tmp_path, capsys, monkeypatch):
+    from sim_backend.runner import Simulation
+
+    def must_not_run(self, *args, **kwargs):
+        raise AssertionError("the run started although its outputs could not be written")
+
+    monkeypatch.setattr(Simulation, "run", must_not_run)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    assert main(["sim", "run", "lab-6", "--out", str(blocker / "run")]) == 2
+    assert f"--out: cannot create the folder {blocker / 'run'}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--robots", "0"], "--robots: must be >= 1 (got 0)"),
+    (["--rate", "0"], "--rate: must be > 0 (got 0)"),
+    (["--seconds", "-1"], "--seconds: must be > 0 (got -1)"),
+])
+def test_bench_hub_names_the_bad_option(capsys, options, message):
+    assert main(["bench", "hub", *options]) == 2
+    assert message in capsys.readouterr().err
