@@ -37,3 +37,12 @@ def test_an_out_folder_that_cannot_be_made_is_refused_before_the_run(tmp_path, c
 def test_bench_hub_names_the_bad_option(capsys, options, message):
     assert main(["bench", "hub", *options]) == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["study", "paper", "--reps", "1", "--scenarios", "irregular-cloud"],
+                                     ["sil", "lab-6"]])
+def test_study_and_sil_refuse_an_out_folder_they_cannot_make(tmp_path, capsys, command):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    assert main([*command, "--out", str(blocker / "out")]) == 2
+    assert f"--out: cannot create the folder {blocker / 'out'}" in capsys.readouterr().err
