@@ -46,3 +46,15 @@ def test_study_and_sil_refuse_an_out_folder_they_cannot_make(tmp_path, capsys, c
     blocker.write_text("not a folder")
     assert main([*command, "--out", str(blocker / "out")]) == 2
     assert f"--out: cannot create the folder {blocker / 'out'}" in capsys.readouterr().err
+
+
+def test_a_path_that_cannot_be_written_is_one_line_naming_it(tmp_path, capsys, monkeypatch):
+    """keys init, hub --record and the like: the file system's refusal, without a traceback."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    assert main(["keys", "init", str(blocker / "keys")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("khepri: error: ") and str(blocker) in err and "Traceback" not in err
+    monkeypatch.setenv("KHEPRI_DEBUG", "1")           # developers get the traceback back
+    with pytest.raises(OSError):
+        main(["keys", "init", str(blocker / "keys")])
