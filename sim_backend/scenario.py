@@ -268,8 +268,8 @@ class Scenario:
             self._check_inside_walls(self.arena.walls)
 
     def _check_inside_walls(self, walls: Tuple[float, float, float, float]) -> None:
-        """Where robots start, where the object starts and every waypoint must lie inside the walls: a run
-        with any of them outside cannot succeed, and would only say so at its time limit."""
+        """The spawn area must reach inside the walls, and the object's start and every waypoint lie inside
+        them: a run with any of them outside cannot succeed, and would only say so at its time limit."""
         xmin, ymin, xmax, ymax = walls
         box = f"the arena walls [{xmin:g}, {ymin:g}, {xmax:g}, {ymax:g}]"
 
@@ -277,10 +277,9 @@ class Scenario:
             if not (xmin < x < xmax and ymin < y < ymax):
                 raise ConfigError(field_name, f"({x:g}, {y:g}) is outside {box}")
 
-        spawn = self.robots.spawn
-        for x in spawn.x:
-            for y in spawn.y:
-                check("robots.spawn", x, y)
+        spawn = self.robots.spawn     # robots are placed inside the walls: the area must only reach inside
+        if spawn.x[1] <= xmin or spawn.x[0] >= xmax or spawn.y[1] <= ymin or spawn.y[0] >= ymax:
+            raise ConfigError("robots.spawn", f"x {list(spawn.x)}, y {list(spawn.y)} lies outside {box}")
         if self.object is not None:
             check("object.position", *self.object.position)
         for i, (x, y, _yaw) in enumerate(self.path):

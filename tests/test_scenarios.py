@@ -208,8 +208,8 @@ def test_docs_list_every_builtin():
      "object.position: (5, 5) is outside the arena walls [-2, -2, 2, 2]"),
     ({"object": BOX, "path": [[0, 1, 0], [0, 2.5, 0]], "arena": {"walls": [-2, -2, 2, 2]}}, "path[1]",
      "path[1]: (0, 2.5) is outside the arena walls [-2, -2, 2, 2]"),
-    ({"robots": {"spawn": {"x": [-3, -1]}}, "arena": {"walls": [-2, -2, 2, 2]}}, "robots.spawn",
-     "robots.spawn: (-3, -1.2) is outside the arena walls [-2, -2, 2, 2]"),
+    ({"robots": {"spawn": {"x": [-4, -2]}}, "arena": {"walls": [-2, -2, 2, 2]}}, "robots.spawn",
+     "robots.spawn: x [-4.0, -2.0], y [-1.2, -0.6] lies outside the arena walls [-2, -2, 2, 2]"),
     ({"time_limit_s": 0}, "time_limit_s", "time_limit_s: must be > 0 (got 0)"),
 ])
 def test_validation_error_names_the_field(data, field, message):
