@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from ...stigmergy import TupleSpace, lowest_field
 
@@ -84,10 +84,8 @@ class TaskBoard:
         self._odd_owners: List[Tuple[Any, str]] = []                 # (unhashable robot value, tid)
         self._members_at = -1
         self._members: Dict[int, dict] = {}
-        self._slots_at = self._seed_at = self._ring_at = -1
-        self._ring: Tuple[Dict[Tuple[Any, Any], int], Dict[str, Optional[int]]] = ({}, {})
-        self._seed: Optional[int] = None
-        self._slots: Dict[str, List[Tuple[int, int]]] = {}          # branch -> [(index, rid)] by index
+        self._views_at = -1
+        self._views: Dict[Any, Any] = {}      # what is derived from the members (slots, ring, seed), by name
         self._arrivals: Dict[str, set] = {}
         self._arrivals_at = -1
         # best_bid per (tid, epoch), and the open tasks with their best bids (what an idle robot looks at
@@ -232,35 +230,38 @@ class TaskBoard:
     def branch_slots(self, branch: str) -> List[Tuple[int, int]]:
         """``(index, rid)`` of the members of ``branch`` with an integer index >= 1, by index; of two members
         claiming one index, the later in ``members()`` wins. The closure test walks this every step for every
-        branch member, so it is parsed once per change of the member family."""
-        members = self._current_members()
-        if self._slots_at != self._members_at:
-            self._slots_at, self._slots = self._members_at, {}
-        slots = self._slots.get(branch)
-        if slots is None:
+        branch member."""
+        def build(members: Dict[int, dict]) -> List[Tuple[int, int]]:
             by_index = {v.get("index"): rid for rid, v in members.items() if v.get("branch") == branch}
-            slots = [(k, by_index[k]) for k in sorted(k for k in by_index if isinstance(k, int) and k >= 1)]
-            self._slots[branch] = slots
-        return slots
+            return [(k, by_index[k]) for k in sorted(k for k in by_index if isinstance(k, int) and k >= 1)]
+
+        return self._member_view(("slots", branch), build)
 
     def ring_slots(self) -> Tuple[Dict[Tuple[Any, Any], int], Dict[str, Optional[int]]]:
         """The members by ``(branch, index)`` (of two on one slot, the later in ``members()`` wins), and the
         highest integer index of branches L and R (None when a branch has none): what every caged member
-        looks up each step to find its ring neighbours. Parsed once per change of the member family."""
-        members = self._current_members()
-        if self._ring_at != self._members_at:
+        looks up each step to find its ring neighbours."""
+        def build(members: Dict[int, dict]):
             by_slot = {(v.get("branch"), v.get("index")): rid for rid, v in members.items()}
             tips = {b: max((i for (bb, i) in by_slot if bb == b and type(i) is int), default=None) for b in "LR"}
-            self._ring_at, self._ring = self._members_at, (by_slot, tips)
-        return self._ring
+            return by_slot, tips
+
+        return self._member_view("ring", build)
 
     def seed_member(self) -> Optional[int]:
         """The first member of branch S in ``members()`` (the seed), or None."""
+        return self._member_view("seed", lambda members: next(
+            (rid for rid, v in members.items() if v.get("branch") == "S"), None))
+
+    def _member_view(self, name: Any, build: Callable[[Dict[int, dict]], Any]) -> Any:
+        """``build(members)``, made once per change of the member family and shared until the next (callers
+        must not change it)."""
         members = self._current_members()
-        if self._seed_at != self._members_at:
-            self._seed_at = self._members_at
-            self._seed = next((rid for rid, v in members.items() if v.get("branch") == "S"), None)
-        return self._seed
+        if self._views_at != self._members_at:
+            self._views_at, self._views = self._members_at, {}
+        if name not in self._views:
+            self._views[name] = build(members)
+        return self._views[name]
 
     def _current_members(self) -> Dict[int, dict]:
         revision = self.space.revision("member")
