@@ -163,9 +163,8 @@ class CagingPhases:
         """A member farther out on this robot's branch: the branch already goes on past this slot (_chain
         skips a slot still attaching), so holding it blocks nothing, while a robot given the slot afresh
         would open a second successor behind a settled one. Such a robot keeps attaching."""
-        branch, index = self.task.branch, self.task.index
-        return any(v.get("branch") == branch and isinstance(v.get("index"), int) and v["index"] > index
-                   for v in self.board.members().values())
+        index = self.task.index
+        return any(k > index for k, _ in self.board.branch_slots(self.task.branch))
 
     def _drop_task(self) -> None:
         """Back to idle without a task. The successor target this robot opened (pipeline_allocation) is
