@@ -45,11 +45,10 @@ def cmd_study(args: argparse.Namespace) -> int:
         return cmd_report(args)
     if args.folder is not None:
         raise ConfigError("study", f"unexpected argument {str(args.folder)!r} (only `report` takes a folder)")
-    from sim_backend.study.executors import make_executor, parse_executor
+    from sim_backend.study.executors import make_executor, parse_executor, worker_count
 
     choice = parse_executor(args.executor)     # bad --executor / --workers: said before anything else
-    if args.workers is not None and args.workers < 1:
-        raise ConfigError("--workers", f"must be >= 1 (got {args.workers})")
+    worker_count(args.workers)
     spec, runs = study_grid(args)
     out = args.out or Path("out") / f"study-{spec.name}"
     if args.dry_run:

@@ -46,10 +46,16 @@ def default_workers() -> int:
     return os.cpu_count() or 1
 
 
-def make_executor(choice: ExecutorChoice, workers: Optional[int] = None, run_function: RunFunction = execute_run):
+def worker_count(workers: Optional[int] = None) -> int:
+    """``--workers``, or the number of cores when not given; ConfigError below 1."""
     workers = default_workers() if workers is None else workers
     if workers < 1:
         raise ConfigError("--workers", f"must be >= 1 (got {workers})")
+    return workers
+
+
+def make_executor(choice: ExecutorChoice, workers: Optional[int] = None, run_function: RunFunction = execute_run):
+    workers = worker_count(workers)
     if choice.kind == "dask":
         return DaskExecutor(choice.address, workers, run_function)
     return LocalExecutor(workers, run_function)
