@@ -479,25 +479,49 @@ def test_a_robot_that_gets_no_nearer_its_target_gives_the_task_back():
         assert board.task("R9").epoch == 1 and board.is_open(board.task("R9"))
 
 
-def test_a_spare_robot_out_of_reach_of_the_closed_cage_counts_as_finished():
-    """After closure a spare robot in range of the cage hears the members' heartbeats (one a second at
-    least). One that heard nothing new for LEFT_BEHIND_S was left behind and will never hear `done`: it
-    counts as finished, so a simulation ends with the mission instead of at its time limit. It keeps
-    keeping clear, and anything new makes it unfinished again."""
+def test_a_spare_robot_out_of_reach_of_the_mission_counts_as_finished():
+    """A spare robot that heard no news of the mission (anything but position heartbeats) for LEFT_BEHIND_S
+    is out of reach of it and will never hear `done`: it counts as finished, so a simulation ends with the
+    mission instead of at its time limit. Heartbeats alone do not count: spares stranded together hear each
+    other's. It keeps keeping clear, and news makes it unfinished again."""
     from onboard.behaviours.transport.behaviour import LEFT_BEHIND_S
 
-    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
-    transport.space.put("closed", {"pair": [1, 2]})
-    transport.state = "idle"
-    transport.percept = Percept(0.0, 0.0, 0.0, {}, (0.0, 1.0), 0.0, (0.0, 0.0))
-    for now in range(0, int(LEFT_BEHIND_S) - 1, 5):
-        transport._on_idle(float(now))
-        if now % 10 == 0:
-            transport.space.put("pos/7", [1.0, float(now), None, None])   # a member's heartbeat arrives
-    assert not transport.finished
-    for now in range(int(LEFT_BEHIND_S), int(3 * LEFT_BEHIND_S), 5):
-        transport._on_idle(float(now))                                  # silence from here on
-    assert transport.finished and transport.state == "idle"
-    transport.space.put("pos/7", [2.0, 0.0, None, None])                # the cage comes back in range
-    transport._on_idle(3 * LEFT_BEHIND_S)
-    assert not transport.finished
+    for closed in (True, False):
+        transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+        if closed:
+            transport.space.put("closed", {"pair": [1, 2]})
+        transport.state = "idle"
+        transport.percept = Percept(0.0, 0.0, 0.0, {}, (0.0, 1.0), 0.0, (0.0, 0.0))
+        for now in range(0, int(LEFT_BEHIND_S) - 1, 5):
+            transport._on_idle(float(now))
+            if now % 10 == 0:
+                transport.space.put(f"arrive/0/p/{now}", 1)                     # news of the mission
+        assert not transport.finished
+        for now in range(int(LEFT_BEHIND_S), int(3 * LEFT_BEHIND_S), 5):
+            transport.space.put("pos/7", [1.0, float(now), None, None])        # only a spare's heartbeat
+            transport._on_idle(float(now))
+        assert transport.finished and transport.state == "idle", closed
+        transport.space.put("arrive/1/p/7", 1)                                 # the cage comes back in range
+        transport._on_idle(3 * LEFT_BEHIND_S)
+        assert not transport.finished
+
+
+def test_a_run_ends_with_the_mission_when_spare_robots_started_out_of_radio_range(tmp_path):
+    """Fourteen robots start 2.4-4.2 m from an L-shaped object with a 3 m radio: the robots the cage needs
+    drive to it, and the spares left at the start never hear the cage close or the mission end (they go on
+    hearing each other's heartbeats). The run still stops when the object reaches its last waypoint, not
+    at the time limit."""
+    scenario = tmp_path / "far-spares.yaml"
+    scenario.write_text("""
+robots: {count: 14, spawn: {x: [-2.5, -1.5], y: [-2.5, -1.0]}}
+object: {shape: polygon, vertices: [[0, 0], [1, 0], [1, 0.3], [0.3, 0.3], [0.3, 0.9], [0, 0.9]],
+         mass: 0.8, position: [0.5, 0.5]}
+path: [[0.8, 0.8, 0], [1.1, 1.1, -45]]
+time_limit_s: 900
+""")
+    result = Simulation(load_scenario(str(scenario)), seed=1).run()
+    assert result["completed"], result["failures"]
+    assert result["stop_reason"] == "behaviour finished"
+    assert result["sim_time_s"] <= result["time_to_cage_s"] + result["time_to_complete_s"] + 10.0
+
+

@@ -25,8 +25,8 @@ from .reinforce import ReinforcePhase
 from .tasks import Task, TaskBoard, distance, new_space, task_from
 from .transport import TransportPhases
 
-# A robot left out of a closed cage that has heard nothing new this long is out of reach of the mission (left
-# behind as the cage pushed away): it counts as finished, though it goes on keeping clear.
+# A spare robot that has heard no news of the mission this long is out of reach of it (left behind as the cage
+# pushed away, or never near it): it counts as finished, though it goes on keeping clear.
 LEFT_BEHIND_S = 60.0
 
 
@@ -69,7 +69,7 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
         self.attach_since = 0.0                  # when this robot last went from travel to attach
         self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
-        self.quiet_since: Tuple[int, float] = (-1, 0.0)   # idle after closure: (space revision, since when)
+        self.quiet_since: Tuple[int, float] = (-1, 0.0)   # idle: (count of mission news, since when)
         self.left_behind = False
         self.percept: Optional[Percept] = None
         estimate = p.object_estimate or (0.0, 0.0, 0.0)
@@ -182,13 +182,19 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
             if task is not None:
                 self._bid(task, now)
         self._keep_clear()
+        self._note_left_behind(now)
 
     def _note_left_behind(self, now: float) -> None:
-        """A spare robot after closure hears every member's heartbeat while it is within radio range of the
-        cage. Nothing new in its tuple space for LEFT_BEHIND_S means the cage pushed out of its range, and
-        `done` will never reach it (paper-100-straight_rot seed 1: one robot stranded 7.4 m from everyone
-        kept the run going to its time limit, 1900 s after the last waypoint). Anything new clears the flag."""
-        revision = self.space.revision()
+        """A spare robot (idle, with no task) that has heard no news of the mission for LEFT_BEHIND_S is out
+        of reach of it, and `done` will never reach it: it counts as finished. News is any write other than
+        a position heartbeat (tasks, bids, owners, members, closure, arrivals, `done`): spares stranded
+        together go on hearing each other's heartbeats. Two cases: the cage pushed out of the robot's range
+        after closure (paper-100-straight_rot seed 1: one robot stranded 7.4 m from everyone kept the run
+        going to its time limit, 1900 s after the last waypoint), or the robot never heard the cage close
+        because the spares that were not needed stayed where they started, out of range of the object.
+        Anything new clears the flag."""
+        space = self.space
+        revision = space.revision() - space.revision("pos")
         if revision != self.quiet_since[0]:
             self.quiet_since = (revision, now)
             self.left_behind = False
