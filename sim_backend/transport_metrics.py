@@ -115,7 +115,11 @@ class TransportEvaluator(Evaluator):
         if scenario.path:
             waypoints = [self.reached[k] for k in sorted(self.reached)]
             done = len(waypoints) == len(scenario.path)
-            within = all(w["position_error_m"] <= d_tol and w["orientation_error_rad"] <= yaw_tol for w in waypoints)
+            # A disc looks the same at every yaw, and nothing a robot senses can tell how it turned: its
+            # orientation is reported but not judged.
+            judge_yaw = scenario.object is None or scenario.object.shape != "circle"
+            within = all(w["position_error_m"] <= d_tol and (not judge_yaw or w["orientation_error_rad"] <= yaw_tol)
+                         for w in waypoints)
             truth = self.world.object_pose()
             final = scenario.path[-1]
             out.update({

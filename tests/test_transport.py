@@ -525,3 +525,17 @@ time_limit_s: 900
     assert result["sim_time_s"] <= result["time_to_cage_s"] + result["time_to_complete_s"] + 10.0
 
 
+def test_a_disc_is_judged_by_its_position_alone(tmp_path):
+    """Eight robots move a 0.3 m disc two waypoints. Pushing spins it, and nothing the robots sense tells how
+    a disc turned, so result.json reports its orientation error but completion depends on position only."""
+    scenario = tmp_path / "disc.yaml"
+    scenario.write_text("""
+robots: {count: 8, spawn: {x: [-1.5, -0.5], y: [0.8, 1.6]}}
+object: {shape: circle, radius: 0.3, mass: 0.4, position: [0.2, -0.1]}
+path: [[0.6, -0.1, 0], [0.6, 0.4, 0]]
+time_limit_s: 600
+""")
+    result = Simulation(load_scenario(str(scenario)), seed=1).run()
+    assert result["caged"] and result["completed"], result["failures"]
+    assert all(w["position_error_m"] <= 0.1 for w in result["waypoints"])
+    assert max(w["orientation_error_rad"] for w in result["waypoints"]) > math.radians(5.72)   # spun: reported
