@@ -506,6 +506,26 @@ def test_a_spare_robot_out_of_reach_of_the_mission_counts_as_finished():
         assert not transport.finished
 
 
+def test_robots_that_start_out_of_radio_range_of_the_seed_regroup_and_cage(tmp_path):
+    """Twelve robots start 3.2-4.3 m from the lab box with a 3 m radio. The seed drives to the box and opens
+    its branch tasks where nobody hears them. With regroup_when_cut_off (ours) the others, hearing no robot
+    at work for REGROUP_AFTER_S, move toward the object estimate until they hear one: the cage closes and the
+    box reaches its waypoints. The faithful profile (the paper's behaviour) waits at the start for ever."""
+    scenario = tmp_path / "far-start.yaml"
+    scenario.write_text("""
+robots: {count: 12, spawn: {x: [-3.6, -3.0], y: [-2.4, -1.2]}}
+object: {shape: box, size: [0.285, 0.435], mass: 0.3, position: [0, 0]}
+path: [[0, 0.3, 0], [0, 0.6, 0]]
+time_limit_s: 400
+""")
+    result = Simulation(load_scenario(str(scenario)), seed=1).run()
+    assert result["caged"] and result["completed"], result["failures"]
+    assert result["stop_reason"] == "behaviour finished"
+    faithful = load_scenario(str(scenario))
+    faithful = faithful.with_overrides(params={"profile": "faithful"})
+    assert not Simulation(faithful, seed=1).run()["caged"]
+
+
 def test_a_run_ends_with_the_mission_when_spare_robots_started_out_of_radio_range(tmp_path):
     """Fourteen robots start 2.4-4.2 m from an L-shaped object with a 3 m radio: the robots the cage needs
     drive to it, and the spares left at the start never hear the cage close or the mission end (they go on
@@ -525,6 +545,8 @@ time_limit_s: 900
     assert result["sim_time_s"] <= result["time_to_cage_s"] + result["time_to_complete_s"] + 10.0
 
 
+
+
 def test_a_disc_is_judged_by_its_position_alone(tmp_path):
     """Eight robots move a 0.3 m disc two waypoints. Pushing spins it, and nothing the robots sense tells how
     a disc turned, so result.json reports its orientation error but completion depends on position only."""
@@ -539,3 +561,4 @@ time_limit_s: 600
     assert result["caged"] and result["completed"], result["failures"]
     assert all(w["position_error_m"] <= 0.1 for w in result["waypoints"])
     assert max(w["orientation_error_rad"] for w in result["waypoints"]) > math.radians(5.72)   # spun: reported
+

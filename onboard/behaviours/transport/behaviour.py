@@ -28,6 +28,11 @@ from .transport import TransportPhases
 # A spare robot that has heard no news of the mission this long is out of reach of it (left behind as the cage
 # pushed away, or never near it): it counts as finished, though it goes on keeping clear.
 LEFT_BEHIND_S = 60.0
+# Ours (regroup_when_cut_off): before closure, a spare that has heard no heartbeat of any robot at work on the
+# mission (cage members, task owners) this long is out of their radio range, and would never hear the tasks
+# they open: it drives toward the object estimate until it hears one again, and stops this far from it.
+REGROUP_AFTER_S = 30.0
+REGROUP_STANDOFF_M = 1.0
 
 
 @register("transport")
@@ -71,6 +76,7 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
         self.quiet_since: Tuple[int, float] = (-1, 0.0)   # idle: (count of mission news, since when)
         self.left_behind = False
+        self.cut_off: Tuple[float, bool] = (-math.inf, False)   # idle: (when last checked, cut off from the mission)
         self.percept: Optional[Percept] = None
         estimate = p.object_estimate or (0.0, 0.0, 0.0)
         self.hint: Vec = (estimate[0], estimate[1])
@@ -181,6 +187,10 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
             task = self._nearest_open_task(now)
             if task is not None:
                 self._bid(task, now)
+            elif self._cut_off(now):
+                self._regroup()
+                self._note_left_behind(now)
+                return
         self._keep_clear()
         self._note_left_behind(now)
 
@@ -200,6 +210,35 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
             self.left_behind = False
         elif now - self.quiet_since[1] >= LEFT_BEHIND_S:
             self.left_behind = True
+
+    def _cut_off(self, now: float) -> bool:
+        """A spare with no open task to bid for is cut off from the mission when it has heard no heartbeat of
+        any robot at work on it (members, task owners) for REGROUP_AFTER_S while it is more than
+        REGROUP_STANDOFF_M from the object estimate. Robots at work beat at least once a second, and entries
+        travel on from robot to robot, so in a connected swarm this does not happen. (The paper has no such
+        rule: its robots all start within radio range.) Checked once a second: idle robots are most of a
+        swarm."""
+        p = self.params
+        if not p.regroup_when_cut_off or p.object_estimate is None:
+            return False
+        if now - self.cut_off[0] < 1.0:
+            return self.cut_off[1]
+        x, y = self.percept.x, self.percept.y
+        far = math.hypot(self.hint[0] - x, self.hint[1] - y) > REGROUP_STANDOFF_M
+        robots = [r for r in self.board.mission_robots() if r != self.robot.id] if far else []
+        cut_off = bool(robots) and not any(self._heard_since(r, now - REGROUP_AFTER_S) for r in robots)
+        self.cut_off = (now, cut_off)
+        return cut_off
+
+    def _heard_since(self, robot: int, since: float) -> bool:
+        heard = self.board.last_heard(robot)
+        return heard is not None and heard > since
+
+    def _regroup(self) -> None:
+        """Drive toward the object estimate, keeping clear of robots and obstacles, to get back in range."""
+        percept = self.percept
+        toward = c.unit((self.hint[0] - percept.x, self.hint[1] - percept.y))
+        self._drive(c.add(toward, self._avoid(), c.scale(percept.obstacle_vector, -1.0)))
 
     def _take_won_task(self, now: float) -> bool:
         """After T_a with a valid bid stored, the robot whose id is stored takes the task -- whichever open

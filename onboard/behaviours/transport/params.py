@@ -15,7 +15,7 @@ PROFILES = ("improved", "faithful")
 # The on/off improvements over the paper: the faithful profile turns every one of them off (a new one goes here).
 IMPROVEMENT_FLAGS = ("pipeline_allocation", "equalise_spacing", "hold_yaw_while_pushing", "soft_side_contact",
                      "keep_contact", "reinforce_push", "seed_from_rear", "keep_gap_while_caging",
-                     "surface_estimate", "pace_formation")
+                     "surface_estimate", "pace_formation", "regroup_when_cut_off")
 
 
 @dataclass
@@ -79,6 +79,8 @@ class TransportParams:
     surface_estimate: bool = True            # centroid from how the IR-seen surface points moved (estimator.py)
     surface_estimate_min_points: int = 6     # ... when at least this many members see the object, else the ring
     pace_formation: bool = True              # small cages: robots beside the object keep pace with the pushers
+    regroup_when_cut_off: bool = True        # a spare out of radio range of every robot at work moves toward
+    #                                          the object estimate until it hears one again (behaviour.py)
 
     def validate(self, where: str) -> None:
         if self.profile not in PROFILES:

@@ -312,6 +312,16 @@ class TaskBoard:
     def heard_of(self, robot: int) -> bool:
         return robot in self._heartbeats
 
+    def last_heard(self, robot: Any) -> Optional[float]:
+        """When (this robot's clock) a new heartbeat of ``robot`` last arrived; None if none ever did."""
+        seen = self._heartbeats.get(robot)
+        return None if seen is None else seen[1]
+
+    def mission_robots(self) -> List[Any]:
+        """The robots at work on the mission as far as this replica knows: cage members and task owners."""
+        self._index_owners()
+        return list(self._current_members()) + list(self._owned)
+
     def position(self, robot: int) -> Optional[Tuple[float, float]]:
         value = self.space.get(f"pos/{robot}")
         if isinstance(value, list) and len(value) >= 2:
