@@ -15,6 +15,7 @@ from onboard.geometry import wrap
 from .metrics import Evaluator, register_evaluator
 
 SPACING_SAMPLE_PERIOD_S = 1.0
+STUCK_BELOW_M = 0.05            # a closed cage that moved the object less than this got nowhere
 CAGE_STATES = ("caged", "settle", "push", "rotate", "done")
 
 
@@ -23,6 +24,7 @@ class TransportEvaluator(Evaluator):
     def __init__(self, scenario, world):
         super().__init__(scenario, world)
         self.closed_at: Optional[float] = None
+        self.pose_at_closure: Optional[np.ndarray] = None
         self.members: List[int] = []
         self.reached: Dict[int, Dict[str, Any]] = {}
         self.pushers: Dict[int, List[int]] = {}
@@ -38,6 +40,7 @@ class TransportEvaluator(Evaluator):
         if self.closed_at is None:
             if any(t.get("closed") for t in reports.values()):
                 self.closed_at = time_s
+                self.pose_at_closure = self.world.object_pose()
             return
         members = [i for i, t in reports.items() if t["state"] in CAGE_STATES and t.get("member")]
         self.members = members or self.members
@@ -103,6 +106,20 @@ class TransportEvaluator(Evaluator):
         poses = [t["estimate"][:2] for t in telemetry if t is not None and "estimate" in t]
         return np.mean(poses, axis=0) if poses else np.array([np.nan, np.nan])
 
+    def _stuck_hint(self, truth: np.ndarray) -> List[str]:
+        """Why a closed cage may not have got anywhere: said when the object hardly moved after closure."""
+        start = self.pose_at_closure
+        if start is None or math.hypot(truth[0] - start[0], truth[1] - start[1]) >= STUCK_BELOW_M:
+            return []
+        spec = self.scenario.object
+        resisting = spec.friction * spec.mass * 9.81
+        hint = (f"the object moved {math.hypot(truth[0] - start[0], truth[1] - start[1]):.2f} m after the cage "
+                f"closed: {len(self.members)} members against {resisting:.1f} N of floor friction "
+                f"(object.friction x mass x g); more robots, less friction")
+        if not self.scenario.params.get("reinforce_push", False):
+            hint += ", or params: {reinforce_push: true} (the robots left out push too)"
+        return [hint]
+
     def result(self) -> Dict[str, Any]:
         scenario = self.scenario
         params = scenario.params
@@ -133,6 +150,7 @@ class TransportEvaluator(Evaluator):
             })
             if caged and not done:
                 failures.append(f"reached {len(waypoints)} of {len(scenario.path)} waypoints")
+                failures.extend(self._stuck_hint(truth))
             if done and not within:
                 failures.append("a waypoint was passed outside the position/orientation tolerance")
         out["failures"] = failures + dead

@@ -562,3 +562,18 @@ time_limit_s: 600
     assert all(w["position_error_m"] <= 0.1 for w in result["waypoints"])
     assert max(w["orientation_error_rad"] for w in result["waypoints"]) > math.radians(5.72)   # spun: reported
 
+
+def test_a_cage_that_cannot_move_its_object_says_why(tmp_path):
+    """A 4.3 kg box with friction 0.4 (16.9 N) and eight robots, four of them in the cage and none of the others
+    pushing: the box stays put, and the failures say so, with the force and what to change."""
+    scenario = tmp_path / "heavy.yaml"
+    scenario.write_text("""
+robots: {count: 8, spawn: {x: [-1.4, -0.6], y: [-1.4, -0.6]}}
+object: {shape: box, size: [0.4, 0.4], mass: 4.3, friction: 0.4, position: [0, 0]}
+path: [[0.3, 0, 0], [0.6, 0, 0]]
+time_limit_s: 200
+""")
+    result = Simulation(load_scenario(str(scenario)), seed=1).run()
+    assert result["caged"] and not result["completed"]
+    stuck = [f for f in result["failures"] if "after the cage closed" in f]
+    assert len(stuck) == 1 and "16.9 N" in stuck[0] and "reinforce_push: true" in stuck[0], result["failures"]
