@@ -482,8 +482,9 @@ def test_a_robot_that_gets_no_nearer_its_target_gives_the_task_back():
 def test_a_spare_robot_out_of_reach_of_the_mission_counts_as_finished():
     """A spare robot that heard no news of the mission (anything but position heartbeats) for LEFT_BEHIND_S
     is out of reach of it and will never hear `done`: it counts as finished, so a simulation ends with the
-    mission instead of at its time limit. Heartbeats alone do not count: spares stranded together hear each
-    other's. It keeps keeping clear, and news makes it unfinished again."""
+    mission instead of at its time limit, whether or not it heard the cage close. Heartbeats alone do not
+    count: they say that a robot is alive, not that the mission moved on. It keeps keeping clear, and news
+    makes it unfinished again."""
     from onboard.behaviours.transport.behaviour import LEFT_BEHIND_S
 
     for closed in (True, False):
@@ -498,7 +499,7 @@ def test_a_spare_robot_out_of_reach_of_the_mission_counts_as_finished():
                 transport.space.put(f"arrive/0/p/{now}", 1)                     # news of the mission
         assert not transport.finished
         for now in range(int(LEFT_BEHIND_S), int(3 * LEFT_BEHIND_S), 5):
-            transport.space.put("pos/7", [1.0, float(now), None, None])        # only a spare's heartbeat
+            transport.space.put("pos/7", [1.0, float(now), None, None])        # only a heartbeat
             transport._on_idle(float(now))
         assert transport.finished and transport.state == "idle", closed
         transport.space.put("arrive/1/p/7", 1)                                 # the cage comes back in range
@@ -528,9 +529,8 @@ time_limit_s: 400
 
 def test_a_run_ends_with_the_mission_when_spare_robots_started_out_of_radio_range(tmp_path):
     """Fourteen robots start 2.4-4.2 m from an L-shaped object with a 3 m radio: the robots the cage needs
-    drive to it, and the spares left at the start never hear the cage close or the mission end (they go on
-    hearing each other's heartbeats). The run still stops when the object reaches its last waypoint, not
-    at the time limit."""
+    drive to it, and the spares left at the start never hear the cage close or the mission end. The run
+    still stops when the object reaches its last waypoint, not at the time limit."""
     scenario = tmp_path / "far-spares.yaml"
     scenario.write_text("""
 robots: {count: 14, spawn: {x: [-2.5, -1.5], y: [-2.5, -1.0]}}
@@ -543,8 +543,6 @@ time_limit_s: 900
     assert result["completed"], result["failures"]
     assert result["stop_reason"] == "behaviour finished"
     assert result["sim_time_s"] <= result["time_to_cage_s"] + result["time_to_complete_s"] + 10.0
-
-
 
 
 def test_a_disc_is_judged_by_its_position_alone(tmp_path):

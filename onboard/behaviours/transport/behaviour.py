@@ -197,8 +197,8 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
     def _note_left_behind(self, now: float) -> None:
         """A spare robot (idle, with no task) that has heard no news of the mission for LEFT_BEHIND_S is out
         of reach of it, and `done` will never reach it: it counts as finished. News is any write other than
-        a position heartbeat (tasks, bids, owners, members, closure, arrivals, `done`): spares stranded
-        together go on hearing each other's heartbeats. Two cases: the cage pushed out of the robot's range
+        a position heartbeat (tasks, bids, owners, members, closure, arrivals, `done`): a heartbeat says that
+        a robot is alive, not that the mission moved on. Two cases: the cage pushed out of the robot's range
         after closure (paper-100-straight_rot seed 1: one robot stranded 7.4 m from everyone kept the run
         going to its time limit, 1900 s after the last waypoint), or the robot never heard the cage close
         because the spares that were not needed stayed where they started, out of range of the object.
