@@ -176,22 +176,20 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
     def _on_idle(self, now: float) -> None:
         if self._finish_if_done():
             return
+        regroup = False
         if "closed" in self.space:
             if not self._caging_only_done() and self.params.reinforce_push:
                 self._reinforce(now)
-            else:
-                self._keep_clear()
-                self._note_left_behind(now)
-            return
-        if not self._take_won_task(now):
+                return
+        elif not self._take_won_task(now):
             task = self._nearest_open_task(now)
             if task is not None:
                 self._bid(task, now)
-            elif self._cut_off(now):
-                self._regroup()
-                self._note_left_behind(now)
-                return
-        self._keep_clear()
+            regroup = task is None and self._cut_off(now)
+        if regroup:
+            self._regroup()
+        else:
+            self._keep_clear()
         self._note_left_behind(now)
 
     def _note_left_behind(self, now: float) -> None:
@@ -226,13 +224,9 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
         x, y = self.percept.x, self.percept.y
         far = math.hypot(self.hint[0] - x, self.hint[1] - y) > REGROUP_STANDOFF_M
         robots = [r for r in self.board.mission_robots() if r != self.robot.id] if far else []
-        cut_off = bool(robots) and not any(self._heard_since(r, now - REGROUP_AFTER_S) for r in robots)
+        cut_off = bool(robots) and not any(self.board.alive(r, now, REGROUP_AFTER_S) for r in robots)
         self.cut_off = (now, cut_off)
         return cut_off
-
-    def _heard_since(self, robot: int, since: float) -> bool:
-        heard = self.board.last_heard(robot)
-        return heard is not None and heard > since
 
     def _regroup(self) -> None:
         """Drive toward the object estimate, keeping clear of robots and obstacles, to get back in range."""

@@ -305,17 +305,13 @@ class TaskBoard:
             if seen is None or entry.timestamp > seen[0]:
                 self._heartbeats[rid] = (entry.timestamp, now)
 
-    def alive(self, robot: int, now: float) -> bool:
+    def alive(self, robot: int, now: float, within: Optional[float] = None) -> bool:
+        """A heartbeat of ``robot`` arrived within the liveness timeout (or ``within`` seconds) of ``now``."""
         seen = self._heartbeats.get(robot)
-        return seen is not None and now - seen[1] <= self.timeout
+        return seen is not None and now - seen[1] <= (self.timeout if within is None else within)
 
     def heard_of(self, robot: int) -> bool:
         return robot in self._heartbeats
-
-    def last_heard(self, robot: Any) -> Optional[float]:
-        """When (this robot's clock) a new heartbeat of ``robot`` last arrived; None if none ever did."""
-        seen = self._heartbeats.get(robot)
-        return None if seen is None else seen[1]
 
     def mission_robots(self) -> List[Any]:
         """The robots at work on the mission as far as this replica knows: cage members and task owners."""
