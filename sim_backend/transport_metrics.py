@@ -109,11 +109,12 @@ class TransportEvaluator(Evaluator):
     def _stuck_hint(self, truth: np.ndarray) -> List[str]:
         """Why a closed cage may not have got anywhere: said when the object hardly moved after closure."""
         start = self.pose_at_closure
-        if start is None or math.hypot(truth[0] - start[0], truth[1] - start[1]) >= STUCK_BELOW_M:
+        moved = math.inf if start is None else math.hypot(truth[0] - start[0], truth[1] - start[1])
+        if moved >= STUCK_BELOW_M:
             return []
         spec = self.scenario.object
         resisting = spec.friction * spec.mass * 9.81
-        hint = (f"the object moved {math.hypot(truth[0] - start[0], truth[1] - start[1]):.2f} m after the cage "
+        hint = (f"the object moved {moved:.2f} m after the cage "
                 f"closed: {len(self.members)} members against {resisting:.1f} N of floor friction "
                 f"(object.friction x mass x g); more robots, less friction")
         if not self.scenario.params.get("reinforce_push", False):
