@@ -189,11 +189,9 @@ def cmd_sil(args: argparse.Namespace) -> int:
         raise ConfigError("--time-limit", "must be > 0")
     seed = scenario.seed if args.seed is None else args.seed
     out = args.out or Path("out") / f"sil-{scenario.name}-seed{seed}"
-    from khepri_cli.sim_commands import out_folder_problem
+    from khepri_cli.sim_commands import require_out_folder
 
-    problem = out_folder_problem(out)
-    if problem:
-        raise ConfigError("--out", problem)
+    require_out_folder(out)
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
                          record=not args.no_record, plot=not args.no_plot)
     result = run_sil(scenario, out, options)

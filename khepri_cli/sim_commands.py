@@ -92,6 +92,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def require_out_folder(out: Path) -> None:
+    """Create the output folder before a long job; ConfigError naming --out when that cannot be done."""
+    from onboard.config import ConfigError
+
+    problem = out_folder_problem(out)
+    if problem:
+        raise ConfigError("--out", problem)
+
+
 def out_folder_problem(out: Path) -> Optional[str]:
     """Create the output folder now; what is wrong with it, or None."""
     try:

@@ -53,11 +53,9 @@ def cmd_study(args: argparse.Namespace) -> int:
     out = args.out or Path("out") / f"study-{spec.name}"
     if args.dry_run:
         return print_dry_run(runs, out, args.retry_failed)
-    from khepri_cli.sim_commands import out_folder_problem
+    from khepri_cli.sim_commands import require_out_folder
 
-    problem = out_folder_problem(out)
-    if problem:
-        raise ConfigError("--out", problem)
+    require_out_folder(out)
     from sim_backend.study.driver import run_study
 
     executor = make_executor(choice, args.workers)
