@@ -48,7 +48,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     from sim_backend.study.executors import make_executor, parse_executor, worker_count
 
     choice = parse_executor(args.executor)     # bad --executor / --workers: said before anything else
-    worker_count(args.workers)
+    workers = worker_count(args.workers)
     spec, runs = study_grid(args)
     out = args.out or Path("out") / f"study-{spec.name}"
     if args.dry_run:
@@ -58,7 +58,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     require_out_folder(out)
     from sim_backend.study.driver import run_study
 
-    executor = make_executor(choice, args.workers)
+    executor = make_executor(choice, workers)
     print(f"study {spec.name}: {len(runs)} runs on {executor.describe()}, writing to {out}")
     # `kill` (SIGTERM) ends a study like Ctrl-C: workers stopped, finished runs kept, resumable. Without
     # this the driver died alone and its pool's workers ran on, orphaned, until their runs finished.
