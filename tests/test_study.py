@@ -263,6 +263,7 @@ def transport_result(seed, cage, complete, waypoints, completed=True):
             "sim_time_s": 500.0, "wall_time_s": 10.0 * seed, "failed": False, "caged": True,
             "time_to_cage_s": cage, "cage_size": 18 + seed, "completed": completed, "time_to_complete_s": complete,
             "waypoints": waypoints, "final_position_error_m": 0.05, "final_orientation_error_rad": 0.01,
+            "cage_spacing_m": {"mean": 0.42 + 0.02 * seed, "std": 0.01 * seed ** 2},
             "study": {"cell": "paper-25-straight", "overrides": {}}}
 
 
@@ -314,6 +315,10 @@ def test_summary_csv_has_the_medians_spreads_rates_and_paper_values(known_study)
     reference = paper.error_values(paper.paper_case("paper-25-straight"), 0, "position_error_m")
     assert position["paper_value"] == f"{np.median(reference):.6g}" and position["paper_n"] == "30"
     assert rows[("paper-25-straight", "effective_pushers", "1")]["value"] == "12.5"
+    spacing = rows[("paper-25-straight", "cage_spacing_mean_m", "")]
+    assert (spacing["n"], spacing["value"], spacing["min"], spacing["max"]) == ("3", "0.46", "0.44", "0.48")
+    assert rows[("paper-25-straight", "cage_spacing_std_m", "")]["value"] == "0.04"
+    assert ("irregular-clover", "cage_spacing_mean_m", "") not in rows     # no spacing recorded: no row
     clover = rows[("irregular-clover", "success_rate", "")]
     assert (clover["n"], clover["value"]) == ("2", "0.5")
     assert rows[("irregular-clover", "time_to_cage_s", "")]["paper_value"] == "300"
@@ -324,8 +329,8 @@ def test_report_md_puts_ours_next_to_the_paper(known_study):
     write_study_outputs(known_study, figures=False)
     report = (known_study / "report.md").read_text()
     assert ("| paper-25-straight | 25 | 4 | 1 | 3/3 | 2/3 | 67% | 200 [150–300] | 247 | 100 [95–105] | 100 | "
-            "20 [19.5–20.5] |") in report
-    assert "| irregular-clover | 30 | 2 | 0 | 1/2 | – | 50% | 280 | 300 | – | – | 22 |" in report
+            "20 [19.5–20.5] | 0.46 ± 0.04 |") in report
+    assert "| irregular-clover | 30 | 2 | 0 | 1/2 | – | 50% | 280 | 300 | – | – | 22 | – |" in report
     assert "| 0 | 3 | 0.4 [0.3–0.5] | 0.102 | 0.2 [0.15–0.25] | 0.0747 | 0.03 [0.02–0.04] | 0.0218 |" in report
     assert "- `paper-25-straight` seed 4: RuntimeError: boom" in report
 

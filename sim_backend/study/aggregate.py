@@ -20,8 +20,10 @@ from .worker import RESULT_FILE, read_result
 
 WAYPOINT_METRICS = ("centroid_estimation_error_m", "position_error_m", "orientation_error_rad",
                     "effective_pushers", "effective_rotators")
-RUN_METRICS = ("time_to_cage_s", "time_to_complete_s", "cage_size", "final_position_error_m",
-               "final_orientation_error_rad", "wall_time_s")
+RUN_METRICS = ("time_to_cage_s", "time_to_complete_s", "cage_size", "cage_spacing_mean_m", "cage_spacing_std_m",
+               "final_position_error_m", "final_orientation_error_rad", "wall_time_s")
+# result.json keeps the cage spacing as {"mean": m, "std": s}; the summary flattens it to two run metrics.
+NESTED_METRICS = {"cage_spacing_mean_m": ("cage_spacing_m", "mean"), "cage_spacing_std_m": ("cage_spacing_m", "std")}
 CAGED_ONLY = ("cage_size",)
 CSV_COLUMNS = ("cell", "scenario", "robots", "overrides", "metric", "waypoint", "n", "value", "q1", "q3",
                "min", "max", "paper_value", "paper_n")
@@ -71,7 +73,8 @@ class Cell:
     def values(self, key: str) -> List[float]:
         # A cage that never closed has no size (result.json says 0): count cage sizes of caged runs only.
         runs = [r for r in self.ok if r.get("caged")] if key in CAGED_ONLY else self.ok
-        return [r[key] for r in runs if isinstance(r.get(key), (int, float)) and not isinstance(r[key], bool)]
+        values = (run_value(r, key) for r in runs)
+        return [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
 
     def waypoint_values(self, index: int, key: str) -> List[float]:
         out = []
@@ -87,6 +90,15 @@ class Cell:
     def rate(self, predicate) -> Optional[float]:
         ok = self.ok
         return sum(1 for r in ok if predicate(r)) / len(ok) if ok else None
+
+
+def run_value(result: Dict[str, Any], key: str) -> Any:
+    """``result[key]``, or for a flattened metric (``NESTED_METRICS``) the field inside its record."""
+    if key not in NESTED_METRICS:
+        return result.get(key)
+    record, field_name = NESTED_METRICS[key]
+    nested = result.get(record)
+    return nested.get(field_name) if isinstance(nested, dict) else None
 
 
 @dataclass

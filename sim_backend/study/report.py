@@ -90,8 +90,8 @@ def outcome_table(cells: List[Cell]) -> List[str]:
              "Success = completed (every waypoint reached within the tolerances) for a transport, caged for a "
              "caging-only run.", "",
              "| cell | robots | runs | failed | caged | all waypoints | success | time to cage (s) | paper | "
-             "time to complete (s) | paper | cage size |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "time to complete (s) | paper | cage size | cage spacing (m) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for cell in cells:
         all_waypoints = (f"{sum(1 for r in cell.ok if r.get('time_to_complete_s') is not None)}/{len(cell.ok)}"
                          if cell.has_path else "–")
@@ -100,8 +100,19 @@ def outcome_table(cells: List[Cell]) -> List[str]:
             f"{len(cell.failed)} | {count_of(cell, 'caged')} | {all_waypoints} | {percent(success_rate(cell))} | "
             f"{median_and_spread(cell.values('time_to_cage_s'), 4)} | {number(paper.time_to_cage_s(cell.case), 4)} | "
             f"{median_and_spread(cell.values('time_to_complete_s'), 4)} | "
-            f"{number(paper.time_to_push_s(cell.case), 4)} | {median_and_spread(cell.values('cage_size'))} |")
+            f"{number(paper.time_to_push_s(cell.case), 4)} | {median_and_spread(cell.values('cage_size'))} | "
+            f"{spacing_text(cell)} |")
     return lines + [""]
+
+
+def spacing_text(cell: Cell) -> str:
+    """The median over runs of each run's mean distance between neighbouring members while transporting, and
+    the median of their standard deviations (``±``): a cage that opens up shows as a large ``±``."""
+    means, stds = cell.values("cage_spacing_mean_m"), cell.values("cage_spacing_std_m")
+    if not means:
+        return "–"
+    spread = distribution(stds)
+    return f"{number(distribution(means).median)}" + (f" ± {number(spread.median, 2)}" if spread else "")
 
 
 def error_tables(cells: List[Cell]) -> List[str]:
