@@ -70,13 +70,13 @@ def _run(argv: Optional[List[str]]) -> int:
     except ConfigError as err:
         print(f"khepri: error: {err}", file=sys.stderr)
         return 2
-    except (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError, FileExistsError) as err:
-        # A path the user gave that cannot be read or written (--record, keys folder, ...): one line that
-        # names it. Set KHEPRI_DEBUG=1 for the traceback.
-        if os.environ.get("KHEPRI_DEBUG"):
+    except OSError as err:
+        # A path the user gave that cannot be read or written (--record, keys folder, a full or read-only
+        # disk, ...): one line that names it. An OS error without a path is a bug: keep its traceback.
+        # Set KHEPRI_DEBUG=1 for the traceback in any case.
+        if os.environ.get("KHEPRI_DEBUG") or err.filename is None:
             raise
-        where = f": {err.filename}" if err.filename else ""
-        print(f"khepri: error: {err.strerror or err}{where}", file=sys.stderr)
+        print(f"khepri: error: {err.strerror or err}: {err.filename}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("khepri: interrupted", file=sys.stderr)

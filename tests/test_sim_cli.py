@@ -58,3 +58,20 @@ def test_a_path_that_cannot_be_written_is_one_line_naming_it(tmp_path, capsys, m
     monkeypatch.setenv("KHEPRI_DEBUG", "1")           # developers get the traceback back
     with pytest.raises(OSError):
         main(["keys", "init", str(blocker / "keys")])
+
+
+def test_any_os_error_on_a_path_is_one_line_but_one_without_a_path_keeps_its_traceback(tmp_path, capsys,
+                                                                                        monkeypatch):
+    too_long = tmp_path / ("k" * 300)                 # ENAMETOOLONG: a plain OSError, not one of its subclasses
+    assert main(["keys", "init", str(too_long)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("khepri: error: File name too long: ") and "Traceback" not in err
+
+    import khepri_cli.lab_commands as lab
+
+    def fail(args):
+        raise OSError(5, "Input/output error")        # no path to blame: a bug to report, with its traceback
+
+    monkeypatch.setattr(lab, "cmd_keys_init", fail)
+    with pytest.raises(OSError):
+        main(["keys", "init", str(tmp_path / "keys")])
