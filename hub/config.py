@@ -8,9 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
-import yaml
-
 from onboard.config import ConfigError, check_range, from_mapping, join
+from onboard.yamlfile import read_yaml
 
 SOURCE_TYPES = ("sim", "motioncapture", "replay")
 UP_AXES = ("z", "y")
@@ -152,13 +151,7 @@ def parse_config(data: Any) -> LabConfig:
 
 
 def load_config(path: Path) -> LabConfig:
-    if not path.is_file():
-        raise ConfigError("--config", f"no such file: {path}")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, yaml.YAMLError) as err:
-        raise ConfigError(path.name, f"not a valid YAML file ({getattr(err, 'problem', err)})") from None
-    return parse_config(data)
+    return parse_config(read_yaml(path, "--config"))
 
 
 def demo_config() -> LabConfig:

@@ -11,10 +11,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple, Union
 
-import yaml
-
 from onboard.behaviour import build_params, get_behaviour
 from onboard.config import ConfigError, check_range, from_mapping, join
+from onboard.yamlfile import read_yaml
 
 BUILTIN_DIR = Path(__file__).parent / "scenarios"
 SHAPES = ("box", "circle", "polygon", "compound", "cloud", "box_rotation", "clover")
@@ -298,6 +297,8 @@ def resolve(name_or_path: str) -> Path:
     path = Path(name_or_path)
     if path.is_file():
         return path
+    if path.is_dir() and path.suffix in (".yaml", ".yml"):
+        raise ConfigError("scenario", f"{name_or_path} is a folder, not a file")
     is_yaml = path.suffix in (".yaml", ".yml")
     builtin = BUILTIN_DIR / f"{name_or_path}.yaml"
     if not is_yaml and builtin.is_file():
@@ -311,14 +312,9 @@ def resolve(name_or_path: str) -> Path:
 def load_scenario(name_or_path: str) -> Scenario:
     """Load and validate a scenario by built-in name or path. Raises ConfigError (one line) on bad input."""
     path = resolve(name_or_path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise ConfigError(path.name, "not a text (UTF-8) file") from None
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f"{path.name}:{mark.line + 1}" if mark else path.name
-        raise ConfigError(where, f"not valid YAML ({getattr(err, 'problem', err)})") from None
+    data = read_yaml(path, "scenario")
+    if data is None:
+        raise ConfigError(path.name, "the file is empty (a scenario needs at least its robots and behaviour)")
     return parse_scenario(data, default_name=path.stem)
 
 

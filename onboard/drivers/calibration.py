@@ -12,10 +12,10 @@ from pathlib import Path
 from typing import List, Optional, Tuple, Union
 
 import numpy as np
-import yaml
 
 from onboard.config import ConfigError, check_range, from_mapping, join
 from onboard.hal import PROXIMITY_SENSOR_COUNT
+from onboard.yamlfile import read_yaml
 
 #: Largest raw IR count: the dsPic's ADC is 10-bit (libkhepera's KH4_MAX_IR_VALUE is 1024 counts).
 IR_RAW_MAX = 1023
@@ -94,14 +94,7 @@ def default_calibration() -> IRCalibration:
 def load_calibration(path: Union[str, Path]) -> IRCalibration:
     """Read and validate a calibration file; every error is a ConfigError naming the file and the field."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise ConfigError(str(path), f"cannot read the calibration file ({err.strerror or err})") from err
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise ConfigError(str(path), f"not valid YAML ({err})") from err
+    data = read_yaml(path, "calibration file")
     try:
         return from_mapping(IRCalibration, data)
     except ConfigError as err:

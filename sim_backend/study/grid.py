@@ -14,9 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-import yaml
-
 from onboard.config import ConfigError, to_mapping
+from onboard.yamlfile import read_yaml
 from sim_backend.scenario import load_scenario, parse_scenario
 
 from .paper_reference import paper_scenarios
@@ -69,14 +68,7 @@ def check_reps(where: str, reps: Any) -> int:
 
 
 def load_study_file(path: Path) -> StudySpec:
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as err:
-        raise ConfigError("study", f"cannot read {path}: {err.strerror or err}") from None
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f"{path.name}:{mark.line + 1}" if mark else path.name
-        raise ConfigError(where, f"not valid YAML ({getattr(err, 'problem', err)})") from None
+    data = read_yaml(path, "study")
     return parse_study(data, base_dir=path.parent, default_name=path.stem)
 
 

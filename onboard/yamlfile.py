@@ -1,0 +1,95 @@
+"""Reading the YAML files users write (scenarios, studies, lab configs, calibrations), one way everywhere.
+
+PyYAML implements YAML 1.1, whose number rules surprise people: ``1e6`` is a string (1.1 wants ``1.0e+6``),
+``010`` is 8 (octal) and ``1:30`` is 90. The loader here reads numbers as YAML 1.2 does (``1e6`` is a float,
+``010`` is 10, ``0o10`` is 8), and a key written twice in one mapping is an error naming its line instead
+of the last one silently winning. Every problem is a :class:`ConfigError` naming the file (and the line).
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .config import ConfigError
+
+_INT = "tag:yaml.org,2002:int"
+_FLOAT = "tag:yaml.org,2002:float"
+
+
+class StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` with YAML 1.2 numbers and no duplicate keys."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue                       # `<<: *defaults` may be overridden by the keys after it
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                first = seen.setdefault(key, key_node)
+            except TypeError:                  # an unhashable key: the constructor below says so
+                continue
+            if first is not key_node:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"the key {key!r} is given twice (first on line {first.start_mark.line + 1})",
+                    key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+    def construct_yaml_int(self, node):
+        text = self.construct_scalar(node)
+        sign = -1 if text.startswith("-") else 1
+        digits = text.lstrip("+-")
+        if digits.startswith("0o"):
+            return sign * int(digits[2:], 8)
+        if digits.startswith("0x"):
+            return sign * int(digits[2:], 16)
+        return sign * int(digits, 10)
+
+
+StrictLoader.yaml_implicit_resolvers = {
+    first: [(tag, pattern) for tag, pattern in resolvers if tag not in (_INT, _FLOAT)]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+# YAML 1.2's core schema; ints are tried first, so `10` stays an int.
+StrictLoader.add_implicit_resolver(_INT, re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"),
+                                   list("-+0123456789"))
+StrictLoader.add_implicit_resolver(
+    _FLOAT, re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+                       r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
+    list("-+0123456789."))
+StrictLoader.add_constructor(_INT, StrictLoader.construct_yaml_int)
+
+
+def parse_yaml(text: str, where: str) -> Any:
+    """``text`` as YAML; a syntax error or a repeated key is a ConfigError at ``where:LINE``."""
+    try:
+        return yaml.load(text, Loader=StrictLoader)     # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        at = f"{where}:{mark.line + 1}" if mark else where
+        raise ConfigError(at, f"not valid YAML ({getattr(err, 'problem', None) or err})") from None
+
+
+def read_yaml(path: Path, field: str = "") -> Any:
+    """A YAML file's content. ``field`` names what the path was given as (``--config``, ``scenario``) in the
+    errors about the path itself; errors about its content name the file."""
+    path = Path(path)
+    label = field or str(path)
+    if path.is_dir():
+        raise ConfigError(label, f"{path} is a folder, not a file")
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(label, f"no such file: {path}") from None
+    except OSError as err:
+        raise ConfigError(label, f"cannot read {path}: {err.strerror or err}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError(path.name, "not a text (UTF-8) file") from None
+    return parse_yaml(text, path.name)
+
+
+__all__ = ["StrictLoader", "parse_yaml", "read_yaml"]

@@ -1,0 +1,49 @@
+"""The one YAML reader behind scenarios, studies, lab configs and calibrations."""
+from pathlib import Path
+
+import pytest
+import yaml
+
+from onboard.config import ConfigError
+from onboard.yamlfile import parse_yaml, read_yaml
+from sim_backend.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_numbers_read_as_yaml_1_2_does():
+    data = parse_yaml("a: 1e6\nb: -3e-1\nc: 010\nd: 0o10\ne: 0x1F\nf: 1:30\ng: .inf\nh: 2.5\ni: -7\nj: '1e6'\n", "x")
+    assert data == {"a": 1e6, "b": -0.3, "c": 10, "d": 8, "e": 31, "f": "1:30", "g": float("inf"), "h": 2.5,
+                    "i": -7, "j": "1e6"}
+    assert isinstance(data["c"], int) and isinstance(data["a"], float)
+
+
+def test_a_key_given_twice_names_both_lines():
+    with pytest.raises(ConfigError) as caught:
+        parse_yaml("robots:\n  count: 6\n  count: 3\n", "mine.yaml")
+    assert str(caught.value) == "mine.yaml:3: not valid YAML (the key 'count' is given twice (first on line 2))"
+    merged = parse_yaml("base: &b {count: 6, radius: 1}\nrobots:\n  <<: *b\n  count: 3\n", "x")
+    assert merged["robots"] == {"count": 3, "radius": 1}        # a merge key may be overridden
+
+
+def test_a_folder_or_a_file_that_is_not_text_is_named(tmp_path):
+    with pytest.raises(ConfigError, match="is a folder, not a file") as caught:
+        read_yaml(tmp_path, "--config")
+    assert caught.value.field == "--config"
+    latin = tmp_path / "latin.yaml"
+    latin.write_bytes(b"name: caf\xe9\n")
+    with pytest.raises(ConfigError, match="latin.yaml: not a text"):
+        read_yaml(latin)
+    (tmp_path / "dir.yaml").mkdir()
+    with pytest.raises(ConfigError, match="dir.yaml is a folder"):
+        load_scenario(str(tmp_path / "dir.yaml"))
+    (tmp_path / "empty.yaml").write_text("# nothing yet\n")
+    with pytest.raises(ConfigError, match="empty.yaml: the file is empty"):
+        load_scenario(str(tmp_path / "empty.yaml"))
+
+
+@pytest.mark.parametrize("path", sorted(p.relative_to(ROOT) for folder in ("sim_backend", "hub", "docs", "calibration")
+                                        for p in (ROOT / folder).rglob("*.y*ml")), ids=str)
+def test_every_yaml_file_we_ship_reads_the_same_as_before(path):
+    text = (ROOT / path).read_text(encoding="utf-8")
+    assert parse_yaml(text, path.name) == yaml.safe_load(text)
