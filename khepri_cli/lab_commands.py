@@ -182,21 +182,18 @@ def _add_sil(groups) -> None:
 
 def cmd_sil(args: argparse.Namespace) -> int:
     from hub.sil import SilOptions, run_sil
+    from khepri_cli.sim_commands import check_time_limit, require_out_folder, summary_line
     from sim_backend.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
-    if args.time_limit is not None and args.time_limit <= 0:
-        raise ConfigError("--time-limit", "must be > 0")
+    check_time_limit(args.time_limit)
     seed = scenario.seed if args.seed is None else args.seed
     out = args.out or Path("out") / f"sil-{scenario.name}-seed{seed}"
-    from khepri_cli.sim_commands import require_out_folder
 
     require_out_folder(out)
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
                          record=not args.no_record, plot=not args.no_plot)
     result = run_sil(scenario, out, options)
-    from khepri_cli.sim_commands import summary_line
-
     print(summary_line(result))
     sil = result.get("sil", {})
     print(f"  agents: {sil.get('agents')}, lockstep: {sil.get('lockstep')}, frame latency p99 "

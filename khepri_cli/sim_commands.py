@@ -3,10 +3,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
 from typing import Optional
+
+
+def check_time_limit(seconds: Optional[float]) -> None:
+    """``--time-limit`` of sim run, sil and study: argparse's float() also takes ``nan`` and ``inf``."""
+    from onboard.config import ConfigError
+
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise ConfigError("--time-limit", f"must be a finite number of seconds > 0 (got {seconds:g})")
 
 
 def add_sim(groups) -> None:
@@ -64,9 +73,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from sim_backend.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
-    if args.time_limit is not None and args.time_limit <= 0:
-        print("khepri: error: --time-limit: must be > 0", file=sys.stderr)
-        return 2
+    check_time_limit(args.time_limit)
     problem = video_problem(args.video) if args.video is not None else None
     if problem:
         print(f"khepri: error: --video: {problem}", file=sys.stderr)

@@ -90,12 +90,12 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def study_grid(args: argparse.Namespace):
+    from khepri_cli.sim_commands import check_time_limit
     from sim_backend.study.grid import check_reps, expand, load_study_file, paper_study, restrict
 
     if args.reps is not None:
         check_reps("--reps", args.reps)
-    if args.time_limit is not None and not args.time_limit > 0:
-        raise ConfigError("--time-limit", f"must be > 0 (got {args.time_limit:g})")
+    check_time_limit(args.time_limit)
     if args.target == "paper":
         spec = paper_study(args.reps or DEFAULT_REPS)
     else:

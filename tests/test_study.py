@@ -95,6 +95,11 @@ def test_overrides_make_a_cartesian_product_of_cells(tmp_path):
     ("scenarios: [lab-6]\nreps: 1\noverrides: {params.no_such_param: [1]}", "params.no_such_param: unknown key"),
     ("scenarios: [lab-6]\nreps: 1\noverrides: {robots.count: [0]}", "robots.count: must be >= 1"),
     ("scenarios: [lab-6]\nreps: 1\ntime_limit_s: -5", "time_limit_s: must be a number of seconds > 0"),
+    ("scenarios: [lab-6]\nreps: 1\ntime_limit_s: .inf", "time_limit_s: must be a number of seconds > 0"),
+    ("scenarios: [lab-6]\nseeds: 1..100000000000", "seeds: a range may hold at most 100000 seeds"),
+    ("scenarios: [lab-6]\nreps: 1\noverrides: {comm.drop: [0.1, 0.2, 0.1]}",
+     "overrides.comm.drop: lists the value 0.1 twice"),
+    ("scenarios: [lab-6]\nreps: 1\nreps: 2", "bad.yaml:3: not valid YAML (the key 'reps' is given twice"),
     ("scenarios: [lab-6]\nreps: 1\nrepeats: 3", "repeats: unknown key"),
     ("scenarios: [lab-6\nreps: 1", "bad.yaml:2: not valid YAML"),
 ])
@@ -108,7 +113,12 @@ def test_a_bad_study_file_is_refused_with_the_field_named(tmp_path, capsys, text
 @pytest.mark.parametrize("options, message", [
     (["--executor", "spark"], "--executor: must be local, dask or dask:ADDRESS"),
     (["--scenarios", "paper-25-straight"], "--scenarios: not in the study: paper-25-straight"),
-    (["--time-limit", "0"], "--time-limit: must be > 0"),
+    (["--time-limit", "0"], "--time-limit: must be a finite number of seconds > 0 (got 0)"),
+    (["--time-limit", "inf"], "--time-limit: must be a finite number of seconds > 0 (got inf)"),
+    (["--time-limit", "nan", "--dry-run"], "--time-limit: must be a finite number of seconds > 0 (got nan)"),
+    (["--reps", "1000000000", "--dry-run"], "--reps: must be at most 100000 (got 1000000000)"),
+    (["--executor", "dask:notaurl"], "--executor: not a Dask scheduler address: 'notaurl' (missing port number"),
+    (["--executor", "dask:http://localhost:80"], "--executor: not a Dask scheduler address: 'http://localhost:80'"),
     (["--reps", "0"], "--reps: must be an integer >= 1"),
     (["--workers", "0"], "--workers: must be >= 1 (got 0)"),
     (["--workers", "-2", "--dry-run"], "--workers: must be >= 1 (got -2)"),
@@ -465,3 +475,32 @@ def test_sigterm_stops_the_study_and_its_workers_and_keeps_it_resumable(tmp_path
              and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2]]
     assert alive == []
     assert not list(out.glob("*/seed-*/result.json"))        # interrupted runs left no result: a resume reruns them
+
+
+def test_a_dask_address_that_never_answers_as_dask_is_an_error_not_a_hang(tmp_path):
+    """Something listens there (a web server, say), accepts the connection, and never speaks Dask."""
+    import socket
+
+    from onboard.config import ConfigError
+    from sim_backend.study.executors import connect_to_scheduler
+
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    address = f"tcp://127.0.0.1:{listener.getsockname()[1]}"
+    try:
+        with pytest.raises(ConfigError, match=f"cannot use the Dask scheduler {address}"):
+            connect_to_scheduler(address, timeout_s=1.0)
+    finally:
+        listener.close()
+
+
+@pytest.mark.parametrize("damaged", ["[1, 2]", '{"commands": "khepri study x"}', '{"name": "tr'])
+def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_path, damaged):
+    from sim_backend.study.driver import record_study, read_study
+
+    (tmp_path / "study.json").write_text(damaged)
+    record_study(parse_study({"scenarios": ["lab-6"], "reps": 1}), tmp_path, "khepri study again")
+    assert read_study(tmp_path)["commands"] == ["khepri study again"]
+    if not damaged.startswith('{"commands"'):        # readable, only its commands were not a list
+        assert (tmp_path / "study.json.unreadable").read_text() == damaged

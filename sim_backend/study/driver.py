@@ -101,13 +101,11 @@ def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, ret
 def record_study(spec: StudySpec, out_dir: Path, command: str) -> None:
     """study.json: the grid and every command that ran into this folder (the report quotes them)."""
     path = out_dir / STUDY_FILE
-    previous: Dict[str, Any] = {}
-    if path.is_file():
-        try:
-            previous = json.loads(path.read_text(encoding="utf-8"))
-        except ValueError:
-            previous = {}
-    commands = list(previous.get("commands", [])) + ([command] if command else [])
+    previous = read_study(out_dir)
+    if path.is_file() and not previous:      # damaged: keep it beside the new one rather than lose its history
+        path.replace(path.with_name(STUDY_FILE + ".unreadable"))
+    earlier = previous.get("commands")
+    commands = (list(earlier) if isinstance(earlier, list) else []) + ([command] if command else [])
     data = dict(to_mapping(spec), commands=commands)
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import threading
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -38,8 +39,25 @@ def parse_executor(text: str) -> ExecutorChoice:
     if kind == "dask":
         if separator and not address.strip():
             raise ConfigError("--executor", "dask: needs a scheduler address, e.g. dask:tcp://10.0.0.5:8786")
+        if address.strip():
+            check_dask_address(address.strip())
         return ExecutorChoice("dask", address.strip() or None)
     raise ConfigError("--executor", f"must be local, dask or dask:ADDRESS (got {text!r})")
+
+
+def check_dask_address(address: str) -> None:
+    """Refuse a malformed scheduler address before anything starts (whether it answers is seen later)."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import get_backend
+
+    try:
+        scheme, location = parse_address(address)
+        get_backend(scheme)
+        if scheme in ("tcp", "tls"):
+            parse_host_port(location)
+    except ValueError as err:
+        raise ConfigError("--executor", f"not a Dask scheduler address: {address!r} ({err}); "
+                                        "e.g. dask:tcp://10.0.0.5:8786") from None
 
 
 def default_workers() -> int:
@@ -153,6 +171,33 @@ def stop_workers(pool: ProcessPoolExecutor) -> None:
     pool.shutdown(wait=False, cancel_futures=True)
 
 
+def connect_to_scheduler(address: str, timeout_s: float = 30.0):
+    """A Dask ``Client`` of the scheduler at ``address``, or a ConfigError naming it within about ``timeout_s``,
+    whatever answers there: Dask's own timeout does not cover a server that accepts the connection and then
+    never speaks Dask (a web server on that port keeps the handshake waiting forever), and a malformed
+    address or a reply that is not Dask's raise all sorts of errors."""
+    from distributed import Client
+
+    outcome: Dict[str, Any] = {}
+
+    def connect() -> None:
+        try:
+            outcome["client"] = Client(address, timeout=f"{timeout_s:g}s")
+        except Exception as err:              # noqa: BLE001 - every way of failing is "cannot use that address"
+            outcome["error"] = err
+
+    thread = threading.Thread(target=connect, name="dask-connect", daemon=True)
+    thread.start()
+    waited_s = 1.2 * timeout_s + 1.0           # Dask's own timeout first, when it applies
+    thread.join(waited_s)
+    if "client" in outcome:
+        return outcome["client"]
+    error = outcome.get("error")
+    reason = f"{type(error).__name__}: {error}" if error is not None else \
+        f"no Dask answer within {waited_s:g} s (is it a Dask scheduler's address?)"
+    raise ConfigError("--executor", f"cannot use the Dask scheduler {address}: {reason}")
+
+
 class DaskExecutor:
     """Dask distributed: a LocalCluster of ``workers`` single-threaded processes, or an existing scheduler.
 
@@ -176,7 +221,7 @@ class DaskExecutor:
             cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=logging.ERROR)
         try:
-            client = Client(cluster if cluster is not None else self.address, timeout="30s")
+            client = Client(cluster, timeout="30s") if cluster is not None else connect_to_scheduler(self.address)
         except OSError as err:
             if cluster is not None:
                 cluster.close()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import itertools
+import math
 import re
 from collections import Counter
 from dataclasses import dataclass, field
@@ -20,6 +21,9 @@ from sim_backend.scenario import load_scenario, parse_scenario
 
 from .paper_reference import paper_scenarios
 
+# Far more runs than any machine finishes (a 1-second lab-6 run each would take a day), and a bound before a
+# typo such as `reps: 1000000000` makes a list that fills the memory.
+MAX_SEEDS = 100_000
 STUDY_KEYS = ("name", "scenarios", "seeds", "reps", "overrides", "time_limit_s")
 SEED_RANGE = re.compile(r"^\s*(\d+)\s*\.\.\s*(\d+)\s*$")
 SAFE_NAME = re.compile(r"^[A-Za-z0-9_.+-]+$")
@@ -64,6 +68,8 @@ def paper_study(reps: int) -> StudySpec:
 def check_reps(where: str, reps: Any) -> int:
     if isinstance(reps, bool) or not isinstance(reps, int) or reps < 1:
         raise ConfigError(where, f"must be an integer >= 1 (got {reps!r})")
+    if reps > MAX_SEEDS:
+        raise ConfigError(where, f"must be at most {MAX_SEEDS} (got {reps})")
     return reps
 
 
@@ -114,6 +120,8 @@ def parse_seeds(data: Dict[str, Any]) -> List[int]:
         match = SEED_RANGE.match(value)
         if not match or int(match.group(2)) < int(match.group(1)):
             raise ConfigError("seeds", f"a range must read 'first..last' with first <= last (got {value!r})")
+        if int(match.group(2)) - int(match.group(1)) >= MAX_SEEDS:
+            raise ConfigError("seeds", f"a range may hold at most {MAX_SEEDS} seeds (got {value!r})")
         return list(range(int(match.group(1)), int(match.group(2)) + 1))
     if not isinstance(value, list) or not value:
         raise ConfigError("seeds", f"must be a non-empty list of integers or 'first..last' (got {value!r})")
@@ -140,6 +148,9 @@ def parse_overrides(value: Any) -> Dict[str, List[Any]]:
         values = values if isinstance(values, list) else [values]
         if not values:
             raise ConfigError(where, "must list at least one value")
+        repeated = [v for k, v in enumerate(values) if v in values[:k]]    # 0 and 0.0 make the same cell
+        if repeated:
+            raise ConfigError(where, f"lists the value {repeated[0]!r} twice")
         overrides[key] = values
     return overrides
 
@@ -147,7 +158,7 @@ def parse_overrides(value: Any) -> Dict[str, List[Any]]:
 def parse_time_limit(where: str, value: Any) -> Optional[float]:
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
         raise ConfigError(where, f"must be a number of seconds > 0 (got {value!r})")
     return float(value)
 
