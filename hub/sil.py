@@ -10,7 +10,7 @@ import math
 import subprocess
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
@@ -36,6 +36,7 @@ class SilOptions:
     record: bool = True
     plot: bool = True
     step_timeout_s: float = 2.0
+    imports: List[str] = field(default_factory=list)    # the user's behaviour modules (--import), for the agents
     log_to_console: bool = False
 
 
@@ -67,7 +68,7 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
         agents: List[subprocess.Popen] = []
         try:
             hub.bind()
-            agents = spawn_agents(hub.endpoints["robots"], keys, scenario.robots.count, out)
+            agents = spawn_agents(hub.endpoints["robots"], keys, scenario.robots.count, out, options.imports)
             session = SilSession(hub, scenario, agents, options, limit, out)
             result = session.run()
         finally:
@@ -80,10 +81,16 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     return result
 
 
-def spawn_agents(endpoint: str, keys: Path, count: int, out: Path) -> List[subprocess.Popen]:
+def spawn_agents(endpoint: str, keys: Path, count: int, out: Path, imports: List[str]) -> List[subprocess.Popen]:
+    """One agent process per robot; each imports the user's behaviour modules, as `khepri --import` did here."""
     logs = out / "agents"
     logs.mkdir(exist_ok=True)
-    return [spawn_agent(endpoint, i, logs / f"agent-{i}.log", keys=keys) for i in range(count)]
+    extra = [word for name in imports for word in ("--import", name)]
+    return [spawn_agent(endpoint, i, logs / f"agent-{i}.log", keys=keys, extra=extra) for i in range(count)]
+
+
+class AgentError(RuntimeError):
+    """An agent reported that it cannot run (its telemetry's ``error``)."""
 
 
 class SilSession:
@@ -159,7 +166,13 @@ class SilSession:
         self.hub.serve(should_stop)
 
     def _observe(self, t: float) -> bool:
-        """Evaluate one control step from the agents' telemetry; True when every live robot has finished."""
+        """Evaluate one control step from the agents' telemetry; True when every live robot has finished.
+        An agent that could not start the run (say, a behaviour it cannot import) ends the run as crashed:
+        without it the run would go on to its time limit with that robot standing still."""
+        for rid, robot in self.hub.robots.items():
+            error = (robot.telemetry or {}).get("error")
+            if error:
+                raise AgentError(f"agent {rid}: {error}")
         alive = self.source.world.alive()
         telemetry = [self._behaviour_telemetry(i) if alive[i] else None for i in range(len(alive))]
         self.evaluator.on_step(t, telemetry)

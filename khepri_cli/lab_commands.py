@@ -192,7 +192,7 @@ def cmd_sil(args: argparse.Namespace) -> int:
 
     require_out_folder(out)
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
-                         record=not args.no_record, plot=not args.no_plot)
+                         record=not args.no_record, plot=not args.no_plot, imports=list(args.imports))
     result = run_sil(scenario, out, options)
     print(summary_line(result))
     sil = result.get("sil", {})

@@ -2,12 +2,12 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import sys
 from typing import List, Optional
 
 from onboard.config import ConfigError
+from onboard.plugins import import_user_modules
 
 from . import lab_commands, log_commands, sim_commands, study_commands
 
@@ -15,7 +15,8 @@ from . import lab_commands, log_commands, sim_commands, study_commands
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="khepri", description="Swarm behaviours from simulation to KheperaIV robots.")
     parser.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
-                        help="import MODULE first (e.g. a file wander.py in this folder holding your behaviour)")
+                        help="import MODULE first: a module name (wander, for wander.py in this folder) or a "
+                             ".py file's path, holding your behaviour")
     groups = parser.add_subparsers(dest="group", metavar="COMMAND", required=True)
     sim_commands.add_sim(groups)
     bench_commands = sim_commands.add_bench(groups)
@@ -24,17 +25,6 @@ def build_parser() -> argparse.ArgumentParser:
     log_commands.add_log(groups)
     study_commands.add_study(groups)
     return parser
-
-
-def import_user_modules(names: List[str]) -> None:
-    if not names:
-        return
-    sys.path.insert(0, os.getcwd())
-    for name in names:
-        try:
-            importlib.import_module(name[:-3] if name.endswith(".py") else name)
-        except ImportError as err:
-            raise ConfigError("--import", f"cannot import {name!r}: {err}") from None
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -63,7 +53,8 @@ def _run(argv: Optional[List[str]]) -> int:
         sys.stdout.flush()          # --help into a closed pipe fails here, inside main(), not at exit
         raise
     try:
-        import_user_modules(args.imports)
+        if args.imports:
+            import_user_modules(args.imports)
         code = int(args.func(args) or 0)
         sys.stdout.flush()          # buffered output meets a closed pipe here, inside main(), not at exit
         return code

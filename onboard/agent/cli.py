@@ -13,6 +13,7 @@ import zmq
 from onboard.behaviour import behaviour_names
 from onboard.config import ConfigError
 from onboard.drivers import Driver
+from onboard.plugins import import_user_modules
 
 DEFAULT_ROBOT_PORT = 5560
 
@@ -32,6 +33,8 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--watchdog", type=float, default=0.25, metavar="S",
                         help="stop the wheels after S seconds without a hub frame (default 0.25, at most 0.3)")
     parser.add_argument("--quiet", action="store_true", help="log only problems")
+    parser.add_argument("--import", dest="agent_imports", action="append", default=[], metavar="MODULE",
+                        help="import MODULE first: your behaviour's module name or .py file (repeatable)")
 
 
 def run_agent(args: argparse.Namespace) -> int:
@@ -43,6 +46,7 @@ def run_agent(args: argparse.Namespace) -> int:
     if not 0.0 < args.watchdog <= 0.3:
         raise ConfigError("--watchdog", f"must be in (0, 0.3] seconds (got {args.watchdog})")
     keys = load_robot_keys(args.keys, args.robot_id) if args.keys is not None else None
+    import_user_modules(args.agent_imports)
     behaviour_names()       # import the behaviours now, not when the hub says start (that takes a while)
     log = _logger(args.quiet)
     endpoint = args.hub if "://" in args.hub else f"tcp://{args.hub}:{args.port}"

@@ -6,15 +6,15 @@ A run never raises: whatever goes wrong becomes a result with ``failed: true`` a
 """
 from __future__ import annotations
 
-import importlib
 import json
 import os
 import shutil
-import sys
 import tempfile
 import traceback
 from pathlib import Path
 from typing import Any, Dict
+
+from onboard.plugins import import_user_modules
 
 from .grid import RunSpec
 
@@ -28,7 +28,7 @@ def execute_run(spec: RunSpec, out_root: str) -> Dict[str, Any]:
         from sim_backend.runner import Simulation
         from sim_backend.scenario import parse_scenario
 
-        import_user_modules(spec)
+        import_user_modules(spec.imports, spec.import_dir)
         sim = Simulation(parse_scenario(spec.scenario_data), seed=spec.seed)
         result = sim.run(time_limit_s=spec.time_limit_s)
     except Exception as exc:  # a run that cannot start is recorded as failed with its reason, not lost
@@ -44,13 +44,6 @@ def execute_run(spec: RunSpec, out_root: str) -> Dict[str, Any]:
     except OSError:
         pass   # e.g. a remote worker without the shared folder: the driver writes result.json
     return result
-
-
-def import_user_modules(spec: RunSpec) -> None:
-    if spec.import_dir and spec.import_dir not in sys.path:
-        sys.path.insert(0, spec.import_dir)
-    for name in spec.imports:
-        importlib.import_module(name[:-3] if name.endswith(".py") else name)
 
 
 def with_study_fields(result: Dict[str, Any], spec: RunSpec, failed: bool) -> Dict[str, Any]:

@@ -1,0 +1,51 @@
+"""Importing the user's own behaviour modules (``--import``), the same way in every process that runs one:
+``khepri`` itself, a study's worker processes, and the agents (on a robot, or started by ``khepri sil``).
+
+A module registers its behaviours with ``@register`` when it is imported, so importing it is all it takes.
+"""
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+from pathlib import Path
+from typing import Iterable, Optional
+
+from .config import ConfigError
+
+
+def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) -> None:
+    """Import each of ``names``: a module name (``wander``, ``mylab.behaviours``) found in ``base_dir`` (default:
+    the current folder) or on ``sys.path``, or the path of a ``.py`` file (relative to ``base_dir``).
+
+    A module that cannot be found or imported, or whose file does not parse, is a ConfigError naming it; any
+    other exception raised by the module's own code keeps its traceback (it is a bug in that module)."""
+    base = base_dir or os.getcwd()
+    if base not in sys.path:
+        sys.path.insert(0, base)
+    for name in names:
+        module = _module_name(name, base)
+        try:
+            importlib.import_module(module)
+        except SyntaxError as err:
+            raise ConfigError("--import", f"{err.filename}:{err.lineno}: {err.msg}") from None
+        except ImportError as err:
+            raise ConfigError("--import", f"cannot import {name!r}: {err}") from None
+
+
+def _module_name(name: str, base: str) -> str:
+    """The importable name of ``name``; a file's folder goes on ``sys.path`` first."""
+    if not name.endswith(".py") and "/" not in name and os.sep not in name:
+        if not all(part.isidentifier() for part in name.split(".")):
+            raise ConfigError("--import", f"{name!r} is neither a module name (like wander or mylab.wander) "
+                                          "nor a .py file")
+        return name
+    path = Path(base, name)
+    if not path.is_file():
+        raise ConfigError("--import", f"no such file: {path}")
+    if not path.stem.isidentifier():
+        raise ConfigError("--import", f"{path.name}: a module's file name must be a Python identifier")
+    folder = str(path.resolve().parent)
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+    return path.stem

@@ -1,0 +1,81 @@
+"""`--import`: the user's behaviour module, loaded the same way by `khepri`, study workers and the agents that
+`khepri sil` starts (the behaviour must run unchanged from simulation to the lab stack)."""
+import json
+import sys
+
+import numpy as np
+import pytest
+
+import hub.sil
+from khepri_cli.main import main
+from onboard.config import ConfigError
+from onboard.plugins import import_user_modules
+
+DRIVE_BEHAVIOUR = '''
+from dataclasses import dataclass
+
+from onboard.behaviour import Behaviour, register
+
+
+@dataclass
+class DriveParams:
+    speed_m_s: float = 0.1
+
+
+@register("{name}")
+class Drive(Behaviour):
+    Params = DriveParams
+
+    def step(self) -> None:
+        self.robot.wheels.set_speeds(self.params.speed_m_s, self.params.speed_m_s)
+'''
+
+SCENARIO = """name: drive
+behaviour: {name}
+robots: {{count: 3, spawn: {{x: [-0.5, 0.5], y: [-0.5, 0.5]}}}}
+arena: {{walls: [-3, -3, 3, 3]}}
+time_limit_s: 3
+"""
+
+
+def test_a_module_name_a_file_path_and_what_goes_wrong(tmp_path, monkeypatch):
+    (tmp_path / "lab").mkdir()
+    (tmp_path / "lab" / "plugin_by_path.py").write_text("LOADED = True\n")
+    (tmp_path / "plugin_by_name.py").write_text("LOADED = True\n")
+    (tmp_path / "plugin_broken.py").write_text("x = (\n")
+    (tmp_path / "plugin_raises.py").write_text("1 / 0\n")
+    import_user_modules(["plugin_by_name", "lab/plugin_by_path.py"], str(tmp_path))
+    assert sys.modules["plugin_by_name"].LOADED and sys.modules["plugin_by_path"].LOADED
+    for name, problem in [("plugin_broken", "plugin_broken.py:1: '(' was never closed"),
+                          ("no_such_plugin", "cannot import 'no_such_plugin': No module named 'no_such_plugin'"),
+                          ("lab/absent.py", f"no such file: {tmp_path / 'lab' / 'absent.py'}"),
+                          (".relative", "'.relative' is neither a module name"),
+                          ("", "'' is neither a module name")]:
+        with pytest.raises(ConfigError) as caught:
+            import_user_modules([name], str(tmp_path))
+        assert caught.value.field == "--import" and problem in caught.value.problem, caught.value
+    with pytest.raises(ZeroDivisionError):            # the module's own bug keeps its traceback
+        import_user_modules(["plugin_raises"], str(tmp_path))
+
+
+def test_sil_agents_import_the_users_behaviour_and_run_it(tmp_path, monkeypatch, capsys):
+    (tmp_path / "sil_drive.py").write_text(DRIVE_BEHAVIOUR.format(name="sil-drive"))
+    (tmp_path / "drive.yaml").write_text(SCENARIO.format(name="sil-drive"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["--import", "sil_drive.py", "sil", "drive.yaml", "--out", "out", "--no-plot", "--no-record"]) == 0
+    arrays = np.load(tmp_path / "out" / "trajectory.npz")
+    moved = np.hypot(*(arrays["robot_pose"][-1, :, :2] - arrays["robot_pose"][0, :, :2]).T)
+    assert moved.min() > 0.2, moved                   # 3 s at 0.1 m/s: every agent ran the user's behaviour
+
+
+def test_sil_stops_with_the_reason_when_an_agent_cannot_start_the_run(tmp_path, monkeypatch, capsys):
+    (tmp_path / "sil_lonely.py").write_text(DRIVE_BEHAVIOUR.format(name="sil-lonely"))
+    (tmp_path / "lonely.yaml").write_text(SCENARIO.format(name="sil-lonely"))
+    monkeypatch.chdir(tmp_path)
+    spawn = hub.sil.spawn_agents
+    monkeypatch.setattr(hub.sil, "spawn_agents", lambda *args: spawn(*args[:-1], []))   # agents without it
+    assert main(["--import", "sil_lonely", "sil", "lonely.yaml", "--out", "out", "--no-plot", "--no-record"]) == 1
+    err = capsys.readouterr().err
+    assert "agent 0: cannot start the run: run.behaviour: unknown behaviour 'sil-lonely'" in err
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 1.0
