@@ -36,6 +36,11 @@ class SpawnArea:
                 raise ConfigError(join(where, axis), f"must be [min, max] with min <= max (got [{low}, {high}])")
 
 
+# Sensing is all pairs (N x N every step) and every robot hears every broadcast in range: 5000 robots would
+# take hours per simulated minute. The bound turns a typo (count: 100000000000) into an error, not a hang.
+MAX_ROBOTS = 5000
+
+
 @dataclass
 class RobotsSpec:
     count: int = 6
@@ -47,7 +52,7 @@ class RobotsSpec:
     mass_kg: float = 0.54               # KheperaIV with battery (K-Team spec, ~540 g)
 
     def validate(self, where: str) -> None:
-        check_range(join(where, "count"), self.count, 1)
+        check_range(join(where, "count"), self.count, 1, MAX_ROBOTS)
         check_range(join(where, "max_wheel_speed_m_s"), self.max_wheel_speed_m_s, 0.0, 2.0, low_open=True)
         check_range(join(where, "traction"), self.traction, 0.0, 3.0, low_open=True)
         check_range(join(where, "mass_kg"), self.mass_kg, 0.0, low_open=True)

@@ -160,3 +160,19 @@ def _extent_points(geom: Geometry) -> np.ndarray:
     for cx, cy, r in geom.circles:
         points += [(cx - r, cy - r), (cx + r, cy + r), (cx - r, cy + r), (cx + r, cy - r)]
     return np.asarray(points, dtype=float)
+
+
+def extent_at(geom: Geometry, x: float, y: float, yaw_rad: float) -> Tuple[float, float, float, float]:
+    """The axis-aligned box ``(xmin, ymin, xmax, ymax)`` the object covers with its centroid at (x, y) and
+    turned by ``yaw_rad``."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    xs: List[float] = []
+    ys: List[float] = []
+    for ring in geom.outlines:
+        xs += list(x + c * ring[:, 0] - s * ring[:, 1])
+        ys += list(y + s * ring[:, 0] + c * ring[:, 1])
+    for cx, cy, r in geom.circles:
+        px, py = x + c * cx - s * cy, y + s * cx + c * cy
+        xs += [px - r, px + r]
+        ys += [py - r, py + r]
+    return min(xs), min(ys), max(xs), max(ys)

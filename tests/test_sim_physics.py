@@ -154,3 +154,32 @@ def test_aggregate_reduces_the_spread_of_the_swarm(make_scenario):
                              arena={"walls": [-3, -3, 3, 3]}, time_limit_s=60)
     result = Simulation(scenario).run()
     assert result["final_spread_m"] < 0.5 * result["initial_spread_m"]
+
+
+def test_an_object_across_the_walls_at_its_start_or_at_a_waypoint_is_refused(make_scenario):
+    from onboard.config import ConfigError
+
+    walls = {"walls": [-2, -2, 2, 2]}
+    box = {"shape": "box", "size": [0.6, 0.6], "mass": 1.0}
+    with pytest.raises(ConfigError) as caught:      # pymunk would push it out of the wall at the first step
+        World(make_scenario(arena=walls, object=dict(box, position=[1.9, 0])), np.random.default_rng(1))
+    assert caught.value.field == "object.position" and "covers x [1.60, 2.20]" in caught.value.problem
+    turned = dict(box, position=[0, 0], size=[1.0, 0.2])
+    with pytest.raises(ConfigError) as caught:      # fits lengthwise along x, not once turned by 90 degrees
+        World(make_scenario(arena=walls, object=turned, behaviour="transport",
+                            path=[[0, 1.0, 0], [0, 1.6, 90]]), np.random.default_rng(1))
+    assert caught.value.field == "path[1]" and "would be at this waypoint" in caught.value.problem
+    World(make_scenario(arena=walls, object=dict(box, position=[1.65, 0])), np.random.default_rng(1))
+
+
+@pytest.mark.parametrize("spawn, count, message", [
+    ({"x": [1.0, 1.2], "y": [1.0, 1.2]}, 40, "40 robots need about"),
+    ({"x": [-1.0, 1.0], "y": [-1.0, 1.0]}, 10 ** 11, "robots.count: must be <= 5000"),
+    ({"x": [-0.3, 0.3], "y": [-0.3, 0.3]}, 6, "most tries landed on the object): move the area off the object"),
+])
+def test_a_spawn_area_that_cannot_hold_the_robots_is_refused_at_once(make_scenario, spawn, count, message):
+    from onboard.config import ConfigError
+
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        World(make_scenario(robots={"count": count, "spawn": spawn},
+                            object={"shape": "box", "size": [0.6, 0.6]}), np.random.default_rng(1))

@@ -172,10 +172,10 @@ def test_a_run_that_fails_at_start_is_recorded_with_its_reason(local_study):
     _, out, _ = local_study
     result = json.loads((out / "lab-6@robots.spawn.x=0,0" / "seed-1" / "result.json").read_text())
     assert result["failed"] is True
-    assert result["error"].startswith("ConfigError: robots.spawn: cannot place 6 robots")
+    assert result["error"].startswith("ConfigError: robots.spawn: 6 robots need about")
     assert result["study"]["overrides"] == {SPAWN_FAILURE: [0.0, 0.0]}
     report = (out / "report.md").read_text()
-    assert "- `lab-6@robots.spawn.x=0,0` seed 1: ConfigError: robots.spawn: cannot place 6 robots" in report
+    assert "- `lab-6@robots.spawn.x=0,0` seed 1: ConfigError: robots.spawn: 6 robots need about" in report
 
 
 def test_resume_skips_finished_runs_and_retries_failed_ones_only_when_asked(local_study, capsys):
@@ -497,7 +497,7 @@ def test_a_dask_address_that_never_answers_as_dask_is_an_error_not_a_hang(tmp_pa
 
 @pytest.mark.parametrize("damaged", ["[1, 2]", '{"commands": "khepri study x"}', '{"name": "tr'])
 def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_path, damaged):
-    from sim_backend.study.driver import record_study, read_study
+    from sim_backend.study.driver import read_study, record_study
 
     (tmp_path / "study.json").write_text(damaged)
     record_study(parse_study({"scenarios": ["lab-6"], "reps": 1}), tmp_path, "khepri study again")
