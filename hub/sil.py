@@ -144,8 +144,9 @@ class SilSession:
             report = lockstep.step()
             self.round_trips.extend(report.round_trip_s)
             self.missing_answers += len(report.missing)
-            if self._observe(report.time_s):
-                self.stop_reason = "behaviour finished"
+            reason = self._observe(report.time_s)
+            if reason:
+                self.stop_reason = reason
                 return
             lockstep.advance()
 
@@ -158,15 +159,16 @@ class SilSession:
             step = self.source.control_steps_done()
             if step != observed and self.hub.clock_s is not None:
                 observed = step
-                if self._observe(step * period):
-                    self.stop_reason = "behaviour finished"
+                reason = self._observe(step * period)
+                if reason:
+                    self.stop_reason = reason
                     return True
             return self.source.time_s >= self.limit_s - 1e-9
 
         self.hub.serve(should_stop)
 
-    def _observe(self, t: float) -> bool:
-        """Evaluate one control step from the agents' telemetry; True when every live robot has finished.
+    def _observe(self, t: float) -> Optional[str]:
+        """Evaluate one control step from the agents' telemetry; the reason to stop the run, if there is one.
         An agent that could not start the run (say, a behaviour it cannot import) ends the run as crashed:
         without it the run would go on to its time limit with that robot standing still."""
         for rid, robot in self.hub.robots.items():
@@ -178,7 +180,9 @@ class SilSession:
         self.evaluator.on_step(t, telemetry)
         self.recording.add(t, self.source.world, self.evaluator.centroid_estimate(telemetry))
         live = [tel for tel, a in zip(telemetry, alive) if a]
-        return bool(live) and all(tel is not None and tel.get("finished") for tel in live)
+        if not live:
+            return "every robot failed"
+        return "behaviour finished" if all(tel is not None and tel.get("finished") for tel in live) else None
 
     def _behaviour_telemetry(self, index: int) -> Optional[Dict[str, Any]]:
         telemetry = self.hub.robots[index].telemetry

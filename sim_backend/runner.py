@@ -217,6 +217,9 @@ class Simulation:
                 if self.done():
                     self.stop_reason = "behaviour finished"
                     break
+                if not self.world.alive().any():      # nothing can happen any more: no need to wait for the limit
+                    self.stop_reason = "every robot failed"
+                    break
         except Exception as exc:  # a crashed run is recorded, not lost: results up to here are kept
             error = f"{type(exc).__name__}: {exc} (at t = {self.step_index * self.period:.1f} s)"
             self.stop_reason = "crashed"

@@ -122,6 +122,8 @@ def validate_dimensions(spec: Any, where: str) -> None:
         for i, v in enumerate(spec.size):
             check_range(join(join(where, "size"), i), v, 0.0, low_open=True)
     elif shape == "circle":
+        if spec.radius is not None and spec.size is not None:
+            raise ConfigError(join(where, "size"), "a circle takes radius or size (its radius), not both")
         radius = spec.radius if spec.radius is not None else spec.size
         if not isinstance(radius, float):
             raise ConfigError(join(where, "radius"), "a circle needs radius: <metres>")
@@ -253,6 +255,8 @@ class Scenario:
     def validate(self, where: str) -> None:
         if not self.name.strip():
             raise ConfigError("name", "must not be empty")
+        if "/" in self.name or "\\" in self.name or self.name.strip(".") == "":
+            raise ConfigError("name", f"names the output folder: no / or \\, and not only dots (got {self.name!r})")
         check_range("seed", self.seed, 0)   # numpy's generators reject negative seeds
         check_range("time_limit_s", self.time_limit_s, 0.0, low_open=True)
         behaviour_cls = get_behaviour(self.behaviour, "behaviour")

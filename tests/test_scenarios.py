@@ -211,6 +211,11 @@ def test_docs_list_every_builtin():
     ({"robots": {"spawn": {"x": [-4, -2]}}, "arena": {"walls": [-2, -2, 2, 2]}}, "robots.spawn",
      "robots.spawn: x [-4.0, -2.0], y [-1.2, -0.6] lies outside the arena walls [-2, -2, 2, 2]"),
     ({"time_limit_s": 0}, "time_limit_s", "time_limit_s: must be > 0 (got 0)"),
+    ({"name": "../../etc/evil"}, "name",
+     "name: names the output folder: no / or \\, and not only dots (got '../../etc/evil')"),
+    ({"name": ".."}, "name", None),
+    ({"object": {"shape": "circle", "radius": 0.2, "size": 0.3}}, "object.size",
+     "object.size: a circle takes radius or size (its radius), not both"),
 ])
 def test_validation_error_names_the_field(data, field, message):
     err = error_of(data)

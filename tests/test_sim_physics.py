@@ -183,3 +183,10 @@ def test_a_spawn_area_that_cannot_hold_the_robots_is_refused_at_once(make_scenar
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         World(make_scenario(robots={"count": count, "spawn": spawn},
                             object={"shape": "box", "size": [0.6, 0.6]}), np.random.default_rng(1))
+
+
+def test_a_run_whose_robots_have_all_failed_ends_there(make_scenario):
+    scenario = make_scenario(robots={"count": 2}, faults=[{"robot": 0, "at_s": 1.0}, {"robot": 1, "at_s": 2.0}],
+                             time_limit_s=60)
+    result = Simulation(scenario).run()
+    assert result["stop_reason"] == "every robot failed" and result["sim_time_s"] <= 2.2
