@@ -11,6 +11,7 @@ import pytest
 from PIL import Image
 
 from khepri_cli.main import main
+from sim_backend.scenario import load_scenario
 from sim_backend.study import paper_reference as paper
 from sim_backend.study.aggregate import load_results
 from sim_backend.study.driver import StudyProgress, longest_first, run_study
@@ -504,3 +505,19 @@ def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_pat
     assert read_study(tmp_path)["commands"] == ["khepri study again"]
     if not damaged.startswith('{"commands"'):        # readable, only its commands were not a list
         assert (tmp_path / "study.json.unreadable").read_text() == damaged
+
+
+def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_path, capsys):
+    scenario = load_scenario("lab-6")
+    write(tmp_path / "mine.yaml", f"name: mine\nbehaviour: aggregate\ntime_limit_s: 2\n"
+                                  f"robots: {{count: 6, spawn: {{x: {list(scenario.robots.spawn.x)}, "
+                                  f"y: {list(scenario.robots.spawn.y)}}}}}\n")
+    study = write(tmp_path / "edits.yaml", "scenarios: [mine.yaml]\nreps: 1\n")
+    out = tmp_path / "out"
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
+    main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"])
+    assert "changed since" not in capsys.readouterr().err
+    write(tmp_path / "mine.yaml", (tmp_path / "mine.yaml").read_text().replace("count: 6", "count: 4"))
+    main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"])
+    err = capsys.readouterr().err
+    assert "warning: 1 runs already in" in err and "ran a scenario that has changed since (cells mine)" in err

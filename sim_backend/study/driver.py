@@ -27,6 +27,7 @@ class StudyPlan:
     finished: List[RunSpec] = field(default_factory=list)       # result.json present: skipped
     kept_failed: List[RunSpec] = field(default_factory=list)    # failed before, not retried: skipped
     other_limit: List[RunSpec] = field(default_factory=list)    # skipped, but ran with another time limit
+    other_scenario: List[RunSpec] = field(default_factory=list)  # skipped, but the scenario changed since
 
 
 @dataclass
@@ -45,8 +46,11 @@ def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) ->
             plan.to_run.append(run)
             continue
         (plan.kept_failed if previous.get("failed") else plan.finished).append(run)
-        if (previous.get("study") or {}).get("time_limit_s") != run.time_limit_s:
+        recorded = previous.get("study") or {}
+        if recorded.get("time_limit_s") != run.time_limit_s:
             plan.other_limit.append(run)
+        if recorded.get("scenario_sha1") not in (None, run.scenario_sha1):   # None: written before we recorded it
+            plan.other_scenario.append(run)
     return plan
 
 
@@ -81,6 +85,11 @@ def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, ret
     if plan.other_limit:
         stream.write(f"warning: {len(plan.other_limit)} runs already in {out_dir} ran with another time limit "
                      f"and are kept; use another --out to run them again\n")
+    if plan.other_scenario:
+        cells = sorted({run.cell for run in plan.other_scenario})
+        stream.write(f"warning: {len(plan.other_scenario)} runs already in {out_dir} ran a scenario that has "
+                     f"changed since (cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}) and are "
+                     f"kept; use another --out, or delete those cells' folders, to run them again\n")
     by_key = {(run.cell, run.seed): run for run in plan.to_run}
     progress = StudyProgress(len(plan.to_run), stream,
                              costs={(run.cell, run.seed): expected_cost(run) for run in plan.to_run})

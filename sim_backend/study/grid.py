@@ -7,7 +7,9 @@ a worker on another machine needs neither the study file nor the scenario file.
 from __future__ import annotations
 
 import copy
+import hashlib
 import itertools
+import json
 import math
 import re
 from collections import Counter
@@ -58,6 +60,13 @@ class RunSpec:
     @property
     def run_dir(self) -> str:
         return f"{self.cell}/seed-{self.seed}"
+
+    @property
+    def scenario_sha1(self) -> str:
+        """A fingerprint of the scenario as run (every default filled in, overrides applied): a resumed study
+        can tell a finished run of an edited scenario file from one of the scenario it would run now."""
+        text = json.dumps(self.scenario_data, sort_keys=True, default=str)
+        return hashlib.sha1(text.encode("utf-8")).hexdigest()[:16]
 
 
 def paper_study(reps: int) -> StudySpec:

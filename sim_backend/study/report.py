@@ -78,8 +78,10 @@ def header(results: StudyResults, study: Dict[str, Any]) -> List[str]:
     if commands:
         lines += ["Commands that wrote this folder:", "", "```sh", *commands, "```", ""]
     limit = study.get("time_limit_s")
+    unreadable = f", {len(results.unreadable)} unreadable (listed below)" if results.unreadable else ""
     lines += [f"{runs} runs in {len(results.cells)} cells, {failed} failed (crashed; excluded from the "
-              f"statistics). Time limit: {f'{limit:g} s for every run' if limit else 'each scenario’s own'}.",
+              f"statistics){unreadable}. "
+              f"Time limit: {f'{limit:g} s for every run' if limit else 'each scenario’s own'}.",
               "", "Values are medians over the runs that did not fail, with the interquartile range in brackets. "
               "Paper: medians from the paper (times quoted in its text; errors from its per-run data).", ""]
     return lines
@@ -172,7 +174,7 @@ def failure_section(results: StudyResults) -> List[str]:
         return []
     lines = ["## Failed runs", "", "Re-run them with `--retry-failed`.", ""]
     lines += [f"- `{name}` seed {seed}: {outcome_text(result)[len('FAILED: '):]}" for name, seed, result in failed]
-    lines += [f"- `{path}`: unreadable result.json (run again: delete it and resume)" for path in results.unreadable]
+    lines += [f"- `{path}`: unreadable result.json (resuming the study runs it again)" for path in results.unreadable]
     return lines + [""]
 
 
