@@ -162,8 +162,10 @@ def test_the_local_pool_runs_every_run_and_writes_its_files(local_study):
     for seed in (1, 2):
         result = results[f"{good}/seed-{seed}"]
         assert result["seed"] == seed and result["failed"] is False and result["sim_time_s"] == 4.0
+        fingerprint = result["study"].pop("scenario_sha1")
         assert result["study"] == {"cell": good, "scenario": "lab-6", "overrides": {SPAWN_FAILURE: [-1.2, -0.6]},
                                    "time_limit_s": 4.0}
+        assert len(fingerprint) == 16 and int(fingerprint, 16) >= 0
         assert (out / good / f"seed-{seed}" / "trajectory.npz").stat().st_size > 0
     assert code == 1   # some runs failed: the command says so
     assert (out / "summary.csv").is_file() and (out / "report.md").is_file()
