@@ -131,6 +131,17 @@ def video_problem(path: Path):
             return "mp4 needs ffmpeg, which is not installed; use a .gif file name"
     if path.parent.exists() and not path.parent.is_dir():
         return f"{path.parent} is not a folder"
+    if path.is_dir():
+        return f"{path} is a folder"
+    if path.parent.is_dir():           # try to write it now: a read-only place fails here, not after the run
+        existed = path.exists()
+        try:
+            with open(path, "ab"):
+                pass
+        except OSError as err:
+            return f"cannot write {path}: {err.strerror or err}"
+        if not existed:
+            path.unlink()
     return None
 
 

@@ -32,16 +32,25 @@ def check_range(where: str, value: float, low: float = -math.inf, high: float = 
                 low_open: bool = False) -> float:
     """Reject values outside [low, high] (or (low, high] with ``low_open``)."""
     if low_open and not value > low:
-        raise ConfigError(where, f"must be > {low:g} (got {value:g})")
+        raise ConfigError(where, f"must be > {_number(low)} (got {_number(value)})")
     if not low_open and value < low:
-        raise ConfigError(where, f"must be >= {low:g} (got {value:g})")
+        raise ConfigError(where, f"must be >= {_number(low)} (got {_number(value)})")
     if value > high:
-        raise ConfigError(where, f"must be <= {high:g} (got {value:g})")
+        raise ConfigError(where, f"must be <= {_number(high)} (got {_number(value)})")
     return value
+
+
+def _number(value: float) -> str:
+    """An integer as written (100000000000, not 1e+11); a float in its shortest form."""
+    return str(value) if isinstance(value, int) else f"{value:g}"
 
 
 def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp).replace("typing.", ""))
+
+
+def _is_sequence_type(tp: Any) -> bool:
+    return typing.get_origin(tp) in (list, tuple) or tp in (list, tuple)
 
 
 def coerce(value: Any, tp: Any, where: str) -> Any:
@@ -54,6 +63,9 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
         if value is None and type(None) in args:
             return None
         options = [a for a in args if a is not type(None)]
+        same_kind = [a for a in options if _is_sequence_type(a) == isinstance(value, (list, tuple))]
+        if len(same_kind) == 1:           # a list for a list option: its own error (with the item's index)
+            options = same_kind
         if len(options) == 1:
             return coerce(value, options[0], where)
         errors = []

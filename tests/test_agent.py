@@ -247,6 +247,7 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
 
     class Args:
         robot_id, hub, port, keys, quiet, watchdog, driver = 0, "tcp://bad host", 5560, None, True, 0.25, "sim"
+        agent_imports: list = []
 
     with pytest.raises(ConfigError, match=r"--hub: cannot connect to 'tcp://bad host'"):
         run_agent(Args())

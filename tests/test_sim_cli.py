@@ -75,3 +75,17 @@ def test_any_os_error_on_a_path_is_one_line_but_one_without_a_path_keeps_its_tra
     monkeypatch.setattr(lab, "cmd_keys_init", fail)
     with pytest.raises(OSError):
         main(["keys", "init", str(tmp_path / "keys")])
+
+
+def test_a_video_that_cannot_be_written_is_refused_before_the_run(tmp_path, capsys):
+    (tmp_path / "a-folder.gif").mkdir()
+    out = tmp_path / "run"
+    assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", str(tmp_path / "a-folder.gif")]) == 2
+    assert f"--video: {tmp_path / 'a-folder.gif'} is a folder" in capsys.readouterr().err
+    assert not (out / "result.json").exists()                 # refused up front: nothing was simulated
+    readonly = "/sys/khepri-run.gif"                           # sysfs: read-only, even for root
+    assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", readonly]) == 2
+    assert f"--video: cannot write {readonly}" in capsys.readouterr().err
+    good = tmp_path / "ok.gif"
+    assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", str(good), "--time-limit", "1"]) == 0
+    assert good.stat().st_size > 0
