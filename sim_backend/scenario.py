@@ -261,6 +261,9 @@ class Scenario:
         check_range("time_limit_s", self.time_limit_s, 0.0, low_open=True)
         behaviour_cls = get_behaviour(self.behaviour, "behaviour")
         build_params(behaviour_cls, self.params, "params")
+        if self.path and "path" not in {f.name for f in dataclasses.fields(behaviour_cls.Params)}:
+            raise ConfigError("path", f"the {self.behaviour} behaviour does not follow a path (its params have "
+                                      f"no 'path'): the path would be ignored")
         for i, fault in enumerate(self.faults):
             if fault.robot >= self.robots.count:
                 raise ConfigError(f"faults[{i}].robot",

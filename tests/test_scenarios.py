@@ -214,6 +214,8 @@ def test_docs_list_every_builtin():
     ({"name": "../../etc/evil"}, "name",
      "name: names the output folder: no / or \\, and not only dots (got '../../etc/evil')"),
     ({"name": ".."}, "name", None),
+    ({"behaviour": "aggregate", "object": BOX, "path": [[1, 0, 0]]}, "path",
+     "path: the aggregate behaviour does not follow a path (its params have no 'path'): the path would be ignored"),
     ({"object": {"shape": "circle", "radius": 0.2, "size": 0.3}}, "object.size",
      "object.size: a circle takes radius or size (its radius), not both"),
 ])
