@@ -122,7 +122,8 @@ class SilSession:
             else:
                 self._run_lockstep(lockstep)
         except Exception as exc:   # a crashed run is reported, not lost (as in `khepri sim run`)
-            error = f"{type(exc).__name__}: {exc} (at t = {self.source.time_s:.1f} s)"
+            error = str(exc) if isinstance(exc, AgentError) else \
+                f"{type(exc).__name__}: {exc} (at t = {self.source.time_s:.1f} s)"
             self.stop_reason = "crashed"
         wall = time.perf_counter() - started
         self.hub.control.execute("stop", "sil")
@@ -134,8 +135,20 @@ class SilSession:
     def _dead_agent(self) -> Optional[str]:
         for i, agent in enumerate(self.agents):
             if agent.poll() is not None:
+                why = self._crash_line(i)
+                if why:
+                    return f"agent {i}: behaviour crashed: {why}; the agent exited with code {agent.returncode}"
                 return f"agent {i} exited with code {agent.returncode}"
         return None
+
+    def _crash_line(self, index: int) -> str:
+        """The agent's own account of its crash (``behaviour crashed: ...``) from its log, if it wrote one."""
+        try:
+            lines = (self.out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
+        except OSError:
+            return ""
+        marker = f"agent {index}: behaviour crashed: "
+        return next((line[len(marker):] for line in reversed(lines) if line.startswith(marker)), "")
 
     def _run_lockstep(self, lockstep: Lockstep) -> None:
         period = self.source.control_period
@@ -175,6 +188,9 @@ class SilSession:
             error = (robot.telemetry or {}).get("error")
             if error:
                 raise AgentError(f"agent {rid}: {error}")
+        dead = self._dead_agent()
+        if dead:
+            raise AgentError(f"{dead} (its log is in {self.out / 'agents'})")
         alive = self.source.world.alive()
         telemetry = [self._behaviour_telemetry(i) if alive[i] else None for i in range(len(alive))]
         self.evaluator.on_step(t, telemetry)

@@ -6,6 +6,7 @@ import os
 import sys
 from typing import List, Optional
 
+from onboard.behaviour import BehaviourError
 from onboard.config import ConfigError
 from onboard.plugins import import_user_modules
 
@@ -61,6 +62,10 @@ def _run(argv: Optional[List[str]]) -> int:
     except ConfigError as err:
         print(f"khepri: error: {err}", file=sys.stderr)
         return 2
+    except BehaviourError as err:     # the user's behaviour raised before a run could start (its __init__)
+        print(f"khepri: error: the behaviour failed: {err}", file=sys.stderr)
+        print("\n".join(err.lines), file=sys.stderr)
+        return 1
     except OSError as err:
         # A path the user gave that cannot be read or written (--record, keys folder, a full or read-only
         # disk, ...): one line that names it. An OS error without a path is a bug: keep its traceback.

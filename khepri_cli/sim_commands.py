@@ -95,6 +95,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"  {name}: {path}")
     if "error" in result:
         print(f"khepri: error: the run crashed: {result['error']}", file=sys.stderr)
+        if result.get("traceback"):
+            print("\n".join(result["traceback"]), file=sys.stderr)
         return 1
     return 0
 

@@ -19,8 +19,12 @@ Writing your own::
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
-from typing import Any, Callable, Dict, Mapping, Optional, Type
+import os
+import sys
+import traceback
+from typing import Any, Callable, Dict, List, Mapping, Optional, Type
 
 from .config import ConfigError, from_mapping
 from .hal import Robot
@@ -66,18 +70,62 @@ def telemetry_of(behaviour: Behaviour) -> Dict[str, Any]:
     return data
 
 
+class BehaviourError(RuntimeError):
+    """A behaviour's own code raised: which robot, in which call, what, and where in the user's file. The
+    simulator and the agent report it the same way; ``lines`` keeps the end of the traceback."""
+
+    def __init__(self, robot_id: int, call: str, exc: BaseException):
+        self.robot_id, self.call, self.exc = robot_id, call, exc
+        frames = traceback.extract_tb(exc.__traceback__)[1:]    # [0] is the caller's frame (runner, agent)
+        self.lines: List[str] = [line.rstrip() for line in traceback.format_list(frames[-6:])]
+        self.lines += [line.rstrip() for line in traceback.format_exception_only(type(exc), exc)]
+        where = _users_frame(frames)
+        at = f" at {os.path.basename(where.filename)}:{where.lineno}" if where is not None else ""
+        super().__init__(f"robot {robot_id}, {call}: {type(exc).__name__}: {exc}{at}")
+
+
+def _users_frame(frames: traceback.StackSummary) -> Optional[traceback.FrameSummary]:
+    """The innermost frame outside Python's and the installed packages' own files: the line to look at."""
+    library = tuple({sys.prefix, sys.base_prefix, os.path.dirname(os.__file__)})
+    for frame in reversed(frames):
+        if not frame.filename.startswith(library) and not frame.filename.startswith("<"):
+            return frame
+    return frames[-1] if frames else None
+
+
+def make_behaviours(cls: Type[Behaviour], robots: List[Robot], params: Any) -> List[Behaviour]:
+    """One behaviour per robot, each with its own copy of the parameters: on robots each agent has its own,
+    so a behaviour that changes ``self.params`` must not change its neighbours' in simulation either."""
+    made = []
+    for robot in robots:
+        try:
+            made.append(cls(robot, copy.deepcopy(params)))
+        except Exception as exc:                # the user's __init__: one line naming the robot and the line
+            raise BehaviourError(robot.id, f"{cls.__name__}.__init__", exc) from exc
+    return made
+
+
 _REGISTRY: Dict[str, Type[Behaviour]] = {}
 
 
 def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
-    """Class decorator: make a behaviour available by name to scenarios and agents."""
+    """Class decorator: make a behaviour available by name to scenarios and agents. A name already taken by
+    another class is an error (the second would silently replace the first, or be replaced by it)."""
 
     def decorate(cls: Type[Behaviour]) -> Type[Behaviour]:
+        taken = _REGISTRY.get(name)
+        if taken is not None and _qualified(taken) != _qualified(cls):   # the same class imported again is fine
+            raise ConfigError("register", f"the behaviour name {name!r} is taken by {_qualified(taken)}; "
+                                          f"{_qualified(cls)} needs another name")
         _REGISTRY[name] = cls
         cls.name = name
         return cls
 
     return decorate
+
+
+def _qualified(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
 
 
 def behaviour_names() -> list:
@@ -95,7 +143,12 @@ def get_behaviour(name: str, where: str = "behaviour") -> Type[Behaviour]:
 
 def build_params(cls: Type[Behaviour], overrides: Optional[Mapping[str, Any]], where: str = "params") -> Any:
     """The behaviour's parameter record with ``overrides`` applied; unknown names and bad values rejected."""
-    return from_mapping(cls.Params, dict(overrides or {}), where)
+    if not (isinstance(cls.Params, type) and dataclasses.is_dataclass(cls.Params)):
+        raise ConfigError(where, f"{cls.__name__}.Params must be a dataclass (got {cls.Params!r})")
+    try:
+        return from_mapping(cls.Params, dict(overrides or {}), where)
+    except (NameError, TypeError) as err:      # an annotation the config reader cannot resolve or build
+        raise ConfigError(where, f"{cls.__name__}.Params cannot be read: {type(err).__name__}: {err}") from None
 
 
 def _load_builtin() -> None:

@@ -138,7 +138,12 @@ def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
     obj = cls(**kwargs)
     validate = getattr(obj, "validate", None)
     if callable(validate):
-        validate(where)
+        try:
+            validate(where)
+        except ConfigError:
+            raise
+        except ValueError as err:      # a user's Params.validate raising a plain ValueError: name the record
+            raise ConfigError(where, str(err)) from None
     return obj
 
 

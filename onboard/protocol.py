@@ -218,7 +218,7 @@ def encode(message: Dict[str, Any]) -> bytes:
     body = dict(message)
     body["v"] = PROTOCOL_VERSION
     try:
-        data = json.dumps(body, separators=(",", ":")).encode("utf-8")
+        data = json.dumps(body, separators=(",", ":"), allow_nan=False).encode("utf-8")
     except (TypeError, ValueError) as err:
         raise ProtocolError(f"cannot encode: {err}", str(message.get("type", "")), "self") from None
     if len(data) > MAX_MESSAGE_BYTES:
@@ -260,7 +260,7 @@ def frame_tail(fields: Dict[str, Any]) -> bytes:
     if not fields:
         return b""
     try:
-        return json.dumps(fields, separators=(",", ":")).encode("utf-8")
+        return json.dumps(fields, separators=(",", ":"), allow_nan=False).encode("utf-8")
     except (TypeError, ValueError) as err:
         raise ProtocolError(f"cannot encode: {err}", "frame", "self") from None
 
@@ -295,7 +295,7 @@ def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = Non
             if "frame" not in allowed:
                 _fail("type", f"must be one of {', '.join(allowed)} (got a binary frame)")
             return _decode_frame(data, neighbour_columns)
-        message = _json_object(data, "", "not a JSON message or a binary frame")
+        message, non_finite = _json_object(data, "", "not a JSON message or a binary frame")
         version = message.get("v")
         if version != PROTOCOL_VERSION:
             _fail("v", f"unsupported protocol version {_short(version)} (this side speaks {PROTOCOL_VERSION})")
@@ -305,6 +305,8 @@ def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = Non
         if kind == "frame":
             _fail("type", "a frame must come in the binary frame encoding, not as JSON")
         _check_schema(message, kind)
+        if non_finite:
+            _refuse_non_finite(message, str(kind))
         return message
     except ProtocolError as err:
         raise ProtocolError(err.problem, err.field, sender) from None
@@ -371,19 +373,40 @@ def _neighbour_columns(data: bytes, count: int) -> Tuple[np.ndarray, np.ndarray,
             block["bearing"].astype(np.float64))     # contiguous, writable copies in native byte order
 
 
-def _json_object(data: bytes, field: str, unreadable: str) -> Dict[str, Any]:
-    """``data`` parsed as a JSON object; a ProtocolError naming ``field`` if it is not JSON or not an object."""
+def _json_object(data: bytes, field: str, unreadable: str) -> Tuple[Dict[str, Any], bool]:
+    """``data`` parsed as a JSON object, and whether it held NaN or Infinity; a ProtocolError naming ``field``
+    if it is not JSON or not an object."""
+    constants: List[str] = []
+
+    def constant(name: str) -> float:
+        constants.append(name)
+        return float(name)
+
     try:
-        value = json.loads(data)
+        value = json.loads(data, parse_constant=constant)
     except (UnicodeDecodeError, ValueError, RecursionError):
         _fail(field, f"{unreadable} ({_short(bytes(data[:40]))})")
     if not isinstance(value, dict):
         _fail(field, f"must be a JSON object (got {_short(value)})")
-    return value
+    return value, bool(constants)
+
+
+def _refuse_non_finite(value: Any, where: str) -> None:
+    """NaN and Infinity are not JSON: Python writes and reads them, but other JSON readers (the MCAP log's
+    among them) do not, so a message holding one is refused, naming where (after the schema's own checks,
+    which name a typed field more precisely)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        _fail(where, f"{value} is not a JSON number")
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _refuse_non_finite(item, f"{where}.{key}")
+    elif isinstance(value, list):
+        for k, item in enumerate(value):
+            _refuse_non_finite(item, f"{where}[{k}]")
 
 
 def _decode_tail(data: bytes) -> Dict[str, Any]:
-    tail = _json_object(data, "frame.tail", "not a JSON object")
+    tail, non_finite = _json_object(data, "frame.tail", "not a JSON object")
     checks = {**SCHEMAS["frame"]["required"], **SCHEMAS["frame"]["optional"]}
     for name, value in tail.items():
         if name in FRAME_BINARY_FIELDS:
@@ -391,6 +414,8 @@ def _decode_tail(data: bytes) -> Dict[str, Any]:
         check = checks.get(name)
         if check is not None:
             check(value, f"frame.{name}")
+    if non_finite:
+        _refuse_non_finite(tail, "frame")
     return tail
 
 
@@ -409,7 +434,10 @@ def _check_schema(message: Dict[str, Any], kind: str) -> None:
 
 def check_payload_size(payload: Dict[str, Any], field: str = "payload") -> int:
     """Bytes of the payload as compact JSON; ProtocolError above MAX_PAYLOAD_BYTES."""
-    size = len(json.dumps(payload, separators=(",", ":")))
+    try:
+        size = len(json.dumps(payload, separators=(",", ":"), allow_nan=False))
+    except ValueError as err:                  # NaN or infinity: not JSON, refused as the hub would
+        _fail(field, f"radio payload is not JSON: {err}")
     if size > MAX_PAYLOAD_BYTES:
         _fail(field, f"radio payload of {size} bytes exceeds {MAX_PAYLOAD_BYTES}")
     return size

@@ -35,6 +35,10 @@ class PairColumns:
     __slots__ = ("ids", "ranges", "bearings", "bounds", "_xy", "_nearest")
 
     def __init__(self, ids: np.ndarray, ranges: np.ndarray, bearings: np.ndarray, bounds: np.ndarray) -> None:
+        # Read-only: every robot's device hands out views of these, and the radio routes by ``ids``; a
+        # behaviour writing into its neighbours' columns would otherwise change what others sense and hear.
+        for column in (ids, ranges, bearings):
+            column.flags.writeable = False
         self.ids, self.ranges, self.bearings, self.bounds = ids, ranges, bearings, bounds
         self._xy: Optional[np.ndarray] = None
         self._nearest: Optional[List[float]] = None
@@ -55,6 +59,7 @@ class PairColumns:
             xy = np.empty((2, len(self.ranges)))
             np.multiply(self.ranges, np.cos(self.bearings), out=xy[0])
             np.multiply(self.ranges, np.sin(self.bearings), out=xy[1])
+            xy.flags.writeable = False
             self._xy = xy
         return self._xy
 
@@ -221,7 +226,8 @@ class SimRadio(hal.Radio):
         return inbox
 
 
-_compact_json = json.JSONEncoder(separators=(",", ":")).encode   # built once, not per call as json.dumps does
+# Built once, not per call as json.dumps does. No NaN or infinity: the wire protocol refuses them (JSON has none).
+_compact_json = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode
 
 
 def encode_payload(payload: Mapping[str, Any]) -> Tuple[str, Dict[str, Any]]:

@@ -12,7 +12,7 @@ from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
 
-from onboard.behaviour import build_params, get_behaviour, telemetry_of
+from onboard.behaviour import BehaviourError, build_params, get_behaviour, make_behaviours, telemetry_of
 from onboard.geometry import neighbour_mask, pairwise_range_bearing, wrap
 
 from .hal import SensorFrame, make_robot
@@ -82,7 +82,7 @@ class Simulation:
         behaviour_cls = get_behaviour(scenario.behaviour)
         params = build_params(behaviour_cls, mission_params(behaviour_cls, scenario))
         self.robots = [make_robot(self.frame, i, self.world.spec) for i in range(self.count)]
-        self.behaviours = [behaviour_cls(robot, params) for robot in self.robots]
+        self.behaviours = make_behaviours(behaviour_cls, self.robots, params)
         self.evaluator = evaluator_for(scenario.behaviour)(scenario, self.world)
         self.faults = sorted((f.at_s, f.robot) for f in scenario.faults)
         self.pose_history: List[np.ndarray] = []
@@ -150,7 +150,7 @@ class Simulation:
         stepped = clock()
         self._route_broadcasts(t)
         routed = clock()
-        self.telemetry = [telemetry_of(b) if alive[i] else None for i, b in enumerate(self.behaviours)]
+        self.telemetry = self._collect_telemetry(alive)
         self.evaluator.on_step(t, self.telemetry)
         self._record(t, poses, alive)
         evaluated = clock()
@@ -163,13 +163,25 @@ class Simulation:
         spent["physics"] += clock() - evaluated
 
     def _step_behaviours(self, alive: np.ndarray) -> None:
-        robots, commands = self.robots, []
-        for i, living in enumerate(alive.tolist()):
-            if living:
-                self.behaviours[i].step()
-                wheels = robots[i].wheels
-                commands.append((i, wheels.left, wheels.right))
+        robots, commands, i = self.robots, [], 0
+        try:
+            for i, living in enumerate(alive.tolist()):
+                if living:
+                    self.behaviours[i].step()
+                    wheels = robots[i].wheels
+                    commands.append((i, wheels.left, wheels.right))
+        except Exception as exc:     # the user's code: name the robot and the line (a try costs nothing here)
+            raise BehaviourError(i, "step()", exc) from exc
         self.world.command_many(commands)
+
+    def _collect_telemetry(self, alive: np.ndarray) -> List[Optional[Dict[str, Any]]]:
+        telemetry: List[Optional[Dict[str, Any]]] = []
+        try:
+            for i, behaviour in enumerate(self.behaviours):
+                telemetry.append(telemetry_of(behaviour) if alive[i] else None)
+        except Exception as exc:
+            raise BehaviourError(len(telemetry), "telemetry()", exc) from exc
+        return telemetry
 
     def _route_broadcasts(self, t: float) -> None:
         for i, robot in enumerate(self.robots):
@@ -200,15 +212,25 @@ class Simulation:
         rec.centroid_estimate.append(self.evaluator.centroid_estimate(self.telemetry))
 
     def done(self) -> bool:
-        alive = [b for b, a in zip(self.behaviours, self.world.alive()) if a]
-        return bool(alive) and all(b.finished for b in alive)
+        """True when every live robot's behaviour says it has finished."""
+        alive = self.world.alive()
+        if not alive.any():
+            return False
+        for i, behaviour in enumerate(self.behaviours):
+            try:
+                if alive[i] and not behaviour.finished:
+                    return False
+            except Exception as exc:
+                raise BehaviourError(i, "finished", exc) from exc
+        return True
 
     def run(self, time_limit_s: Optional[float] = None, progress: Optional[Progress] = None) -> Dict[str, Any]:
         limit = self.scenario.time_limit_s if time_limit_s is None else time_limit_s
         started = time.perf_counter()
         steps = int(math.ceil(limit / self.period - 1e-9))
         self.stop_reason = "time limit"
-        error = None
+        error: Optional[str] = None
+        trace: Optional[List[str]] = None
         try:
             for _ in range(steps):
                 self.step()
@@ -221,10 +243,12 @@ class Simulation:
                     self.stop_reason = "every robot failed"
                     break
         except Exception as exc:  # a crashed run is recorded, not lost: results up to here are kept
-            error = f"{type(exc).__name__}: {exc} (at t = {self.step_index * self.period:.1f} s)"
+            what = str(exc) if isinstance(exc, BehaviourError) else f"{type(exc).__name__}: {exc}"
+            error = f"{what} (at t = {self.step_index * self.period:.1f} s)"
+            trace = exc.lines if isinstance(exc, BehaviourError) else None
             self.stop_reason = "crashed"
-        for behaviour in self.behaviours:
-            behaviour.stop()
+        stop_error = self._stop_behaviours()
+        error = error or stop_error
         wall = time.perf_counter() - started
         sim_time = self.step_index * self.period
         result: Dict[str, Any] = {
@@ -244,7 +268,19 @@ class Simulation:
             error = error or f"evaluation failed: {type(exc).__name__}: {exc}"
         if error:
             result["error"] = error
+        if trace:
+            result["traceback"] = trace
         return result
+
+    def _stop_behaviours(self) -> Optional[str]:
+        """Stop every behaviour even if one's stop() raises (the run's results must still be written)."""
+        problem = None
+        for i, behaviour in enumerate(self.behaviours):
+            try:
+                behaviour.stop()
+            except Exception as exc:
+                problem = problem or str(BehaviourError(i, "stop()", exc))
+        return problem
 
     def trajectory_arrays(self) -> Dict[str, np.ndarray]:
         rec, world = self.recording, self.world

@@ -13,3 +13,15 @@ def make_scenario():
         return parse_scenario(data)
 
     return build
+
+
+@pytest.fixture(autouse=True)
+def restore_behaviour_registry():
+    """Behaviours that a test registers (a user's module it imports) do not outlive it: other tests list the
+    known behaviours."""
+    from onboard import behaviour
+
+    before = dict(behaviour._REGISTRY)
+    yield
+    behaviour._REGISTRY.clear()
+    behaviour._REGISTRY.update(before)

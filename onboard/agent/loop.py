@@ -18,10 +18,11 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
-from onboard.behaviour import Behaviour, build_params, get_behaviour, telemetry_of
+from onboard.behaviour import Behaviour, BehaviourError, build_params, get_behaviour, telemetry_of
 from onboard.config import ConfigError
 from onboard.drivers import Driver
 from onboard.hal import RobotSpec
+from onboard.protocol import ProtocolError, encode
 
 from .devices import AgentClock, HubState, apply_frame, make_robot
 from .link import HubLink
@@ -92,7 +93,10 @@ class Agent:
                 self.loop_once()
         finally:
             self.driver.stop()
-            self.link.send({"type": "telemetry", "step": self.state.seq, "mode": "exiting"})
+            farewell: Dict[str, Any] = {"type": "telemetry", "step": self.state.seq, "mode": "exiting"}
+            if self.error:                 # the last word the hub hears must still say why
+                farewell["error"] = self.error[:200]
+            self.link.send(farewell)
             self._restore_signal_handlers(previous)
 
     def loop_once(self) -> None:
@@ -189,16 +193,36 @@ class Agent:
         self.run = run
         self.clock.restart(run.get("clock") == "hub")
         robot = make_robot(self.robot_id, self.state, self.clock, self.driver, self.link.send, spec)
-        self.behaviour = cls(robot, params)
+        try:
+            self.behaviour = cls(robot, params)
+        except Exception as exc:
+            self.behaviour_failed(BehaviourError(self.robot_id, f"{cls.__name__}.__init__", exc))
+            return
         self.answered_seq = self.state.seq
         self.next_tick = time.monotonic()
         self.log(f"agent {self.robot_id}: run {run.get('run_id')}: {run.get('behaviour')}")
 
     def end_run(self) -> None:
         if self.behaviour is not None:
-            self.behaviour.stop()
+            try:
+                self.behaviour.stop()
+            except Exception as exc:      # its own stop() failing must not keep the wheels turning
+                self.log(f"agent {self.robot_id}: {BehaviourError(self.robot_id, 'stop()', exc)}")
         self.behaviour, self.run = None, None
         self.driver.stop()
+
+    def behaviour_failed(self, err: BehaviourError) -> None:
+        """The behaviour's code raised: the wheels stop, the hub hears why (telemetry ``error``: its status
+        and SIL show it), the log gets the traceback, and the agent ends (``serve`` stops the wheels again
+        on the way out)."""
+        self.driver.stop()
+        self.behaviour = None
+        self.error = f"behaviour crashed: {err} (at t = {self.clock.now():.1f} s)"
+        self.log(f"agent {self.robot_id}: {self.error}")
+        for line in err.lines:
+            self.log(f"agent {self.robot_id}:   {line}")
+        self.send_telemetry(stepped=False)
+        raise err
 
     def hello(self, now: float) -> None:
         self.last_hello = now
@@ -219,7 +243,10 @@ class Agent:
         scheduled = started if self._lockstep() else self.next_tick
         stepped = self.behaviour is not None and self.state.mode == "run" and not self.watchdog_tripped
         if stepped:
-            self.behaviour.step()
+            try:
+                self.behaviour.step()
+            except Exception as exc:
+                self.behaviour_failed(BehaviourError(self.robot_id, "step()", exc))
             finished = time.monotonic()
             self.stats.record(started, finished, scheduled + self.period)
         self.answered_seq = self.state.seq
@@ -231,13 +258,23 @@ class Agent:
 
     def send_telemetry(self, stepped: bool) -> None:
         mode = "watchdog" if self.watchdog_tripped else self.state.mode
+        behaviour = None
+        if self.behaviour is not None:
+            try:
+                behaviour = plain_json(telemetry_of(self.behaviour))
+            except Exception as exc:
+                self.behaviour_failed(BehaviourError(self.robot_id, "telemetry()", exc))
         message: Dict[str, Any] = {
-            "type": "telemetry", "step": self.state.seq, "mode": mode,
-            "behaviour": telemetry_of(self.behaviour) if self.behaviour is not None else None,
+            "type": "telemetry", "step": self.state.seq, "mode": mode, "behaviour": behaviour,
             "loop": self.stats.as_dict(), "battery_v": self.driver.battery_v(),
             "clock_s": round(self.clock.now(), 6), "frames_lost": self.state.frames_lost,
             "frames_bad": self.link.bad, "run_id": self.run.get("run_id") if self.run else None,
         }
+        try:
+            encode(dict(message, id=self.robot_id))
+        except ProtocolError as err:       # too large, or not JSON even after plain_json: say so instead
+            message["behaviour"] = None
+            self.error = f"telemetry() cannot be sent: {err.problem}"
         if self.error:
             message["error"] = self.error[:200]
         self.link.send(message)
@@ -261,3 +298,18 @@ class Agent:
     def _restore_signal_handlers(previous: List[Any]) -> None:
         for sig, handler in previous:
             signal.signal(sig, handler)
+
+
+def plain_json(value: Any) -> Any:
+    """A behaviour's telemetry as plain JSON values, as the simulator's evaluator would take it: numpy numbers
+    and arrays become Python ones, tuples lists, and NaN or infinity (which JSON cannot carry) None."""
+    if isinstance(value, dict):
+        return {key: plain_json(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_json(item) for item in value]
+    if hasattr(value, "tolist"):            # numpy arrays and scalars, without importing numpy here
+        return plain_json(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+

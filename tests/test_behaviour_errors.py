@@ -1,0 +1,173 @@
+"""A user's behaviour with bugs: the simulator and SIL say which robot, which call and which line, keep the
+results, stop the wheels, and keep one robot's mistakes from reaching the others outside the radio."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from khepri_cli.main import main
+from onboard.behaviour import Behaviour, build_params, register
+from onboard.config import ConfigError
+from onboard.protocol import ProtocolError, decode
+from sim_backend.runner import Simulation
+
+BUGGY = '''
+import math
+from dataclasses import dataclass, field
+from typing import List
+
+import numpy as np
+
+from onboard.behaviour import Behaviour, register
+
+
+@dataclass
+class BuggyParams:
+    bug: str = "none"
+    speed_m_s: float = 0.1
+    seen: List[int] = field(default_factory=list)
+
+
+@register("buggy")
+class Buggy(Behaviour):
+    Params = BuggyParams
+
+    def __init__(self, robot, params):
+        super().__init__(robot, params)
+        if params.bug == "init":
+            raise RuntimeError("boom in init")
+
+    def step(self):
+        self.robot.wheels.set_speeds(self.params.speed_m_s, self.params.speed_m_s)
+        late = self.robot.clock.now() > 0.5
+        if self.params.bug == "step" and self.robot.id == 2 and late:
+            [1, 2][5]
+        if self.params.bug == "nan" and late:
+            self.robot.radio.broadcast({"a": math.nan})
+        if self.params.bug == "columns":
+            self.robot.range_and_bearing.neighbours().ids[:] = 0
+        if self.params.bug == "share":
+            self.params.seen.append(self.robot.id)
+            if self.robot.id == 0:
+                self.params.speed_m_s = 0.0
+
+    def telemetry(self):
+        return {"state": "ok", "seen": len(self.params.seen), "numpy": np.float32(1.5), "x": math.nan}
+
+    def stop(self):
+        super().stop()
+        if self.params.bug == "stop":
+            raise RuntimeError("bug in stop")
+'''
+
+SCENARIO = """name: buggy
+behaviour: buggy
+params: {{bug: {bug}}}
+robots: {{count: 3, spawn: {{x: [-0.5, 0.5], y: [-0.5, 0.5]}}}}
+arena: {{walls: [-2, -2, 2, 2]}}
+time_limit_s: 2
+"""
+
+
+@pytest.fixture
+def buggy(tmp_path, monkeypatch):
+    (tmp_path / "buggy_behaviour.py").write_text(BUGGY)
+    monkeypatch.chdir(tmp_path)
+
+    def scenario(bug: str) -> str:
+        (tmp_path / f"{bug}.yaml").write_text(SCENARIO.format(bug=bug))
+        return f"{bug}.yaml"
+
+    yield scenario
+    import sys
+
+    sys.modules.pop("buggy_behaviour", None)         # the next test's import registers it again
+
+
+def run(*args):
+    return main(["--import", "buggy_behaviour", *args])
+
+
+def test_a_crash_names_the_robot_the_call_and_the_line_and_keeps_the_results(buggy, tmp_path, capsys):
+    assert run("sim", "run", buggy("step"), "--no-plot", "--out", "out") == 1
+    err = capsys.readouterr().err
+    assert "the run crashed: robot 2, step(): IndexError: list index out of range at buggy_behaviour.py:" in err
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["stop_reason"] == "crashed" and result["sim_time_s"] == pytest.approx(0.6)
+    assert result["traceback"][-1] == "IndexError: list index out of range"
+    assert (tmp_path / "out" / "trajectory.npz").is_file()
+
+
+def test_an_init_or_stop_that_raises_is_reported_without_losing_the_run(buggy, tmp_path, capsys):
+    assert run("sim", "run", buggy("init"), "--no-plot", "--out", "init") == 1
+    assert "the behaviour failed: robot 0, Buggy.__init__: RuntimeError: boom in init" in capsys.readouterr().err
+    assert run("sim", "run", buggy("stop"), "--no-plot", "--out", "stop") == 1
+    assert "robot 0, stop(): RuntimeError: bug in stop" in capsys.readouterr().err
+    result = json.loads((tmp_path / "stop" / "result.json").read_text())
+    assert result["sim_time_s"] == pytest.approx(2.0)           # the whole run, written
+
+
+def test_nan_in_a_broadcast_is_refused_as_the_wire_would(buggy, capsys):
+    assert run("sim", "run", buggy("nan"), "--no-plot", "--out", "nan") == 1
+    assert "step(): ValueError: Out of range float values are not JSON compliant" in capsys.readouterr().err
+    message = b'{"v": 2, "type": "broadcast", "id": 3, "sent_s": 1.0, "payload": {"a": [1, NaN]}}'
+    with pytest.raises(ProtocolError, match="from robot 3: broadcast.payload: radio payload is not JSON: Out of range"):
+        decode(message, "robot 3")
+
+
+def test_a_behaviour_cannot_reach_other_robots_through_its_params_or_sensor_columns(buggy, capsys):
+    from onboard.plugins import import_user_modules
+    from sim_backend.scenario import load_scenario
+
+    import_user_modules(["buggy_behaviour"])
+    sim = Simulation(load_scenario(buggy("share")))
+    sim.run(time_limit_s=1.0)
+    assert [b.params.speed_m_s for b in sim.behaviours] == [0.0, 0.1, 0.1]   # robot 0 changed only its own
+    assert [len(b.params.seen) for b in sim.behaviours] == [10, 10, 10]
+    assert run("sim", "run", buggy("columns"), "--no-plot", "--out", "columns") == 1
+    assert "ValueError: assignment destination is read-only" in capsys.readouterr().err
+
+
+def test_sil_reports_the_crashed_agent_and_stops(buggy, tmp_path, capsys):
+    assert run("sil", buggy("step"), "--no-plot", "--no-record", "--out", "sil") == 1
+    err = capsys.readouterr().err
+    assert "agent 2: behaviour crashed: robot 2, step(): IndexError: list index out of range" in err
+    result = json.loads((tmp_path / "sil" / "result.json").read_text())
+    assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 1.0
+    log = (tmp_path / "sil" / "agents" / "agent-2.log").read_text()
+    assert "[1, 2][5]" in log                                     # the traceback is in the agent's log
+
+
+def test_sil_agents_send_numpy_and_nan_telemetry_as_plain_json(buggy, tmp_path, capsys):
+    assert run("sil", buggy("none"), "--no-plot", "--no-record", "--out", "sil-ok") == 0
+    result = json.loads((tmp_path / "sil-ok" / "result.json").read_text())
+    assert result["stop_reason"] == "time limit" and result["sil"]["step_timeouts"] == 0
+    moved = np.load(tmp_path / "sil-ok" / "trajectory.npz")["robot_pose"]
+    assert np.hypot(*(moved[-1, :, :2] - moved[0, :, :2]).T).min() > 0.1
+
+
+def test_params_mistakes_and_name_clashes_are_config_errors():
+    class NotADataclass(Behaviour):
+        Params = dict
+
+    with pytest.raises(ConfigError, match="NotADataclass.Params must be a dataclass"):
+        build_params(NotADataclass, {})
+    from dataclasses import dataclass
+
+    @dataclass
+    class Checked:
+        speed: float = 0.1
+
+        def validate(self, where):
+            if self.speed > 1:
+                raise ValueError("too fast")
+
+    class Fussy(Behaviour):
+        Params = Checked
+
+    with pytest.raises(ConfigError, match="params: too fast"):
+        build_params(Fussy, {"speed": 2.0})
+    with pytest.raises(ConfigError, match="the behaviour name 'transport' is taken by"):
+        register("transport")(Fussy)
+    assert math.isfinite(build_params(Fussy, {}).speed)
