@@ -14,6 +14,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import numpy as np
 import zmq
 
+from onboard.config import ConfigError
 from onboard.protocol import (
     FRAME_HEADER,
     MAX_MESSAGE_BYTES,
@@ -107,15 +108,15 @@ class Hub:
         if self.keyring is not None:
             self.authenticator = HubAuthenticator(self.context, self.keyring)
             self.authenticator.start()
-        self.robot_socket = self._router(ROBOT_DOMAIN, net.robot_port)
+        self.robot_socket = self._router(ROBOT_DOMAIN, net.robot_port, "robot_port")
         self.robot_socket.sndhwm = DOWNLINK_HWM
-        self.control_socket = self._router(OPERATOR_DOMAIN, net.control_port)
+        self.control_socket = self._router(OPERATOR_DOMAIN, net.control_port, "control_port")
         for role, sock in (("robots", self.robot_socket), ("control", self.control_socket)):
             self.endpoints[role] = sock.getsockopt_string(zmq.LAST_ENDPOINT)
             self.log(f"listening {role} {self.endpoints[role]}")
         return self.endpoints
 
-    def _router(self, domain: str, port: int) -> zmq.Socket:
+    def _router(self, domain: str, port: int, port_field: str) -> zmq.Socket:
         sock = self.context.socket(zmq.ROUTER)
         sock.linger = 0
         sock.router_mandatory = 1      # a full or vanished peer raises instead of dropping silently
@@ -124,7 +125,11 @@ class Hub:
         if self.keyring is not None:
             make_curve_server(sock, self.keyring, domain)
         bind = self.config.network.bind
-        sock.bind(f"tcp://{bind}:{port if port else '*'}")
+        try:
+            sock.bind(f"tcp://{bind}:{port if port else '*'}")
+        except zmq.ZMQError as err:
+            sock.close(0)          # nothing half-open: the caller closes the sockets bound before this one
+            raise bind_error(err, bind, port, port_field) from None
         return sock
 
     def close(self) -> None:
@@ -467,6 +472,15 @@ def frame_record(seq: int, mode: str, hub_t: float, age: float, batch, k: int, t
         record["clock_s"] = clock_s
     record.update(tail)
     return record
+
+
+def bind_error(err: zmq.ZMQError, bind: str, port: int, port_field: str) -> ConfigError:
+    """A failed bind as the config field to fix: the port when it is taken, else the address."""
+    if err.errno == zmq.EADDRINUSE:
+        return ConfigError(f"network.{port_field}", f"port {port} on {bind} is already in use")
+    reason = (err.strerror or str(err)).split(" (addr=")[0]     # pyzmq appends the endpoint; we name it ourselves
+    return ConfigError("network.bind", f"cannot listen on {bind!r}: {reason} (give an address of this PC, "
+                       "e.g. 127.0.0.1, or * for all interfaces)")
 
 
 def _property(frame: zmq.Frame, name: str) -> Optional[str]:

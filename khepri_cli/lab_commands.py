@@ -70,7 +70,12 @@ def cmd_hub(args: argparse.Namespace) -> int:
         config.record = args.record
     if args.bind:
         config.network.bind = args.bind
-    return serve_hub(config)
+    try:
+        return serve_hub(config)
+    except ConfigError as err:
+        if args.bind and err.field == "network.bind":
+            raise ConfigError("--bind", err.problem) from None    # name the option the user typed
+        raise
 
 
 # --- agent ----------------------------------------------------------------------------------------------------

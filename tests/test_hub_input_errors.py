@@ -1,0 +1,92 @@
+"""Bad input to the lab stack gives one line naming the field, option or sender (exit code 2 on the command line),
+never a traceback, a hang or a hub that dies later. Real sockets on loopback, real processes."""
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+import zmq
+
+from hub.config import parse_config
+from hub.harness import HubThread
+from onboard.config import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = dict(os.environ, PYTHONPATH=str(ROOT))
+NETWORK = {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}
+
+
+def khepri(*args, timeout=60):
+    return subprocess.run([sys.executable, "-m", "khepri_cli.main", *args], capture_output=True, text=True,
+                          env=ENV, timeout=timeout)
+
+
+def one_error_line(run, field):
+    """The run failed with exit code 2 and a single `khepri: error: <field>: ...` line, no traceback."""
+    assert run.returncode == 2, (run.returncode, run.stderr)
+    assert "Traceback" not in run.stderr, run.stderr
+    last = run.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"khepri: error: {field}: "), run.stderr
+    return last
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def sim_config(**extra):
+    data = {"source": {"type": "sim"}, "network": dict(NETWORK), "security": {"insecure": True}}
+    data.update(extra)
+    return data
+
+
+# --- 1. ports and bind addresses --------------------------------------------------------------------------------
+@pytest.fixture
+def taken_port():
+    """A port some other program listens on, for the duration of the test."""
+    sock = zmq.Context.instance().socket(zmq.ROUTER)
+    sock.linger = 0
+    sock.bind("tcp://127.0.0.1:*")
+    yield int(sock.getsockopt_string(zmq.LAST_ENDPOINT).rsplit(":", 1)[1])
+    sock.close(0)
+
+
+@pytest.mark.parametrize("role", ["robot_port", "control_port"])
+def test_a_port_in_use_names_the_port_field(tmp_path, taken_port, role):
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump(sim_config(network={**NETWORK, role: taken_port})))
+    line = one_error_line(khepri("hub", "--config", str(config)), f"network.{role}")
+    assert line.endswith(f"port {taken_port} on 127.0.0.1 is already in use")
+
+
+def test_a_failed_bind_leaves_no_socket_open(taken_port):
+    """The robot socket binds, the control socket cannot: the robot port is free again afterwards."""
+    robot_port = free_port()
+    config = parse_config(sim_config(network={**NETWORK, "robot_port": robot_port, "control_port": taken_port}))
+    with pytest.raises(ConfigError) as info:
+        with HubThread(config):
+            pass
+    assert info.value.field == "network.control_port"
+    probe = zmq.Context.instance().socket(zmq.ROUTER)
+    probe.linger = 0
+    try:
+        probe.bind(f"tcp://127.0.0.1:{robot_port}")
+    finally:
+        probe.close(0)
+
+
+@pytest.mark.parametrize("bind", ["not a host", "", "10.254.254.1"])
+def test_a_bad_bind_address_names_network_bind(tmp_path, bind):
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump(sim_config(network={**NETWORK, "bind": bind})))
+    line = one_error_line(khepri("hub", "--config", str(config)), "network.bind")
+    assert f"cannot listen on {bind!r}" in line
+
+
+def test_a_bad_bind_option_names_the_option():
+    one_error_line(khepri("hub", "--demo", "--bind", "bad host"), "--bind")
