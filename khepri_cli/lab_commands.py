@@ -190,6 +190,8 @@ def cmd_sil(args: argparse.Namespace) -> int:
     from khepri_cli.sim_commands import check_time_limit, require_out_folder, summary_line
     from sim_backend.scenario import load_scenario
 
+    if args.seed is not None and args.seed < 0:
+        raise ConfigError("--seed", f"must be >= 0 (got {args.seed})")     # numpy seeds are non-negative
     scenario = load_scenario(args.scenario)
     check_time_limit(args.time_limit)
     seed = scenario.seed if args.seed is None else args.seed
