@@ -130,3 +130,13 @@ def test_a_negative_seed_is_refused_in_the_config_and_on_the_command_line():
     assert str(info.value) == "source.seed: must be >= 0 (got -1)"
     one_error_line(khepri("sil", "lab-6", "--seed", "-1"), "--seed")
 
+
+def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
+    from hub.factory import build_hub
+
+    config = parse_config(sim_config(robots=list(range(8))))
+    with pytest.raises(ConfigError) as info:
+        build_hub(config, log=lambda line: None)
+    assert info.value.field == "robots"
+    assert "has robots 0..5" in info.value.problem and "no robot 6, 7" in info.value.problem
+    build_hub(parse_config(sim_config(robots=[1, 3])), log=lambda line: None).close()    # a subset is fine
