@@ -31,6 +31,7 @@ class SourceConfig:
     bodies: Dict[str, int] = field(default_factory=dict)     # motioncapture: rigid body name -> robot id
     up_axis: str = "z"                      # motioncapture: which axis of the mocap frame points up
     stale_s: float = 0.1                    # a body not seen for this long has no pose
+    connect_timeout_s: float = 10.0         # motioncapture: give up on a system that does not answer
     file: Optional[str] = None              # replay: the MCAP log
     rate: float = 1.0                       # replay: playback speed (2 = twice as fast)
 
@@ -41,6 +42,7 @@ class SourceConfig:
             raise ConfigError(join(where, "up_axis"), f"must be z or y (got {self.up_axis!r})")
         check_range(join(where, "frame_hz"), self.frame_hz, 0.0, 1000.0, low_open=True)
         check_range(join(where, "stale_s"), self.stale_s, 0.0, low_open=True)
+        check_range(join(where, "connect_timeout_s"), self.connect_timeout_s, 0.0, 300.0, low_open=True)
         check_range(join(where, "rate"), self.rate, 0.0, 100.0, low_open=True)
         if self.seed is not None:
             check_range(join(where, "seed"), self.seed, 0)     # numpy seeds are non-negative

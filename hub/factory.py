@@ -37,7 +37,8 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         seed = source.hub_seed
     elif config.source.type == "motioncapture":
         src = config.source
-        source = MotionCaptureSource(context, src.system, src.options, src.bodies, src.up_axis, log)
+        source = MotionCaptureSource(context, src.system, src.options, src.bodies, src.up_axis, log,
+                                     connect_timeout_s=src.connect_timeout_s)
     else:
         source = ReplaySource(config.source.file, config.source.rate, log)
     try:

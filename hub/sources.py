@@ -121,17 +121,64 @@ class _WakeUp:
         self.writer.close(0)
 
 
+CONNECT_TIMEOUT_S = 10.0          # source.connect_timeout_s's default
+IN_PROCESS_SYSTEMS = ("mock",)    # synthetic backends: nothing on the network to wait for
+# Connects in a child process, which ends itself (SIGALRM's default action) should its parent die first.
+_PROBE = """
+import json, os, signal, sys
+signal.alarm(int(sys.argv[3]) + 5)
+import motioncapture
+try:
+    motioncapture.connect(sys.argv[1], json.loads(sys.argv[2]))
+except RuntimeError as err:
+    print(err, file=sys.stderr, flush=True)
+    os._exit(1)
+os._exit(0)   # no destructors: some SDKs block or complain while disconnecting
+"""
+
+
+def describe_options(options: Dict[str, str], limit: int = 80) -> str:
+    text = ", ".join(f"{k}={v}" for k, v in options.items()) or "no options"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def probe_mocap(system: str, options: Dict[str, str], timeout_s: float) -> None:
+    """Connect once in a child process and wait for it at most ``timeout_s``, so that a system that never
+    answers is an error instead of a hang. In this process it could not be timed out or interrupted: some
+    backends (optitrack, with no server) block inside the SDK while holding Python's GIL, which freezes every
+    thread, signal handlers included. The child dies with us on Ctrl-C (same process group) or is killed."""
+    import json
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-c", _PROBE, system, json.dumps(options), str(int(math.ceil(timeout_s)))]
+    try:
+        probe = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        where = f" at {options['hostname']}" if "hostname" in options else ""
+        raise ConfigError("source.system", f"no answer from {system}{where} within {timeout_s:g} s") from None
+    if probe.returncode != 0:
+        reason = probe.stderr.strip().splitlines()[-1:] or [f"exit code {probe.returncode}"]
+        raise ConfigError("source.system", f"cannot connect to {system!r}: {reason[0]}")
+
+
 class MotionCaptureSource(PoseSource):
     """The ``motioncapture`` library in a reader thread (its ``waitForNextFrame`` blocks)."""
 
     def __init__(self, context, system: str, options: Dict[str, Any], bodies: Dict[str, int], up_axis: str,
-                 log: Callable[[str], None] = print, connect: Optional[Callable] = None):
+                 log: Callable[[str], None] = print, connect: Optional[Callable] = None,
+                 connect_timeout_s: float = CONNECT_TIMEOUT_S):
         import motioncapture
 
-        self.description = f"motioncapture {system}"
+        options = {k: str(v) for k, v in options.items()}
+        host = options.get("hostname")
+        self.description = f"motioncapture {system}" + (f" at {host}" if host else "")
         self.bodies, self.up_axis, self.log = dict(bodies), up_axis, log
+        log(f"hub: connecting to {system} ({describe_options(options)})...")
+        if connect is None and system not in IN_PROCESS_SYSTEMS:
+            probe_mocap(system, options, connect_timeout_s)
         try:
-            self.mocap = (connect or motioncapture.connect)(system, {k: str(v) for k, v in options.items()})
+            self.mocap = (connect or motioncapture.connect)(system, options)
         except RuntimeError as err:
             raise ConfigError("source.system", f"cannot connect to {system!r}: {err}") from None
         self.frames: Deque[PoseFrame] = deque(maxlen=8)   # the hub wants the newest; old ones are useless

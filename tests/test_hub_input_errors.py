@@ -1,6 +1,7 @@
 """Bad input to the lab stack gives one line naming the field, option or sender (exit code 2 on the command line),
 never a traceback, a hang or a hub that dies later. Real sockets on loopback, real processes."""
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -140,3 +141,52 @@ def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
     assert info.value.field == "robots"
     assert "has robots 0..5" in info.value.problem and "no robot 6, 7" in info.value.problem
     build_hub(parse_config(sim_config(robots=[1, 3])), log=lambda line: None).close()    # a subset is fine
+
+
+# --- 5. a motion-capture system that never answers ----------------------------------------------------------------
+# OptiTrack's NatNet client with no server on loopback blocks in connect() while holding Python's GIL: the hang
+# the hub must turn into an error (a thread could not be timed out; the hub probes in a child process).
+SILENT_MOCAP = {"system": "optitrack", "options": {"hostname": "127.0.0.1"}}
+
+
+def silent_mocap_config(tmp_path, **source):
+    """A lab config on the silent system, written to a file: a hang then ends in the subprocess' timeout, not
+    in a test that never returns."""
+    config = tmp_path / "lab.yaml"
+    data = mocap_config({"kh0": 0})
+    data["source"] = {**SILENT_MOCAP, "type": "motioncapture", "bodies": {"kh0": 0}, **source}
+    config.write_text(yaml.safe_dump(data))
+    return config
+
+
+def test_a_silent_motion_capture_system_is_an_error_after_the_timeout(tmp_path):
+    started = time.monotonic()
+    run = khepri("hub", "--config", str(silent_mocap_config(tmp_path, connect_timeout_s=1)), timeout=30)
+    assert time.monotonic() - started < 15.0
+    assert one_error_line(run, "source.system").endswith("no answer from optitrack at 127.0.0.1 within 1 s")
+    assert "hub: connecting to optitrack (hostname=127.0.0.1)...\n" in run.stdout
+
+
+def test_a_refused_motion_capture_connection_says_why():
+    from hub.factory import build_hub
+
+    config = parse_config(mocap_config({"kh0": 0}))
+    config.source.system, config.source.options = "qualisys", {"hostname": "127.0.0.1:1"}
+    with pytest.raises(ConfigError) as info:
+        build_hub(config, log=lambda line: None)
+    assert info.value.field == "source.system" and "cannot connect to 'qualisys': Error connecting" in str(info.value)
+
+
+def test_ctrl_c_ends_a_hub_waiting_for_motion_capture(tmp_path):
+    hub = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "hub", "--config",
+                            str(silent_mocap_config(tmp_path))],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    try:
+        time.sleep(3.0)                 # started and inside the 10 s connection attempt
+        hub.send_signal(signal.SIGINT)
+        assert hub.wait(timeout=5) == 130
+        output = hub.stdout.read()
+        assert "hub: connecting to optitrack (hostname=127.0.0.1)..." in output and "khepri: interrupted" in output
+    finally:
+        hub.kill()
+        hub.stdout.close()
