@@ -45,6 +45,8 @@ TAIL_SLACK_BYTES = 1024   # room kept in a frame for reason and sim beside the r
 _SEND_MORE = int(zmq.NOBLOCK | zmq.SNDMORE)   # plain ints: combining the flag enums costs a microsecond a send
 _SEND_LAST = int(zmq.NOBLOCK)
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
+NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
+NO_POSE_YET_REPEAT_S = 30.0    # ...and again this often while none does
 
 
 @dataclass
@@ -88,10 +90,12 @@ class Hub:
         self.last_frame_stamp = -math.inf
         self.mocap_rate = RateMeter()
         self.mocap_silent = False
+        self.placed_a_robot = False       # some frame has held a pose for one of this lab's robots
         self.mode = "idle"
         self.run_id: Optional[str] = None
         self.estop_at: Optional[float] = None
         self.started_at = time.monotonic()
+        self._next_no_pose_warning = self.started_at + NO_POSE_YET_WARNING_S
         self.control = ControlService(self)
         self.authenticator: Optional[HubAuthenticator] = None
         self.robot_socket: Optional[zmq.Socket] = None
@@ -207,6 +211,7 @@ class Hub:
             keep = None if len(rows) == len(frame.ids) else [k for k, rid in enumerate(frame.ids) if rid in self.row]
             self._frame_rows = (np.asarray(rows, dtype=np.intp), keep)
         rows, keep = self._frame_rows
+        self.placed_a_robot = self.placed_a_robot or len(rows) > 0
         self.poses[rows] = frame.poses if keep is None else frame.poses[keep]
         self.seen_at[rows] = frame.stamp
         self.killed = set(frame.killed)
@@ -438,6 +443,7 @@ class Hub:
                     and now - robot.pending_sent_at > COMMAND_RETRY_S:
                 robot.pending_sent_at = now
                 self.send_to(robot, robot.pending, topic="command")
+        self._warn_if_no_pose_yet(now)
         silent = now - self.last_frame_stamp > MOCAP_SILENT_S and self.last_frame_stamp > -math.inf
         if silent != self.mocap_silent:
             self.mocap_silent = silent
@@ -446,6 +452,19 @@ class Hub:
         if self.recorder is not None and now >= self._next_status_record:
             self._next_status_record = now + 1.0
             self.recorder.write("/hub/status", self.control.status(now))
+
+    def _warn_if_no_pose_yet(self, now: float) -> None:
+        """A source that never delivers (no server, wrong host, a log without poses) is said from the start,
+        not only once frames stop after a first one. Lockstep frames wait for the agents: nothing to say."""
+        if self.placed_a_robot or self.run.lockstep or now < self._next_no_pose_warning:
+            return
+        self._next_no_pose_warning = now + NO_POSE_YET_REPEAT_S
+        after, source = f"{now - self.started_at:.0f} s", self.source.description
+        if self.last_frame_stamp == -math.inf:
+            self.log(f"hub: no motion-capture frame yet after {after} from {source}")
+        else:
+            self.log(f"hub: the frames from {source} hold none of this lab's robots yet after {after} "
+                     f"(check source.bodies and robots; this lab's robots: {format_ids(self.ids)})")
 
     def _record_drop(self, reason: str, sender: str) -> None:
         if self.recorder is not None:
@@ -472,6 +491,11 @@ def frame_record(seq: int, mode: str, hub_t: float, age: float, batch, k: int, t
         record["clock_s"] = clock_s
     record.update(tail)
     return record
+
+
+def format_ids(ids: List[int], limit: int = 10) -> str:
+    shown = ", ".join(map(str, ids[:limit]))
+    return shown + (f" and {len(ids) - limit} more" if len(ids) > limit else "")
 
 
 def bind_error(err: zmq.ZMQError, bind: str, port: int, port_field: str) -> ConfigError:

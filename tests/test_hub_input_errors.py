@@ -1,6 +1,8 @@
 """Bad input to the lab stack gives one line naming the field, option or sender (exit code 2 on the command line),
 never a traceback, a hang or a hub that dies later. Real sockets on loopback, real processes."""
+import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -8,12 +10,16 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 import zmq
 
 from hub.config import parse_config
 from hub.harness import HubThread
+from hub.sensors import SensingModel
+from hub.server import Hub, RunTemplate
+from hub.sources import PoseFrame, PoseSource
 from onboard.config import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -190,3 +196,39 @@ def test_ctrl_c_ends_a_hub_waiting_for_motion_capture(tmp_path):
     finally:
         hub.kill()
         hub.stdout.close()
+
+
+# --- 6. a source that never delivers --------------------------------------------------------------------------------
+class EmptyFrames(PoseSource):
+    """Frames that place none of the lab's robots, as vrpn sends with no server."""
+
+    description = "empty frames"
+
+    def poll(self, now):
+        return [PoseFrame(now, [], np.zeros((0, 3)))]
+
+
+def hub_on(source):
+    def factory(config, log, scenario=None):
+        return Hub(config, source, [0, 1], RunTemplate("aggregate", {}), SensingModel(), 0.0, log=log)
+    return factory
+
+
+@pytest.mark.parametrize("source, line", [
+    (PoseSource(), "hub: no motion-capture frame yet after 2 s from source"),
+    (EmptyFrames(), "hub: the frames from empty frames hold none of this lab's robots yet after 2 s "
+                    "(check source.bodies and robots; this lab's robots: 0, 1)"),
+])
+def test_a_source_that_never_places_a_robot_is_reported_from_the_start(source, line):
+    with HubThread(parse_config(sim_config()), hub_factory=hub_on(source)) as hub:
+        time.sleep(3.0)
+        said = [text for text in hub.lines if "yet after" in text]
+    assert said == [line]       # once; the next one 30 s later
+
+
+def test_a_source_that_placed_robots_says_nothing_of_the_kind():
+    config = parse_config(mocap_config({"kh0": 0}, robots=[0]))
+    with HubThread(config) as hub:
+        time.sleep(2.5)
+    assert not [text for text in hub.lines if "yet after" in text]
+
