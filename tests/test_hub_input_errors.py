@@ -232,3 +232,84 @@ def test_a_source_that_placed_robots_says_nothing_of_the_kind():
         time.sleep(2.5)
     assert not [text for text in hub.lines if "yet after" in text]
 
+
+# --- 6, 7. replaying logs that are not what the hub wrote ---------------------------------------------------------
+T0 = 1_770_000_000.0
+
+
+def raw_log(path, messages):
+    """An MCAP file with JSON channels written by the mcap library itself: ``(topic, bytes, stamp_s)``."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as file:
+        writer = Writer(file)
+        writer.start()
+        schema = writer.register_schema("any", "jsonschema", b"{}")
+        channels = {}
+        for sequence, (topic, data, stamp) in enumerate(messages):
+            if topic not in channels:
+                channels[topic] = writer.register_channel(topic, "json", schema)
+            ns = int(stamp * 1e9)
+            writer.add_message(channels[topic], log_time=ns, data=data, publish_time=ns, sequence=sequence)
+        writer.finish()
+    return path
+
+
+def replay_config(path):
+    return parse_config({"source": {"type": "replay", "file": str(path), "rate": 10.0}, "robots": [0, 1],
+                         "network": dict(NETWORK), "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+
+
+def pose_bytes(x):
+    return json.dumps({"bodies": {"0": [x, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}}).encode()
+
+
+@pytest.mark.parametrize("messages", [[], [("/camera/image", b'{"w": 640}', T0)],
+                                      [("/hub/status", b'{"mode": "idle"}', T0)]])
+def test_a_log_without_mocap_poses_is_refused_at_start(tmp_path, messages):
+    from hub.factory import build_hub
+
+    path = raw_log(tmp_path / "foreign.mcap", messages)
+    with pytest.raises(ConfigError) as info:
+        build_hub(replay_config(path), log=lambda line: None)
+    assert str(info.value) == f"source.file: {path} holds no /mocap/poses records (not a khepri hub recording?)"
+
+
+def test_a_missing_replay_file_is_named_once(tmp_path):
+    from hub.factory import build_hub
+
+    path = tmp_path / "nosuch.mcap"
+    with pytest.raises(ConfigError) as info:
+        build_hub(replay_config(path), log=lambda line: None)
+    assert str(info.value) == f"source.file: cannot read {path}: no such file"
+
+
+def test_malformed_pose_records_are_skipped_and_the_replay_goes_on(tmp_path):
+    bad = [b"[1, 2]", b"not json", b'{"bodies": {"0": [1, 2]}}', b'{"bodies": {"x": [0, 0, 0, 0, 0, 0, 1]}}',
+           b'{"bodies": {"0": [NaN, 0, 0, 0, 0, 0, 1]}}', b'{"no bodies": 1}',
+           b'{"bodies": {"0": [0, 0, 0, 0, 0, 0, 1]}, "clock_s": "noon"}']
+    messages = [("/mocap/poses", data, T0 + 0.01 * k) for k, data in enumerate(bad)]    # 0.07 s of bad ones
+    messages += [("/mocap/poses", pose_bytes(0.01 * k), T0 + 0.1 + 0.01 * k) for k in range(300)]   # 3 s good
+    path = raw_log(tmp_path / "mixed.mcap", messages)
+    with HubThread(replay_config(path)) as hub:
+        hub.wait_until(lambda s: s["mocap_hz"] > 0, timeout_s=10)
+        time.sleep(0.5)
+        assert hub.status()["mode"] == "idle"         # still up and answering
+    skipped = [line for line in hub.lines if "skipping" in line]
+    assert skipped == ["hub: replay: skipping /mocap/poses record 0 (0.000 s into the log): "
+                       "not a JSON object but list"]   # the rest of the burst within the same second: counted
+    assert hub.hub.source.skipped == len(bad)
+
+
+def test_a_burst_of_malformed_records_says_how_many_were_left_unsaid(tmp_path):
+    messages = [("/mocap/poses", b"[]", T0 + 0.5 * k) for k in range(30)]      # 1.5 s of bad records at 10x
+    messages += [("/mocap/poses", pose_bytes(0.0), T0 + 15.0 + 0.1 * k) for k in range(100)]
+    path = raw_log(tmp_path / "bad.mcap", messages)
+    with HubThread(replay_config(path)) as hub:
+        hub.wait_until(lambda s: s["mocap_hz"] > 0, timeout_s=10)
+    skipped = [line for line in hub.lines if "skipping" in line]
+    assert len(skipped) == 2, skipped
+    assert skipped[0].startswith("hub: replay: skipping /mocap/poses record 0 (0.000 s into the log)")
+    assert re.search(r"record \d+ \(\d+\.\d{3} s into the log\): not a JSON object but list "
+                     r"\(\+\d+ more skipped in the last second\)$", skipped[1]), skipped
+    assert hub.hub.source.skipped == 30
