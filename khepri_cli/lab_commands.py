@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -111,13 +112,17 @@ def _add_ctl(groups) -> None:
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:
-    from hub.control import ControlError, request, status_table
+    from hub.control import BadEndpoint, ControlError, request, status_table
     from hub.security import operator_client_keys
 
+    check_port("--port", args.port)
+    check_timeout("--timeout", args.timeout)
     keys = operator_client_keys(args.keys, args.operator) if args.keys is not None else None
     endpoint = args.hub if "://" in args.hub else f"tcp://{args.hub}:{args.port}"
     try:
         reply = request(endpoint, args.command, keys=keys, timeout_s=args.timeout)
+    except BadEndpoint as err:
+        raise ConfigError("--hub", str(err)) from None
     except ControlError as err:
         print(f"khepri: error: {err}", file=sys.stderr)
         return 1
@@ -126,6 +131,20 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     else:
         print(f"{args.command}: ok{' (' + reply['note'] + ')' if reply.get('note') else ''}")
     return 0
+
+
+MAX_TIMEOUT_S = 3600.0
+
+
+def check_port(option: str, port: int) -> None:
+    if not 1 <= port <= 65535:
+        raise ConfigError(option, f"must be a port 1..65535 (got {port})")
+
+
+def check_timeout(option: str, seconds: float) -> None:
+    """argparse's float() takes nan, inf and -1; ZeroMQ takes milliseconds as a C int."""
+    if not (math.isfinite(seconds) and 0 < seconds <= MAX_TIMEOUT_S):
+        raise ConfigError(option, f"must be a number of seconds > 0 and <= {MAX_TIMEOUT_S:g} (got {seconds:g})")
 
 
 # --- keys -----------------------------------------------------------------------------------------------------

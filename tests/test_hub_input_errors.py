@@ -313,3 +313,17 @@ def test_a_burst_of_malformed_records_says_how_many_were_left_unsaid(tmp_path):
     assert re.search(r"record \d+ \(\d+\.\d{3} s into the log\): not a JSON object but list "
                      r"\(\+\d+ more skipped in the last second\)$", skipped[1]), skipped
     assert hub.hub.source.skipped == 30
+
+
+# --- 8, 9. ctl and agent options --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("option, value", [("--timeout", "-1"), ("--timeout", "nan"), ("--timeout", "1e9"),
+                                           ("--timeout", "0"), ("--port", "-5"), ("--port", "0"),
+                                           ("--port", "99999"), ("--hub", "bad host")])
+def test_ctl_refuses_a_bad_option_naming_it(option, value):
+    one_error_line(khepri("ctl", "status", option, value), option)
+
+
+def test_ctl_still_waits_for_a_hub_that_is_not_there():
+    run = khepri("ctl", "status", "--port", str(free_port()), "--timeout", "0.2")
+    assert run.returncode == 1 and "no answer from the hub" in run.stderr
+
