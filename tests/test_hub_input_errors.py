@@ -327,3 +327,11 @@ def test_ctl_still_waits_for_a_hub_that_is_not_there():
     run = khepri("ctl", "status", "--port", str(free_port()), "--timeout", "0.2")
     assert run.returncode == 1 and "no answer from the hub" in run.stderr
 
+
+@pytest.mark.parametrize("option, value, problem", [("--id", "99999999999", "must be a robot id 0..999999"),
+                                                    ("--id", "-1", "must be a robot id 0..999999"),
+                                                    ("--port", "0", "must be a port 1..65535")])
+def test_agent_refuses_an_id_the_hub_would_never_accept(option, value, problem):
+    args = ["--id", "1", "--driver", "sim", option, value]
+    line = one_error_line(khepri("agent", *args, timeout=20), option)
+    assert problem in line
