@@ -41,6 +41,8 @@ class KeyRing:
 
 def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: bool = False) -> List[Path]:
     """Create the hub, robot and operator key pairs. Refuses to overwrite existing keys unless ``force``."""
+    if folder.exists() and not folder.is_dir():
+        raise ConfigError("keys", f"{folder} is a file, not a folder")
     targets = [folder / "hub.key"] + [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
         + [folder / "operators" / f"{name}.key" for name in operators]
     existing = [p for p in targets if p.exists()]

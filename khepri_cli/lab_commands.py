@@ -6,8 +6,10 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import List
 
 from onboard.config import ConfigError
+from onboard.protocol import MAX_ROBOT_ID
 
 
 def add_lab(groups) -> None:
@@ -166,25 +168,49 @@ def cmd_keys_init(args: argparse.Namespace) -> int:
     from hub.security import init_keys
 
     ids = parse_robot_ids(args.robots)
-    created = init_keys(args.folder, ids, args.operator or ["operator"], force=args.force)
-    print(f"created {len(created)} key files in {args.folder}: hub, robots {ids[0]}..{ids[-1]} "
-          f"({len(ids)}), operators {', '.join(args.operator or ['operator'])}")
+    operators = list(dict.fromkeys(args.operator or ["operator"]))     # --operator alice twice: one key pair
+    created = init_keys(args.folder, ids, operators, force=args.force)
+    print(f"created {len(created)} key files in {args.folder}: hub, robots {describe_ids(ids)} "
+          f"({len(ids)}), operators {', '.join(operators)}")
     print(f"  give robot N: {args.folder}/robots/robot-N.key_secret and {args.folder}/hub.key")
     print(f"  keep secret:  {args.folder}/hub.key_secret, {args.folder}/operators/*.key_secret")
     return 0
 
 
-def parse_robot_ids(text: str):
+def describe_ids(ids: List[int]) -> str:
+    """``0..5`` for a run of ids, else the ids (the first ten)."""
+    if ids == list(range(ids[0], ids[-1] + 1)):
+        return f"{ids[0]}..{ids[-1]}"
+    return ", ".join(map(str, ids[:10])) + (", ..." if len(ids) > 10 else "")
+
+
+MAX_KEYED_ROBOTS = 10_000     # a key pair is two files: beyond this a typo, not a lab
+
+
+def parse_robot_ids(text: str) -> List[int]:
+    """``--robots``: a count N (ids 0..N-1) or a list of ids like ``0,1,5``."""
     try:
-        if "," in text:
-            ids = sorted({int(part) for part in text.split(",") if part.strip()})
-        else:
-            ids = list(range(int(text)))
+        numbers = [int(part) for part in text.split(",") if part.strip()]
     except ValueError:
         raise ConfigError("--robots", f"give a count like 6 or ids like 0,1,5 (got {text!r})") from None
-    if not ids or min(ids) < 0:
-        raise ConfigError("--robots", f"needs at least one robot id >= 0 (got {text!r})")
+    if "," not in text and numbers:
+        return list(range(check_robot_count(numbers[0])))
+    ids = sorted(set(numbers))
+    if not ids:
+        raise ConfigError("--robots", f"give at least one robot id (got {text!r})")
+    bad = [i for i in ids if not 0 <= i <= MAX_ROBOT_ID]
+    if bad:
+        raise ConfigError("--robots", f"robot ids must be 0..{MAX_ROBOT_ID} (got {bad[0]})")
+    check_robot_count(len(ids))
     return ids
+
+
+def check_robot_count(count: int) -> int:
+    if count < 1:
+        raise ConfigError("--robots", f"the robot count must be >= 1 (got {count})")
+    if count > MAX_KEYED_ROBOTS:
+        raise ConfigError("--robots", f"at most {MAX_KEYED_ROBOTS} robots (got {count})")
+    return count
 
 
 # --- sil ------------------------------------------------------------------------------------------------------

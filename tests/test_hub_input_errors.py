@@ -335,3 +335,42 @@ def test_agent_refuses_an_id_the_hub_would_never_accept(option, value, problem):
     args = ["--id", "1", "--driver", "sim", option, value]
     line = one_error_line(khepri("agent", *args, timeout=20), option)
     assert problem in line
+
+
+# --- 11. keys init ---------------------------------------------------------------------------------------------------
+def limited_memory():
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))     # a runaway allocation fails, not the machine
+
+
+def keys_init(*args):
+    return subprocess.run([sys.executable, "-m", "khepri_cli.main", "keys", "init", *map(str, args)],
+                          capture_output=True, text=True, env=ENV, timeout=60, preexec_fn=limited_memory)
+
+
+@pytest.mark.parametrize("robots, problem", [
+    ("1000000000", "at most 10000 robots (got 1000000000)"),
+    ("10001", "at most 10000 robots (got 10001)"),
+    ("0,99999999", "robot ids must be 0..999999 (got 99999999)"),
+    ("0", "the robot count must be >= 1 (got 0)"),
+    (",", "give at least one robot id (got ',')"),
+])
+def test_keys_init_refuses_robots_no_hub_would_take(tmp_path, robots, problem):
+    line = one_error_line(keys_init(tmp_path / "keys", "--robots", robots), "--robots")
+    assert line.endswith(problem)
+    assert not (tmp_path / "keys").exists()
+
+
+def test_keys_init_makes_one_pair_per_operator_and_counts_what_it_made(tmp_path):
+    run = keys_init(tmp_path / "keys", "--robots", "0,3", "--operator", "alice", "--operator", "alice")
+    assert run.returncode == 0, run.stderr
+    files = sorted(p.relative_to(tmp_path / "keys").as_posix() for p in (tmp_path / "keys").rglob("*") if p.is_file())
+    assert len(files) == 8 and "operators/alice.key_secret" in files
+    assert run.stdout.startswith(f"created 8 key files in {tmp_path / 'keys'}: hub, robots 0, 3 (2), operators alice\n")
+
+
+def test_keys_init_into_a_file_says_so(tmp_path):
+    (tmp_path / "afile").write_text("")
+    line = one_error_line(keys_init(tmp_path / "afile"), "keys")
+    assert line.endswith(f"{tmp_path / 'afile'} is a file, not a folder")
