@@ -374,3 +374,37 @@ def test_keys_init_into_a_file_says_so(tmp_path):
     (tmp_path / "afile").write_text("")
     line = one_error_line(keys_init(tmp_path / "afile"), "keys")
     assert line.endswith(f"{tmp_path / 'afile'} is a file, not a folder")
+
+
+# --- 12. the status of many robots, and khepri bench hub ---------------------------------------------------------------
+def test_a_status_too_large_for_one_message_is_refused_and_the_hub_stays_up():
+    """Found while bounding `khepri bench hub --robots`: with about 250 connected robots the status reply passes
+    the protocol's 64 KB, and encoding it used to raise out of the hub's loop, killing the hub."""
+    from hub.bench import bench_config
+    from hub.control import ControlError
+    from onboard.protocol import encode
+
+    robots = 320
+    with HubThread(parse_config(bench_config(robots, 50, 0, 0))) as hub:
+        agents = []
+        try:
+            for i in range(robots):
+                sock = zmq.Context.instance().socket(zmq.DEALER)
+                sock.linger = 0
+                sock.connect(hub.endpoints["robots"])
+                sock.send(encode({"type": "hello", "id": i, "driver": "test"}))
+                agents.append(sock)
+            deadline = time.monotonic() + 20
+            while True:
+                try:
+                    hub.status()
+                except ControlError as err:
+                    assert "the hub refused status: the reply is too large to send" in str(err)
+                    break
+                assert time.monotonic() < deadline, "the status never grew past the limit"
+                time.sleep(0.2)
+            hub.request("estop")                  # still serving
+            assert hub._thread.is_alive()
+        finally:
+            for sock in agents:
+                sock.close(0)
