@@ -258,17 +258,35 @@ def cmd_sil(args: argparse.Namespace) -> int:
     return 0
 
 
+# The benchmark reads the hub's status, one message of at most 64 KB: about 230 connected robots fit.
+MAX_BENCH_ROBOTS = 200
+MAX_BENCH_RATE_HZ = 1000.0
+MAX_BENCH_SECONDS = 3600.0
+
+
+def check_bench_options(args: argparse.Namespace) -> None:
+    if not 1 <= args.robots <= MAX_BENCH_ROBOTS:
+        raise ConfigError("--robots", f"must be 1..{MAX_BENCH_ROBOTS} (got {args.robots})")
+    # The mock backend takes a whole number of frames per second; 0 would mean as fast as it can.
+    if not (math.isfinite(args.rate) and args.rate.is_integer() and 1 <= args.rate <= MAX_BENCH_RATE_HZ):
+        raise ConfigError("--rate", f"must be a whole number of Hz, 1..{MAX_BENCH_RATE_HZ:g} (got {args.rate:g})")
+    if not (math.isfinite(args.seconds) and 0 < args.seconds <= MAX_BENCH_SECONDS):
+        raise ConfigError("--seconds", f"must be > 0 and <= {MAX_BENCH_SECONDS:g} (got {args.seconds:g})")
+    if not (math.isfinite(args.telemetry_hz) and 0 <= args.telemetry_hz <= MAX_BENCH_RATE_HZ):
+        raise ConfigError("--telemetry-hz", f"give a rate 0..{MAX_BENCH_RATE_HZ:g} (0: no telemetry), "
+                          f"not {args.telemetry_hz:g}")
+
+
 def cmd_bench_hub(args: argparse.Namespace) -> int:
     from hub.bench import bench_hub
+    from hub.control import ControlError
 
-    for option, value, ok, want in (("--robots", args.robots, args.robots >= 1, ">= 1"),
-                                    ("--rate", args.rate, args.rate > 0, "> 0"),
-                                    ("--seconds", args.seconds, args.seconds > 0, "> 0")):
-        if not ok:
-            raise ConfigError(option, f"must be {want} (got {value:g})")
-    if not args.telemetry_hz >= 0 or args.telemetry_hz == float("inf"):
-        raise ConfigError("--telemetry-hz", f"give a rate >= 0 (0: no telemetry), not {args.telemetry_hz:g}")
-    result = bench_hub(args.robots, args.rate, args.seconds, telemetry_hz=args.telemetry_hz, record=args.record)
+    check_bench_options(args)
+    try:
+        result = bench_hub(args.robots, args.rate, args.seconds, telemetry_hz=args.telemetry_hz, record=args.record)
+    except (ControlError, RuntimeError) as err:     # the hub did not start, answer or send: said, not a traceback
+        print(f"khepri: error: bench hub: {err}", file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps({key: result[key] for key in ("latency_p50_ms", "latency_p99_ms", "hub_cpu_percent")}))
         return 0
