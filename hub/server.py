@@ -45,6 +45,7 @@ TAIL_SLACK_BYTES = 1024   # room kept in a frame for reason and sim beside the r
 _SEND_MORE = int(zmq.NOBLOCK | zmq.SNDMORE)   # plain ints: combining the flag enums costs a microsecond a send
 _SEND_LAST = int(zmq.NOBLOCK)
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
+DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
 NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
 NO_POSE_YET_REPEAT_S = 30.0    # ...and again this often while none does
 
@@ -384,6 +385,9 @@ class Hub:
             self.drops.drop("unknown robot", sender, f"{sender} claimed robot {rid}, which is not in this lab")
             return
         if robot.routing != routing.bytes:
+            if robot.connected(now, self.config.watchdog_s):
+                self._rival(robot, peer, sender, now)
+                return
             self._connected(robot, routing.bytes, peer, now)
         robot.last_uplink = now
         getattr(self, f"_on_{message['type']}")(robot, message, now)
@@ -393,6 +397,23 @@ class Hub:
         index = self.ids.index(robot.id)
         robot.next_due = now + (index / max(1, len(self.ids))) / self.config.network.downlink_hz  # spread sends
         self.log(f"hub: robot {robot.id} connected from {robot.peer or '?'}")
+
+    def _rival(self, robot: RobotLink, peer: Optional[str], sender: str, now: float) -> None:
+        """A second connection speaks for a robot whose connection is alive (two agents started with one --id,
+        or one robot key copied twice). The first keeps the robot, frames and wheels, until it is silent for
+        watchdog_s; the other's messages are dropped. Switching on every message instead would hand the frames
+        back and forth, and the agents' wheels with them. Said once every DUPLICATE_WARNING_S, and only once the
+        first connection spoke after the second appeared: an agent that reconnects leaves its old one silent."""
+        self.drops.count("duplicate robot", sender)
+        if now - robot.rival_seen > self.config.watchdog_s:
+            robot.rival_since = now            # a new contest
+        robot.rival_seen = now
+        if robot.last_uplink <= robot.rival_since or now - robot.rival_warned < DUPLICATE_WARNING_S:
+            return
+        robot.rival_warned = now
+        self.log(f"hub: robot {robot.id} is claimed by two connections: {robot.peer or '?'} (first, keeps the "
+                 f"robot) and {peer or '?'} (ignored while the first is alive); is a second agent running with "
+                 f"--id {robot.id}?")
 
     def _on_hello(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
         robot.driver = message["driver"]

@@ -53,7 +53,7 @@ def sim_config(**extra):
     return data
 
 
-# --- 1. ports and bind addresses --------------------------------------------------------------------------------
+# --- 1. ports and bind addresses -----------------------------------------------------------------------------------
 @pytest.fixture
 def taken_port():
     """A port some other program listens on, for the duration of the test."""
@@ -112,7 +112,7 @@ def test_a_bad_bind_option_names_the_option():
     one_error_line(khepri("hub", "--demo", "--bind", "bad host"), "--bind")
 
 
-# --- 2-4. config values the loader let through ------------------------------------------------------------------
+# --- 2-4. config values the loader let through ---------------------------------------------------------------------
 def mocap_config(bodies, **extra):
     return {"source": {"type": "motioncapture", "system": "mock", "bodies": bodies,
                        "options": {"rigid_bodies": "kh0(0,0,0,1,0,0,0)"}},
@@ -149,7 +149,7 @@ def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
     build_hub(parse_config(sim_config(robots=[1, 3])), log=lambda line: None).close()    # a subset is fine
 
 
-# --- 5. a motion-capture system that never answers ----------------------------------------------------------------
+# --- 5. a motion-capture system that never answers -----------------------------------------------------------------
 # OptiTrack's NatNet client with no server on loopback blocks in connect() while holding Python's GIL: the hang
 # the hub must turn into an error (a thread could not be timed out; the hub probes in a child process).
 SILENT_MOCAP = {"system": "optitrack", "options": {"hostname": "127.0.0.1"}}
@@ -198,7 +198,7 @@ def test_ctrl_c_ends_a_hub_waiting_for_motion_capture(tmp_path):
         hub.stdout.close()
 
 
-# --- 6. a source that never delivers --------------------------------------------------------------------------------
+# --- 6. a source that never delivers -------------------------------------------------------------------------------
 class EmptyFrames(PoseSource):
     """Frames that place none of the lab's robots, as vrpn sends with no server."""
 
@@ -233,7 +233,7 @@ def test_a_source_that_placed_robots_says_nothing_of_the_kind():
     assert not [text for text in hub.lines if "yet after" in text]
 
 
-# --- 6, 7. replaying logs that are not what the hub wrote ---------------------------------------------------------
+# --- 6, 7. replaying logs that are not what the hub wrote ----------------------------------------------------------
 T0 = 1_770_000_000.0
 
 
@@ -315,7 +315,7 @@ def test_a_burst_of_malformed_records_says_how_many_were_left_unsaid(tmp_path):
     assert hub.hub.source.skipped == 30
 
 
-# --- 8, 9. ctl and agent options --------------------------------------------------------------------------------------
+# --- 8, 9. ctl and agent options -----------------------------------------------------------------------------------
 @pytest.mark.parametrize("option, value", [("--timeout", "-1"), ("--timeout", "nan"), ("--timeout", "1e9"),
                                            ("--timeout", "0"), ("--port", "-5"), ("--port", "0"),
                                            ("--port", "99999"), ("--hub", "bad host")])
@@ -337,7 +337,7 @@ def test_agent_refuses_an_id_the_hub_would_never_accept(option, value, problem):
     assert problem in line
 
 
-# --- 11. keys init ---------------------------------------------------------------------------------------------------
+# --- 11. keys init -------------------------------------------------------------------------------------------------
 def limited_memory():
     import resource
 
@@ -376,7 +376,7 @@ def test_keys_init_into_a_file_says_so(tmp_path):
     assert line.endswith(f"{tmp_path / 'afile'} is a file, not a folder")
 
 
-# --- 12. the status of many robots, and khepri bench hub ---------------------------------------------------------------
+# --- 12. the status of many robots, and khepri bench hub -----------------------------------------------------------
 def test_a_status_too_large_for_one_message_is_refused_and_the_hub_stays_up():
     """Found while bounding `khepri bench hub --robots`: with about 250 connected robots the status reply passes
     the protocol's 64 KB, and encoding it used to raise out of the hub's loop, killing the hub."""
@@ -408,3 +408,31 @@ def test_a_status_too_large_for_one_message_is_refused_and_the_hub_stays_up():
         finally:
             for sock in agents:
                 sock.close(0)
+
+
+# --- 10. two agents with one robot id ------------------------------------------------------------------------------
+def test_two_agents_with_one_id_are_said_once_and_the_first_keeps_the_robot(tmp_path):
+    from hub.harness import spawn_agent, stop_processes
+
+    with HubThread(parse_config(sim_config())) as hub:
+        first = spawn_agent(hub.endpoints["robots"], 0, tmp_path / "first.log")
+        second = None
+        try:
+            hub.wait_until(lambda s: s["robots"][0]["connected"])
+            second = spawn_agent(hub.endpoints["robots"], 0, tmp_path / "second.log")
+            deadline = time.monotonic() + 20
+            while not [line for line in hub.lines if "claimed by two connections" in line]:
+                assert time.monotonic() < deadline, hub.lines
+                time.sleep(0.1)
+            time.sleep(4.0)                       # both keep talking, the second reconnecting every 2 s
+            claimed = [line for line in hub.lines if "claimed by two connections" in line]
+            joined = [line for line in hub.lines if line.startswith("hub: robot 0 connected from")]
+            assert claimed == ["hub: robot 0 is claimed by two connections: 127.0.0.1 (first, keeps the robot) and "
+                               "127.0.0.1 (ignored while the first is alive); is a second agent running with --id 0?"]
+            assert len(joined) == 1, joined       # no hand-over back and forth
+            assert hub.status()["drops"]["duplicate robot"] > 0
+            stop_processes([first])               # the first goes: the second gets the robot
+            hub.wait_until(lambda s: s["robots"][0]["connected"]
+                           and len([line for line in hub.lines if "robot 0 connected from" in line]) == 2)
+        finally:
+            stop_processes([p for p in (first, second) if p is not None])
