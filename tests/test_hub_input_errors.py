@@ -436,3 +436,23 @@ def test_two_agents_with_one_id_are_said_once_and_the_first_keeps_the_robot(tmp_
                            and len([line for line in hub.lines if "robot 0 connected from" in line]) == 2)
         finally:
             stop_processes([p for p in (first, second) if p is not None])
+
+
+# --- 13. khepri log info on what is not a log ----------------------------------------------------------------------
+def test_log_info_refuses_a_fifo_and_a_device_without_blocking(tmp_path):
+    fifo = tmp_path / "fifo.mcap"
+    os.mkfifo(fifo)
+    for path in (fifo, Path("/dev/zero")):
+        line = one_error_line(khepri("log", "info", str(path), timeout=20), str(path))
+        assert line.endswith("not a regular file (a log is a file the hub wrote)")
+
+
+def test_a_damaged_chunk_says_what_is_wrong_with_it(tmp_path):
+    import struct
+
+    from hub.recording import MCAP_MAGIC, summarise
+
+    path = tmp_path / "cut-chunk.mcap"
+    body = bytes.fromhex("628d672349855219")          # a chunk record whose fields end before they should
+    path.write_bytes(MCAP_MAGIC + struct.pack("<BQ", 0x06, len(body)) + body)
+    assert summarise(path).stop_reason == "damaged record (opcode 0x06) at byte 8: EndOfFile"
