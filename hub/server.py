@@ -111,7 +111,7 @@ class Hub:
         """Bind both sockets and print ``listening <role> <endpoint>`` for each. Port 0 picks a free port."""
         net = self.config.network
         if self.keyring is not None:
-            self.authenticator = HubAuthenticator(self.context, self.keyring)
+            self.authenticator = HubAuthenticator(self.context, self.keyring, log=self.log)
             self.authenticator.start()
         self.robot_socket = self._router(ROBOT_DOMAIN, net.robot_port, "robot_port")
         self.robot_socket.sndhwm = DOWNLINK_HWM
