@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from onboard.config import ConfigError, check_range, from_mapping, join
+from onboard.protocol import MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
 
 SOURCE_TYPES = ("sim", "motioncapture", "replay")
@@ -30,6 +31,7 @@ class SourceConfig:
     bodies: Dict[str, int] = field(default_factory=dict)     # motioncapture: rigid body name -> robot id
     up_axis: str = "z"                      # motioncapture: which axis of the mocap frame points up
     stale_s: float = 0.1                    # a body not seen for this long has no pose
+    connect_timeout_s: float = 10.0         # motioncapture: give up on a system that does not answer
     file: Optional[str] = None              # replay: the MCAP log
     rate: float = 1.0                       # replay: playback speed (2 = twice as fast)
 
@@ -40,12 +42,17 @@ class SourceConfig:
             raise ConfigError(join(where, "up_axis"), f"must be z or y (got {self.up_axis!r})")
         check_range(join(where, "frame_hz"), self.frame_hz, 0.0, 1000.0, low_open=True)
         check_range(join(where, "stale_s"), self.stale_s, 0.0, low_open=True)
+        check_range(join(where, "connect_timeout_s"), self.connect_timeout_s, 0.0, 300.0, low_open=True)
         check_range(join(where, "rate"), self.rate, 0.0, 100.0, low_open=True)
+        if self.seed is not None:
+            check_range(join(where, "seed"), self.seed, 0)     # numpy seeds are non-negative
         if self.type == "motioncapture" and not self.bodies:
             raise ConfigError(join(where, "bodies"), "map each rigid body name to a robot id, e.g. {kh0: 0}")
-        ids = list(self.bodies.values())
+        # The SDK names bodies with strings: a YAML key like 7 must match the body "7".
+        self.bodies = {str(name): rid for name, rid in self.bodies.items()}
         for name, rid in self.bodies.items():
-            check_range(join(join(where, "bodies"), name), rid, 0, 999_999)
+            check_robot_id(join(join(where, "bodies"), name), rid)
+        ids = list(self.bodies.values())
         if len(set(ids)) != len(ids):
             raise ConfigError(join(where, "bodies"), "two rigid bodies map to the same robot id")
         if self.type == "replay" and not self.file:
@@ -137,9 +144,17 @@ class LabConfig:
         check_range("watchdog_s", self.watchdog_s, 0.0, 10.0, low_open=True)
         if self.robots is not None:
             for i, rid in enumerate(self.robots):
-                check_range(f"robots[{i}]", rid, 0, 999_999)
+                check_robot_id(f"robots[{i}]", rid)
             if len(set(self.robots)) != len(self.robots):
                 raise ConfigError("robots", "lists a robot id twice")
+
+
+def check_robot_id(where: str, value: Any) -> int:
+    """A robot id the wire protocol can carry. The loader does not check the types of a mapping's values (e.g.
+    ``source.bodies``), so a string, a float or a boolean (YAML ``true``) is refused here too."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_ROBOT_ID:
+        raise ConfigError(where, f"must be an integer robot id 0..{MAX_ROBOT_ID} (got {value!r})")
+    return value
 
 
 def parse_config(data: Any) -> LabConfig:

@@ -17,6 +17,10 @@ class ControlError(RuntimeError):
     """The hub did not answer, or answered with an error."""
 
 
+class BadEndpoint(ControlError):
+    """ZeroMQ cannot use the hub's address at all (e.g. a space in the host name)."""
+
+
 def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, timeout_s: float = 2.0,
             context: Optional[zmq.Context] = None) -> Dict[str, Any]:
     """Send one control request and return the reply (``ok`` true), or raise ControlError."""
@@ -26,7 +30,11 @@ def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, ti
     if keys is not None:
         apply_client_keys(sock, keys)
     try:
-        sock.connect(endpoint)
+        try:
+            sock.connect(endpoint)
+        except zmq.ZMQError as err:
+            raise BadEndpoint(f"cannot connect to {endpoint!r}: {(err.strerror or str(err)).split(' (addr=')[0]}") \
+                from None
         nonce = random.randrange(1 << 30)
         # A DEALER blocks sending until a connection is up; with a wrong key it never comes up.
         sock.sndtimeo = int(timeout_s * 1000)

@@ -38,7 +38,7 @@ class ControlService:
         if "nonce" in request:
             reply["nonce"] = request["nonce"]
         try:
-            hub.control_socket.send_multipart([routing.bytes, encode(reply)], zmq.NOBLOCK)
+            hub.control_socket.send_multipart([routing.bytes, encode_reply(reply)], zmq.NOBLOCK)
         except zmq.ZMQError:
             pass    # the operator left; nothing to do
 
@@ -121,6 +121,18 @@ class ControlService:
             "relay": hub.relay.stats.as_dict(),
             "robots": rows,
         }
+
+
+def encode_reply(reply: Dict[str, Any]) -> bytes:
+    """The reply, or, when it is over the protocol's message limit (the status of a few hundred connected
+    robots), a refusal that says so: the hub must not die of an operator's question."""
+    try:
+        return encode(reply)
+    except ProtocolError as err:
+        refusal = {"type": "reply", "ok": False, "error": f"the reply is too large to send ({err.problem})"}
+        if "nonce" in reply:
+            refusal["nonce"] = reply["nonce"]
+        return encode(refusal)
 
 
 def _property(frame: zmq.Frame, name: str):

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable, Dict, Optional
+from typing import Any, Callable, Dict, List, Optional
 
 import zmq
 
@@ -37,7 +37,8 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         seed = source.hub_seed
     elif config.source.type == "motioncapture":
         src = config.source
-        source = MotionCaptureSource(context, src.system, src.options, src.bodies, src.up_axis, log)
+        source = MotionCaptureSource(context, src.system, src.options, src.bodies, src.up_axis, log,
+                                     connect_timeout_s=src.connect_timeout_s)
     else:
         source = ReplaySource(config.source.file, config.source.rate, log)
     try:
@@ -54,12 +55,22 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
 
 
 def robot_ids(config: LabConfig, source: PoseSource):
-    if config.robots is not None:
-        return list(config.robots)
     known = source.robot_ids()
-    if known is None:
-        raise ConfigError("robots", "list the robot ids, e.g. robots: [0, 1, 2]")
-    return known
+    if config.robots is None:
+        if known is None:
+            raise ConfigError("robots", "list the robot ids, e.g. robots: [0, 1, 2]")
+        return known
+    if config.source.type == "sim":
+        check_sim_robots(config.robots, known, source.description)
+    return list(config.robots)
+
+
+def check_sim_robots(wanted: List[int], scenario_ids: List[int], description: str) -> None:
+    """The sim source's world has only the scenario's robots: any other id would fail in the physics mid-run."""
+    extra = sorted(set(wanted) - set(scenario_ids))
+    if extra:
+        raise ConfigError("robots", f"{description} has robots {scenario_ids[0]}..{scenario_ids[-1]}; "
+                          f"no robot {', '.join(map(str, extra))}")
 
 
 def run_template(config: LabConfig, scenario) -> RunTemplate:

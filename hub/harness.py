@@ -51,6 +51,8 @@ class HubThread:
             self.hub = self.hub_factory(self.config, log=self.lines.append, scenario=self.scenario)
             self.endpoints = self.hub.bind()
         except BaseException as err:      # hand the failure to the starting thread
+            if self.hub is not None:
+                self.hub.close()          # a socket that did bind, the source's thread, the log
             self.error = err
             self._ready.set()
             return

@@ -26,6 +26,9 @@ class RobotLink:
     estop_ack_s: Optional[float] = None      # e-stop to acknowledgement (wheels already stopped)
     frames_dropped: int = 0                  # downlink frames refused by a full queue (latest-only)
     unresponsive_steps: int = 0              # lockstep: consecutive steps without an answer
+    rival_since: float = -math.inf           # a second connection claiming this id: its first message...
+    rival_seen: float = -math.inf            # ...and its latest one
+    rival_warned: float = -math.inf          # when the hub last said so
 
     def connected(self, now: float, timeout_s: float) -> bool:
         return self.routing is not None and now - self.last_uplink <= timeout_s
@@ -64,10 +67,14 @@ class DropLog:
     _last_line: Dict[str, float] = field(default_factory=dict)
     _suppressed: Dict[str, int] = field(default_factory=dict)
 
-    def drop(self, reason: str, sender: str, detail: str) -> None:
+    def count(self, reason: str, sender: str) -> None:
+        """Count a drop without a log line (the caller says it its own way)."""
         self.counts[reason] = self.counts.get(reason, 0) + 1
         if self.on_drop is not None:
             self.on_drop(reason, sender)
+
+    def drop(self, reason: str, sender: str, detail: str) -> None:
+        self.count(reason, sender)
         now = time.monotonic()
         if now - self._last_line.get(sender, -math.inf) < 1.0:
             self._suppressed[sender] = self._suppressed.get(sender, 0) + 1

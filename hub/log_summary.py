@@ -132,7 +132,8 @@ class LogReader:
                 return [Metadata.read(stream)]
             return []   # indexes, statistics, attachments, unknown opcodes: not needed to read messages
         except Exception as err:  # noqa: BLE001 - zstd, lz4, CRC, struct and UTF-8 errors all mean "damaged record"
-            self.stop_reason = f"damaged record (opcode {opcode:#04x}) at byte {offset}: {err}"
+            reason = str(err) or type(err).__name__      # mcap's EndOfFile has no message
+            self.stop_reason = f"damaged record (opcode {opcode:#04x}) at byte {offset}: {reason}"
             return None
 
 
@@ -140,6 +141,8 @@ def _check_is_mcap(path: Path) -> int:
     """The file's size; LogError naming the file if it is missing, empty or not MCAP."""
     if path.is_dir():
         raise LogError(str(path), "is a folder, not a log file")
+    if path.exists() and not path.is_file():     # a FIFO would block the open below; /dev/zero never ends
+        raise LogError(str(path), "not a regular file (a log is a file the hub wrote)")
     try:
         size = path.stat().st_size
         with open(path, "rb") as file:

@@ -12,10 +12,12 @@ cannot claim another robot's id.
 """
 from __future__ import annotations
 
+import math
 import re
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 import zmq
 import zmq.auth
@@ -26,6 +28,7 @@ from onboard.config import ConfigError
 ROBOT_DOMAIN = "robots"
 OPERATOR_DOMAIN = "operators"
 ROBOT_KEY = re.compile(r"^robot-(\d+)\.key$")
+REFUSAL_LOG_S = 60.0    # a refused key is logged at most this often per peer address and socket
 
 
 @dataclass
@@ -41,6 +44,8 @@ class KeyRing:
 
 def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: bool = False) -> List[Path]:
     """Create the hub, robot and operator key pairs. Refuses to overwrite existing keys unless ``force``."""
+    if folder.exists() and not folder.is_dir():
+        raise ConfigError("keys", f"{folder} is a file, not a folder")
     targets = [folder / "hub.key"] + [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
         + [folder / "operators" / f"{name}.key" for name in operators]
     existing = [p for p in targets if p.exists()]
@@ -109,13 +114,38 @@ class _Members:
 
 
 class HubAuthenticator(ThreadAuthenticator):
-    """Accepts listed keys per domain and names the peer by the key's identity (``robot:3``)."""
+    """Accepts listed keys per domain and names the peer by the key's identity (``robot:3``). Logs a refused
+    key with the peer's address (at most once a minute per address and socket), so that an operator can tell a
+    key mix-up from a robot that is not there."""
 
-    def __init__(self, context: zmq.Context, ring: KeyRing):
+    def __init__(self, context: zmq.Context, ring: KeyRing, log: Callable[[str], None] = print):
         super().__init__(context)
-        self.ring = ring
-        self.configure_curve_callback(ROBOT_DOMAIN, _Members(ring.robots))
-        self.configure_curve_callback(OPERATOR_DOMAIN, _Members(ring.operators))
+        self.ring, self.hub_log = ring, log
+        self.members = {ROBOT_DOMAIN: ring.robots, OPERATOR_DOMAIN: ring.operators}
+        self._refusals_said: Dict[Tuple[str, str], float] = {}
+        for domain, keys in self.members.items():
+            self.configure_curve_callback(domain, _Members(keys))
+
+    async def handle_zap_message(self, msg: List[bytes]) -> None:
+        self._say_if_refused(msg)
+        await super().handle_zap_message(msg)
+
+    def _say_if_refused(self, msg: List[bytes]) -> None:
+        """ZAP request frames: version, request id, domain, address, identity, mechanism, credentials."""
+        if len(msg) != 7 or msg[5] != b"CURVE":
+            return
+        domain, address = msg[2].decode("utf-8", "replace"), msg[3].decode("utf-8", "replace")
+        if zmq.utils.z85.encode(msg[6]) in self.members.get(domain, {}):
+            return
+        now = time.monotonic()
+        if now - self._refusals_said.get((domain, address), -math.inf) < REFUSAL_LOG_S:
+            return
+        if len(self._refusals_said) > 10_000:     # a flood of addresses must not grow memory without bound
+            self._refusals_said.clear()
+        self._refusals_said[(domain, address)] = now
+        who = "a robot" if domain == ROBOT_DOMAIN else "an operator"
+        self.hub_log(f"hub: refused {who} key from {address}: not in {self.ring.folder / domain} "
+                     f"(a key made for another hub or lab, or for the other socket?)")
 
     def curve_user_id(self, client_public_key: bytes) -> str:
         z85 = zmq.utils.z85.encode(client_public_key)

@@ -14,6 +14,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import numpy as np
 import zmq
 
+from onboard.config import ConfigError
 from onboard.protocol import (
     FRAME_HEADER,
     MAX_MESSAGE_BYTES,
@@ -44,6 +45,9 @@ TAIL_SLACK_BYTES = 1024   # room kept in a frame for reason and sim beside the r
 _SEND_MORE = int(zmq.NOBLOCK | zmq.SNDMORE)   # plain ints: combining the flag enums costs a microsecond a send
 _SEND_LAST = int(zmq.NOBLOCK)
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
+DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
+NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
+NO_POSE_YET_REPEAT_S = 30.0    # ...and again this often while none does
 
 
 @dataclass
@@ -87,10 +91,12 @@ class Hub:
         self.last_frame_stamp = -math.inf
         self.mocap_rate = RateMeter()
         self.mocap_silent = False
+        self.placed_a_robot = False       # some frame has held a pose for one of this lab's robots
         self.mode = "idle"
         self.run_id: Optional[str] = None
         self.estop_at: Optional[float] = None
         self.started_at = time.monotonic()
+        self._next_no_pose_warning = self.started_at + NO_POSE_YET_WARNING_S
         self.control = ControlService(self)
         self.authenticator: Optional[HubAuthenticator] = None
         self.robot_socket: Optional[zmq.Socket] = None
@@ -105,17 +111,17 @@ class Hub:
         """Bind both sockets and print ``listening <role> <endpoint>`` for each. Port 0 picks a free port."""
         net = self.config.network
         if self.keyring is not None:
-            self.authenticator = HubAuthenticator(self.context, self.keyring)
+            self.authenticator = HubAuthenticator(self.context, self.keyring, log=self.log)
             self.authenticator.start()
-        self.robot_socket = self._router(ROBOT_DOMAIN, net.robot_port)
+        self.robot_socket = self._router(ROBOT_DOMAIN, net.robot_port, "robot_port")
         self.robot_socket.sndhwm = DOWNLINK_HWM
-        self.control_socket = self._router(OPERATOR_DOMAIN, net.control_port)
+        self.control_socket = self._router(OPERATOR_DOMAIN, net.control_port, "control_port")
         for role, sock in (("robots", self.robot_socket), ("control", self.control_socket)):
             self.endpoints[role] = sock.getsockopt_string(zmq.LAST_ENDPOINT)
             self.log(f"listening {role} {self.endpoints[role]}")
         return self.endpoints
 
-    def _router(self, domain: str, port: int) -> zmq.Socket:
+    def _router(self, domain: str, port: int, port_field: str) -> zmq.Socket:
         sock = self.context.socket(zmq.ROUTER)
         sock.linger = 0
         sock.router_mandatory = 1      # a full or vanished peer raises instead of dropping silently
@@ -124,7 +130,11 @@ class Hub:
         if self.keyring is not None:
             make_curve_server(sock, self.keyring, domain)
         bind = self.config.network.bind
-        sock.bind(f"tcp://{bind}:{port if port else '*'}")
+        try:
+            sock.bind(f"tcp://{bind}:{port if port else '*'}")
+        except zmq.ZMQError as err:
+            sock.close(0)          # nothing half-open: the caller closes the sockets bound before this one
+            raise bind_error(err, bind, port, port_field) from None
         return sock
 
     def close(self) -> None:
@@ -202,6 +212,7 @@ class Hub:
             keep = None if len(rows) == len(frame.ids) else [k for k, rid in enumerate(frame.ids) if rid in self.row]
             self._frame_rows = (np.asarray(rows, dtype=np.intp), keep)
         rows, keep = self._frame_rows
+        self.placed_a_robot = self.placed_a_robot or len(rows) > 0
         self.poses[rows] = frame.poses if keep is None else frame.poses[keep]
         self.seen_at[rows] = frame.stamp
         self.killed = set(frame.killed)
@@ -374,6 +385,9 @@ class Hub:
             self.drops.drop("unknown robot", sender, f"{sender} claimed robot {rid}, which is not in this lab")
             return
         if robot.routing != routing.bytes:
+            if robot.connected(now, self.config.watchdog_s):
+                self._rival(robot, peer, sender, now)
+                return
             self._connected(robot, routing.bytes, peer, now)
         robot.last_uplink = now
         getattr(self, f"_on_{message['type']}")(robot, message, now)
@@ -383,6 +397,23 @@ class Hub:
         index = self.ids.index(robot.id)
         robot.next_due = now + (index / max(1, len(self.ids))) / self.config.network.downlink_hz  # spread sends
         self.log(f"hub: robot {robot.id} connected from {robot.peer or '?'}")
+
+    def _rival(self, robot: RobotLink, peer: Optional[str], sender: str, now: float) -> None:
+        """A second connection speaks for a robot whose connection is alive (two agents started with one --id,
+        or one robot key copied twice). The first keeps the robot, frames and wheels, until it is silent for
+        watchdog_s; the other's messages are dropped. Switching on every message instead would hand the frames
+        back and forth, and the agents' wheels with them. Said once every DUPLICATE_WARNING_S, and only once the
+        first connection spoke after the second appeared: an agent that reconnects leaves its old one silent."""
+        self.drops.count("duplicate robot", sender)
+        if now - robot.rival_seen > self.config.watchdog_s:
+            robot.rival_since = now            # a new contest
+        robot.rival_seen = now
+        if robot.last_uplink <= robot.rival_since or now - robot.rival_warned < DUPLICATE_WARNING_S:
+            return
+        robot.rival_warned = now
+        self.log(f"hub: robot {robot.id} is claimed by two connections: {robot.peer or '?'} (first, keeps the "
+                 f"robot) and {peer or '?'} (ignored while the first is alive); is a second agent running with "
+                 f"--id {robot.id}?")
 
     def _on_hello(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
         robot.driver = message["driver"]
@@ -433,6 +464,7 @@ class Hub:
                     and now - robot.pending_sent_at > COMMAND_RETRY_S:
                 robot.pending_sent_at = now
                 self.send_to(robot, robot.pending, topic="command")
+        self._warn_if_no_pose_yet(now)
         silent = now - self.last_frame_stamp > MOCAP_SILENT_S and self.last_frame_stamp > -math.inf
         if silent != self.mocap_silent:
             self.mocap_silent = silent
@@ -441,6 +473,19 @@ class Hub:
         if self.recorder is not None and now >= self._next_status_record:
             self._next_status_record = now + 1.0
             self.recorder.write("/hub/status", self.control.status(now))
+
+    def _warn_if_no_pose_yet(self, now: float) -> None:
+        """A source that never delivers (no server, wrong host, a log without poses) is said from the start,
+        not only once frames stop after a first one. Lockstep frames wait for the agents: nothing to say."""
+        if self.placed_a_robot or self.run.lockstep or now < self._next_no_pose_warning:
+            return
+        self._next_no_pose_warning = now + NO_POSE_YET_REPEAT_S
+        after, source = f"{now - self.started_at:.0f} s", self.source.description
+        if self.last_frame_stamp == -math.inf:
+            self.log(f"hub: no motion-capture frame yet after {after} from {source}")
+        else:
+            self.log(f"hub: the frames from {source} hold none of this lab's robots yet after {after} "
+                     f"(check source.bodies and robots; this lab's robots: {format_ids(self.ids)})")
 
     def _record_drop(self, reason: str, sender: str) -> None:
         if self.recorder is not None:
@@ -467,6 +512,20 @@ def frame_record(seq: int, mode: str, hub_t: float, age: float, batch, k: int, t
         record["clock_s"] = clock_s
     record.update(tail)
     return record
+
+
+def format_ids(ids: List[int], limit: int = 10) -> str:
+    shown = ", ".join(map(str, ids[:limit]))
+    return shown + (f" and {len(ids) - limit} more" if len(ids) > limit else "")
+
+
+def bind_error(err: zmq.ZMQError, bind: str, port: int, port_field: str) -> ConfigError:
+    """A failed bind as the config field to fix: the port when it is taken, else the address."""
+    if err.errno == zmq.EADDRINUSE:
+        return ConfigError(f"network.{port_field}", f"port {port} on {bind} is already in use")
+    reason = (err.strerror or str(err)).split(" (addr=")[0]     # pyzmq appends the endpoint; we name it ourselves
+    return ConfigError("network.bind", f"cannot listen on {bind!r}: {reason} (give an address of this PC, "
+                       "e.g. 127.0.0.1, or * for all interfaces)")
 
 
 def _property(frame: zmq.Frame, name: str) -> Optional[str]:

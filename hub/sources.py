@@ -121,17 +121,64 @@ class _WakeUp:
         self.writer.close(0)
 
 
+CONNECT_TIMEOUT_S = 10.0          # source.connect_timeout_s's default
+IN_PROCESS_SYSTEMS = ("mock",)    # synthetic backends: nothing on the network to wait for
+# Connects in a child process, which ends itself (SIGALRM's default action) should its parent die first.
+_PROBE = """
+import json, os, signal, sys
+signal.alarm(int(sys.argv[3]) + 5)
+import motioncapture
+try:
+    motioncapture.connect(sys.argv[1], json.loads(sys.argv[2]))
+except RuntimeError as err:
+    print(err, file=sys.stderr, flush=True)
+    os._exit(1)
+os._exit(0)   # no destructors: some SDKs block or complain while disconnecting
+"""
+
+
+def describe_options(options: Dict[str, str], limit: int = 80) -> str:
+    text = ", ".join(f"{k}={v}" for k, v in options.items()) or "no options"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def probe_mocap(system: str, options: Dict[str, str], timeout_s: float) -> None:
+    """Connect once in a child process and wait for it at most ``timeout_s``, so that a system that never
+    answers is an error instead of a hang. In this process it could not be timed out or interrupted: some
+    backends (optitrack, with no server) block inside the SDK while holding Python's GIL, which freezes every
+    thread, signal handlers included. The child dies with us on Ctrl-C (same process group) or is killed."""
+    import json
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-c", _PROBE, system, json.dumps(options), str(int(math.ceil(timeout_s)))]
+    try:
+        probe = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        where = f" at {options['hostname']}" if "hostname" in options else ""
+        raise ConfigError("source.system", f"no answer from {system}{where} within {timeout_s:g} s") from None
+    if probe.returncode != 0:
+        reason = probe.stderr.strip().splitlines()[-1:] or [f"exit code {probe.returncode}"]
+        raise ConfigError("source.system", f"cannot connect to {system!r}: {reason[0]}")
+
+
 class MotionCaptureSource(PoseSource):
     """The ``motioncapture`` library in a reader thread (its ``waitForNextFrame`` blocks)."""
 
     def __init__(self, context, system: str, options: Dict[str, Any], bodies: Dict[str, int], up_axis: str,
-                 log: Callable[[str], None] = print, connect: Optional[Callable] = None):
+                 log: Callable[[str], None] = print, connect: Optional[Callable] = None,
+                 connect_timeout_s: float = CONNECT_TIMEOUT_S):
         import motioncapture
 
-        self.description = f"motioncapture {system}"
+        options = {k: str(v) for k, v in options.items()}
+        host = options.get("hostname")
+        self.description = f"motioncapture {system}" + (f" at {host}" if host else "")
         self.bodies, self.up_axis, self.log = dict(bodies), up_axis, log
+        log(f"hub: connecting to {system} ({describe_options(options)})...")
+        if connect is None and system not in IN_PROCESS_SYSTEMS:
+            probe_mocap(system, options, connect_timeout_s)
         try:
-            self.mocap = (connect or motioncapture.connect)(system, {k: str(v) for k, v in options.items()})
+            self.mocap = (connect or motioncapture.connect)(system, options)
         except RuntimeError as err:
             raise ConfigError("source.system", f"cannot connect to {system!r}: {err}") from None
         self.frames: Deque[PoseFrame] = deque(maxlen=8)   # the hub wants the newest; old ones are useless
@@ -218,59 +265,96 @@ class MotionCaptureSource(PoseSource):
 
 
 class ReplaySource(PoseSource):
-    """Poses from a recorded log's ``/mocap/poses`` topic, paced by their stamps at ``rate``."""
+    """Poses from a recorded log's ``/mocap/poses`` topic, paced by their stamps at ``rate``.
+
+    A record that cannot be read as poses is skipped (one log line a second at most): a replay is a tool for
+    looking at a run, and one damaged record must not end it. A log that holds no such record at all is not a
+    hub recording, which is said at start."""
 
     def __init__(self, path: str, rate: float = 1.0, log: Callable[[str], None] = print):
-        from hub.recording import read_log
+        from hub.log_summary import LogReader
+        from hub.recording import LogError
 
         self.description = f"replay {path}"
-        self.rate, self.log = rate, log
+        self.path, self.rate, self.log = path, rate, log
         try:
-            self.records = iter(read_log(path, topics=["/mocap/poses"]))
-        except (OSError, ValueError) as err:
-            raise ConfigError("source.file", f"cannot read {path}: {err}") from None
-        self.pending = None
+            self.reader = LogReader(path)
+        except LogError as err:      # it names the file already: say the problem once
+            raise ConfigError("source.file", f"cannot read {path}: {err.problem}") from None
+        self.records = self._pose_messages()
+        self.pending: Optional[Tuple[int, Any]] = None     # (position among the pose records, MCAP message)
         self.first_stamp: Optional[float] = None
         self.started_at: Optional[float] = None
         self.finished = False
+        self.skipped = 0
+        self._skips_unsaid = 0
+        self._last_skip_line = -math.inf
         self._fetch()
+        if self.pending is None:
+            raise ConfigError("source.file", f"{path} holds no /mocap/poses records (not a khepri hub recording?)")
+
+    def _pose_messages(self):
+        from hub.recording import MOCAP_POSES
+
+        count = 0
+        for topic, message in self.reader.messages():
+            if topic == MOCAP_POSES:
+                yield count, message
+                count += 1
 
     def _fetch(self) -> None:
+        from hub.recording import LogError
+
         try:
             self.pending = next(self.records)
+            return
         except StopIteration:
-            self.pending = None
-            if not self.finished:
-                self.finished = True
-                self.log("hub: replay reached the end of the log")
+            reason = self.reader.stop_reason if not self.reader.complete else ""
+        except LogError as err:      # damaged beyond what the reader walks past: what was read is the log
+            reason = err.problem
+        self.pending = None
+        if not self.finished and self.first_stamp is not None:
+            self.finished = True
+            self.log("hub: replay reached the end of the log" + (f" ({reason})" if reason else ""))
+
+    def _stamp(self, message) -> float:
+        return message.log_time / 1e9
 
     def _due_at(self) -> float:
-        return self.started_at + (self.pending.stamp_s - self.first_stamp) / self.rate
+        return self.started_at + (self._stamp(self.pending[1]) - self.first_stamp) / self.rate
 
     def poll(self, now: float) -> List[PoseFrame]:
         out = []
         while self.pending is not None:
             if self.first_stamp is None:
-                self.first_stamp, self.started_at = self.pending.stamp_s, now
+                self.first_stamp, self.started_at = self._stamp(self.pending[1]), now
             if self._due_at() > now:
                 break
-            frame = self._to_frame(self.pending.payload, now)
+            frame = self._to_frame(*self.pending, now)
             if frame is not None:
                 out.append(frame)
             self._fetch()
         return out[-1:]   # latest-only: a late hub skips to the newest frame
 
-    def _to_frame(self, payload: Dict[str, Any], now: float) -> Optional[PoseFrame]:
+    def _to_frame(self, index: int, message, now: float) -> Optional[PoseFrame]:
         try:
-            ids, poses = [], []
-            for name, (x, y, _z, qx, qy, qz, qw) in payload["bodies"].items():
-                ids.append(int(name))
-                poses.append(pose_from_mocap((x, y, 0.0), (qw, qx, qy, qz), "z"))
-            poses = np.asarray(poses, dtype=float).reshape(len(ids), 3)
+            ids, poses, clock_s = poses_from_record(message.data)
         except (KeyError, TypeError, ValueError, AttributeError) as err:
-            self.log(f"hub: replay: skipping a malformed /mocap/poses record ({err})")
+            self._skip(index, message, str(err) or type(err).__name__)
             return None
-        return PoseFrame(now, ids, poses, clock_s=payload.get("clock_s"))
+        return PoseFrame(now, ids, poses, clock_s=clock_s)
+
+    def _skip(self, index: int, message, reason: str) -> None:
+        self.skipped += 1
+        now = time.monotonic()
+        if now - self._last_skip_line < 1.0:
+            self._skips_unsaid += 1
+            return
+        self._last_skip_line = now
+        more = f" (+{self._skips_unsaid} more skipped in the last second)" if self._skips_unsaid else ""
+        self._skips_unsaid = 0
+        into = self._stamp(message) - self.first_stamp
+        self.log(f"hub: replay: skipping /mocap/poses record {index} ({into:.3f} s into the log): {reason}{more}")
 
     def next_due(self, now: float) -> float:
         if self.pending is None:
@@ -278,3 +362,26 @@ class ReplaySource(PoseSource):
         if self.first_stamp is None:
             return 0.0
         return max(0.0, self._due_at() - now)
+
+
+def poses_from_record(data: bytes) -> Tuple[List[int], np.ndarray, Optional[float]]:
+    """Robot ids, world poses and sim clock of one recorded ``/mocap/poses`` message (its JSON bytes):
+    ``{"bodies": {"<id>": [x, y, z, qx, qy, qz, qw], ...}, "clock_s": ...}``. ValueError, KeyError or
+    TypeError for anything else."""
+    import json
+
+    payload = json.loads(data)
+    if not isinstance(payload, dict):
+        raise ValueError(f"not a JSON object but {type(payload).__name__}")
+    ids, poses = [], []
+    for name, (x, y, _z, qx, qy, qz, qw) in payload["bodies"].items():
+        ids.append(int(name))
+        poses.append(pose_from_mocap((x, y, 0.0), (qw, qx, qy, qz), "z"))
+    array = np.asarray(poses, dtype=float).reshape(len(ids), 3)
+    if not np.isfinite(array).all():
+        raise ValueError("a pose is not finite")
+    clock_s = payload.get("clock_s")
+    if clock_s is not None and (isinstance(clock_s, bool) or not isinstance(clock_s, (int, float))
+                                or not math.isfinite(clock_s)):
+        raise ValueError(f"clock_s must be a finite number (got {clock_s!r})")
+    return ids, array, clock_s

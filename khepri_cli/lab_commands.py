@@ -3,10 +3,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
+from typing import List
 
-from onboard.config import ConfigError
+from onboard.config import ConfigError, check_range
+from onboard.protocol import MAX_ROBOT_ID
 
 
 def add_lab(groups) -> None:
@@ -70,7 +73,12 @@ def cmd_hub(args: argparse.Namespace) -> int:
         config.record = args.record
     if args.bind:
         config.network.bind = args.bind
-    return serve_hub(config)
+    try:
+        return serve_hub(config)
+    except ConfigError as err:
+        if args.bind and err.field == "network.bind":
+            raise ConfigError("--bind", err.problem) from None    # name the option the user typed
+        raise
 
 
 # --- agent ----------------------------------------------------------------------------------------------------
@@ -106,13 +114,17 @@ def _add_ctl(groups) -> None:
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:
-    from hub.control import ControlError, request, status_table
+    from hub.control import BadEndpoint, ControlError, request, status_table
     from hub.security import operator_client_keys
 
+    check_port("--port", args.port)
+    check_timeout("--timeout", args.timeout)
     keys = operator_client_keys(args.keys, args.operator) if args.keys is not None else None
     endpoint = args.hub if "://" in args.hub else f"tcp://{args.hub}:{args.port}"
     try:
         reply = request(endpoint, args.command, keys=keys, timeout_s=args.timeout)
+    except BadEndpoint as err:
+        raise ConfigError("--hub", str(err)) from None
     except ControlError as err:
         print(f"khepri: error: {err}", file=sys.stderr)
         return 1
@@ -121,6 +133,20 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     else:
         print(f"{args.command}: ok{' (' + reply['note'] + ')' if reply.get('note') else ''}")
     return 0
+
+
+MAX_TIMEOUT_S = 3600.0
+
+
+def check_port(option: str, port: int) -> None:
+    if not 1 <= port <= 65535:
+        raise ConfigError(option, f"must be a port 1..65535 (got {port})")
+
+
+def check_timeout(option: str, seconds: float) -> None:
+    """argparse's float() takes nan, inf and -1; ZeroMQ takes milliseconds as a C int."""
+    if not (math.isfinite(seconds) and 0 < seconds <= MAX_TIMEOUT_S):
+        raise ConfigError(option, f"must be a number of seconds > 0 and <= {MAX_TIMEOUT_S:g} (got {seconds:g})")
 
 
 # --- keys -----------------------------------------------------------------------------------------------------
@@ -142,25 +168,49 @@ def cmd_keys_init(args: argparse.Namespace) -> int:
     from hub.security import init_keys
 
     ids = parse_robot_ids(args.robots)
-    created = init_keys(args.folder, ids, args.operator or ["operator"], force=args.force)
-    print(f"created {len(created)} key files in {args.folder}: hub, robots {ids[0]}..{ids[-1]} "
-          f"({len(ids)}), operators {', '.join(args.operator or ['operator'])}")
+    operators = list(dict.fromkeys(args.operator or ["operator"]))     # --operator alice twice: one key pair
+    created = init_keys(args.folder, ids, operators, force=args.force)
+    print(f"created {len(created)} key files in {args.folder}: hub, robots {describe_ids(ids)} "
+          f"({len(ids)}), operators {', '.join(operators)}")
     print(f"  give robot N: {args.folder}/robots/robot-N.key_secret and {args.folder}/hub.key")
     print(f"  keep secret:  {args.folder}/hub.key_secret, {args.folder}/operators/*.key_secret")
     return 0
 
 
-def parse_robot_ids(text: str):
+def describe_ids(ids: List[int]) -> str:
+    """``0..5`` for a run of ids, else the ids (the first ten)."""
+    if ids == list(range(ids[0], ids[-1] + 1)):
+        return f"{ids[0]}..{ids[-1]}"
+    return ", ".join(map(str, ids[:10])) + (", ..." if len(ids) > 10 else "")
+
+
+MAX_KEYED_ROBOTS = 10_000     # a key pair is two files: beyond this a typo, not a lab
+
+
+def parse_robot_ids(text: str) -> List[int]:
+    """``--robots``: a count N (ids 0..N-1) or a list of ids like ``0,1,5``."""
     try:
-        if "," in text:
-            ids = sorted({int(part) for part in text.split(",") if part.strip()})
-        else:
-            ids = list(range(int(text)))
+        numbers = [int(part) for part in text.split(",") if part.strip()]
     except ValueError:
         raise ConfigError("--robots", f"give a count like 6 or ids like 0,1,5 (got {text!r})") from None
-    if not ids or min(ids) < 0:
-        raise ConfigError("--robots", f"needs at least one robot id >= 0 (got {text!r})")
+    if "," not in text and numbers:
+        return list(range(check_robot_count(numbers[0])))
+    ids = sorted(set(numbers))
+    if not ids:
+        raise ConfigError("--robots", f"give at least one robot id (got {text!r})")
+    bad = [i for i in ids if not 0 <= i <= MAX_ROBOT_ID]
+    if bad:
+        raise ConfigError("--robots", f"robot ids must be 0..{MAX_ROBOT_ID} (got {bad[0]})")
+    check_robot_count(len(ids))
     return ids
+
+
+def check_robot_count(count: int) -> int:
+    if count < 1:
+        raise ConfigError("--robots", f"the robot count must be >= 1 (got {count})")
+    if count > MAX_KEYED_ROBOTS:
+        raise ConfigError("--robots", f"at most {MAX_KEYED_ROBOTS} robots (got {count})")
+    return count
 
 
 # --- sil ------------------------------------------------------------------------------------------------------
@@ -185,6 +235,8 @@ def cmd_sil(args: argparse.Namespace) -> int:
     from khepri_cli.sim_commands import check_time_limit, require_out_folder, summary_line
     from sim_backend.scenario import load_scenario
 
+    if args.seed is not None and args.seed < 0:
+        raise ConfigError("--seed", f"must be >= 0 (got {args.seed})")     # numpy seeds are non-negative
     scenario = load_scenario(args.scenario)
     check_time_limit(args.time_limit)
     seed = scenario.seed if args.seed is None else args.seed
@@ -206,17 +258,33 @@ def cmd_sil(args: argparse.Namespace) -> int:
     return 0
 
 
+# The benchmark reads the hub's status, one message of at most 64 KB: about 230 connected robots fit.
+MAX_BENCH_ROBOTS = 200
+MAX_BENCH_RATE_HZ = 1000.0
+MAX_BENCH_SECONDS = 3600.0
+
+
+def check_bench_options(args: argparse.Namespace) -> None:
+    check_range("--robots", args.robots, 1, MAX_BENCH_ROBOTS)
+    check_range("--rate", args.rate, 0, MAX_BENCH_RATE_HZ, low_open=True)     # nan and inf too
+    if args.rate < 1 or not args.rate.is_integer():     # the mock backend's frequency is an integer; 0: unthrottled
+        raise ConfigError("--rate", f"must be a whole number of Hz >= 1 (got {args.rate:g})")
+    check_range("--seconds", args.seconds, 0, MAX_BENCH_SECONDS, low_open=True)
+    if not (math.isfinite(args.telemetry_hz) and 0 <= args.telemetry_hz <= MAX_BENCH_RATE_HZ):
+        raise ConfigError("--telemetry-hz", f"give a rate 0..{MAX_BENCH_RATE_HZ:g} (0: no telemetry), "
+                          f"not {args.telemetry_hz:g}")
+
+
 def cmd_bench_hub(args: argparse.Namespace) -> int:
     from hub.bench import bench_hub
+    from hub.control import ControlError
 
-    for option, value, ok, want in (("--robots", args.robots, args.robots >= 1, ">= 1"),
-                                    ("--rate", args.rate, args.rate > 0, "> 0"),
-                                    ("--seconds", args.seconds, args.seconds > 0, "> 0")):
-        if not ok:
-            raise ConfigError(option, f"must be {want} (got {value:g})")
-    if not args.telemetry_hz >= 0 or args.telemetry_hz == float("inf"):
-        raise ConfigError("--telemetry-hz", f"give a rate >= 0 (0: no telemetry), not {args.telemetry_hz:g}")
-    result = bench_hub(args.robots, args.rate, args.seconds, telemetry_hz=args.telemetry_hz, record=args.record)
+    check_bench_options(args)
+    try:
+        result = bench_hub(args.robots, args.rate, args.seconds, telemetry_hz=args.telemetry_hz, record=args.record)
+    except (ControlError, RuntimeError) as err:     # the hub did not start, answer or send: said, not a traceback
+        print(f"khepri: error: bench hub: {err}", file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps({key: result[key] for key in ("latency_p50_ms", "latency_p99_ms", "hub_cpu_percent")}))
         return 0

@@ -1,4 +1,5 @@
 """The onboard agent, as a real process (or the real Agent class in a thread) against a scripted hub socket."""
+import argparse
 import signal
 import threading
 import time
@@ -228,7 +229,7 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
     An address ZeroMQ refuses is a one-line error naming --hub."""
     import socket as sockets
 
-    from onboard.agent.cli import run_agent
+    from onboard.agent.cli import add_agent_arguments, run_agent
     from onboard.config import ConfigError
 
     with sockets.socket() as probe:          # a free port, closed again: nothing listens there
@@ -245,9 +246,8 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
     assert waiting and f"at tcp://127.0.0.1:{port} yet; still trying" in waiting[0]
     assert time.monotonic() - started < 5.0
 
-    class Args:
-        robot_id, hub, port, keys, quiet, watchdog, driver = 0, "tcp://bad host", 5560, None, True, 0.25, "sim"
-        agent_imports: list = []
-
+    parser = argparse.ArgumentParser()
+    add_agent_arguments(parser)      # every option with its default, as the command line gives them
+    args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--quiet"])
     with pytest.raises(ConfigError, match=r"--hub: cannot connect to 'tcp://bad host'"):
-        run_agent(Args())
+        run_agent(args)

@@ -60,3 +60,34 @@ def test_a_short_run_with_telemetry_and_recording_reports_its_figures():
     assert result["frames_received"] > 0 and result["hub_drops"] == 0
     assert 0 < result["latency_p50_ms"] <= result["latency_p99_ms"]
     assert result["hub_cpu_percent"] > 0
+
+
+@pytest.mark.parametrize("option, value, problem", [
+    ("--rate", "inf", "must be <= 1000 (got inf)"),
+    ("--rate", "nan", "must be > 0 (got nan)"),
+    ("--rate", "0.01", "must be a whole number of Hz >= 1 (got 0.01)"),    # the mock would run unthrottled
+    ("--rate", "1e7", "must be <= 1000 (got 1e+07)"),
+    ("--rate", "1.5", "must be a whole number of Hz >= 1 (got 1.5)"),
+    ("--robots", "300", "must be <= 200 (got 300)"),        # the hub's status would not fit in one message
+    ("--robots", "1100", "must be <= 200 (got 1100)"),      # (and used to run out of file descriptors)
+    ("--seconds", "inf", "must be <= 3600 (got inf)"),
+])
+def test_bench_options_outside_what_works_are_refused(calls, option, value, problem):
+    args = build_parser().parse_args(["bench", "hub", option, value])
+    with pytest.raises(ConfigError) as info:
+        args.func(args)
+    assert (info.value.field, info.value.problem) == (option, problem)
+    assert calls == []
+
+
+def test_a_hub_that_stops_answering_during_the_bench_is_one_line(monkeypatch, capsys):
+    from hub.control import ControlError
+
+    def silent_hub(*args, **kwargs):
+        raise ControlError("no answer from the hub at tcp://127.0.0.1:5 within 5 s")
+
+    monkeypatch.setattr(hub.bench, "bench_hub", silent_hub)
+    assert main(["bench", "hub", "--json"]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err == "khepri: error: bench hub: no answer from the hub at tcp://127.0.0.1:5 within 5 s\n"

@@ -26,7 +26,10 @@ from hub.recording import (
 )
 
 REPO = Path(__file__).resolve().parents[1]
-KHEPRI = REPO / ".venv" / "bin" / "khepri"
+# This checkout's code, whichever checkout or worktree runs the tests (an installed `khepri` script runs the
+# checkout it was installed from).
+KHEPRI = [sys.executable, "-m", "khepri_cli.main"]
+ENV = dict(os.environ, PYTHONPATH=str(REPO))
 T0 = 1_770_000_000.0   # a fixed hub-clock start, so stamps and durations are exact
 
 
@@ -248,7 +251,8 @@ def test_unreadable_files_give_one_clear_error(tmp_path, content, problem):
 
 
 def run_khepri(*args):
-    return subprocess.run([str(KHEPRI), "log", "info", *map(str, args)], capture_output=True, text=True, timeout=60)
+    return subprocess.run([*KHEPRI, "log", "info", *map(str, args)], capture_output=True, text=True, timeout=60,
+                          env=ENV)
 
 
 def test_cli_log_info_prints_the_summary_and_json(tmp_path):

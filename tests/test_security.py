@@ -125,3 +125,21 @@ def test_a_robot_key_cannot_claim_another_robots_id(secure_hub, keys):
 def test_ctl_needs_an_operator_key(secure_hub):
     with pytest.raises(ControlError, match="no answer"):
         request(secure_hub.endpoints["control"], "status", keys=None, timeout_s=0.5)
+
+
+def test_a_refused_key_is_logged_once_with_the_peers_address(secure_hub, keys):
+    """A key mix-up shows in the hub's log, naming where it came from, without a line per retry."""
+    server = load_robot_keys(keys, 0)["server"]
+    alice = operator_client_keys(keys)
+    strangers = [client(secure_hub.endpoints["robots"], (*zmq.curve_keypair(), server)),
+                 client(secure_hub.endpoints["robots"], (alice["public"], alice["secret"], server)),
+                 client(secure_hub.endpoints["control"], (*zmq.curve_keypair(), server))]
+    for sock in strangers:
+        hammer(sock, [HELLO_1] * 3, listen_s=1.5)       # ZeroMQ retries the handshake meanwhile
+    refused = [line for line in secure_hub.lines if "refused" in line]
+    assert refused == [f"hub: refused a robot key from 127.0.0.1: not in {keys / 'robots'} (a key made for another "
+                       "hub or lab, or for the other socket?)",
+                       f"hub: refused an operator key from 127.0.0.1: not in {keys / 'operators'} (a key made for "
+                       "another hub or lab, or for the other socket?)"], secure_hub.lines
+    for sock in strangers:
+        sock.close(0)

@@ -14,6 +14,7 @@ from onboard.behaviour import behaviour_names
 from onboard.config import ConfigError
 from onboard.drivers import Driver
 from onboard.plugins import import_user_modules
+from onboard.protocol import MAX_ROBOT_ID
 
 DEFAULT_ROBOT_PORT = 5560
 
@@ -41,8 +42,10 @@ def run_agent(args: argparse.Namespace) -> int:
     from .link import HubLink, load_robot_keys
     from .loop import Agent
 
-    if args.robot_id < 0:
-        raise ConfigError("--id", f"must be >= 0 (got {args.robot_id})")
+    if not 0 <= args.robot_id <= MAX_ROBOT_ID:     # the hub would drop every message of any other id
+        raise ConfigError("--id", f"must be a robot id 0..{MAX_ROBOT_ID} (got {args.robot_id})")
+    if not 1 <= args.port <= 65535:
+        raise ConfigError("--port", f"must be a port 1..65535 (got {args.port})")
     if not 0.0 < args.watchdog <= 0.3:
         raise ConfigError("--watchdog", f"must be in (0, 0.3] seconds (got {args.watchdog})")
     keys = load_robot_keys(args.keys, args.robot_id) if args.keys is not None else None

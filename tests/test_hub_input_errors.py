@@ -1,0 +1,458 @@
+"""Bad input to the lab stack gives one line naming the field, option or sender (exit code 2 on the command line),
+never a traceback, a hang or a hub that dies later. Real sockets on loopback, real processes."""
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+import zmq
+
+from hub.config import parse_config
+from hub.harness import HubThread
+from hub.sensors import SensingModel
+from hub.server import Hub, RunTemplate
+from hub.sources import PoseFrame, PoseSource
+from onboard.config import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = dict(os.environ, PYTHONPATH=str(ROOT))
+NETWORK = {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}
+
+
+def khepri(*args, timeout=60):
+    return subprocess.run([sys.executable, "-m", "khepri_cli.main", *args], capture_output=True, text=True,
+                          env=ENV, timeout=timeout)
+
+
+def one_error_line(run, field):
+    """The run failed with exit code 2 and a single `khepri: error: <field>: ...` line, no traceback."""
+    assert run.returncode == 2, (run.returncode, run.stderr)
+    assert "Traceback" not in run.stderr, run.stderr
+    last = run.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"khepri: error: {field}: "), run.stderr
+    return last
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def sim_config(**extra):
+    data = {"source": {"type": "sim"}, "network": dict(NETWORK), "security": {"insecure": True}}
+    data.update(extra)
+    return data
+
+
+# --- 1. ports and bind addresses -----------------------------------------------------------------------------------
+@pytest.fixture
+def taken_port():
+    """A port some other program listens on, for the duration of the test."""
+    sock = zmq.Context.instance().socket(zmq.ROUTER)
+    sock.linger = 0
+    sock.bind("tcp://127.0.0.1:*")
+    yield int(sock.getsockopt_string(zmq.LAST_ENDPOINT).rsplit(":", 1)[1])
+    sock.close(0)
+
+
+@pytest.mark.parametrize("role", ["robot_port", "control_port"])
+def test_a_port_in_use_names_the_port_field(tmp_path, taken_port, role):
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump(sim_config(network={**NETWORK, role: taken_port})))
+    line = one_error_line(khepri("hub", "--config", str(config)), f"network.{role}")
+    assert line.endswith(f"port {taken_port} on 127.0.0.1 is already in use")
+
+
+def test_a_failed_bind_leaves_no_socket_open(taken_port):
+    """The robot socket binds, the control socket cannot: the robot port is free again afterwards."""
+    robot_port = free_port()
+    config = parse_config(sim_config(network={**NETWORK, "robot_port": robot_port, "control_port": taken_port}))
+    with pytest.raises(ConfigError) as info:
+        with HubThread(config):
+            pass
+    assert info.value.field == "network.control_port"
+    assert can_bind_soon(robot_port)
+
+
+def can_bind_soon(port: int, within_s: float = 2.0) -> bool:
+    """ZeroMQ closes a listener in its I/O thread, a moment after close() returns."""
+    deadline = time.monotonic() + within_s
+    while True:
+        probe = zmq.Context.instance().socket(zmq.ROUTER)
+        probe.linger = 0
+        try:
+            probe.bind(f"tcp://127.0.0.1:{port}")
+            return True
+        except zmq.ZMQError:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
+        finally:
+            probe.close(0)
+
+
+@pytest.mark.parametrize("bind", ["not a host", "", "10.254.254.1"])
+def test_a_bad_bind_address_names_network_bind(tmp_path, bind):
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump(sim_config(network={**NETWORK, "bind": bind})))
+    line = one_error_line(khepri("hub", "--config", str(config)), "network.bind")
+    assert f"cannot listen on {bind!r}" in line
+
+
+def test_a_bad_bind_option_names_the_option():
+    one_error_line(khepri("hub", "--demo", "--bind", "bad host"), "--bind")
+
+
+# --- 2-4. config values the loader let through ---------------------------------------------------------------------
+def mocap_config(bodies, **extra):
+    return {"source": {"type": "motioncapture", "system": "mock", "bodies": bodies,
+                       "options": {"rigid_bodies": "kh0(0,0,0,1,0,0,0)"}},
+            "network": dict(NETWORK), "security": {"insecure": True}, "run": {"behaviour": "aggregate"}, **extra}
+
+
+@pytest.mark.parametrize("value", ["zero", 1.5, True, -1, 1_000_000, None, [0]])
+def test_a_body_must_map_to_an_integer_robot_id(value):
+    with pytest.raises(ConfigError) as info:
+        parse_config(mocap_config({"kh0": value}))
+    assert info.value.field == "source.bodies.kh0"
+    assert info.value.problem == f"must be an integer robot id 0..999999 (got {value!r})"
+
+
+def test_a_numeric_body_name_matches_the_sdks_string_name():
+    assert parse_config(mocap_config({7: 0})).source.bodies == {"7": 0}
+
+
+def test_a_negative_seed_is_refused_in_the_config_and_on_the_command_line():
+    with pytest.raises(ConfigError) as info:
+        parse_config({"source": {"type": "sim", "seed": -1}})
+    assert str(info.value) == "source.seed: must be >= 0 (got -1)"
+    one_error_line(khepri("sil", "lab-6", "--seed", "-1"), "--seed")
+
+
+def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
+    from hub.factory import build_hub
+
+    config = parse_config(sim_config(robots=list(range(8))))
+    with pytest.raises(ConfigError) as info:
+        build_hub(config, log=lambda line: None)
+    assert info.value.field == "robots"
+    assert "has robots 0..5" in info.value.problem and "no robot 6, 7" in info.value.problem
+    build_hub(parse_config(sim_config(robots=[1, 3])), log=lambda line: None).close()    # a subset is fine
+
+
+# --- 5. a motion-capture system that never answers -----------------------------------------------------------------
+# OptiTrack's NatNet client with no server on loopback blocks in connect() while holding Python's GIL: the hang
+# the hub must turn into an error (a thread could not be timed out; the hub probes in a child process).
+SILENT_MOCAP = {"system": "optitrack", "options": {"hostname": "127.0.0.1"}}
+
+
+def silent_mocap_config(tmp_path, **source):
+    """A lab config on the silent system, written to a file: a hang then ends in the subprocess' timeout, not
+    in a test that never returns."""
+    config = tmp_path / "lab.yaml"
+    data = mocap_config({"kh0": 0})
+    data["source"] = {**SILENT_MOCAP, "type": "motioncapture", "bodies": {"kh0": 0}, **source}
+    config.write_text(yaml.safe_dump(data))
+    return config
+
+
+def test_a_silent_motion_capture_system_is_an_error_after_the_timeout(tmp_path):
+    started = time.monotonic()
+    run = khepri("hub", "--config", str(silent_mocap_config(tmp_path, connect_timeout_s=1)), timeout=30)
+    assert time.monotonic() - started < 15.0
+    assert one_error_line(run, "source.system").endswith("no answer from optitrack at 127.0.0.1 within 1 s")
+    assert "hub: connecting to optitrack (hostname=127.0.0.1)...\n" in run.stdout
+
+
+def test_a_refused_motion_capture_connection_says_why():
+    from hub.factory import build_hub
+
+    config = parse_config(mocap_config({"kh0": 0}))
+    config.source.system, config.source.options = "qualisys", {"hostname": "127.0.0.1:1"}
+    with pytest.raises(ConfigError) as info:
+        build_hub(config, log=lambda line: None)
+    assert info.value.field == "source.system" and "cannot connect to 'qualisys': Error connecting" in str(info.value)
+
+
+def test_ctrl_c_ends_a_hub_waiting_for_motion_capture(tmp_path):
+    hub = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "hub", "--config",
+                            str(silent_mocap_config(tmp_path))],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    try:
+        time.sleep(3.0)                 # started and inside the 10 s connection attempt
+        hub.send_signal(signal.SIGINT)
+        assert hub.wait(timeout=5) == 130
+        output = hub.stdout.read()
+        assert "hub: connecting to optitrack (hostname=127.0.0.1)..." in output and "khepri: interrupted" in output
+    finally:
+        hub.kill()
+        hub.stdout.close()
+
+
+# --- 6. a source that never delivers -------------------------------------------------------------------------------
+class EmptyFrames(PoseSource):
+    """Frames that place none of the lab's robots, as vrpn sends with no server."""
+
+    description = "empty frames"
+
+    def poll(self, now):
+        return [PoseFrame(now, [], np.zeros((0, 3)))]
+
+
+def hub_on(source):
+    def factory(config, log, scenario=None):
+        return Hub(config, source, [0, 1], RunTemplate("aggregate", {}), SensingModel(), 0.0, log=log)
+    return factory
+
+
+@pytest.mark.parametrize("source, line", [
+    (PoseSource(), "hub: no motion-capture frame yet after 2 s from source"),
+    (EmptyFrames(), "hub: the frames from empty frames hold none of this lab's robots yet after 2 s "
+                    "(check source.bodies and robots; this lab's robots: 0, 1)"),
+])
+def test_a_source_that_never_places_a_robot_is_reported_from_the_start(source, line):
+    with HubThread(parse_config(sim_config()), hub_factory=hub_on(source)) as hub:
+        time.sleep(3.0)
+        said = [text for text in hub.lines if "yet after" in text]
+    assert said == [line]       # once; the next one 30 s later
+
+
+def test_a_source_that_placed_robots_says_nothing_of_the_kind():
+    config = parse_config(mocap_config({"kh0": 0}, robots=[0]))
+    with HubThread(config) as hub:
+        time.sleep(2.5)
+    assert not [text for text in hub.lines if "yet after" in text]
+
+
+# --- 6, 7. replaying logs that are not what the hub wrote ----------------------------------------------------------
+T0 = 1_770_000_000.0
+
+
+def raw_log(path, messages):
+    """An MCAP file with JSON channels written by the mcap library itself: ``(topic, bytes, stamp_s)``."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as file:
+        writer = Writer(file)
+        writer.start()
+        schema = writer.register_schema("any", "jsonschema", b"{}")
+        channels = {}
+        for sequence, (topic, data, stamp) in enumerate(messages):
+            if topic not in channels:
+                channels[topic] = writer.register_channel(topic, "json", schema)
+            ns = int(stamp * 1e9)
+            writer.add_message(channels[topic], log_time=ns, data=data, publish_time=ns, sequence=sequence)
+        writer.finish()
+    return path
+
+
+def replay_config(path):
+    return parse_config({"source": {"type": "replay", "file": str(path), "rate": 10.0}, "robots": [0, 1],
+                         "network": dict(NETWORK), "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+
+
+def pose_bytes(x):
+    return json.dumps({"bodies": {"0": [x, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}}).encode()
+
+
+@pytest.mark.parametrize("messages", [[], [("/camera/image", b'{"w": 640}', T0)],
+                                      [("/hub/status", b'{"mode": "idle"}', T0)]])
+def test_a_log_without_mocap_poses_is_refused_at_start(tmp_path, messages):
+    from hub.factory import build_hub
+
+    path = raw_log(tmp_path / "foreign.mcap", messages)
+    with pytest.raises(ConfigError) as info:
+        build_hub(replay_config(path), log=lambda line: None)
+    assert str(info.value) == f"source.file: {path} holds no /mocap/poses records (not a khepri hub recording?)"
+
+
+def test_a_missing_replay_file_is_named_once(tmp_path):
+    from hub.factory import build_hub
+
+    path = tmp_path / "nosuch.mcap"
+    with pytest.raises(ConfigError) as info:
+        build_hub(replay_config(path), log=lambda line: None)
+    assert str(info.value) == f"source.file: cannot read {path}: no such file"
+
+
+def test_malformed_pose_records_are_skipped_and_the_replay_goes_on(tmp_path):
+    bad = [b"[1, 2]", b"not json", b'{"bodies": {"0": [1, 2]}}', b'{"bodies": {"x": [0, 0, 0, 0, 0, 0, 1]}}',
+           b'{"bodies": {"0": [NaN, 0, 0, 0, 0, 0, 1]}}', b'{"no bodies": 1}',
+           b'{"bodies": {"0": [0, 0, 0, 0, 0, 0, 1]}, "clock_s": "noon"}']
+    messages = [("/mocap/poses", data, T0 + 0.01 * k) for k, data in enumerate(bad)]    # 0.07 s of bad ones
+    messages += [("/mocap/poses", pose_bytes(0.01 * k), T0 + 0.1 + 0.01 * k) for k in range(300)]   # 3 s good
+    path = raw_log(tmp_path / "mixed.mcap", messages)
+    with HubThread(replay_config(path)) as hub:
+        hub.wait_until(lambda s: s["mocap_hz"] > 0, timeout_s=10)
+        time.sleep(0.5)
+        assert hub.status()["mode"] == "idle"         # still up and answering
+    skipped = [line for line in hub.lines if "skipping" in line]
+    assert skipped == ["hub: replay: skipping /mocap/poses record 0 (0.000 s into the log): "
+                       "not a JSON object but list"]   # the rest of the burst within the same second: counted
+    assert hub.hub.source.skipped == len(bad)
+
+
+def test_a_burst_of_malformed_records_says_how_many_were_left_unsaid(tmp_path):
+    messages = [("/mocap/poses", b"[]", T0 + 0.5 * k) for k in range(30)]      # 1.5 s of bad records at 10x
+    messages += [("/mocap/poses", pose_bytes(0.0), T0 + 15.0 + 0.1 * k) for k in range(100)]
+    path = raw_log(tmp_path / "bad.mcap", messages)
+    with HubThread(replay_config(path)) as hub:
+        hub.wait_until(lambda s: s["mocap_hz"] > 0, timeout_s=10)
+    skipped = [line for line in hub.lines if "skipping" in line]
+    assert len(skipped) == 2, skipped
+    assert skipped[0].startswith("hub: replay: skipping /mocap/poses record 0 (0.000 s into the log)")
+    assert re.search(r"record \d+ \(\d+\.\d{3} s into the log\): not a JSON object but list "
+                     r"\(\+\d+ more skipped in the last second\)$", skipped[1]), skipped
+    assert hub.hub.source.skipped == 30
+
+
+# --- 8, 9. ctl and agent options -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("option, value", [("--timeout", "-1"), ("--timeout", "nan"), ("--timeout", "1e9"),
+                                           ("--timeout", "0"), ("--port", "-5"), ("--port", "0"),
+                                           ("--port", "99999"), ("--hub", "bad host")])
+def test_ctl_refuses_a_bad_option_naming_it(option, value):
+    one_error_line(khepri("ctl", "status", option, value), option)
+
+
+def test_ctl_still_waits_for_a_hub_that_is_not_there():
+    run = khepri("ctl", "status", "--port", str(free_port()), "--timeout", "0.2")
+    assert run.returncode == 1 and "no answer from the hub" in run.stderr
+
+
+@pytest.mark.parametrize("option, value, problem", [("--id", "99999999999", "must be a robot id 0..999999"),
+                                                    ("--id", "-1", "must be a robot id 0..999999"),
+                                                    ("--port", "0", "must be a port 1..65535")])
+def test_agent_refuses_an_id_the_hub_would_never_accept(option, value, problem):
+    args = ["--id", "1", "--driver", "sim", option, value]
+    line = one_error_line(khepri("agent", *args, timeout=20), option)
+    assert problem in line
+
+
+# --- 11. keys init -------------------------------------------------------------------------------------------------
+def limited_memory():
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))     # a runaway allocation fails, not the machine
+
+
+def keys_init(*args):
+    return subprocess.run([sys.executable, "-m", "khepri_cli.main", "keys", "init", *map(str, args)],
+                          capture_output=True, text=True, env=ENV, timeout=60, preexec_fn=limited_memory)
+
+
+@pytest.mark.parametrize("robots, problem", [
+    ("1000000000", "at most 10000 robots (got 1000000000)"),
+    ("10001", "at most 10000 robots (got 10001)"),
+    ("0,99999999", "robot ids must be 0..999999 (got 99999999)"),
+    ("0", "the robot count must be >= 1 (got 0)"),
+    (",", "give at least one robot id (got ',')"),
+])
+def test_keys_init_refuses_robots_no_hub_would_take(tmp_path, robots, problem):
+    line = one_error_line(keys_init(tmp_path / "keys", "--robots", robots), "--robots")
+    assert line.endswith(problem)
+    assert not (tmp_path / "keys").exists()
+
+
+def test_keys_init_makes_one_pair_per_operator_and_counts_what_it_made(tmp_path):
+    run = keys_init(tmp_path / "keys", "--robots", "0,3", "--operator", "alice", "--operator", "alice")
+    assert run.returncode == 0, run.stderr
+    files = sorted(p.relative_to(tmp_path / "keys").as_posix() for p in (tmp_path / "keys").rglob("*") if p.is_file())
+    assert len(files) == 8 and "operators/alice.key_secret" in files
+    assert run.stdout.startswith(f"created 8 key files in {tmp_path / 'keys'}: hub, robots 0, 3 (2), operators alice\n")
+
+
+def test_keys_init_into_a_file_says_so(tmp_path):
+    (tmp_path / "afile").write_text("")
+    line = one_error_line(keys_init(tmp_path / "afile"), "keys")
+    assert line.endswith(f"{tmp_path / 'afile'} is a file, not a folder")
+
+
+# --- 12. the status of many robots, and khepri bench hub -----------------------------------------------------------
+def test_a_status_too_large_for_one_message_is_refused_and_the_hub_stays_up():
+    """Found while bounding `khepri bench hub --robots`: with about 250 connected robots the status reply passes
+    the protocol's 64 KB, and encoding it used to raise out of the hub's loop, killing the hub."""
+    from hub.bench import bench_config
+    from hub.control import ControlError
+    from onboard.protocol import encode
+
+    robots = 320
+    with HubThread(parse_config(bench_config(robots, 50, 0, 0))) as hub:
+        agents = []
+        try:
+            for i in range(robots):
+                sock = zmq.Context.instance().socket(zmq.DEALER)
+                sock.linger = 0
+                sock.connect(hub.endpoints["robots"])
+                sock.send(encode({"type": "hello", "id": i, "driver": "test"}))
+                agents.append(sock)
+            deadline = time.monotonic() + 20
+            while True:
+                try:
+                    hub.status()
+                except ControlError as err:
+                    assert "the hub refused status: the reply is too large to send" in str(err)
+                    break
+                assert time.monotonic() < deadline, "the status never grew past the limit"
+                time.sleep(0.2)
+            hub.request("estop")                  # still serving
+            assert hub._thread.is_alive()
+        finally:
+            for sock in agents:
+                sock.close(0)
+
+
+# --- 10. two agents with one robot id ------------------------------------------------------------------------------
+def test_two_agents_with_one_id_are_said_once_and_the_first_keeps_the_robot(tmp_path):
+    from hub.harness import spawn_agent, stop_processes
+
+    with HubThread(parse_config(sim_config())) as hub:
+        first = spawn_agent(hub.endpoints["robots"], 0, tmp_path / "first.log")
+        second = None
+        try:
+            hub.wait_until(lambda s: s["robots"][0]["connected"])
+            second = spawn_agent(hub.endpoints["robots"], 0, tmp_path / "second.log")
+            deadline = time.monotonic() + 20
+            while not [line for line in hub.lines if "claimed by two connections" in line]:
+                assert time.monotonic() < deadline, hub.lines
+                time.sleep(0.1)
+            time.sleep(4.0)                       # both keep talking, the second reconnecting every 2 s
+            claimed = [line for line in hub.lines if "claimed by two connections" in line]
+            joined = [line for line in hub.lines if line.startswith("hub: robot 0 connected from")]
+            assert claimed == ["hub: robot 0 is claimed by two connections: 127.0.0.1 (first, keeps the robot) and "
+                               "127.0.0.1 (ignored while the first is alive); is a second agent running with --id 0?"]
+            assert len(joined) == 1, joined       # no hand-over back and forth
+            assert hub.status()["drops"]["duplicate robot"] > 0
+            stop_processes([first])               # the first goes: the second gets the robot
+            hub.wait_until(lambda s: s["robots"][0]["connected"]
+                           and len([line for line in hub.lines if "robot 0 connected from" in line]) == 2)
+        finally:
+            stop_processes([p for p in (first, second) if p is not None])
+
+
+# --- 13. khepri log info on what is not a log ----------------------------------------------------------------------
+def test_log_info_refuses_a_fifo_and_a_device_without_blocking(tmp_path):
+    fifo = tmp_path / "fifo.mcap"
+    os.mkfifo(fifo)
+    for path in (fifo, Path("/dev/zero")):
+        line = one_error_line(khepri("log", "info", str(path), timeout=20), str(path))
+        assert line.endswith("not a regular file (a log is a file the hub wrote)")
+
+
+def test_a_damaged_chunk_says_what_is_wrong_with_it(tmp_path):
+    import struct
+
+    from hub.recording import MCAP_MAGIC, summarise
+
+    path = tmp_path / "cut-chunk.mcap"
+    body = bytes.fromhex("628d672349855219")          # a chunk record whose fields end before they should
+    path.write_bytes(MCAP_MAGIC + struct.pack("<BQ", 0x06, len(body)) + body)
+    assert summarise(path).stop_reason == "damaged record (opcode 0x06) at byte 8: EndOfFile"
