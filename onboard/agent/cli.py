@@ -10,7 +10,7 @@ from typing import List, Optional
 
 import zmq
 
-from onboard.behaviour import behaviour_names
+from onboard.behaviour import BehaviourError, behaviour_names
 from onboard.config import ConfigError
 from onboard.drivers import Driver
 from onboard.plugins import import_user_modules
@@ -105,5 +105,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ConfigError as err:
         print(f"agent: error: {err}", file=sys.stderr)
         return 2
+    except BehaviourError as err:      # already logged with its traceback; the wheels are stopped
+        print(f"agent: error: the behaviour crashed: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
