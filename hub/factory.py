@@ -90,8 +90,9 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     build_params(cls, params, "run.params")     # reject bad parameters here, not on every robot
     spec = RobotSpec() if scenario is None else RobotSpec(max_wheel_speed_m_s=scenario.robots.max_wheel_speed_m_s)
     control_hz = scenario.physics.control_hz if scenario is not None else run.control_hz
+    seed = config.source.seed if config.source.seed is not None else getattr(scenario, "seed", None)
     return RunTemplate(name, params, control_hz, lockstep=config.source.type == "sim" and config.source.lockstep,
-                       spec=dict(spec.__dict__))
+                       spec=dict(spec.__dict__), seed=seed)
 
 
 def sensing_model(config: LabConfig, scenario) -> SensingModel:

@@ -59,11 +59,15 @@ class RunTemplate:
     control_hz: float = 10.0
     lockstep: bool = False
     spec: Dict[str, float] = field(default_factory=dict)
+    seed: Optional[int] = None      # each agent seeds its `random` from it and its id (reproducible SIL runs)
 
     def message(self, run_id: str) -> Dict[str, Any]:
-        return {"run_id": run_id, "behaviour": self.behaviour, "params": self.params,
-                "control_hz": self.control_hz, "lockstep": self.lockstep,
-                "clock": "hub" if self.lockstep else "local", "spec": self.spec}
+        message = {"run_id": run_id, "behaviour": self.behaviour, "params": self.params,
+                   "control_hz": self.control_hz, "lockstep": self.lockstep,
+                   "clock": "hub" if self.lockstep else "local", "spec": self.spec}
+        if self.seed is not None:
+            message["seed"] = self.seed
+        return message
 
 
 class Hub:

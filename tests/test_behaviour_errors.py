@@ -171,3 +171,28 @@ def test_params_mistakes_and_name_clashes_are_config_errors():
     with pytest.raises(ConfigError, match="the behaviour name 'transport' is taken by"):
         register("transport")(Fussy)
     assert math.isfinite(build_params(Fussy, {}).speed)
+
+
+RANDOM_WALK = '''
+import random
+
+from onboard.behaviour import Behaviour, register
+
+
+@register("random-walk")
+class RandomWalk(Behaviour):
+    def step(self):
+        self.robot.wheels.set_speeds(random.uniform(0.0, 0.2), random.uniform(0.0, 0.2))
+'''
+
+
+def test_sil_runs_of_a_behaviour_that_uses_random_repeat(tmp_path, monkeypatch):
+    (tmp_path / "random_walk.py").write_text(RANDOM_WALK)
+    (tmp_path / "walk.yaml").write_text(SCENARIO.replace("buggy", "random-walk").format(bug="none")
+                                        .replace("params: {bug: none}\n", ""))
+    monkeypatch.chdir(tmp_path)
+    ends = []
+    for out in ("a", "b"):
+        assert main(["--import", "random_walk", "sil", "walk.yaml", "--no-plot", "--no-record", "--out", out]) == 0
+        ends.append(np.load(tmp_path / out / "trajectory.npz")["robot_pose"][-1])
+    assert np.array_equal(ends[0], ends[1])

@@ -13,6 +13,7 @@ hub frame. Everything else is the same code.
 from __future__ import annotations
 
 import math
+import random
 import signal
 import time
 from dataclasses import dataclass
@@ -192,6 +193,10 @@ class Agent:
         self.error = None
         self.run = run
         self.clock.restart(run.get("clock") == "hub")
+        seed = run.get("seed")
+        if isinstance(seed, int) and not isinstance(seed, bool):
+            # As the simulator seeds `random` for its behaviours: a run with a seed repeats, agent by agent.
+            random.seed(seed * 1_000_003 + self.robot_id)
         robot = make_robot(self.robot_id, self.state, self.clock, self.driver, self.link.send, spec)
         try:
             self.behaviour = cls(robot, params)
