@@ -21,6 +21,7 @@ def restore_behaviour_registry():
     known behaviours."""
     from onboard import behaviour
 
+    behaviour.behaviour_names()          # the built-ins first: they register once per process, when imported
     before = dict(behaviour._REGISTRY)
     yield
     behaviour._REGISTRY.clear()
