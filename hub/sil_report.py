@@ -55,6 +55,7 @@ def sil_figures(hub, lockstep, round_trips: List[float], missing_answers: int, i
     loops = [((r.telemetry or {}).get("loop") or {}) for r in hub.robots.values()]
     lost = [int((r.telemetry or {}).get("frames_lost") or 0) for r in hub.robots.values()]
     bad = [int((r.telemetry or {}).get("frames_bad") or 0) for r in hub.robots.values()]
+    unsent = [int((r.telemetry or {}).get("unsent") or 0) for r in hub.robots.values()]
     return {
         "agents": len(hub.robots),
         "lockstep": is_lockstep,
@@ -72,6 +73,7 @@ def sil_figures(hub, lockstep, round_trips: List[float], missing_answers: int, i
             "downlink_queue_full": sum(r.frames_dropped for r in hub.robots.values()),
             "frames_lost_at_agents": sum(lost),
             "bad_frames_at_agents": sum(bad),
+            "unsent_at_agents": sum(unsent),    # the agents' sockets were full: their messages never left
             "relay": hub.relay.stats.as_dict(),
         },
     }

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import inspect
 import os
 import sys
 import traceback
@@ -113,6 +114,8 @@ def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
     another class is an error (the second would silently replace the first, or be replaced by it)."""
 
     def decorate(cls: Type[Behaviour]) -> Type[Behaviour]:
+        if inspect.isgeneratorfunction(getattr(cls, "step", None)):    # calling it would only make a generator
+            raise ConfigError("register", f"{_qualified(cls)}.step contains `yield`: it would never run")
         taken = _REGISTRY.get(name)
         if taken is not None and _qualified(taken) != _qualified(cls):   # the same class imported again is fine
             raise ConfigError("register", f"the behaviour name {name!r} is taken by {_qualified(taken)}; "

@@ -170,6 +170,13 @@ def test_params_mistakes_and_name_clashes_are_config_errors():
         build_params(Fussy, {"speed": 2.0})
     with pytest.raises(ConfigError, match="the behaviour name 'transport' is taken by"):
         register("transport")(Fussy)
+
+    class Lazy(Behaviour):
+        def step(self):
+            yield
+
+    with pytest.raises(ConfigError, match=r"Lazy.step contains `yield`: it would never run"):
+        register("lazy")(Lazy)
     assert math.isfinite(build_params(Fussy, {}).speed)
 
 
@@ -196,3 +203,30 @@ def test_sil_runs_of_a_behaviour_that_uses_random_repeat(tmp_path, monkeypatch):
         assert main(["--import", "random_walk", "sil", "walk.yaml", "--no-plot", "--no-record", "--out", out]) == 0
         ends.append(np.load(tmp_path / out / "trajectory.npz")["robot_pose"][-1])
     assert np.array_equal(ends[0], ends[1])
+
+
+SLEEPY = '''
+import time
+
+from onboard.behaviour import Behaviour, register
+
+
+@register("sleepy")
+class Sleepy(Behaviour):
+    def step(self):
+        if self.robot.id == 0 and abs(self.robot.clock.now() - 0.3) < 0.05:
+            time.sleep(0.4)
+        self.robot.wheels.set_speeds(0.1, 0.1)
+'''
+
+
+def test_a_step_slower_than_the_watchdog_is_named_as_the_cause(tmp_path, monkeypatch):
+    (tmp_path / "sleepy.py").write_text(SLEEPY)
+    scenario = SCENARIO.replace("buggy", "sleepy").format(bug="none").replace("params: {bug: none}\n", "")
+    (tmp_path / "sleepy.yaml").write_text(scenario.replace("time_limit_s: 2", "time_limit_s: 1"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["--import", "sleepy", "sil", "sleepy.yaml", "--no-plot", "--no-record", "--out", "out"]) == 0
+    log = (tmp_path / "out" / "agents" / "agent-0.log").read_text()
+    assert "the behaviour's step took 0.4" in log and "longer than the 0.25 s watchdog" in log
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["sil"]["dropped"]["unsent_at_agents"] >= 0      # counted (hellos before the connection, too)

@@ -41,12 +41,14 @@ class LoopStats:
     misses: int = 0
     total_step_s: float = 0.0
     max_step_s: float = 0.0
+    last_step_s: float = 0.0
     window_start: float = 0.0
     window_steps: int = 0
     hz: float = 0.0
 
     def record(self, started: float, finished: float, deadline: float) -> None:
         duration = finished - started
+        self.last_step_s = duration
         self.steps += 1
         self.total_step_s += duration
         self.max_step_s = max(self.max_step_s, duration)
@@ -239,7 +241,12 @@ class Agent:
         if not self.watchdog_tripped and now - self.state.received_at > self.watchdog_s:
             self.watchdog_tripped = True
             self.driver.stop()
-            if self.state.received_at > -math.inf:
+            if self.state.received_at <= -math.inf:
+                return
+            if self.stats.last_step_s > self.watchdog_s:     # the frames waited for us, not the other way round
+                self.log(f"agent {self.robot_id}: the behaviour's step took {self.stats.last_step_s:.2f} s, longer "
+                         f"than the {self.watchdog_s:g} s watchdog: wheels stopped (make step() faster)")
+            else:
                 self.log(f"agent {self.robot_id}: no frame from the hub for {self.watchdog_s:g} s: wheels stopped")
 
     # --- one control step ---------------------------------------------------------------------------------
@@ -273,7 +280,8 @@ class Agent:
             "type": "telemetry", "step": self.state.seq, "mode": mode, "behaviour": behaviour,
             "loop": self.stats.as_dict(), "battery_v": self.driver.battery_v(),
             "clock_s": round(self.clock.now(), 6), "frames_lost": self.state.frames_lost,
-            "frames_bad": self.link.bad, "run_id": self.run.get("run_id") if self.run else None,
+            "frames_bad": self.link.bad, "unsent": self.link.unsent,
+            "run_id": self.run.get("run_id") if self.run else None,
         }
         try:
             encode(dict(message, id=self.robot_id))
