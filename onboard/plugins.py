@@ -20,6 +20,9 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
 
     A module that cannot be found or imported, or whose file does not parse, is a ConfigError naming it; any
     other exception raised by the module's own code keeps its traceback (it is a bug in that module)."""
+    from .behaviour import behaviour_names
+
+    behaviour_names()      # the built-ins first: a user's module reusing one of their names is then the one told
     base = base_dir or os.getcwd()
     if base not in sys.path:
         sys.path.insert(0, base)

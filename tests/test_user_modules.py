@@ -56,6 +56,9 @@ def test_a_module_name_a_file_path_and_what_goes_wrong(tmp_path, monkeypatch):
         assert caught.value.field == "--import" and problem in caught.value.problem, caught.value
     with pytest.raises(ZeroDivisionError):            # the module's own bug keeps its traceback
         import_user_modules(["plugin_raises"], str(tmp_path))
+    (tmp_path / "plugin_clash.py").write_text(DRIVE_BEHAVIOUR.format(name="transport"))
+    with pytest.raises(ConfigError, match="'transport' is taken by onboard.behaviours.transport.+plugin_clash.Drive"):
+        import_user_modules(["plugin_clash"], str(tmp_path))     # the user's module is told, not the built-in
 
 
 def test_sil_agents_import_the_users_behaviour_and_run_it(tmp_path, monkeypatch, capsys):

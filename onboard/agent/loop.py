@@ -203,8 +203,7 @@ class Agent:
         try:
             self.behaviour = cls(robot, params)
         except Exception as exc:
-            self.behaviour_failed(BehaviourError(self.robot_id, f"{cls.__name__}.__init__", exc))
-            return
+            self.behaviour_failed(BehaviourError(self.robot_id, f"{cls.__name__}.__init__", exc))   # raises
         self.answered_seq = self.state.seq
         self.next_tick = time.monotonic()
         self.log(f"agent {self.robot_id}: run {run.get('run_id')}: {run.get('behaviour')}")
