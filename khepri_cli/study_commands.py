@@ -102,9 +102,7 @@ def study_grid(args: argparse.Namespace):
         path = Path(args.target)
         if not path.is_file():
             raise ConfigError("study", f"{args.target!r} is not `paper`, `report` or a study file")
-        spec = load_study_file(path)
-        if args.reps is not None:
-            spec.seeds = list(range(1, args.reps + 1))
+        spec = load_study_file(path, args.reps)
     if args.time_limit is not None:
         spec.time_limit_s = args.time_limit
     if args.scenarios is not None:

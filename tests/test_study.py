@@ -523,3 +523,11 @@ def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_pa
     main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"])
     err = capsys.readouterr().err
     assert "warning: 1 runs already in" in err and "ran a scenario that has changed since (cells mine)" in err
+
+
+def test_reps_on_the_command_line_gives_a_study_file_its_seeds(tmp_path, capsys):
+    study = write(tmp_path / "no-seeds.yaml", "scenarios: [lab-6]\ntime_limit_s: 1\n")
+    assert main(["study", str(study), "--reps", "2", "--dry-run", "--out", str(tmp_path / "out")]) == 0
+    assert "2 runs, 2 to run" in capsys.readouterr().out
+    assert main(["study", str(study), "--dry-run", "--out", str(tmp_path / "out")]) == 2   # neither: say so
+    assert "seeds: give either seeds" in capsys.readouterr().err

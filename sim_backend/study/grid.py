@@ -82,8 +82,12 @@ def check_reps(where: str, reps: Any) -> int:
     return reps
 
 
-def load_study_file(path: Path) -> StudySpec:
+def load_study_file(path: Path, reps: Optional[int] = None) -> StudySpec:
+    """A study file; ``reps`` (``--reps``) replaces its seeds, or gives them when the file has none."""
     data = read_yaml(path, "study")
+    if reps is not None and isinstance(data, dict):
+        data = {key: value for key, value in data.items() if key not in ("seeds", "reps")}
+        data["reps"] = reps
     return parse_study(data, base_dir=path.parent, default_name=path.stem)
 
 
