@@ -118,5 +118,9 @@ def open_recorder(path: str, metadata: Dict[str, Any]):
         from hub.recording import Recorder
     except ImportError as err:
         raise ConfigError("record", f"recording is not available in this installation ({err})") from None
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    folder = Path(path).parent
+    blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+    if blocker is not None:      # mkdir would say "File exists", which points at the wrong problem
+        raise ConfigError("record", f"cannot make the folder {folder}: {blocker} is a file, not a folder")
+    folder.mkdir(parents=True, exist_ok=True)
     return Recorder(path, flush_period_s=1.0, metadata={k: str(v) for k, v in metadata.items()})

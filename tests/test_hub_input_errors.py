@@ -456,3 +456,12 @@ def test_a_damaged_chunk_says_what_is_wrong_with_it(tmp_path):
     body = bytes.fromhex("628d672349855219")          # a chunk record whose fields end before they should
     path.write_bytes(MCAP_MAGIC + struct.pack("<BQ", 0x06, len(body)) + body)
     assert summarise(path).stop_reason == "damaged record (opcode 0x06) at byte 8: EndOfFile"
+
+
+def test_a_record_path_under_a_file_names_the_file(tmp_path, capsys):
+    from khepri_cli.main import main
+
+    blocker = tmp_path / "plainfile"
+    blocker.write_text("not a folder")
+    assert main(["hub", "--demo", "--record", str(blocker / "run.mcap")]) == 2
+    assert f"record: cannot make the folder {blocker}: {blocker} is a file, not a folder" in capsys.readouterr().err

@@ -187,6 +187,8 @@ class Message:
     """A radio message received from ``sender``; ``payload`` is a JSON-compatible mapping.
 
     ``sent_s`` is the sender's clock when it broadcast (informational: clocks are not synchronised).
+    Treat ``payload`` as read-only: in simulation all receivers of one broadcast share it (decoding it once
+    per receiver would cost more than the rest of the radio), so a change would reach the others.
     """
 
     sender: int
