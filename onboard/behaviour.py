@@ -154,6 +154,11 @@ def build_params(cls: Type[Behaviour], overrides: Optional[Mapping[str, Any]], w
         raise ConfigError(where, f"{cls.__name__}.Params cannot be read: {type(err).__name__}: {err}") from None
 
 
+def takes_param(cls: Type[Behaviour], name: str) -> bool:
+    """Whether the behaviour's Params has a field ``name`` (how a behaviour asks for the mission's path, say)."""
+    return any(f.name == name for f in dataclasses.fields(cls.Params))
+
+
 def _load_builtin() -> None:
     # Importing the package registers the shipped behaviours.
     from . import behaviours  # noqa: F401

@@ -3,7 +3,6 @@ forwards their commands to physics, records trajectories and evaluates the run a
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import random
 import time
@@ -12,7 +11,14 @@ from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
 
-from onboard.behaviour import BehaviourError, build_params, get_behaviour, make_behaviours, telemetry_of
+from onboard.behaviour import (
+    BehaviourError,
+    build_params,
+    get_behaviour,
+    make_behaviours,
+    takes_param,
+    telemetry_of,
+)
 from onboard.geometry import neighbour_mask, pairwise_range_bearing, wrap
 
 from .hal import SensorFrame, make_robot
@@ -43,10 +49,10 @@ def mission_params(behaviour_cls, scenario: Scenario) -> Dict[str, Any]:
     that declare those parameters. The estimate is the object's *initial* placement, which the paper assumes
     known; the robots never get the object's live pose."""
     params = dict(scenario.params)
-    names = {f.name for f in dataclasses.fields(behaviour_cls.Params)}
-    if "path" in names and "path" not in params:
+    if takes_param(behaviour_cls, "path") and "path" not in params:
         params["path"] = [list(w) for w in scenario.path]
-    if "object_estimate" in names and "object_estimate" not in params and scenario.object is not None:
+    if takes_param(behaviour_cls, "object_estimate") and "object_estimate" not in params \
+            and scenario.object is not None:
         params["object_estimate"] = [*scenario.object.position, scenario.object.yaw_deg]
     return params
 

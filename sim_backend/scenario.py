@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple, Union
 
-from onboard.behaviour import build_params, get_behaviour
+from onboard.behaviour import build_params, get_behaviour, takes_param
 from onboard.config import ConfigError, check_range, from_mapping, join
 from onboard.yamlfile import read_yaml
 
@@ -261,7 +261,7 @@ class Scenario:
         check_range("time_limit_s", self.time_limit_s, 0.0, low_open=True)
         behaviour_cls = get_behaviour(self.behaviour, "behaviour")
         build_params(behaviour_cls, self.params, "params")
-        if self.path and "path" not in {f.name for f in dataclasses.fields(behaviour_cls.Params)}:
+        if self.path and not takes_param(behaviour_cls, "path"):
             raise ConfigError("path", f"the {self.behaviour} behaviour does not follow a path (its params have "
                                       f"no 'path'): the path would be ignored")
         for i, fault in enumerate(self.faults):
@@ -309,9 +309,9 @@ def resolve(name_or_path: str) -> Path:
     path = Path(name_or_path)
     if path.is_file():
         return path
-    if path.is_dir() and path.suffix in (".yaml", ".yml"):
-        raise ConfigError("scenario", f"{name_or_path} is a folder, not a file")
     is_yaml = path.suffix in (".yaml", ".yml")
+    if is_yaml and path.is_dir():
+        raise ConfigError("scenario", f"{name_or_path} is a folder, not a file")
     builtin = BUILTIN_DIR / f"{name_or_path}.yaml"
     if not is_yaml and builtin.is_file():
         return builtin     # even when a folder of that name is here (a run's output, say)
