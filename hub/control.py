@@ -6,7 +6,7 @@ from typing import Any, Dict, List, Optional
 
 import zmq
 
-from onboard.protocol import ProtocolError, decode, encode
+from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
 from .security import apply_client_keys
 
@@ -55,7 +55,7 @@ def _await_reply(sock: zmq.Socket, nonce: int, timeout_s: float, endpoint: str) 
     poller.register(sock, zmq.POLLIN)
     while poller.poll(timeout_s * 1000.0):
         try:
-            reply = decode(sock.recv(), f"hub at {endpoint}", accept=("reply",))
+            reply = decode(sock.recv(), f"hub at {endpoint}", accept=("reply",), max_bytes=MAX_REPLY_BYTES)
         except ProtocolError as err:
             raise ControlError(str(err)) from None
         if reply.get("nonce") == nonce:

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any, Dict, List, Tuple
 
 import zmq
 
-from onboard.protocol import ProtocolError, decode, encode
+from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
 if TYPE_CHECKING:
     from .server import Hub
@@ -127,7 +127,7 @@ def encode_reply(reply: Dict[str, Any]) -> bytes:
     """The reply, or, when it is over the protocol's message limit (the status of a few hundred connected
     robots), a refusal that says so: the hub must not die of an operator's question."""
     try:
-        return encode(reply)
+        return encode(reply, MAX_REPLY_BYTES)
     except ProtocolError as err:
         refusal = {"type": "reply", "ok": False, "error": f"the reply is too large to send ({err.problem})"}
         if "nonce" in reply:

@@ -23,6 +23,9 @@ import numpy as np
 PROTOCOL_VERSION = 2
 #: Largest encoded message on any socket. Downlink frames pack relayed messages only up to this size.
 MAX_MESSAGE_BYTES = 65536
+# The hub's replies to `khepri ctl` (the status of every robot, ~300 bytes each) may be larger: an operator's
+# PC, not a robot, reads them, and a lab of a few hundred robots would not fit in MAX_MESSAGE_BYTES.
+MAX_REPLY_BYTES = 4 * 1024 * 1024
 #: Largest radio payload (compact JSON), the same limit as ``onboard.hal.Radio.MAX_PAYLOAD_BYTES``.
 MAX_PAYLOAD_BYTES = 8192
 MODES = ("idle", "run", "hold", "estop")
@@ -209,10 +212,11 @@ DOWNLINK_TYPES = ("frame", "command")
 UPLINK_TYPES = ("hello", "telemetry", "broadcast", "wheels", "ack")
 
 
-def encode(message: Dict[str, Any]) -> bytes:
+def encode(message: Dict[str, Any], max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
     """The wire bytes of one message, the version added: a binary frame for ``type: frame`` (validated against
     its schema first), compact JSON for every other type. Raises ProtocolError when the peer would reject it:
-    too large, not JSON, or (frames) a field that does not fit."""
+    too large (over ``max_bytes``; MAX_REPLY_BYTES for control replies), not JSON, or (frames) a field that
+    does not fit."""
     if message.get("type") == "frame":
         return _encode_frame_message(message)
     body = dict(message)
@@ -221,9 +225,8 @@ def encode(message: Dict[str, Any]) -> bytes:
         data = json.dumps(body, separators=(",", ":"), allow_nan=False).encode("utf-8")
     except (TypeError, ValueError) as err:
         raise ProtocolError(f"cannot encode: {err}", str(message.get("type", "")), "self") from None
-    if len(data) > MAX_MESSAGE_BYTES:
-        raise ProtocolError(f"message of {len(data)} bytes exceeds {MAX_MESSAGE_BYTES}",
-                            str(message.get("type", "")), "self")
+    if len(data) > max_bytes:
+        raise ProtocolError(f"message of {len(data)} bytes exceeds {max_bytes}", str(message.get("type", "")), "self")
     return data
 
 
@@ -281,15 +284,15 @@ def _encode_frame_message(message: Dict[str, Any]) -> bytes:
 
 
 def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = None,
-           neighbour_columns: bool = False) -> Dict[str, Any]:
+           neighbour_columns: bool = False, max_bytes: int = MAX_MESSAGE_BYTES) -> Dict[str, Any]:
     """Parse and validate one message (binary frame or JSON). ``accept`` restricts the types this socket takes.
 
     ``neighbour_columns``: a binary frame's ``neighbours`` come as the columns the block already holds, a tuple
     ``(ids, ranges_m, bearings_rad)`` of numpy arrays (int64, float64, float64), instead of a list of
     ``[id, range_m, bearing_rad]``; same checks, same values, no Python object per neighbour (the agent's path)."""
     try:
-        if len(data) > MAX_MESSAGE_BYTES:
-            _fail("", f"message of {len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")
+        if len(data) > max_bytes:
+            _fail("", f"message of {len(data)} bytes exceeds {max_bytes}")
         allowed = tuple(accept) if accept is not None else tuple(SCHEMAS)
         if data[:2] == FRAME_MAGIC:
             if "frame" not in allowed:
