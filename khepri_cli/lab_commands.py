@@ -11,6 +11,8 @@ from typing import List
 from onboard.config import ConfigError, check_range
 from onboard.protocol import MAX_ROBOT_ID
 
+from .sim_commands import folder_arg
+
 
 def add_lab(groups) -> None:
     """Register the lab-stack commands."""
@@ -221,7 +223,7 @@ def _add_sil(groups) -> None:
                                         "sockets. Writes result.json (as `khepri sim run`, plus hub and agent "
                                         "figures), trajectory.npz/png and the MCAP log.")
     sil.add_argument("scenario", help="built-in scenario name or YAML file")
-    sil.add_argument("--out", type=Path, help="output folder (default out/sil-<scenario>-seed<N>)")
+    sil.add_argument("--out", type=folder_arg, help="output folder (default out/sil-<scenario>-seed<N>)")
     sil.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
     sil.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
     sil.add_argument("--realtime", action="store_true", help="pace by the wall clock instead of lockstep")

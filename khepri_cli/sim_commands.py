@@ -18,6 +18,13 @@ def check_time_limit(seconds: Optional[float]) -> None:
         raise ConfigError("--time-limit", f"must be a finite number of seconds > 0 (got {seconds:g})")
 
 
+def folder_arg(text: str) -> Path:
+    """``--out``: an empty string (an unset shell variable, say) would mean the current folder; refuse it."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("must name a folder (got an empty string)")
+    return Path(text)
+
+
 def add_sim(groups) -> None:
     sim = groups.add_parser("sim", help="run scenarios in the physics simulator",
                             description="Run scenarios in the pymunk simulator.")
@@ -28,7 +35,7 @@ def add_sim(groups) -> None:
                                           "trajectory.npz and trajectory.png to --out.")
     run.add_argument("scenario", help="built-in scenario name (see `khepri sim list`) or path to a YAML file")
     run.add_argument("--seed", type=seed_value, help="random seed (default: the scenario's)")
-    run.add_argument("--out", type=Path, help="output folder (default: out/<scenario>-seed<N>)")
+    run.add_argument("--out", type=folder_arg, help="output folder (default: out/<scenario>-seed<N>)")
     run.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
     run.add_argument("--video", type=Path, metavar="FILE", help="also write an animation (.gif, or .mp4 with ffmpeg)")
     run.add_argument("--no-plot", action="store_true", help="skip trajectory.png")

@@ -10,6 +10,8 @@ from pathlib import Path
 
 from onboard.config import ConfigError
 
+from .sim_commands import folder_arg
+
 DEFAULT_REPS = 30
 
 
@@ -30,7 +32,7 @@ def add_study(groups) -> None:
                        help="local (a process pool, default), dask (a Dask LocalCluster) or dask:ADDRESS "
                             "(an existing Dask scheduler, e.g. dask:tcp://10.0.0.5:8786)")
     study.add_argument("--workers", type=int, metavar="N", help="worker processes (default: the number of cores)")
-    study.add_argument("--out", type=Path, help="study folder (default out/study-<name>)")
+    study.add_argument("--out", type=folder_arg, help="study folder (default out/study-<name>)")
     study.add_argument("--time-limit", type=float, metavar="S", help="cap every run at S simulated seconds")
     study.add_argument("--retry-failed", action="store_true", help="run again the runs recorded as failed")
     study.add_argument("--dry-run", action="store_true", help="print the grid and what is done; run nothing")

@@ -18,6 +18,8 @@ def write_run(sim: Simulation, result: Dict[str, Any], out_dir: Path, video: Opt
     arrays = sim.trajectory_arrays()
     np.savez_compressed(files["trajectory"], **arrays)
     files["result"].write_text(json.dumps(result, indent=2, default=_json_default) + "\n")
+    if not plot:     # an earlier run's plot in this folder must not pass for this run's
+        (out_dir / "trajectory.png").unlink(missing_ok=True)
     if plot or video is not None:
         from . import plots  # matplotlib only when drawing
 

@@ -89,3 +89,19 @@ def test_a_video_that_cannot_be_written_is_refused_before_the_run(tmp_path, caps
     good = tmp_path / "ok.gif"
     assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", str(good), "--time-limit", "1"]) == 0
     assert good.stat().st_size > 0
+
+
+@pytest.mark.parametrize("command", [["sim", "run", "lab-6"], ["study", "paper", "--reps", "1"], ["sil", "lab-6"]])
+def test_an_empty_out_is_refused_not_taken_as_the_current_folder(command, capsys):
+    with pytest.raises(SystemExit) as stopped:           # argparse: exit code 2 and the usage line
+        main([*command, "--out", ""])
+    assert stopped.value.code == 2
+    assert "argument --out: must name a folder (got an empty string)" in capsys.readouterr().err
+
+
+def test_a_run_without_a_plot_removes_an_earlier_runs_plot_from_its_folder(tmp_path):
+    out = tmp_path / "run"
+    assert main(["sim", "run", "lab-6", "--time-limit", "1", "--out", str(out)]) == 0
+    assert (out / "trajectory.png").is_file()
+    assert main(["sim", "run", "lab-6", "--time-limit", "1", "--no-plot", "--out", str(out)]) == 0
+    assert not (out / "trajectory.png").exists()          # it would describe the earlier run, not this one
