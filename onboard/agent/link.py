@@ -76,18 +76,26 @@ class HubLink:
         self.resets += 1
         self._open()
 
+    def encode(self, message: Dict[str, Any]) -> bytes:
+        """The message's wire bytes with this robot's id; ProtocolError if the hub would refuse it."""
+        return encode(dict(message, id=self.robot_id))
+
     def send(self, message: Dict[str, Any]) -> bool:
         """Best effort: False when the hub is unreachable right now (nothing is queued for later)."""
-        message = dict(message)
-        message["id"] = self.robot_id
         try:
-            self.socket.send(encode(message), zmq.NOBLOCK)
+            data = self.encode(message)
+        except ProtocolError as err:
+            self.log(f"agent {self.robot_id}: cannot send {message.get('type')}: {err}")
+            return False
+        return self.send_encoded(data)
+
+    def send_encoded(self, data: bytes) -> bool:
+        """``send`` for bytes from :meth:`encode`."""
+        try:
+            self.socket.send(data, zmq.NOBLOCK)
             return True
         except zmq.Again:
             self.unsent += 1
-            return False
-        except ProtocolError as err:
-            self.log(f"agent {self.robot_id}: cannot send {message.get('type')}: {err}")
             return False
 
     def receive(self, timeout_s: float) -> List[Dict[str, Any]]:

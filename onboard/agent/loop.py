@@ -23,11 +23,12 @@ from onboard.behaviour import Behaviour, BehaviourError, build_params, get_behav
 from onboard.config import ConfigError
 from onboard.drivers import Driver
 from onboard.hal import RobotSpec
-from onboard.protocol import ProtocolError, encode
+from onboard.protocol import ProtocolError
 
 from .devices import AgentClock, HubState, apply_frame, make_robot
 from .link import HubLink
 
+SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is said at most this often
 HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
 RESET_AFTER_S = 2.0       # this long without a frame: reopen the socket (a connection can be stuck for good)
 WAITING_LOG_S = 10.0      # while the hub stays silent, say so this often
@@ -85,6 +86,7 @@ class Agent:
         self.last_reset = time.monotonic()
         self.last_waiting_log = -math.inf
         self.stop_requested = False
+        self.slow_step_said_at = -math.inf
 
     # --- main loop ----------------------------------------------------------------------------------------
     def serve(self, should_stop: Callable[[], bool] = lambda: False) -> None:
@@ -240,12 +242,8 @@ class Agent:
         if not self.watchdog_tripped and now - self.state.received_at > self.watchdog_s:
             self.watchdog_tripped = True
             self.driver.stop()
-            if self.state.received_at <= -math.inf:
-                return
-            if self.stats.last_step_s > self.watchdog_s:     # the frames waited for us, not the other way round
-                self.log(f"agent {self.robot_id}: the behaviour's step took {self.stats.last_step_s:.2f} s, longer "
-                         f"than the {self.watchdog_s:g} s watchdog: wheels stopped (make step() faster)")
-            else:
+            # After a step slower than the watchdog, the frames waited for us: tick() has said so already.
+            if self.state.received_at > -math.inf and self.stats.last_step_s <= self.watchdog_s:
                 self.log(f"agent {self.robot_id}: no frame from the hub for {self.watchdog_s:g} s: wheels stopped")
 
     # --- one control step ---------------------------------------------------------------------------------
@@ -260,12 +258,21 @@ class Agent:
                 self.behaviour_failed(BehaviourError(self.robot_id, "step()", exc))
             finished = time.monotonic()
             self.stats.record(started, finished, scheduled + self.period)
+            self._say_if_slow(finished - started, finished)
         self.answered_seq = self.state.seq
         self.send_telemetry(stepped)
         finished = time.monotonic()
         self.next_tick = scheduled + self.period
         if self.next_tick <= finished:            # behind by a whole period: skip ahead instead of bursting
             self.next_tick = finished + self.period
+
+    def _say_if_slow(self, step_s: float, now: float) -> None:
+        """A step longer than the watchdog leaves the robot without fresh frames for that long (and may trip
+        the watchdog, which would otherwise seem to blame the hub): say so, at most every 10 s."""
+        if step_s > self.watchdog_s and now - self.slow_step_said_at >= SLOW_STEP_REPEAT_S:
+            self.slow_step_said_at = now
+            self.log(f"agent {self.robot_id}: the behaviour's step took {step_s:.2f} s, longer than the "
+                     f"{self.watchdog_s:g} s watchdog: the robot acts on old frames or stops (make step() faster)")
 
     def send_telemetry(self, stepped: bool) -> None:
         mode = "watchdog" if self.watchdog_tripped else self.state.mode
@@ -282,14 +289,15 @@ class Agent:
             "frames_bad": self.link.bad, "unsent": self.link.unsent,
             "run_id": self.run.get("run_id") if self.run else None,
         }
-        try:
-            encode(dict(message, id=self.robot_id))
-        except ProtocolError as err:       # too large, or not JSON even after plain_json: say so instead
-            message["behaviour"] = None
-            self.error = f"telemetry() cannot be sent: {err.problem}"
         if self.error:
             message["error"] = self.error[:200]
-        self.link.send(message)
+        try:
+            data = self.link.encode(message)
+        except ProtocolError as err:       # too large, or not JSON even after plain_json: say so instead
+            self.error = f"telemetry() cannot be sent: {err.problem}"
+            message.update(behaviour=None, error=self.error[:200])
+            data = self.link.encode(message)
+        self.link.send_encoded(data)
 
     # --- signals ------------------------------------------------------------------------------------------
     def _install_signal_handlers(self) -> List[Any]:
