@@ -216,16 +216,17 @@ class DaskExecutor:
         from distributed import Client, LocalCluster, as_completed
 
         cluster = None
-        if self.address is None:
+        if self.address is not None:
+            client = connect_to_scheduler(self.address)     # a ConfigError naming the address if it cannot be used
+        else:
             # One thread per worker: the simulator is pure Python, threads would only contend for the GIL.
             cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=logging.ERROR)
-        try:
-            client = Client(cluster, timeout="30s") if cluster is not None else connect_to_scheduler(self.address)
-        except OSError as err:
-            if cluster is not None:
+            try:
+                client = Client(cluster, timeout="30s")
+            except OSError as err:
                 cluster.close()
-            raise ConfigError("--executor", f"cannot reach the Dask scheduler {self.address}: {err}") from None
+                raise ConfigError("--executor", f"cannot connect to the Dask LocalCluster: {err}") from None
         futures = {}
         try:
             for spec in runs:
