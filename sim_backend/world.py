@@ -9,7 +9,10 @@ mu * m * g is reached -- it cannot push harder than its tyres grip.
 """
 from __future__ import annotations
 
+import atexit
+import gc
 import math
+import weakref
 from typing import List, Optional
 
 import numpy as np
@@ -28,6 +31,10 @@ COLLISION_SLOP_M = 0.0005        # allowed overlap; pymunk's default (0.1) is me
 ROBOT_CONTACT_FRICTION = 0.4     # plastic shell against foam/cardboard/plastic (combined by product in pymunk)
 OBJECT_CONTACT_FRICTION = 1.0
 WALL_THICKNESS_M = 0.02
+
+# Every world not yet garbage-collected, so that the ones still alive when the interpreter exits are freed
+# while it can (see _free_live_worlds).
+_LIVE_WORLDS: weakref.WeakSet = weakref.WeakSet()
 
 
 # Body fields read and written once per substep for all bodies at once (pymunk.batch), in buffer order.
@@ -106,6 +113,20 @@ class World:
             self._add_robot(x, y, yaw)
         self._batch = pymunk.batch.Buffer()             # filled by pymunk when reading bodies
         self._index_bodies()
+        _LIVE_WORLDS.add(self)
+
+    def release(self) -> None:
+        """Take everything out of the pymunk space and let go of it; the world cannot step afterwards."""
+        space = self.space
+        if space is None:
+            return
+        space.remove(*space.constraints)
+        space.remove(*space.shapes)
+        space.remove(*space.bodies)
+        for robot in self.robots:
+            robot.body = robot.wheels = None
+        self.object_body = None
+        self.space = None
 
     # --- construction -------------------------------------------------------------------------------
     def _add_object(self) -> None:
@@ -347,3 +368,16 @@ class World:
         if len(self.wall_segments):
             groups.append(ObstacleGroup(np.zeros((0, 3)), self.wall_segments))
         return groups
+
+
+@atexit.register
+def _free_live_worlds() -> None:
+    """pymunk frees a space's bodies, shapes and joints through Python callbacks, which do nothing once the
+    interpreter is shutting down; a space freed that late leaves its bodies pointing at freed memory, and
+    the process dies of SIGSEGV after the script has finished. A world is that late whenever something
+    that lives until the end refers to it: a script's own behaviour class, once registered, keeps the
+    script's globals (and the ``Simulation`` in them) alive. So free every world still alive at exit, while
+    the interpreter is whole."""
+    for world in list(_LIVE_WORLDS):
+        world.release()
+    gc.collect()

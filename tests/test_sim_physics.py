@@ -1,5 +1,8 @@
 """Real physics: sensing, driving, pushing, range-and-bearing, determinism."""
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -190,3 +193,31 @@ def test_a_run_whose_robots_have_all_failed_ends_there(make_scenario):
                              time_limit_s=60)
     result = Simulation(scenario).run()
     assert result["stop_reason"] == "every robot failed" and result["sim_time_s"] <= 2.2
+
+
+SCRIPT_WITH_ITS_OWN_BEHAVIOUR = """
+from onboard.behaviour import Behaviour, register
+from sim_backend.runner import Simulation
+from sim_backend.scenario import load_scenario
+
+@register("hold-still")
+class HoldStill(Behaviour):
+    def step(self):
+        self.robot.wheels.set_speeds(0.0, 0.0)
+
+sim = Simulation(load_scenario("lab-6").with_overrides(behaviour="hold-still", params={}))
+sim.run(time_limit_s=0.5)
+print("finished", sim.step_index)
+"""
+
+
+def test_a_script_that_registers_its_own_behaviour_exits_cleanly(tmp_path):
+    # The registry keeps the script's class, hence its globals and the Simulation in them, alive until the
+    # interpreter's last moments, when pymunk can no longer free its space safely: this used to end in SIGSEGV.
+    script = tmp_path / "mine.py"
+    script.write_text(SCRIPT_WITH_ITS_OWN_BEHAVIOUR)
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, str(script)], cwd=root, capture_output=True, text=True, timeout=120,
+                          env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "finished 5" in done.stdout
