@@ -98,6 +98,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         bar.close()
     files = write_run(sim, result, out, video=args.video, plot=not args.no_plot)
     print(summary_line(result))
+    if result.get("failures"):      # "behaviour finished" is what the robots believe; this is the evaluator
+        print(f"  not completed: {'; '.join(result['failures'])}")
     for name, path in files.items():
         print(f"  {name}: {path}")
     if "error" in result:

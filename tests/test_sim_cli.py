@@ -13,7 +13,10 @@ def test_sim_run_writes_its_outputs_into_out(tmp_path, capsys):
     result = json.loads((out / "result.json").read_text())
     assert result["scenario"] == "lab-6" and result["sim_time_s"] == pytest.approx(3.0)
     assert (out / "trajectory.npz").is_file()
-    assert "lab-6 seed 1: 6 robots" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "lab-6 seed 1: 6 robots" in printed
+    # 3 s is too short to cage: the robots stopped at the time limit, and the evaluator says what is missing
+    assert "  not completed: cage did not close" in printed and result["failures"] == ["cage did not close"]
 
 
 def test_an_out_folder_that_cannot_be_made_is_refused_before_the_run(tmp_path, capsys, monkeypatch):
