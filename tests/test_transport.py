@@ -276,6 +276,34 @@ def test_a_robot_outside_the_tight_tolerance_arrives_with_the_majority():
     assert me in transport.board.arrivals(0, "p")
 
 
+def test_a_robot_whose_estimate_disagrees_arrives_once_the_majority_has_waited_barrier_stall_s():
+    """Four of five members arrived at a turn and hold still; this robot's yaw estimate is 20 degrees off
+    theirs (outside both tolerances), so it would rotate an object it cannot move alone, for ever (a
+    14-robot cage sat 750 s like this). After barrier_stall_s of a majority waiting it arrives too."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    me = transport.robot.id
+    for rid in range(5):
+        transport.space.put(f"member/{rid}", {"tid": f"L{rid}", "branch": "L", "index": rid})
+        transport.space.put(f"pos/{rid}", [float(rid), 0.0, 0.0, None])
+    transport.path = [(0.5, 0.0, 0.0), (0.5, 0.0, 90.0), (0.5, 0.5, 90.0)]
+    transport.waypoint, transport.phase = 1, "r"
+    stall = transport.params.barrier_stall_s = 3.0      # inside the liveness timeout: no heartbeats needed
+    others = [rid for rid in range(5) if rid != me]
+    transport.board.arrive(1, "r", others[0])
+    transport.board.refresh_liveness(100.0)
+    assert transport._waypoint_gate(100.0, False, False) is False          # 1 of 5: no majority yet
+    for rid in others[1:]:
+        transport.board.arrive(1, "r", rid)
+    for now in (101.0, 101.0 + stall / 2, 101.0 + stall - 0.1):
+        transport.board.refresh_liveness(now)
+        assert transport._waypoint_gate(now, False, False) is False      # held up, but not long enough
+        assert me not in transport.board.arrivals(1, "r")
+    transport.board.refresh_liveness(101.0 + stall)
+    assert transport._waypoint_gate(101.0 + stall, False, False) is True
+    assert me in transport.board.arrivals(1, "r")
+    assert (transport.waypoint, transport.phase) == (2, "p")              # and the barrier passed
+
+
 def test_a_reinforcer_at_the_object_pushes_straight_on_instead_of_sliding_into_the_rear_member():
     """reinforce_push: behind the cage, 8 cm off the line of travel through the centroid, a spare robot lines
     up sideways while free; once its IR sees the object (beside the rear member) it only pushes forward."""

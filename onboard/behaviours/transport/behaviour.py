@@ -67,6 +67,7 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
         self.formation: Dict[int, Vec] = {}
         self.waypoint = 0
         self.phase = "p"
+        self.held_up_since: Optional[Tuple[Tuple[int, str], float]] = None   # (barrier, since when) half arrived
         self.effective = False
         self.rotating = False
         self.last_step: Optional[float] = None

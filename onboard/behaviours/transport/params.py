@@ -58,6 +58,13 @@ class TransportParams:
     # speed that ring took ~7000 s (the paper: 2753 s). The paper-50 and paper-100 scenarios set 0.2 m/s,
     # the top of what KheperaIV controllers usually use; the default is the cruise speed (faithful: always).
     travel_speed_m_s: float = 0.1
+    # Ours: a robot that has not arrived at a barrier while at least half the live members have, and stay
+    # arrived, for this long arrives too. The few still moving cannot move the object alone, so their
+    # estimates stop changing; when one differs from the others' by more than the tolerance (members that
+    # disagree about which ring edges are short enough to measure the rotation by), the barrier never
+    # passed: a 14-robot cage sat 750 s at a 90-degree turn, one member 20 degrees off the rest. math.inf:
+    # wait for ever. Faithful runs keep it too: it only ends a deadlock.
+    barrier_stall_s: float = 30.0
     # --- The mission: given by the operator (scenario path and the paper's assumed initial estimate) ---
     path: List[Tuple[float, float, float]] = field(default_factory=list)   # waypoints [x, y, yaw_deg]
     object_estimate: Optional[Tuple[float, float, float]] = None             # C_o(0) guess [x, y, yaw_deg]
@@ -100,7 +107,8 @@ class TransportParams:
         for name in ("safety_distance_m", "inter_robot_distance_m", "caging_tolerance_m", "closure_factor",
                      "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s",
                      "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "attach_timeout_s",
-                     "travel_speed_m_s", "position_tolerance_m", "rotation_tolerance_deg", "seed_approach_radius_m"):
+                     "travel_speed_m_s", "position_tolerance_m", "rotation_tolerance_deg", "seed_approach_radius_m",
+                     "barrier_stall_s"):
             check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
         check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
         check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)

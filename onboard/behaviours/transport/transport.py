@@ -353,11 +353,13 @@ class TransportPhases:
         ``within`` is this robot's estimate inside our tight arrival tolerance. Once half the live members
         arrived and hold still, the few still pushing cannot move the object alone, and their estimates
         (a few millimetres apart from the others' after lost messages) would never get there: a robot then
-        also arrives within the paper's own tolerance (d_tol, Orient. tol.), so the cage cannot deadlock."""
+        also arrives within the paper's own tolerance (d_tol, Orient. tol.), and after ``barrier_stall_s``
+        of that whatever its estimate says, so the cage cannot deadlock."""
         arrivals = self.board.arrivals(self.waypoint, self.phase)
-        if not within and within_paper_tolerance and self.robot.id not in arrivals:
+        if not within and self.robot.id not in arrivals:
             live = self._members_alive(now)
-            within = 2 * len(arrivals & set(live)) >= len(live)
+            held_up = self._held_up_for(now, 2 * len(arrivals & set(live)) >= len(live))
+            within = held_up is not None and (within_paper_tolerance or held_up >= self.params.barrier_stall_s)
         if within:
             self.board.arrive(self.waypoint, self.phase, self.robot.id)
         if self._barrier_passed(now):
@@ -372,6 +374,17 @@ class TransportPhases:
             self._hold()
             return True
         return False
+
+    def _held_up_for(self, now: float, majority_arrived: bool) -> Optional[float]:
+        """How long at least half the live members have held still at this barrier while this robot has not
+        arrived (None while fewer have)."""
+        barrier = (self.waypoint, self.phase)
+        if not majority_arrived:
+            self.held_up_since = None
+            return None
+        if self.held_up_since is None or self.held_up_since[0] != barrier:
+            self.held_up_since = (barrier, now)
+        return now - self.held_up_since[1]
 
     def _next_waypoint(self) -> None:
         self.rotating = False
