@@ -8,14 +8,17 @@ from __future__ import annotations
 
 import math
 import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
+from onboard.behaviour import build_params, get_behaviour
 from onboard.config import ConfigError
 from sim_backend.metrics import evaluator_for
+from sim_backend.runner import mission_params
 from sim_backend.scenario import Scenario
 
 from .config import parse_config
@@ -70,6 +73,9 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
             hub.bind()
             agents = spawn_agents(hub.endpoints["robots"], keys, scenario.robots.count, out, options.imports)
             session = SilSession(hub, scenario, agents, options, limit, out)
+            for warning in session.warnings:
+                print(f"khepri: warning: {warning}", file=sys.stderr)
+                log(f"hub: warning: {warning}")
             result = session.run()
         finally:
             stop_processes(agents)        # SIGTERM: each agent stops its wheels and exits
@@ -99,6 +105,8 @@ class SilSession:
         self.source = hub.source
         self.limit_s = limit_s
         self.evaluator = evaluator_for(scenario.behaviour)(scenario, self.source.world)
+        behaviour_cls = get_behaviour(scenario.behaviour)       # the agents build these same params
+        self.warnings = self.evaluator.warnings(build_params(behaviour_cls, mission_params(behaviour_cls, scenario)))
         self.recording = SilRecording(scenario, self.source.world)
         self.round_trips: List[float] = []
         self.missing_answers = 0
@@ -214,6 +222,8 @@ class SilSession:
             "radio": {"sent": relay.sent, "delivered": relay.delivered,
                       "dropped": relay.dropped_random + relay.dropped_overflow},
         }
+        if self.warnings:
+            result["warnings"] = list(self.warnings)
         try:
             result.update(self.evaluator.result())
         except Exception as exc:

@@ -91,6 +91,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if problem:                 # said now, not after a long run whose results could not be written
         print(f"khepri: error: --out: {problem}", file=sys.stderr)
         return 2
+    for warning in sim.warnings:
+        print(f"khepri: warning: {warning}", file=sys.stderr)
     bar = ProgressBar(f"{scenario.name} seed {sim.seed}")
     try:
         result = sim.run(time_limit_s=args.time_limit, progress=bar)

@@ -21,6 +21,11 @@ class Evaluator:
     def on_step(self, time_s: float, telemetry: List[Optional[Dict[str, Any]]]) -> None:
         """``telemetry[i]`` is robot i's latest telemetry (``onboard.behaviour.telemetry_of``), None if dead."""
 
+    def warnings(self, params: Any) -> List[str]:
+        """What the simulator knows about this scenario (the true object, the walls) that will make the
+        behaviour fail, said before the run starts; ``params`` are the behaviour's."""
+        return []
+
     def centroid_estimate(self, telemetry: List[Optional[Dict[str, Any]]]) -> np.ndarray:
         """The swarm's mean belief of the object centroid (NaN when nobody has one); for the trajectory file."""
         return np.array([np.nan, np.nan])

@@ -90,6 +90,7 @@ class Simulation:
         self.robots = [make_robot(self.frame, i, self.world.spec) for i in range(self.count)]
         self.behaviours = make_behaviours(behaviour_cls, self.robots, params)
         self.evaluator = evaluator_for(scenario.behaviour)(scenario, self.world)
+        self.warnings = self.evaluator.warnings(params)    # printed before the run, kept in result.json
         self.faults = sorted((f.at_s, f.robot) for f in scenario.faults)
         self.pose_history: List[np.ndarray] = []
         self.recording = Recording()
@@ -268,6 +269,8 @@ class Simulation:
             "stop_reason": self.stop_reason,
             "radio": self.radio.stats(),
         }
+        if self.warnings:
+            result["warnings"] = list(self.warnings)
         try:
             result.update(self.evaluator.result())
         except Exception as exc:

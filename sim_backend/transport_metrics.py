@@ -13,6 +13,7 @@ import numpy as np
 from onboard.geometry import wrap
 
 from .metrics import Evaluator, register_evaluator
+from .transport_preflight import transport_warnings
 
 SPACING_SAMPLE_PERIOD_S = 1.0
 STUCK_BELOW_M = 0.05            # a closed cage that moved the object less than this got nowhere
@@ -33,6 +34,9 @@ class TransportEvaluator(Evaluator):
         self.phase_steps: Dict[tuple, int] = {}      # (phase, waypoint) -> control steps spent in it
         self.next_spacing_sample = 0.0
         self.last_time = 0.0
+
+    def warnings(self, params: Any) -> List[str]:
+        return transport_warnings(self.scenario, self.world, params)
 
     def on_step(self, time_s: float, telemetry: List[Optional[Dict[str, Any]]]) -> None:
         self.last_time = time_s

@@ -112,6 +112,8 @@ class TransportParams:
             check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
         check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
         check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)
+        for name in ("orientation_tolerance_deg", "rotation_tolerance_deg"):     # |yaw error| is at most 180
+            check_range(f"{where}.{name}", getattr(self, name), 0.0, 180.0, low_open=True)
         check_range(f"{where}.barrier_fraction", self.barrier_fraction, 0.0, 1.0, low_open=True)
         check_range(f"{where}.settle_time_s", self.settle_time_s, 0.0)
         check_range(f"{where}.slow_down_radius_m", self.slow_down_radius_m, 0.0)

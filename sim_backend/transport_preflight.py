@@ -1,0 +1,96 @@
+"""Before a transport run: what the simulator knows about the mission that dooms it, said up front.
+
+The robots do not know the object or the arena, so the behaviour cannot check these itself; the scenario
+can. Each finding is a warning, not an error: such a run is still a valid experiment (how does the swarm
+fail?), but a user who expects it to work should hear why it will not before waiting for the time limit.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, List
+
+import numpy as np
+
+from .shapes import Geometry, extent_at
+
+MIN_CAGE = 3                    # robots needed round an object to close a cage (Proposition 1)
+CAGE_GAP_M = 0.02               # caging robots hold about this far off the surface (keep_gap_while_caging)
+
+
+def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
+    spec = world.spec
+    found = []
+    if scenario.robots.count < MIN_CAGE:
+        found.append(f"robots.count: a cage needs at least {MIN_CAGE} robots (got {scenario.robots.count})")
+    spacing = getattr(params, "inter_robot_distance_m", None)
+    if spacing is not None and scenario.comm.range_m < spacing:
+        found.append(f"comm.range_m: {scenario.comm.range_m:g} m is shorter than the cage spacing I_d "
+                     f"(params.inter_robot_distance_m = {spacing:g} m): cage members will not hear their "
+                     "neighbours")
+    if world.geometry is not None and spacing is not None:
+        found += _cage_fits(world.geometry, spacing, spec.radius_m)
+    if world.geometry is not None and scenario.arena.walls is not None:
+        found += _room_to_walls(scenario, world.geometry, 2.0 * spec.radius_m + spec.proximity_range_m)
+    if scenario.object is not None and not scenario.object.static and scenario.object.friction == 0.0:
+        found.append("object.friction: 0: nothing stops the object once it is pushed, so it slides past its "
+                     "waypoints")
+    return found
+
+
+def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[str]:
+    """The ring the cage lies on (the object's convex hull grown by a robot's radius and its gap) must hold
+    MIN_CAGE robots I_d apart; the behaviour only ever widens I_d (the `grow` levels), never narrows it."""
+    ring = hull_perimeter(geometry) + 2.0 * math.pi * (robot_radius + CAGE_GAP_M)
+    fit = int(ring // spacing)
+    if fit >= MIN_CAGE:
+        return []
+    return [f"params.inter_robot_distance_m: only {fit} robots fit {spacing:g} m apart round this object (the "
+            f"cage ring is {ring:.2f} m long), and a cage needs {MIN_CAGE}: it cannot close. Set "
+            f"params.inter_robot_distance_m to {math.floor(100 * ring / MIN_CAGE) / 100:.2f} m or less"]
+
+
+def _room_to_walls(scenario: Any, geometry: Geometry, needed: float) -> List[str]:
+    """Robots must get all round the object at its start and at every waypoint without their IR seeing a
+    wall: the IR cannot tell a wall from the object, so robots attach to the wall and the cage closes on it."""
+    xmin, ymin, xmax, ymax = scenario.arena.walls
+    spec = scenario.object
+    poses = [("object.position", spec.position[0], spec.position[1], spec.yaw_deg)]
+    poses += [(f"path[{i}]", x, y, yaw) for i, (x, y, yaw) in enumerate(scenario.path)]
+    found = []
+    for field_name, x, y, yaw_deg in poses:
+        left, bottom, right, top = extent_at(geometry, x, y, math.radians(yaw_deg))
+        room = min(left - xmin, bottom - ymin, xmax - right, ymax - top)
+        if room < needed:
+            where = "starts" if field_name == "object.position" else "would be at this waypoint"
+            found.append(f"{field_name}: the object {where} {room:.2f} m from an arena wall; robots need about "
+                         f"{needed:.2f} m (a body and the IR's reach) to get round it, and their IR cannot tell "
+                         "the wall from the object")
+    return found
+
+
+def hull_perimeter(geometry: Geometry) -> float:
+    """Perimeter of the convex hull of the object's outline (circles included as polygons)."""
+    points = np.vstack(geometry.outline_polygons())
+    hull = _convex_hull(points)
+    return float(np.sum(np.hypot(*(np.roll(hull, -1, axis=0) - hull).T)))
+
+
+def _convex_hull(points: np.ndarray) -> np.ndarray:
+    """Andrew's monotone chain: the hull's vertices in counter-clockwise order."""
+    ordered = sorted(set(map(tuple, np.round(points, 9).tolist())))
+    if len(ordered) < 3:
+        return np.asarray(ordered, dtype=float)
+
+    def half(seq):
+        chain: List[tuple] = []
+        for p in seq:
+            while len(chain) >= 2 and _cross(chain[-2], chain[-1], p) <= 0:
+                chain.pop()
+            chain.append(p)
+        return chain[:-1]
+
+    return np.asarray(half(ordered) + half(reversed(ordered)), dtype=float)
+
+
+def _cross(o: tuple, a: tuple, b: tuple) -> float:
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])

@@ -1,0 +1,79 @@
+"""What the simulator knows that dooms a transport run is said before it starts (and kept in result.json):
+an object too small for the cage spacing, too little room to the walls, too few robots, a radio too short."""
+import json
+
+import pytest
+
+from khepri_cli.main import main
+from onboard.config import ConfigError
+from sim_backend.runner import Simulation
+from sim_backend.scenario import builtin_names, load_scenario
+from sim_backend.shapes import build_geometry
+from sim_backend.transport_preflight import hull_perimeter
+
+
+def transport(make_scenario, **changes):
+    data = {"behaviour": "transport", "robots": {"count": 8, "spawn": {"x": [-1.5, -0.7], "y": [-1.5, -0.7]}},
+            "object": {"shape": "box", "size": [0.3, 0.4], "mass": 0.3, "position": [0, 0]},
+            "path": [[0.5, 0.0, 0]], "arena": {"walls": [-2.5, -2.5, 2.5, 2.5]}}
+    data.update(changes)
+    return make_scenario(**data)
+
+
+def test_no_builtin_scenario_is_warned_about():
+    for name in builtin_names():
+        assert Simulation(load_scenario(name)).warnings == [], name
+
+
+def test_an_object_smaller_than_the_cage_spacing_is_warned_about_with_a_spacing_that_fits(make_scenario):
+    small = {"shape": "box", "size": [0.15, 0.15], "mass": 0.2, "position": [0, 0]}
+    warnings = Simulation(transport(make_scenario, object=small)).warnings
+    assert len(warnings) == 1 and warnings[0].startswith("params.inter_robot_distance_m: only 2 robots fit")
+    suggested = float(warnings[0].split("to ")[-1].split(" m")[0])
+    fitted = transport(make_scenario, object=small, params={"inter_robot_distance_m": suggested})
+    assert Simulation(fitted).warnings == []
+
+
+def test_an_object_near_a_wall_at_its_start_or_a_waypoint_is_warned_about(make_scenario):
+    assert Simulation(transport(make_scenario)).warnings == []
+    near = transport(make_scenario, path=[[0.5, 0.0, 0], [0.5, 2.2, 0]])      # 0.1 m from the top wall there
+    warnings = Simulation(near).warnings
+    assert len(warnings) == 1 and warnings[0].startswith("path[1]: the object would be at this waypoint 0.10 m")
+    start = transport(make_scenario, object={"shape": "box", "size": [0.3, 0.4], "mass": 0.3,
+                                             "position": [-2.2, 0]}, path=[[0.0, 0.0, 0]])
+    assert Simulation(start).warnings[0].startswith("object.position: the object starts 0.15 m from an arena wall")
+
+
+def test_too_few_robots_a_short_radio_and_a_frictionless_floor_are_warned_about(make_scenario):
+    few = transport(make_scenario, robots={"count": 2, "spawn": {"x": [-1.5, -0.7], "y": [-1.5, -0.7]}})
+    assert Simulation(few).warnings == ["robots.count: a cage needs at least 3 robots (got 2)"]
+    deaf = Simulation(transport(make_scenario, comm={"range_m": 0.3})).warnings
+    assert len(deaf) == 1 and deaf[0].startswith("comm.range_m: 0.3 m is shorter than the cage spacing I_d")
+    slippery = {"shape": "box", "size": [0.3, 0.4], "mass": 0.3, "position": [0, 0], "friction": 0}
+    assert Simulation(transport(make_scenario, object=slippery)).warnings[0].startswith("object.friction: 0")
+
+
+def test_warnings_are_printed_before_the_run_and_kept_in_result_json(tmp_path, capsys):
+    scenario = tmp_path / "small.yaml"
+    scenario.write_text("name: small\nbehaviour: transport\nrobots: {count: 4}\n"
+                        "object: {shape: circle, radius: 0.05, mass: 0.1, position: [0, 0]}\n"
+                        "arena: {walls: [-2, -2, 2, 2]}\n")
+    assert main(["sim", "run", str(scenario), "--time-limit", "0.5", "--no-plot", "--out", str(tmp_path / "o")]) == 0
+    printed = capsys.readouterr().err
+    assert "khepri: warning: params.inter_robot_distance_m: only 1 robots fit" in printed
+    result = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert result["warnings"] == [line[len("khepri: warning: "):] for line in printed.splitlines()
+                                  if line.startswith("khepri: warning: ")]
+
+
+def test_a_yaw_tolerance_beyond_half_a_turn_is_refused(make_scenario):
+    with pytest.raises(ConfigError, match=r"^params.orientation_tolerance_deg: must be <= 180"):
+        Simulation(transport(make_scenario, params={"orientation_tolerance_deg": 720}))
+
+
+def test_the_cage_ring_is_measured_round_the_convex_hull(make_scenario):
+    box = transport(make_scenario).object
+    assert hull_perimeter(build_geometry(box)) == pytest.approx(1.4)
+    u_shape = {"shape": "polygon", "vertices": [[0, 0], [1, 0], [1, 1], [0.8, 1], [0.8, 0.2], [0.2, 0.2],
+                                                [0.2, 1], [0, 1]], "mass": 1.0, "position": [0, 0]}
+    assert hull_perimeter(build_geometry(transport(make_scenario, object=u_shape).object)) == pytest.approx(4.0)
