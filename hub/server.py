@@ -3,6 +3,10 @@
 Sockets (docs/protocol.md): a ROUTER for the robots' DEALERs (downlink frames and commands, uplink
 telemetry, broadcasts, wheel commands) and a ROUTER for ``khepri ctl``. One thread runs everything here;
 only a motion-capture reader runs beside it (``hub/sources.py``).
+
+This module holds the :class:`Hub`'s state, sockets, loop, pose handling and safety modes; what it sends is in
+``hub/downlink.py`` and what it receives from robots in ``hub/uplink.py`` (mixins of the same class), operator
+requests in ``hub/control_service.py``.
 """
 from __future__ import annotations
 
@@ -15,22 +19,22 @@ import numpy as np
 import zmq
 
 from onboard.config import ConfigError
-from onboard.protocol import MAX_MESSAGE_BYTES, UPLINK_TYPES, ProtocolError, check_payload_size, decode
+from onboard.protocol import MAX_MESSAGE_BYTES
 
 from .config import LabConfig
 from .control_service import ControlService
 from .downlink import Downlink
 from .links import DropLog, RateMeter, RobotLink
-from .recording import BackgroundRecorder, robot_topic
+from .recording import BackgroundRecorder
 from .relay import RadioRelay
 from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HubAuthenticator, KeyRing, make_curve_server
 from .sensors import SensingModel, VirtualSensors
 from .sources import PoseFrame, PoseSource
+from .uplink import Uplink
 
 DOWNLINK_HWM = 8          # frames queued per robot; older data is useless, a full queue drops (latest-only)
 UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting pose frame
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
-DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
 NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
 NO_POSE_YET_REPEAT_S = 30.0    # ...and again this often while none does
 
@@ -55,7 +59,7 @@ class RunTemplate:
         return message
 
 
-class Hub(Downlink):
+class Hub(Downlink, Uplink):
     def __init__(self, config: LabConfig, source: PoseSource, robot_ids: List[int], run: RunTemplate,
                  sensing: SensingModel, relay_drop: float, seed=None, keyring: Optional[KeyRing] = None,
                  recorder=None, log: Callable[[str], None] = print, context: Optional[zmq.Context] = None):
@@ -253,101 +257,6 @@ class Hub(Downlink):
             return "hold", "outside the geofence"
         return "run", ""
 
-    # --- uplink -----------------------------------------------------------------------------------------
-    def handle_uplink(self, parts: List[zmq.Frame]) -> None:
-        now = time.monotonic()
-        if len(parts) != 2:
-            self.drops.drop("malformed message", "unknown peer", f"{len(parts) - 1} frames, expected 1")
-            return
-        routing, body = parts
-        user, peer = _property(body, "User-Id"), _property(body, "Peer-Address")
-        sender = f"{user or 'peer'} at {peer or '?'}"
-        try:
-            message = decode(body.bytes, sender, accept=UPLINK_TYPES)
-        except ProtocolError as err:
-            self.drops.drop("bad message", sender, str(err))
-            return
-        rid = message["id"]
-        if self.keyring is not None and user != f"robot:{rid}":
-            self.drops.drop("id mismatch", sender, f"{sender} claimed to be robot {rid}")
-            return
-        robot = self.robots.get(rid)
-        if robot is None:
-            self.drops.drop("unknown robot", sender, f"{sender} claimed robot {rid}, which is not in this lab")
-            return
-        if robot.routing != routing.bytes:
-            if robot.connected(now, self.config.watchdog_s):
-                self._rival(robot, peer, sender, now)
-                return
-            self._connected(robot, routing.bytes, peer, now)
-        robot.last_uplink = now
-        getattr(self, f"_on_{message['type']}")(robot, message, now)
-
-    def _connected(self, robot: RobotLink, routing: bytes, peer: Optional[str], now: float) -> None:
-        robot.routing, robot.peer = routing, peer or ""
-        index = self.ids.index(robot.id)
-        robot.next_due = now + (index / max(1, len(self.ids))) / self.config.network.downlink_hz  # spread sends
-        self.log(f"hub: robot {robot.id} connected from {robot.peer or '?'}")
-
-    def _rival(self, robot: RobotLink, peer: Optional[str], sender: str, now: float) -> None:
-        """A second connection speaks for a robot whose connection is alive (two agents started with one --id,
-        or one robot key copied twice). The first keeps the robot, frames and wheels, until it is silent for
-        watchdog_s; the other's messages are dropped. Switching on every message instead would hand the frames
-        back and forth, and the agents' wheels with them. Said once every DUPLICATE_WARNING_S, and only once the
-        first connection spoke after the second appeared: an agent that reconnects leaves its old one silent."""
-        self.drops.count("duplicate robot", sender)
-        if now - robot.rival_seen > self.config.watchdog_s:
-            robot.rival_since = now            # a new contest
-        robot.rival_seen = now
-        if robot.last_uplink <= robot.rival_since or now - robot.rival_warned < DUPLICATE_WARNING_S:
-            return
-        robot.rival_warned = now
-        self.log(f"hub: robot {robot.id} is claimed by two connections: {robot.peer or '?'} (first, keeps the "
-                 f"robot) and {peer or '?'} (ignored while the first is alive); is a second agent running with "
-                 f"--id {robot.id}?")
-
-    def _on_hello(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        robot.driver = message["driver"]
-        robot.run_id = message.get("run_id")
-        if self.run_id is not None and robot.run_id != self.run_id and self.mode != "idle":
-            self.send_command(robot, "start")          # a late or restarted agent joins the current run
-        elif self.mode == "estop":
-            self.send_command(robot, "estop", "operator e-stop")
-        elif self.run_id is None and robot.run_id is not None:
-            self.send_command(robot, "stop", "the hub has no run")   # e.g. the hub restarted mid-run
-
-    def _on_telemetry(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        robot.telemetry = message
-        robot.step_answered = message["step"]
-        robot.run_id = message.get("run_id", robot.run_id)
-        if self.recorder is not None:
-            self.recorder.write(robot_topic(robot.id, "telemetry"), message)
-
-    def _on_broadcast(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        payload = message["payload"]
-        size = check_payload_size(payload)
-        receivers = self.sensors.receivers_of(robot.id) if self.mode_for(robot)[0] == "run" else []
-        if not self.relay.submit(robot.id, message["sent_s"], payload, size, receivers):
-            self.drops.drop("refused broadcast", f"robot {robot.id}", f"{size} bytes > relay.max_bytes")
-        elif self.recorder is not None:
-            self.recorder.write(robot_topic(robot.id, "broadcast"), message)
-            self.recorder.write(robot_topic(robot.id, "relay"), {"receivers": receivers})
-
-    def _on_wheels(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        command = getattr(self.source, "command", None)
-        if command is None:
-            return
-        allowed = self.mode_for(robot)[0] == "run"
-        command(robot.id, message["left"] if allowed else 0.0, message["right"] if allowed else 0.0)
-        if self.recorder is not None:
-            self.recorder.write(robot_topic(robot.id, "wheels"), message)   # not /command: that is the operator's
-
-    def _on_ack(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        if robot.pending is not None and robot.pending["cmd"] == message["cmd"]:
-            robot.pending = None
-        if message["cmd"] == "estop" and self.estop_at is not None and robot.estop_ack_s is None:
-            robot.estop_ack_s = now - self.estop_at
-
     # --- periodic ---------------------------------------------------------------------------------------
     def housekeeping(self, now: float) -> None:
         self.resend_unacknowledged(now)
@@ -400,10 +309,3 @@ def bind_error(err: zmq.ZMQError, bind: str, port: int, port_field: str) -> Conf
     reason = (err.strerror or str(err)).split(" (addr=")[0]     # pyzmq appends the endpoint; we name it ourselves
     return ConfigError("network.bind", f"cannot listen on {bind!r}: {reason} (give an address of this PC, "
                        "e.g. 127.0.0.1, or * for all interfaces)")
-
-
-def _property(frame: zmq.Frame, name: str) -> Optional[str]:
-    try:
-        return frame.get(name)
-    except zmq.ZMQError:      # no such property (e.g. no authentication: no User-Id)
-        return None
