@@ -24,7 +24,7 @@ from onboard.protocol import (
 )
 
 from .links import RobotLink
-from .recording import robot_topic
+from .log_format import robot_topic
 from .sensors import FrameBatch
 
 COMMAND_RETRY_S = 0.25    # an unacknowledged command is sent again this often

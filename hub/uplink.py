@@ -14,7 +14,7 @@ import zmq
 from onboard.protocol import UPLINK_TYPES, ProtocolError, check_payload_size, decode
 
 from .links import RobotLink
-from .recording import robot_topic
+from .log_format import robot_topic
 
 DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
 
