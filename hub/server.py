@@ -21,11 +21,11 @@ import zmq
 from onboard.config import ConfigError
 from onboard.protocol import MAX_MESSAGE_BYTES
 
+from .background_recorder import BackgroundRecorder
 from .config import LabConfig
 from .control_service import ControlService
 from .downlink import Downlink
 from .links import DropLog, RateMeter, RobotLink
-from .recording import BackgroundRecorder
 from .relay import RadioRelay
 from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HubAuthenticator, KeyRing, make_curve_server
 from .sensors import SensingModel, VirtualSensors
