@@ -21,7 +21,7 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
 
-from hub.recording import (
+from hub.log_format import (
     FORMAT_METADATA,
     HUB_DROPS,
     MCAP_MAGIC,

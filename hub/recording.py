@@ -1,10 +1,10 @@
 """Hub recordings: every frame in and out, written to an MCAP file that Foxglove opens and a killed hub leaves readable.
 
-The format is documented for users in docs/recording.md; this module is its only writer and reader, so the
-replay source, the replay tool and the live viewer read logs through :func:`read_log` (or :class:`LogReader`).
+The format is documented for users in docs/recording.md and named in :mod:`hub.log_format`. This module is
+where users import from: :class:`Recorder` writes logs, and the replay source, the replay tool and the live
+viewer read them through :func:`read_log` (or :class:`~hub.log_summary.LogReader`). The hub's loop records
+through :class:`~hub.background_recorder.BackgroundRecorder`, which wraps a Recorder.
 
-- One MCAP channel per topic, message encoding ``json`` (compact UTF-8 JSON objects), and a ``jsonschema``
-  schema per kind of topic (all ``/robot/<id>/frame`` channels share one schema).
 - ``log_time`` = ``publish_time`` = the hub clock (``time.time()``) in nanoseconds; ``sequence`` = write order.
 - Chunks are zstd-compressed and closed at least every ``flush_period_s / 2`` by a timer thread, and the file is
   flushed then, so a SIGKILLed hub loses at most about ``flush_period_s`` of messages.
@@ -17,103 +17,45 @@ import io
 import json
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Deque, Dict, Iterable, Iterator, Optional, Tuple, Union
+from typing import Any, Dict, Iterable, Iterator, Optional, Tuple
 
 from mcap.writer import CompressionType, Writer
 
-from onboard.config import ConfigError
+from .background_recorder import BackgroundRecorder
+from .log_format import (
+    CONTROL,
+    FORMAT_METADATA,
+    HUB_DROPS,
+    HUB_STATUS,
+    LIBRARY,
+    LOG_FORMAT_VERSION,
+    MCAP_MAGIC,
+    MOCAP_POSES,
+    ROBOT_TOPIC_KINDS,
+    SCHEMAS,
+    USER_METADATA,
+    LogError,
+    LogRecord,
+    PathLike,
+    compact_json,
+    metadata_as_text,
+    metadata_from_text,
+    robot_topic,
+    schema_name_for,
+    split_robot_topic,
+)
+from .log_summary import LogReader, LogSummary
+from .log_summary import summarise as summarise_log
 
-LOG_FORMAT_VERSION = 1
-LIBRARY = f"khepri-recorder/{LOG_FORMAT_VERSION}"
-FORMAT_METADATA = "khepri.log"      # MCAP metadata record: format name and version
-USER_METADATA = "khepri.metadata"   # MCAP metadata record: the Recorder's ``metadata`` dict, values as JSON text
-MCAP_MAGIC = b"\x89MCAP0\r\n"
+# Users import recording from here (docs/recording.md): besides its own Recorder, read_log and summarise, this
+# module offers the format's names (hub.log_format) and the BackgroundRecorder, which live in modules of their own.
+__all__ = [
+    "CONTROL", "FORMAT_METADATA", "HUB_DROPS", "HUB_STATUS", "LIBRARY", "LOG_FORMAT_VERSION", "MCAP_MAGIC",
+    "MOCAP_POSES", "ROBOT_TOPIC_KINDS", "SCHEMAS", "USER_METADATA", "BackgroundRecorder", "LogError", "LogRecord",
+    "PathLike", "Recorder", "metadata_from_text", "read_log", "robot_topic", "split_robot_topic", "summarise",
+]
 
-MOCAP_POSES = "/mocap/poses"
-CONTROL = "/control"
-HUB_DROPS = "/hub/drops"
-HUB_STATUS = "/hub/status"
-ROBOT_TOPIC_KINDS = ("frame", "broadcast", "relay", "telemetry", "command", "wheels")
-
-PathLike = Union[str, Path]
-
-
-class LogError(ConfigError):
-    """A log cannot be written or read. ``str(err)`` is one line naming the file or the topic."""
-
-
-def robot_topic(robot_id: Any, kind: str) -> str:
-    """``/robot/<id>/<kind>``, e.g. ``robot_topic(3, "frame") == "/robot/3/frame"``."""
-    return f"/robot/{robot_id}/{kind}"
-
-
-def split_robot_topic(topic: str) -> Optional[Tuple[str, str]]:
-    """``(id, kind)`` for a ``/robot/<id>/<kind>`` topic, else None."""
-    parts = topic.split("/")
-    if len(parts) == 4 and parts[0] == "" and parts[1] == "robot" and parts[2] and parts[3]:
-        return parts[2], parts[3]
-    return None
-
-
-def _object_schema(title: str, description: str, properties: Optional[dict] = None,
-                   required: Tuple[str, ...] = ()) -> dict:
-    # Loose on purpose: the hub and agent own the fields; the schema names them for Foxglove's panels.
-    schema: Dict[str, Any] = {"title": title, "description": description, "type": "object"}
-    if properties:
-        schema["properties"] = properties
-    if required:
-        schema["required"] = list(required)
-    return schema
-
-
-_POSE7 = {"type": "array", "items": {"type": "number"}, "minItems": 7, "maxItems": 7,
-          "description": "[x, y, z, qx, qy, qz, qw] in the motion-capture world frame (m)"}
-
-# Schema name -> JSON schema. Topic kinds map onto these in _schema_name_for.
-SCHEMAS: Dict[str, dict] = {
-    "khepri.MocapPoses": _object_schema(
-        "khepri.MocapPoses", "One motion-capture frame: raw rigid bodies, or robot poses.",
-        {"bodies": {"type": "object", "additionalProperties": _POSE7, "description": "rigid-body name -> pose"},
-         "ids": {"type": "array", "items": {"type": "integer"}, "description": "robot ids, one per row of poses"},
-         "poses": {"type": "array", "items": {"type": "array", "items": {"type": "number"}},
-                   "description": "[x (m), y (m), yaw (rad)] per robot, world frame"},
-         "clock_s": {"type": ["number", "null"], "description": "simulated time, with the sim source"}}),
-    "khepri.RobotFrame": _object_schema("khepri.RobotFrame", "The downlink frame the hub sent to one robot."),
-    "khepri.RobotBroadcast": _object_schema("khepri.RobotBroadcast", "A radio message one robot sent (uplink)."),
-    "khepri.RobotRelay": _object_schema("khepri.RobotRelay", "Which robots one robot's broadcast was relayed to.",
-                                        {"receivers": {"type": "array", "items": {"type": "integer"}}}),
-    "khepri.RobotWheels": _object_schema("khepri.RobotWheels", "Wheel speeds one robot asked the sim source for."),
-    "khepri.RobotTelemetry": _object_schema("khepri.RobotTelemetry", "Telemetry one robot reported."),
-    "khepri.RobotCommand": _object_schema("khepri.RobotCommand", "An operator or safety command sent to one robot."),
-    "khepri.Control": _object_schema("khepri.Control", "An operator request to the hub, or the hub's reply."),
-    "khepri.HubDrops": _object_schema(
-        "khepri.HubDrops", "Frames the hub dropped with one reason from one sender, since the previous record.",
-        {"reason": {"type": "string"}, "sender": {"type": ["string", "null"]},
-         "count": {"type": "integer", "minimum": 1}},
-        required=("reason", "count")),
-    "khepri.HubStatus": _object_schema("khepri.HubStatus", "Periodic hub statistics."),
-    "khepri.Any": _object_schema("khepri.Any", "A JSON object on a topic khepri does not define."),
-}
-_FIXED_TOPIC_SCHEMAS = {MOCAP_POSES: "khepri.MocapPoses", CONTROL: "khepri.Control", HUB_DROPS: "khepri.HubDrops",
-                        HUB_STATUS: "khepri.HubStatus"}
-_ROBOT_KIND_SCHEMAS = {"frame": "khepri.RobotFrame", "broadcast": "khepri.RobotBroadcast",
-                       "relay": "khepri.RobotRelay", "telemetry": "khepri.RobotTelemetry",
-                       "command": "khepri.RobotCommand", "wheels": "khepri.RobotWheels"}
-
-
-def _schema_name_for(topic: str) -> str:
-    if topic in _FIXED_TOPIC_SCHEMAS:
-        return _FIXED_TOPIC_SCHEMAS[topic]
-    robot = split_robot_topic(topic)
-    if robot and robot[1] in _ROBOT_KIND_SCHEMAS:
-        return _ROBOT_KIND_SCHEMAS[robot[1]]
-    return "khepri.Any"
-
-
-_encode_json = json.JSONEncoder(separators=(",", ":"), allow_nan=False, ensure_ascii=False).encode
 # Stamps are wall-clock seconds (time.time()). Before 2001 means a monotonic or simulated clock slipped in, which
 # would silently scramble durations and the order of topics; after 2540 overflows MCAP's 64-bit nanoseconds.
 _MIN_STAMP_S, _MAX_STAMP_S = 1e9, 1.8e10
@@ -130,7 +72,7 @@ class Recorder:
                  chunk_size: int = 4 * 1024 * 1024):
         if not flush_period_s > 0:
             raise LogError("flush_period_s", f"must be > 0 (got {flush_period_s!r})")
-        user_metadata = _metadata_as_text(metadata or {})
+        user_metadata = metadata_as_text(metadata or {})
         self.path = Path(path)
         try:
             self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
@@ -163,7 +105,7 @@ class Recorder:
         if not isinstance(payload, dict):
             raise LogError(topic, f"payload must be a dict (got {type(payload).__name__})")
         try:
-            data = _encode_json(payload).encode()
+            data = compact_json(payload).encode()
         except (TypeError, ValueError) as err:
             # Raised before anything reaches the writer, so the file stays intact.
             raise LogError(topic, f"payload is not JSON-able: {err}") from None
@@ -234,7 +176,7 @@ class Recorder:
     def _register(self, topic: str) -> int:
         if not isinstance(topic, str) or not topic.startswith("/"):
             raise LogError("topic", f"must be a string starting with '/' (got {topic!r})")
-        schema_name = _schema_name_for(topic)
+        schema_name = schema_name_for(topic)
         with self._lock:
             if self._refusal:
                 raise LogError(str(self.path), self._refusal)
@@ -270,111 +212,10 @@ class Recorder:
             return
         channel_id = self._channels[HUB_DROPS]   # registered by count_drop
         for (reason, sender), (count, stamp_ns) in sorted(self._drops.items(), key=_drop_order):
-            data = _encode_json({"reason": reason, "sender": sender, "count": count}).encode()
+            data = compact_json({"reason": reason, "sender": sender, "count": count}).encode()
             self._writer.add_message(channel_id, stamp_ns, data, stamp_ns, self._sequence)
             self._sequence = (self._sequence + 1) & 0xFFFFFFFF
         self._drops.clear()
-
-
-class BackgroundRecorder:
-    """A :class:`Recorder` written by a thread of its own, so that a hub's real-time loop only queues.
-
-    ``write``, ``write_later`` and ``count_drop`` take the stamp (now, unless given) and append to a queue;
-    nothing is encoded in the caller's thread. The writer thread encodes and writes everything in call order
-    when :meth:`kick` wakes it (the hub kicks once its downlink frames are out) and at least every
-    ``idle_s``. An error in the writer (e.g. a full disk) is raised by the next call, as the Recorder itself
-    would have. ``close`` writes what is queued and closes the file.
-
-    Why a thread: encoding a 100-robot lab's frames as JSON takes about 1 ms per motion-capture frame. Done
-    by the hub's loop thread, that CPU time makes the kernel treat the thread as busy, so every ZeroMQ send
-    that wakes ZeroMQ's I/O thread then preempts it: the frames of the next burst went out about four times
-    slower (docs/lab.md, "Hub latency").
-    """
-
-    def __init__(self, recorder: Recorder, idle_s: float = 0.05):
-        self.recorder = recorder
-        self.path = recorder.path
-        self._queue: Deque[Tuple[Any, ...]] = deque()
-        self._kick = threading.Event()
-        self._idle_s = idle_s
-        self._stopping = False
-        self._error: Optional[BaseException] = None
-        self._thread = threading.Thread(target=self._run, name="khepri-recorder-writer", daemon=True)
-        self._thread.start()
-
-    def write(self, topic: str, payload: dict, stamp_s: Optional[float] = None) -> None:
-        self._check()
-        self._queue.append((topic, payload, None, time.time() if stamp_s is None else stamp_s))
-
-    def write_later(self, topic: str, build: Callable[..., dict], args: Tuple[Any, ...],
-                    stamp_s: Optional[float] = None) -> None:
-        """Record ``build(*args)``, called in the writer thread: the arguments must not change afterwards."""
-        self._check()
-        self._queue.append((topic, build, args, time.time() if stamp_s is None else stamp_s))
-
-    def count_drop(self, reason: str, sender: Optional[str] = None, stamp_s: Optional[float] = None) -> None:
-        self._check()
-        self._queue.append((None, reason, sender, time.time() if stamp_s is None else stamp_s))
-
-    def kick(self) -> None:
-        """Write what is queued now (from the writer thread)."""
-        if self._queue:
-            self._kick.set()
-
-    def flush(self) -> None:
-        """Write what is queued, then flush the file (waits for the writer thread)."""
-        self._drain_wait()
-        self._check()
-        self.recorder.flush()
-
-    def close(self) -> None:
-        """Write what is queued, close the file and stop the writer thread. Safe to call twice."""
-        self._stopping = True
-        self._kick.set()
-        if self._thread is not threading.current_thread():
-            self._thread.join()
-        try:
-            self.recorder.close()
-        finally:
-            self._check()
-
-    def __enter__(self) -> BackgroundRecorder:
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        self.close()
-
-    def _check(self) -> None:
-        if self._error is not None:
-            error, self._error = self._error, None
-            raise error
-
-    def _drain_wait(self) -> None:
-        while self._queue and self._thread.is_alive():
-            self._kick.set()
-            time.sleep(0.001)
-
-    def _run(self) -> None:
-        while True:
-            self._kick.wait(self._idle_s)
-            self._kick.clear()
-            stopping = self._stopping
-            while self._queue:
-                topic, first, second, stamp = self._queue.popleft()
-                if self._error is not None:
-                    continue                      # reported once; the rest cannot be written either
-                try:
-                    if topic is None:
-                        self.recorder.count_drop(first, second, stamp)
-                    elif second is None:
-                        self.recorder.write(topic, first, stamp)
-                    else:
-                        self.recorder.write(topic, first(*second), stamp)
-                except Exception as err:          # handed to the hub's thread by its next call
-                    self._error = err
-            if stopping:
-                return
-
 
 def _stamp_ns(where: str, stamp_s: Optional[float]) -> int:
     if stamp_s is None:
@@ -400,56 +241,17 @@ def _drop_order(item: Tuple[Tuple[str, Optional[str]], Tuple[int, int]]) -> Tupl
     return stamp_ns, reason, sender or ""
 
 
-def _metadata_as_text(metadata: dict) -> Dict[str, str]:
-    """MCAP metadata maps strings to strings: store each value as JSON text so numbers and lists survive."""
-    if not isinstance(metadata, dict):
-        raise LogError("metadata", f"must be a dict (got {type(metadata).__name__})")
-    text = {}
-    for key, value in metadata.items():
-        if not isinstance(key, str):
-            raise LogError("metadata", f"keys must be strings (got {key!r})")
-        try:
-            text[key] = _encode_json(value)
-        except (TypeError, ValueError) as err:
-            raise LogError(f"metadata.{key}", f"is not JSON-able: {err}") from None
-    return text
-
-
-def metadata_from_text(text: Dict[str, str]) -> Dict[str, Any]:
-    """Inverse of the Recorder's metadata encoding; a value that is not JSON is kept as the string."""
-    values = {}
-    for key, value in text.items():
-        try:
-            values[key] = json.loads(value)
-        except ValueError:
-            values[key] = value
-    return values
-
-
-@dataclass(frozen=True)
-class LogRecord:
-    """One recorded message: its topic, its hub-clock stamp (s since 1970) and its decoded JSON payload."""
-
-    topic: str
-    stamp_s: float
-    payload: dict
-
-
 def read_log(path: PathLike, topics: Optional[Iterable[str]] = None) -> Iterator[LogRecord]:
     """The messages of a log in the order the hub wrote them, optionally only those on ``topics``.
 
     A truncated file (a killed hub) yields every message up to the first record the file cuts short. Missing,
     empty and non-MCAP files raise :class:`LogError` at once, before iteration.
     """
-    from hub.log_summary import LogReader  # late import: the reader builds on this module
-
     return LogReader(path).records(topics)
 
 
-def summarise(path: PathLike, **options: Any):
+def summarise(path: PathLike, **options: Any) -> LogSummary:
     """A :class:`hub.log_summary.LogSummary` of the log at ``path`` (see that module)."""
-    from hub.log_summary import summarise as summarise_log  # late import: the reader builds on this module
-
     return summarise_log(path, **options)
 
 

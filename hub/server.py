@@ -3,6 +3,10 @@
 Sockets (docs/protocol.md): a ROUTER for the robots' DEALERs (downlink frames and commands, uplink
 telemetry, broadcasts, wheel commands) and a ROUTER for ``khepri ctl``. One thread runs everything here;
 only a motion-capture reader runs beside it (``hub/sources.py``).
+
+This module holds the :class:`Hub`'s state, sockets, loop, pose handling and safety modes; what it sends is in
+``hub/downlink.py`` and what it receives from robots in ``hub/uplink.py`` (mixins of the same class), operator
+requests in ``hub/control_service.py``.
 """
 from __future__ import annotations
 
@@ -15,37 +19,22 @@ import numpy as np
 import zmq
 
 from onboard.config import ConfigError
-from onboard.protocol import (
-    FRAME_HEADER,
-    MAX_MESSAGE_BYTES,
-    MODE_CODES,
-    NEIGHBOUR_DTYPE,
-    UPLINK_TYPES,
-    ProtocolError,
-    check_payload_size,
-    decode,
-    encode,
-    frame_tail,
-    pack_frame,
-)
+from onboard.protocol import MAX_MESSAGE_BYTES
 
+from .background_recorder import BackgroundRecorder
 from .config import LabConfig
 from .control_service import ControlService
+from .downlink import Downlink
 from .links import DropLog, RateMeter, RobotLink
-from .recording import BackgroundRecorder, robot_topic
 from .relay import RadioRelay
 from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HubAuthenticator, KeyRing, make_curve_server
 from .sensors import SensingModel, VirtualSensors
 from .sources import PoseFrame, PoseSource
+from .uplink import Uplink
 
 DOWNLINK_HWM = 8          # frames queued per robot; older data is useless, a full queue drops (latest-only)
-COMMAND_RETRY_S = 0.25    # an unacknowledged command is sent again this often
 UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting pose frame
-TAIL_SLACK_BYTES = 1024   # room kept in a frame for reason and sim beside the relayed messages
-_SEND_MORE = int(zmq.NOBLOCK | zmq.SNDMORE)   # plain ints: combining the flag enums costs a microsecond a send
-_SEND_LAST = int(zmq.NOBLOCK)
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
-DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
 NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
 NO_POSE_YET_REPEAT_S = 30.0    # ...and again this often while none does
 
@@ -70,7 +59,7 @@ class RunTemplate:
         return message
 
 
-class Hub:
+class Hub(Downlink, Uplink):
     def __init__(self, config: LabConfig, source: PoseSource, robot_ids: List[int], run: RunTemplate,
                  sensing: SensingModel, relay_drop: float, seed=None, keyring: Optional[KeyRing] = None,
                  recorder=None, log: Callable[[str], None] = print, context: Optional[zmq.Context] = None):
@@ -268,206 +257,9 @@ class Hub:
             return "hold", "outside the geofence"
         return "run", ""
 
-    # --- downlink ---------------------------------------------------------------------------------------
-    def send_due(self, now: float, fresh: bool) -> None:
-        """Frames to robots whose turn has come: right after a fresh pose frame, or as a heartbeat when
-        motion capture is late by half a period (so agents' watchdogs see a live hub either way)."""
-        period = 1.0 / self.config.network.downlink_hz
-        slack = 0.0 if fresh else period / 2.0
-        due = [r for r in self.robots.values() if r.routing is not None and now >= r.next_due + slack]
-        if not due:
-            return
-        self.send_frames(due, now)
-        for robot in due:
-            robot.next_due += period
-            if robot.next_due <= now:
-                robot.next_due = now + period
-
-    def send_frame(self, robot: RobotLink, now: float) -> None:
-        self.send_frames([robot], now)
-
-    def send_frames(self, robots: List[RobotLink], now: float) -> None:
-        """One frame to each of ``robots``, in that order. The sensor part of all of them is built in one
-        vectorised pass (:meth:`VirtualSensors.frames`); each frame is then a header pack, a slice of the
-        neighbour records and, only when it carries messages, a reason or sim readings, a small JSON tail
-        (docs/protocol.md). Nothing per neighbour happens in Python, and recording waits until all are sent."""
-        batch = self.sensors.frames([robot.id for robot in robots])
-        clock_s, stamp = self.clock_s, self.last_frame_stamp
-        ages = np.maximum(now - self.seen_at.take(batch.rows), 0.0).tolist()
-        recording = self.recorder is not None
-        for k, robot in enumerate(robots):
-            mode, reason = self.mode_for(robot)
-            tail: Dict[str, Any] = {}
-            if self.relay.pending(robot.id):
-                budget = MAX_MESSAGE_BYTES - FRAME_HEADER.size - TAIL_SLACK_BYTES \
-                    - NEIGHBOUR_DTYPE.itemsize * batch.count(k)
-                messages = self.relay.take(robot.id, budget)
-                if messages:
-                    tail["messages"] = messages
-            if reason:
-                tail["reason"] = reason
-            extra = self.extras.get(robot.id)
-            if extra is not None:
-                tail["sim"] = extra
-            robot.seq += 1
-            present = batch.present[k]
-            hub_t = stamp if present else now
-            age = ages[k] if present else 0.0
-            try:
-                data = pack_frame(robot.seq, MODE_CODES[mode], hub_t, age, batch.poses[k], batch.block(k),
-                                  frame_tail(tail) if tail else b"", clock_s)
-            except ProtocolError as err:
-                self.drops.drop("unencodable downlink", f"robot {robot.id}", str(err))
-                continue
-            if self._send(robot, data) and recording:
-                self.recorder.write_later(robot_topic(robot.id, "frame"), frame_record,
-                                          (robot.seq, mode, hub_t, age, batch, k, tail, clock_s))
-        if recording:
-            self.recorder.kick()    # encode and write them now, in the recorder's thread
-        self.sensors.refill()       # the next burst's noise, drawn now that this one is out
-
-    def send_to(self, robot: RobotLink, message: Dict[str, Any], topic: str) -> bool:
-        try:
-            data = encode(message)
-        except ProtocolError as err:
-            self.drops.drop("unencodable downlink", f"robot {robot.id}", str(err))
-            return False
-        if not self._send(robot, data):
-            return False
-        if self.recorder is not None:
-            self.recorder.write(robot_topic(robot.id, topic), message)
-        return True
-
-    def _send(self, robot: RobotLink, data: bytes) -> bool:
-        sock = self.robot_socket
-        try:
-            sock.send(robot.routing, _SEND_MORE)
-            sock.send(data, _SEND_LAST)
-        except zmq.Again:
-            robot.frames_dropped += 1      # the agent is not reading: drop rather than queue stale data
-            return False
-        except zmq.ZMQError:               # EHOSTUNREACH: the agent's connection is gone
-            robot.routing = None
-            return False
-        return True
-
-    def send_command_to_all(self, cmd: str, reason: str = "") -> None:
-        for robot in self.robots.values():
-            if robot.routing is not None:
-                self.send_command(robot, cmd, reason)
-
-    def send_command(self, robot: RobotLink, cmd: str, reason: str = "") -> None:
-        message: Dict[str, Any] = {"type": "command", "cmd": cmd}
-        if cmd == "start":
-            message["run"] = self.run.message(self.run_id or "")
-        if reason:
-            message["reason"] = reason
-        robot.pending = message
-        robot.pending_sent_at = time.monotonic()
-        self.send_to(robot, message, topic="command")
-
-    # --- uplink -----------------------------------------------------------------------------------------
-    def handle_uplink(self, parts: List[zmq.Frame]) -> None:
-        now = time.monotonic()
-        if len(parts) != 2:
-            self.drops.drop("malformed message", "unknown peer", f"{len(parts) - 1} frames, expected 1")
-            return
-        routing, body = parts
-        user, peer = _property(body, "User-Id"), _property(body, "Peer-Address")
-        sender = f"{user or 'peer'} at {peer or '?'}"
-        try:
-            message = decode(body.bytes, sender, accept=UPLINK_TYPES)
-        except ProtocolError as err:
-            self.drops.drop("bad message", sender, str(err))
-            return
-        rid = message["id"]
-        if self.keyring is not None and user != f"robot:{rid}":
-            self.drops.drop("id mismatch", sender, f"{sender} claimed to be robot {rid}")
-            return
-        robot = self.robots.get(rid)
-        if robot is None:
-            self.drops.drop("unknown robot", sender, f"{sender} claimed robot {rid}, which is not in this lab")
-            return
-        if robot.routing != routing.bytes:
-            if robot.connected(now, self.config.watchdog_s):
-                self._rival(robot, peer, sender, now)
-                return
-            self._connected(robot, routing.bytes, peer, now)
-        robot.last_uplink = now
-        getattr(self, f"_on_{message['type']}")(robot, message, now)
-
-    def _connected(self, robot: RobotLink, routing: bytes, peer: Optional[str], now: float) -> None:
-        robot.routing, robot.peer = routing, peer or ""
-        index = self.ids.index(robot.id)
-        robot.next_due = now + (index / max(1, len(self.ids))) / self.config.network.downlink_hz  # spread sends
-        self.log(f"hub: robot {robot.id} connected from {robot.peer or '?'}")
-
-    def _rival(self, robot: RobotLink, peer: Optional[str], sender: str, now: float) -> None:
-        """A second connection speaks for a robot whose connection is alive (two agents started with one --id,
-        or one robot key copied twice). The first keeps the robot, frames and wheels, until it is silent for
-        watchdog_s; the other's messages are dropped. Switching on every message instead would hand the frames
-        back and forth, and the agents' wheels with them. Said once every DUPLICATE_WARNING_S, and only once the
-        first connection spoke after the second appeared: an agent that reconnects leaves its old one silent."""
-        self.drops.count("duplicate robot", sender)
-        if now - robot.rival_seen > self.config.watchdog_s:
-            robot.rival_since = now            # a new contest
-        robot.rival_seen = now
-        if robot.last_uplink <= robot.rival_since or now - robot.rival_warned < DUPLICATE_WARNING_S:
-            return
-        robot.rival_warned = now
-        self.log(f"hub: robot {robot.id} is claimed by two connections: {robot.peer or '?'} (first, keeps the "
-                 f"robot) and {peer or '?'} (ignored while the first is alive); is a second agent running with "
-                 f"--id {robot.id}?")
-
-    def _on_hello(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        robot.driver = message["driver"]
-        robot.run_id = message.get("run_id")
-        if self.run_id is not None and robot.run_id != self.run_id and self.mode != "idle":
-            self.send_command(robot, "start")          # a late or restarted agent joins the current run
-        elif self.mode == "estop":
-            self.send_command(robot, "estop", "operator e-stop")
-        elif self.run_id is None and robot.run_id is not None:
-            self.send_command(robot, "stop", "the hub has no run")   # e.g. the hub restarted mid-run
-
-    def _on_telemetry(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        robot.telemetry = message
-        robot.step_answered = message["step"]
-        robot.run_id = message.get("run_id", robot.run_id)
-        if self.recorder is not None:
-            self.recorder.write(robot_topic(robot.id, "telemetry"), message)
-
-    def _on_broadcast(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        payload = message["payload"]
-        size = check_payload_size(payload)
-        receivers = self.sensors.receivers_of(robot.id) if self.mode_for(robot)[0] == "run" else []
-        if not self.relay.submit(robot.id, message["sent_s"], payload, size, receivers):
-            self.drops.drop("refused broadcast", f"robot {robot.id}", f"{size} bytes > relay.max_bytes")
-        elif self.recorder is not None:
-            self.recorder.write(robot_topic(robot.id, "broadcast"), message)
-            self.recorder.write(robot_topic(robot.id, "relay"), {"receivers": receivers})
-
-    def _on_wheels(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        command = getattr(self.source, "command", None)
-        if command is None:
-            return
-        allowed = self.mode_for(robot)[0] == "run"
-        command(robot.id, message["left"] if allowed else 0.0, message["right"] if allowed else 0.0)
-        if self.recorder is not None:
-            self.recorder.write(robot_topic(robot.id, "wheels"), message)   # not /command: that is the operator's
-
-    def _on_ack(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        if robot.pending is not None and robot.pending["cmd"] == message["cmd"]:
-            robot.pending = None
-        if message["cmd"] == "estop" and self.estop_at is not None and robot.estop_ack_s is None:
-            robot.estop_ack_s = now - self.estop_at
-
     # --- periodic ---------------------------------------------------------------------------------------
     def housekeeping(self, now: float) -> None:
-        for robot in self.robots.values():
-            if robot.pending is not None and robot.routing is not None \
-                    and now - robot.pending_sent_at > COMMAND_RETRY_S:
-                robot.pending_sent_at = now
-                self.send_to(robot, robot.pending, topic="command")
+        self.resend_unacknowledged(now)
         self._warn_if_no_pose_yet(now)
         silent = now - self.last_frame_stamp > MOCAP_SILENT_S and self.last_frame_stamp > -math.inf
         if silent != self.mocap_silent:
@@ -505,19 +297,6 @@ def poses_record(frame: PoseFrame) -> Dict[str, Any]:
     return {"bodies": bodies, "clock_s": frame.clock_s}
 
 
-def frame_record(seq: int, mode: str, hub_t: float, age: float, batch, k: int, tail: Dict[str, Any],
-                 clock_s: Optional[float]) -> Dict[str, Any]:
-    """``/robot/<id>/frame``: the frame as the agent decodes it (docs/recording.md), without ``v``."""
-    pose = batch.poses[k]
-    record: Dict[str, Any] = {"type": "frame", "seq": seq, "mode": mode, "hub_t": hub_t,
-                              "pose": None if pose is None else list(pose), "pose_age_s": age,
-                              "neighbours": batch.neighbours(k), "messages": []}
-    if clock_s is not None:
-        record["clock_s"] = clock_s
-    record.update(tail)
-    return record
-
-
 def format_ids(ids: List[int], limit: int = 10) -> str:
     shown = ", ".join(map(str, ids[:limit]))
     return shown + (f" and {len(ids) - limit} more" if len(ids) > limit else "")
@@ -530,10 +309,3 @@ def bind_error(err: zmq.ZMQError, bind: str, port: int, port_field: str) -> Conf
     reason = (err.strerror or str(err)).split(" (addr=")[0]     # pyzmq appends the endpoint; we name it ourselves
     return ConfigError("network.bind", f"cannot listen on {bind!r}: {reason} (give an address of this PC, "
                        "e.g. 127.0.0.1, or * for all interfaces)")
-
-
-def _property(frame: zmq.Frame, name: str) -> Optional[str]:
-    try:
-        return frame.get(name)
-    except zmq.ZMQError:      # no such property (e.g. no authentication: no User-Id)
-        return None

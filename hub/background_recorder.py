@@ -1,0 +1,110 @@
+"""Recording off the hub's real-time loop: the loop only queues, a writer thread encodes and writes the log."""
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from typing import TYPE_CHECKING, Any, Callable, Deque, Optional, Tuple
+
+if TYPE_CHECKING:      # hub.recording offers this class too, so it cannot be imported from here at run time
+    from .recording import Recorder
+
+
+class BackgroundRecorder:
+    """A :class:`Recorder` written by a thread of its own, so that a hub's real-time loop only queues.
+
+    ``write``, ``write_later`` and ``count_drop`` take the stamp (now, unless given) and append to a queue;
+    nothing is encoded in the caller's thread. The writer thread encodes and writes everything in call order
+    when :meth:`kick` wakes it (the hub kicks once its downlink frames are out) and at least every
+    ``idle_s``. An error in the writer (e.g. a full disk) is raised by the next call, as the Recorder itself
+    would have. ``close`` writes what is queued and closes the file.
+
+    Why a thread: encoding a 100-robot lab's frames as JSON takes about 1 ms per motion-capture frame. Done
+    by the hub's loop thread, that CPU time makes the kernel treat the thread as busy, so every ZeroMQ send
+    that wakes ZeroMQ's I/O thread then preempts it: the frames of the next burst went out about four times
+    slower (docs/lab.md, "Hub latency").
+    """
+
+    def __init__(self, recorder: Recorder, idle_s: float = 0.05):
+        self.recorder = recorder
+        self.path = recorder.path
+        self._queue: Deque[Tuple[Any, ...]] = deque()
+        self._kick = threading.Event()
+        self._idle_s = idle_s
+        self._stopping = False
+        self._error: Optional[BaseException] = None
+        self._thread = threading.Thread(target=self._run, name="khepri-recorder-writer", daemon=True)
+        self._thread.start()
+
+    def write(self, topic: str, payload: dict, stamp_s: Optional[float] = None) -> None:
+        self._check()
+        self._queue.append((topic, payload, None, time.time() if stamp_s is None else stamp_s))
+
+    def write_later(self, topic: str, build: Callable[..., dict], args: Tuple[Any, ...],
+                    stamp_s: Optional[float] = None) -> None:
+        """Record ``build(*args)``, called in the writer thread: the arguments must not change afterwards."""
+        self._check()
+        self._queue.append((topic, build, args, time.time() if stamp_s is None else stamp_s))
+
+    def count_drop(self, reason: str, sender: Optional[str] = None, stamp_s: Optional[float] = None) -> None:
+        self._check()
+        self._queue.append((None, reason, sender, time.time() if stamp_s is None else stamp_s))
+
+    def kick(self) -> None:
+        """Write what is queued now (from the writer thread)."""
+        if self._queue:
+            self._kick.set()
+
+    def flush(self) -> None:
+        """Write what is queued, then flush the file (waits for the writer thread)."""
+        self._drain_wait()
+        self._check()
+        self.recorder.flush()
+
+    def close(self) -> None:
+        """Write what is queued, close the file and stop the writer thread. Safe to call twice."""
+        self._stopping = True
+        self._kick.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join()
+        try:
+            self.recorder.close()
+        finally:
+            self._check()
+
+    def __enter__(self) -> BackgroundRecorder:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def _check(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def _drain_wait(self) -> None:
+        while self._queue and self._thread.is_alive():
+            self._kick.set()
+            time.sleep(0.001)
+
+    def _run(self) -> None:
+        while True:
+            self._kick.wait(self._idle_s)
+            self._kick.clear()
+            stopping = self._stopping
+            while self._queue:
+                topic, first, second, stamp = self._queue.popleft()
+                if self._error is not None:
+                    continue                      # reported once; the rest cannot be written either
+                try:
+                    if topic is None:
+                        self.recorder.count_drop(first, second, stamp)
+                    elif second is None:
+                        self.recorder.write(topic, first, stamp)
+                    else:
+                        self.recorder.write(topic, first(*second), stamp)
+                except Exception as err:          # handed to the hub's thread by its next call
+                    self._error = err
+            if stopping:
+                return

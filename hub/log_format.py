@@ -1,0 +1,145 @@
+"""The khepri log format as its writer and its reader share it: names, topics, schemas, metadata and records.
+
+docs/recording.md documents the format for users. :mod:`hub.recording` writes it (and is where users import
+from); :mod:`hub.log_summary` reads it. Both take their vocabulary from here, so neither imports the other's
+machinery.
+
+- One MCAP channel per topic, message encoding ``json`` (compact UTF-8 JSON objects, :data:`compact_json`), and
+  a ``jsonschema`` schema per kind of topic (all ``/robot/<id>/frame`` channels share one schema).
+- Two metadata records: :data:`FORMAT_METADATA` (format name and version) and :data:`USER_METADATA` (the
+  Recorder's ``metadata`` dict, each value stored as JSON text).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple, Union
+
+from onboard.config import ConfigError
+
+LOG_FORMAT_VERSION = 1
+LIBRARY = f"khepri-recorder/{LOG_FORMAT_VERSION}"
+FORMAT_METADATA = "khepri.log"      # MCAP metadata record: format name and version
+USER_METADATA = "khepri.metadata"   # MCAP metadata record: the Recorder's ``metadata`` dict, values as JSON text
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+MOCAP_POSES = "/mocap/poses"
+CONTROL = "/control"
+HUB_DROPS = "/hub/drops"
+HUB_STATUS = "/hub/status"
+ROBOT_TOPIC_KINDS = ("frame", "broadcast", "relay", "telemetry", "command", "wheels")
+
+PathLike = Union[str, Path]
+
+
+class LogError(ConfigError):
+    """A log cannot be written or read. ``str(err)`` is one line naming the file or the topic."""
+
+
+def robot_topic(robot_id: Any, kind: str) -> str:
+    """``/robot/<id>/<kind>``, e.g. ``robot_topic(3, "frame") == "/robot/3/frame"``."""
+    return f"/robot/{robot_id}/{kind}"
+
+
+def split_robot_topic(topic: str) -> Optional[Tuple[str, str]]:
+    """``(id, kind)`` for a ``/robot/<id>/<kind>`` topic, else None."""
+    parts = topic.split("/")
+    if len(parts) == 4 and parts[0] == "" and parts[1] == "robot" and parts[2] and parts[3]:
+        return parts[2], parts[3]
+    return None
+
+
+def _object_schema(title: str, description: str, properties: Optional[dict] = None,
+                   required: Tuple[str, ...] = ()) -> dict:
+    # Loose on purpose: the hub and agent own the fields; the schema names them for Foxglove's panels.
+    schema: Dict[str, Any] = {"title": title, "description": description, "type": "object"}
+    if properties:
+        schema["properties"] = properties
+    if required:
+        schema["required"] = list(required)
+    return schema
+
+
+_POSE7 = {"type": "array", "items": {"type": "number"}, "minItems": 7, "maxItems": 7,
+          "description": "[x, y, z, qx, qy, qz, qw] in the motion-capture world frame (m)"}
+
+# Schema name -> JSON schema. Topic kinds map onto these in schema_name_for.
+SCHEMAS: Dict[str, dict] = {
+    "khepri.MocapPoses": _object_schema(
+        "khepri.MocapPoses", "One motion-capture frame: raw rigid bodies, or robot poses.",
+        {"bodies": {"type": "object", "additionalProperties": _POSE7, "description": "rigid-body name -> pose"},
+         "ids": {"type": "array", "items": {"type": "integer"}, "description": "robot ids, one per row of poses"},
+         "poses": {"type": "array", "items": {"type": "array", "items": {"type": "number"}},
+                   "description": "[x (m), y (m), yaw (rad)] per robot, world frame"},
+         "clock_s": {"type": ["number", "null"], "description": "simulated time, with the sim source"}}),
+    "khepri.RobotFrame": _object_schema("khepri.RobotFrame", "The downlink frame the hub sent to one robot."),
+    "khepri.RobotBroadcast": _object_schema("khepri.RobotBroadcast", "A radio message one robot sent (uplink)."),
+    "khepri.RobotRelay": _object_schema("khepri.RobotRelay", "Which robots one robot's broadcast was relayed to.",
+                                        {"receivers": {"type": "array", "items": {"type": "integer"}}}),
+    "khepri.RobotWheels": _object_schema("khepri.RobotWheels", "Wheel speeds one robot asked the sim source for."),
+    "khepri.RobotTelemetry": _object_schema("khepri.RobotTelemetry", "Telemetry one robot reported."),
+    "khepri.RobotCommand": _object_schema("khepri.RobotCommand", "An operator or safety command sent to one robot."),
+    "khepri.Control": _object_schema("khepri.Control", "An operator request to the hub, or the hub's reply."),
+    "khepri.HubDrops": _object_schema(
+        "khepri.HubDrops", "Frames the hub dropped with one reason from one sender, since the previous record.",
+        {"reason": {"type": "string"}, "sender": {"type": ["string", "null"]},
+         "count": {"type": "integer", "minimum": 1}},
+        required=("reason", "count")),
+    "khepri.HubStatus": _object_schema("khepri.HubStatus", "Periodic hub statistics."),
+    "khepri.Any": _object_schema("khepri.Any", "A JSON object on a topic khepri does not define."),
+}
+_FIXED_TOPIC_SCHEMAS = {MOCAP_POSES: "khepri.MocapPoses", CONTROL: "khepri.Control", HUB_DROPS: "khepri.HubDrops",
+                        HUB_STATUS: "khepri.HubStatus"}
+_ROBOT_KIND_SCHEMAS = {"frame": "khepri.RobotFrame", "broadcast": "khepri.RobotBroadcast",
+                       "relay": "khepri.RobotRelay", "telemetry": "khepri.RobotTelemetry",
+                       "command": "khepri.RobotCommand", "wheels": "khepri.RobotWheels"}
+
+
+def schema_name_for(topic: str) -> str:
+    """The name of the schema in :data:`SCHEMAS` that ``topic``'s channel is registered with."""
+    if topic in _FIXED_TOPIC_SCHEMAS:
+        return _FIXED_TOPIC_SCHEMAS[topic]
+    robot = split_robot_topic(topic)
+    if robot and robot[1] in _ROBOT_KIND_SCHEMAS:
+        return _ROBOT_KIND_SCHEMAS[robot[1]]
+    return "khepri.Any"
+
+
+# The log's JSON: compact, UTF-8, and no NaN or infinity, which are not JSON (docs/recording.md).
+compact_json = json.JSONEncoder(separators=(",", ":"), allow_nan=False, ensure_ascii=False).encode
+
+
+def metadata_as_text(metadata: dict) -> Dict[str, str]:
+    """MCAP metadata maps strings to strings: store each value as JSON text so numbers and lists survive."""
+    if not isinstance(metadata, dict):
+        raise LogError("metadata", f"must be a dict (got {type(metadata).__name__})")
+    text = {}
+    for key, value in metadata.items():
+        if not isinstance(key, str):
+            raise LogError("metadata", f"keys must be strings (got {key!r})")
+        try:
+            text[key] = compact_json(value)
+        except (TypeError, ValueError) as err:
+            raise LogError(f"metadata.{key}", f"is not JSON-able: {err}") from None
+    return text
+
+
+def metadata_from_text(text: Dict[str, str]) -> Dict[str, Any]:
+    """Inverse of :func:`metadata_as_text`; a value that is not JSON is kept as the string."""
+    values = {}
+    for key, value in text.items():
+        try:
+            values[key] = json.loads(value)
+        except ValueError:
+            values[key] = value
+    return values
+
+
+@dataclass(frozen=True)
+class LogRecord:
+    """One recorded message: its topic, its hub-clock stamp (s since 1970) and its decoded JSON payload."""
+
+    topic: str
+    stamp_s: float
+    payload: dict

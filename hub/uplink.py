@@ -1,0 +1,122 @@
+"""The hub's uplink: what the robots' agents send (hello, telemetry, broadcasts, wheel commands, acks).
+
+A mixin of :class:`~.server.Hub`, like :class:`~.downlink.Downlink`. :meth:`Uplink.handle_uplink` checks one
+message (its framing, its claimed robot id against the connection's CURVE key, a rival connection for the
+same robot) and hands it to the ``_on_<type>`` handler of its type.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Dict, List, Optional
+
+import zmq
+
+from onboard.protocol import UPLINK_TYPES, ProtocolError, check_payload_size, decode
+
+from .links import RobotLink
+from .log_format import robot_topic
+
+DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
+
+
+class Uplink:
+    def handle_uplink(self, parts: List[zmq.Frame]) -> None:
+        now = time.monotonic()
+        if len(parts) != 2:
+            self.drops.drop("malformed message", "unknown peer", f"{len(parts) - 1} frames, expected 1")
+            return
+        routing, body = parts
+        user, peer = _property(body, "User-Id"), _property(body, "Peer-Address")
+        sender = f"{user or 'peer'} at {peer or '?'}"
+        try:
+            message = decode(body.bytes, sender, accept=UPLINK_TYPES)
+        except ProtocolError as err:
+            self.drops.drop("bad message", sender, str(err))
+            return
+        rid = message["id"]
+        if self.keyring is not None and user != f"robot:{rid}":
+            self.drops.drop("id mismatch", sender, f"{sender} claimed to be robot {rid}")
+            return
+        robot = self.robots.get(rid)
+        if robot is None:
+            self.drops.drop("unknown robot", sender, f"{sender} claimed robot {rid}, which is not in this lab")
+            return
+        if robot.routing != routing.bytes:
+            if robot.connected(now, self.config.watchdog_s):
+                self._rival(robot, peer, sender, now)
+                return
+            self._connected(robot, routing.bytes, peer, now)
+        robot.last_uplink = now
+        getattr(self, f"_on_{message['type']}")(robot, message, now)
+
+    def _connected(self, robot: RobotLink, routing: bytes, peer: Optional[str], now: float) -> None:
+        robot.routing, robot.peer = routing, peer or ""
+        index = self.ids.index(robot.id)
+        robot.next_due = now + (index / max(1, len(self.ids))) / self.config.network.downlink_hz  # spread sends
+        self.log(f"hub: robot {robot.id} connected from {robot.peer or '?'}")
+
+    def _rival(self, robot: RobotLink, peer: Optional[str], sender: str, now: float) -> None:
+        """A second connection speaks for a robot whose connection is alive (two agents started with one --id,
+        or one robot key copied twice). The first keeps the robot, frames and wheels, until it is silent for
+        watchdog_s; the other's messages are dropped. Switching on every message instead would hand the frames
+        back and forth, and the agents' wheels with them. Said once every DUPLICATE_WARNING_S, and only once the
+        first connection spoke after the second appeared: an agent that reconnects leaves its old one silent."""
+        self.drops.count("duplicate robot", sender)
+        if now - robot.rival_seen > self.config.watchdog_s:
+            robot.rival_since = now            # a new contest
+        robot.rival_seen = now
+        if robot.last_uplink <= robot.rival_since or now - robot.rival_warned < DUPLICATE_WARNING_S:
+            return
+        robot.rival_warned = now
+        self.log(f"hub: robot {robot.id} is claimed by two connections: {robot.peer or '?'} (first, keeps the "
+                 f"robot) and {peer or '?'} (ignored while the first is alive); is a second agent running with "
+                 f"--id {robot.id}?")
+
+    def _on_hello(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
+        robot.driver = message["driver"]
+        robot.run_id = message.get("run_id")
+        if self.run_id is not None and robot.run_id != self.run_id and self.mode != "idle":
+            self.send_command(robot, "start")          # a late or restarted agent joins the current run
+        elif self.mode == "estop":
+            self.send_command(robot, "estop", "operator e-stop")
+        elif self.run_id is None and robot.run_id is not None:
+            self.send_command(robot, "stop", "the hub has no run")   # e.g. the hub restarted mid-run
+
+    def _on_telemetry(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
+        robot.telemetry = message
+        robot.step_answered = message["step"]
+        robot.run_id = message.get("run_id", robot.run_id)
+        if self.recorder is not None:
+            self.recorder.write(robot_topic(robot.id, "telemetry"), message)
+
+    def _on_broadcast(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
+        payload = message["payload"]
+        size = check_payload_size(payload)
+        receivers = self.sensors.receivers_of(robot.id) if self.mode_for(robot)[0] == "run" else []
+        if not self.relay.submit(robot.id, message["sent_s"], payload, size, receivers):
+            self.drops.drop("refused broadcast", f"robot {robot.id}", f"{size} bytes > relay.max_bytes")
+        elif self.recorder is not None:
+            self.recorder.write(robot_topic(robot.id, "broadcast"), message)
+            self.recorder.write(robot_topic(robot.id, "relay"), {"receivers": receivers})
+
+    def _on_wheels(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
+        command = getattr(self.source, "command", None)
+        if command is None:
+            return
+        allowed = self.mode_for(robot)[0] == "run"
+        command(robot.id, message["left"] if allowed else 0.0, message["right"] if allowed else 0.0)
+        if self.recorder is not None:
+            self.recorder.write(robot_topic(robot.id, "wheels"), message)   # not /command: that is the operator's
+
+    def _on_ack(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
+        if robot.pending is not None and robot.pending["cmd"] == message["cmd"]:
+            robot.pending = None
+        if message["cmd"] == "estop" and self.estop_at is not None and robot.estop_ack_s is None:
+            robot.estop_ack_s = now - self.estop_at
+
+
+def _property(frame: zmq.Frame, name: str) -> Optional[str]:
+    try:
+        return frame.get(name)
+    except zmq.ZMQError:      # no such property (e.g. no authentication: no User-Id)
+        return None
