@@ -13,6 +13,8 @@ import zmq
 
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
+from .links import frame_property
+
 if TYPE_CHECKING:
     from .server import Hub
 
@@ -27,7 +29,7 @@ class ControlService:
             hub.drops.drop("malformed control message", "unknown operator", f"{len(parts) - 1} frames")
             return
         routing, body = parts
-        sender = f"{_property(body, 'User-Id') or 'operator'} at {_property(body, 'Peer-Address') or '?'}"
+        sender = f"{frame_property(body, 'User-Id') or 'operator'} at {frame_property(body, 'Peer-Address') or '?'}"
         try:
             request = decode(body.bytes, sender, accept=("request",))
         except ProtocolError as err:
@@ -133,10 +135,3 @@ def encode_reply(reply: Dict[str, Any]) -> bytes:
         if "nonce" in reply:
             refusal["nonce"] = reply["nonce"]
         return encode(refusal)
-
-
-def _property(frame: zmq.Frame, name: str):
-    try:
-        return frame.get(name)
-    except zmq.ZMQError:
-        return None

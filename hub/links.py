@@ -6,6 +6,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, Optional
 
+import zmq
+
 
 @dataclass
 class RobotLink:
@@ -117,3 +119,12 @@ class RateMeter:
 
     def current(self, now: float) -> float:
         return 0.0 if now - self.last > 2.0 * self.window_s else self.hz
+
+
+def frame_property(frame: zmq.Frame, name: str) -> Optional[str]:
+    """A ZeroMQ metadata property of a received frame (``User-Id``, ``Peer-Address``), None when absent."""
+    try:
+        return frame.get(name)
+    except zmq.ZMQError:      # no such property (e.g. no authentication: no User-Id)
+        return None
+

@@ -13,7 +13,7 @@ import zmq
 
 from onboard.protocol import UPLINK_TYPES, ProtocolError, check_payload_size, decode
 
-from .links import RobotLink
+from .links import RobotLink, frame_property
 from .log_format import robot_topic
 
 DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
@@ -26,7 +26,7 @@ class Uplink:
             self.drops.drop("malformed message", "unknown peer", f"{len(parts) - 1} frames, expected 1")
             return
         routing, body = parts
-        user, peer = _property(body, "User-Id"), _property(body, "Peer-Address")
+        user, peer = frame_property(body, "User-Id"), frame_property(body, "Peer-Address")
         sender = f"{user or 'peer'} at {peer or '?'}"
         try:
             message = decode(body.bytes, sender, accept=UPLINK_TYPES)
@@ -113,10 +113,3 @@ class Uplink:
             robot.pending = None
         if message["cmd"] == "estop" and self.estop_at is not None and robot.estop_ack_s is None:
             robot.estop_ack_s = now - self.estop_at
-
-
-def _property(frame: zmq.Frame, name: str) -> Optional[str]:
-    try:
-        return frame.get(name)
-    except zmq.ZMQError:      # no such property (e.g. no authentication: no User-Id)
-        return None
