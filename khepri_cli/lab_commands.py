@@ -234,7 +234,7 @@ def _add_sil(groups) -> None:
 
 def cmd_sil(args: argparse.Namespace) -> int:
     from hub.sil import SilOptions, run_sil
-    from khepri_cli.sim_commands import check_time_limit, require_out_folder, summary_line
+    from khepri_cli.sim_commands import check_time_limit, print_summary, require_out_folder
     from sim_backend.scenario import load_scenario
 
     if args.seed is not None and args.seed < 0:
@@ -248,7 +248,7 @@ def cmd_sil(args: argparse.Namespace) -> int:
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
                          record=not args.no_record, plot=not args.no_plot, imports=list(args.imports))
     result = run_sil(scenario, out, options)
-    print(summary_line(result))
+    print_summary(result)
     sil = result.get("sil", {})
     print(f"  agents: {sil.get('agents')}, lockstep: {sil.get('lockstep')}, frame latency p99 "
           f"{sil.get('latency_ms', {}).get('p99')} ms, loop misses {sil.get('loop_misses')}, "

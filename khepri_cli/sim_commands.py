@@ -99,9 +99,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     files = write_run(sim, result, out, video=args.video, plot=not args.no_plot)
-    print(summary_line(result))
-    if result.get("failures"):      # "behaviour finished" is what the robots believe; this is the evaluator
-        print(f"  not completed: {'; '.join(result['failures'])}")
+    print_summary(result)
     for name, path in files.items():
         print(f"  {name}: {path}")
     if "error" in result:
@@ -156,6 +154,12 @@ def video_problem(path: Path):
         if not existed:
             path.unlink()
     return None
+
+
+def print_summary(result: dict) -> None:
+    print(summary_line(result))
+    if result.get("failures"):      # "behaviour finished" is what the robots believe; this is the evaluator
+        print(f"  not completed: {'; '.join(result['failures'])}")
 
 
 def summary_line(result: dict) -> str:

@@ -44,7 +44,8 @@ def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[
     fit = int(ring // spacing)
     if fit >= MIN_CAGE:
         return []
-    return [f"params.inter_robot_distance_m: only {fit} robots fit {spacing:g} m apart round this object (the "
+    robots = "robot fits" if fit == 1 else "robots fit"
+    return [f"params.inter_robot_distance_m: only {fit} {robots} {spacing:g} m apart round this object (the "
             f"cage ring is {ring:.2f} m long), and a cage needs {MIN_CAGE}: it cannot close. Set "
             f"params.inter_robot_distance_m to {math.floor(100 * ring / MIN_CAGE) / 100:.2f} m or less"]
 

@@ -60,7 +60,7 @@ def test_warnings_are_printed_before_the_run_and_kept_in_result_json(tmp_path, c
                         "arena: {walls: [-2, -2, 2, 2]}\n")
     assert main(["sim", "run", str(scenario), "--time-limit", "0.5", "--no-plot", "--out", str(tmp_path / "o")]) == 0
     printed = capsys.readouterr().err
-    assert "khepri: warning: params.inter_robot_distance_m: only 1 robots fit" in printed
+    assert "khepri: warning: params.inter_robot_distance_m: only 1 robot fits" in printed
     result = json.loads((tmp_path / "o" / "result.json").read_text())
     assert result["warnings"] == [line[len("khepri: warning: "):] for line in printed.splitlines()
                                   if line.startswith("khepri: warning: ")]
