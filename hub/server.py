@@ -260,6 +260,8 @@ class Hub(Downlink, Uplink):
     # --- periodic ---------------------------------------------------------------------------------------
     def housekeeping(self, now: float) -> None:
         self.resend_unacknowledged(now)
+        if not self.run.lockstep:       # in lockstep the hub paces the frames itself: none is ever late
+            self._expire_stale_poses(now)
         self._warn_if_no_pose_yet(now)
         silent = now - self.last_frame_stamp > MOCAP_SILENT_S and self.last_frame_stamp > -math.inf
         if silent != self.mocap_silent:
@@ -269,6 +271,16 @@ class Hub(Downlink, Uplink):
         if self.recorder is not None and now >= self._next_status_record:
             self._next_status_record = now + 1.0
             self.recorder.write("/hub/status", self.control.status(now))
+
+    def _expire_stale_poses(self, now: float) -> None:
+        """Bodies not seen for ``source.stale_s`` lose their pose, and their robots are held, also when no
+        frame comes at all (motion capture stopped, the replay ended). Presence used to be recomputed only
+        when a frame arrived, so without frames every robot ran on, for ever, on its last pose."""
+        stale = self.sensors.present & (now - self.seen_at > self.config.source.stale_s)
+        if stale.any():
+            present = self.sensors.present & ~stale
+            self.sensors.update(self.poses, present)
+            self._check_geofence(present)
 
     def _warn_if_no_pose_yet(self, now: float) -> None:
         """A source that never delivers (no server, wrong host, a log without poses) is said from the start,

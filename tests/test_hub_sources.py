@@ -165,6 +165,24 @@ def test_stale_bodies_lose_their_pose_and_are_held():
         hub.source.close()
 
 
+def test_robots_are_held_when_motion_capture_stops_sending_altogether():
+    """No frame at all (the cameras stopped, a replay ended): the robots' poses still go stale and they are
+    held. Presence used to be recomputed only when a frame arrived, so they ran on, on their last pose."""
+    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0)"), log=lambda line: None)
+    try:
+        hub.mode = "run"
+        now = time.monotonic()
+        hub.on_pose_frame(PoseFrame(now, [0, 1], np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]])))
+        hub.housekeeping(now + 0.05)
+        assert hub.mode_for(hub.robots[1]) == ("run", "") and hub.sensors.pose_of(0) is not None
+        hub.housekeeping(now + 0.2)                                   # no frame since: older than stale_s
+        assert hub.mode_for(hub.robots[0]) == ("hold", "not tracked by motion capture")
+        assert hub.mode_for(hub.robots[1]) == ("hold", "not tracked by motion capture")
+        assert hub.sensors.pose_of(0) is None and hub.sensors.frames([0]).poses == [None]
+    finally:
+        hub.source.close()
+
+
 def test_a_waiting_pose_frame_interrupts_uplink_reading():
     hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0)"), log=lambda line: None)
     sock = zmq.Context.instance().socket(zmq.DEALER)
