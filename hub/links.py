@@ -45,6 +45,7 @@ class RobotLink:
             "last_seen_s": None if self.last_uplink == -math.inf else round(now - self.last_uplink, 3),
             "peer": self.peer,
             "driver": self.driver,
+            "run_id": self.run_id,
             "mode": mode,
             "reason": reason,
             "agent_mode": telemetry.get("mode"),

@@ -86,6 +86,15 @@ class Uplink:
         robot.telemetry = message
         robot.step_answered = message["step"]
         robot.run_id = message.get("run_id", robot.run_id)
+        robot.driver = message.get("driver", robot.driver)
+        if robot.run_id is not None and robot.run_id != self.run_id and robot.pending is None:
+            # An agent that holds a run this hub did not start: the hub restarted while it was running. Its
+            # hellos were lost while it reconnected, and a connected agent says no more hellos, so its
+            # telemetry is where the hub learns it (a command already in flight is retried on its own).
+            if self.run_id is None:
+                self.send_command(robot, "stop", "the hub has no run")
+            elif self.mode != "idle":
+                self.send_command(robot, "start")
         if self.recorder is not None:
             self.recorder.write(robot_topic(robot.id, "telemetry"), message)
 

@@ -84,6 +84,11 @@ def test_agents_survive_a_hub_restart(tmp_path):
         fresh = wait_status(control, all_robots("connected", True))
         assert fresh["mode"] == "idle"
         wait_status(control, all_robots("agent_mode", "idle"))   # the new hub has no run: agents drop theirs
+        # ... the run itself too, not only its wheels: the hub learns of it from their telemetry (their
+        # hellos were lost while they reconnected)
+        dropped = wait_status(control, all_robots("run_id", None))
+        assert [r["state"] for r in dropped["robots"]] == [None, None]
+        assert [r["driver"] for r in dropped["robots"]] == ["sim", "sim"]
         request(control, "start")
         wait_status(control, lambda s: all(r["agent_mode"] == "run" and r["state"] not in (None, "init")
                                            for r in s["robots"]))

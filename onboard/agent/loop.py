@@ -234,8 +234,11 @@ class Agent:
 
     def hello(self, now: float) -> None:
         self.last_hello = now
-        self.link.send({"type": "hello", "driver": type(self.driver).__name__,
+        self.link.send({"type": "hello", "driver": self.driver_name(),
                         "run_id": self.run.get("run_id") if self.run else None})
+
+    def driver_name(self) -> str:
+        return self.driver.name or type(self.driver).__name__
 
     # --- safety -------------------------------------------------------------------------------------------
     def check_watchdog(self, now: float) -> None:
@@ -287,7 +290,7 @@ class Agent:
             "loop": self.stats.as_dict(), "battery_v": self.driver.battery_v(),
             "clock_s": round(self.clock.now(), 6), "frames_lost": self.state.frames_lost,
             "frames_bad": self.link.bad, "unsent": self.link.unsent,
-            "run_id": self.run.get("run_id") if self.run else None,
+            "run_id": self.run.get("run_id") if self.run else None, "driver": self.driver_name(),
         }
         if self.error:
             message["error"] = self.error[:200]

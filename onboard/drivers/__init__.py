@@ -16,6 +16,8 @@ from onboard.hal import WheelOdometry
 class Driver(ABC):
     """The robot's own hardware. Every method must be cheap: the agent calls them at 10 Hz."""
 
+    name = ""      # as the agent's --driver names it (kh4, sim); the hub's status shows it
+
     @abstractmethod
     def set_wheel_speeds(self, left_m_s: float, right_m_s: float) -> None:
         """Command wheel speeds in m/s (forward positive); the driver converts to hardware units."""

@@ -143,6 +143,8 @@ class KheperaIV(Driver):
     Open one per process: libkhepera holds the robot's I2C bus.
     """
 
+    name = "kh4"
+
     def __init__(self, library_path: Optional[str] = None, calibration_path: Optional[Union[str, Path]] = None,
                  max_wheel_speed_m_s: float = RobotSpec().max_wheel_speed_m_s):
         if not (0.0 < max_wheel_speed_m_s <= RobotSpec().max_wheel_speed_m_s):

@@ -12,6 +12,8 @@ from onboard.hal import WheelOdometry
 
 
 class SimDriver(Driver):
+    name = "sim"
+
     def __init__(self, send: Callable[[Dict[str, Any]], bool], readings: Callable[[], Optional[Dict[str, Any]]]):
         """``send`` delivers an uplink message to the hub; ``readings`` returns the latest frame's ``sim`` field."""
         self.send = send
