@@ -74,6 +74,10 @@ def cmd_hub(args: argparse.Namespace) -> int:
     if args.record:
         config.record = args.record
     if args.bind:
+        if args.demo and not is_loopback(args.bind):
+            raise ConfigError("--bind", f"--demo runs without encryption or authentication, so it listens on "
+                              f"loopback only (got {args.bind!r}); for a lab network use a config with keys "
+                              f"(khepri keys init, docs/lab.md)")
         config.network.bind = args.bind
     try:
         return serve_hub(config)
@@ -81,6 +85,10 @@ def cmd_hub(args: argparse.Namespace) -> int:
         if args.bind and err.field == "network.bind":
             raise ConfigError("--bind", err.problem) from None    # name the option the user typed
         raise
+
+
+def is_loopback(host: str) -> bool:
+    return host == "localhost" or host == "::1" or host.startswith("127.")
 
 
 # --- agent ----------------------------------------------------------------------------------------------------

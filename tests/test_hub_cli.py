@@ -38,6 +38,14 @@ def test_the_demo_hub_and_the_clients_agree_on_the_default_ports():
     assert parser.parse_args(["ctl", "status"]).port == network.control_port
 
 
+@pytest.mark.parametrize("bind", ["0.0.0.0", "192.168.1.20", "*"])
+def test_the_insecure_demo_hub_refuses_to_listen_beyond_loopback(bind, capsys):
+    from khepri_cli.main import main
+
+    assert main(["hub", "--demo", "--bind", bind]) == 2
+    assert capsys.readouterr().err.startswith("khepri: error: --bind: --demo runs without encryption")
+
+
 def test_hub_answers_ctl_and_takes_an_agent(tmp_path):
     config = tmp_path / "lab.yaml"     # the demo (sim source on lab-6, loopback) on free ports; --insecure below
     config.write_text(yaml.safe_dump({"source": {"type": "sim", "scenario": "lab-6"},
