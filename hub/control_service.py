@@ -90,6 +90,9 @@ class ControlService:
             return True, {"note": "already running"}
         if hub.mode == "idle":
             hub.run_id = uuid.uuid4().hex[:12]
+            hub.estop_at = None             # a new run: the last e-stop's acknowledgement times are history
+            for robot in hub.robots.values():
+                robot.estop_ack_s = None
             hub.send_command_to_all("start")
             hub.log(f"hub: run {hub.run_id} started by {sender}: {hub.run.behaviour}")
         else:

@@ -64,6 +64,12 @@ def test_operator_start_estop_clear_resume_stop(three_robots, tmp_path):
             assert status["run_id"] is None
             table = status_table(status)
             assert "connected" in table and len(table.splitlines()) == 2 + 3
+            assert all(r["estop_ack_ms"] is not None for r in status["robots"])   # the last e-stop, until...
+
+            hub.request("start")                 # ... a new run, which starts with no e-stop to report
+            status = hub.wait_until(lambda s: robots_say(s, "agent_mode", "run"))
+            assert status["run_id"] not in (None, run_id)
+            assert all(r["estop_ack_ms"] is None for r in status["robots"])
         finally:
             codes = stop_processes(agents)
     assert codes == [0, 0, 0]
