@@ -251,3 +251,15 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
     args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--quiet"])
     with pytest.raises(ConfigError, match=r"--hub: cannot connect to 'tcp://bad host'"):
         run_agent(args)
+
+
+def test_kh4_options_with_the_sim_driver_are_said_to_be_ignored(capsys):
+    from onboard.agent.cli import add_agent_arguments, run_agent
+    from onboard.config import ConfigError
+
+    parser = argparse.ArgumentParser()
+    add_agent_arguments(parser)
+    args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--calibration", "c.yaml"])
+    with pytest.raises(ConfigError):      # stops at the address, after the options were looked at
+        run_agent(args)
+    assert "agent 0: --calibration: only for the kh4 driver, ignored with --driver sim" in capsys.readouterr().err

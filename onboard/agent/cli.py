@@ -52,6 +52,9 @@ def run_agent(args: argparse.Namespace) -> int:
     import_user_modules(args.agent_imports)
     behaviour_names()       # import the behaviours now, not when the hub says start (that takes a while)
     log = _logger(args.quiet)
+    kh4_only = [f"--{name}" for name in ("library", "calibration") if getattr(args, name)]
+    if args.driver == "sim" and kh4_only:
+        log(f"agent {args.robot_id}: {' and '.join(kh4_only)}: only for the kh4 driver, ignored with --driver sim")
     endpoint = args.hub if "://" in args.hub else f"tcp://{args.hub}:{args.port}"
     try:
         link = HubLink(args.robot_id, endpoint, keys, log=log)
