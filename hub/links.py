@@ -128,4 +128,3 @@ def frame_property(frame: zmq.Frame, name: str) -> Optional[str]:
         return frame.get(name)
     except zmq.ZMQError:      # no such property (e.g. no authentication: no User-Id)
         return None
-
