@@ -115,6 +115,12 @@ def study_grid(args: argparse.Namespace):
     runs = expand(spec)
     for run in runs:   # workers import what `khepri --import` imported here (a user's behaviour)
         run.imports, run.import_dir = list(getattr(args, "imports", [])), os.getcwd()
+    warned = set()
+    for run in runs:   # once per cell, before anything runs (each run's result.json keeps them too)
+        if run.cell not in warned:
+            warned.add(run.cell)
+            for warning in run.warnings:
+                print(f"khepri: warning: {run.cell}: {warning}", file=sys.stderr)
     return spec, runs
 
 

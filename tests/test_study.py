@@ -27,7 +27,27 @@ scenarios: [lab-6]
 seeds: 1..2
 time_limit_s: 4
 """
-SPAWN_FAILURE = "robots.spawn.x"   # a zero-width start area: valid on load, fails when the world is built
+# A behaviour with a bug (it raises 1 s into the run): the failing cell of the tiny study.
+CRASHING_MODULE = """
+from dataclasses import dataclass, field
+
+from onboard.behaviour import Behaviour, register
+
+
+@dataclass
+class CrashingParams:
+    path: list = field(default_factory=list)
+
+
+@register("crashing")
+class Crashing(Behaviour):
+    Params = CrashingParams
+
+    def step(self):
+        if self.robot.clock.now() >= 1.0:
+            raise RuntimeError("a deliberate bug, 1 s in")
+"""
+GOOD, CRASHING = "lab-6@behaviour=transport", "lab-6@behaviour=crashing"
 
 
 def write(path: Path, text: str) -> Path:
@@ -145,57 +165,69 @@ def test_dry_run_prints_the_grid_and_runs_nothing(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def local_study(tmp_path_factory):
-    """The tiny study plus a cell that fails at start, run for real on a 2-process pool."""
+    """The tiny study plus a cell whose behaviour crashes, run for real on a 2-process pool (the workers
+    import the behaviour's module, as `khepri --import` asks)."""
+    from onboard import behaviour
+
     folder = tmp_path_factory.mktemp("local")
-    study = write(folder / "tiny.yaml", TINY_STUDY + f"overrides: {{{SPAWN_FAILURE}: [[-1.2, -0.6], [0.0, 0.0]]}}\n")
+    module = write(folder / "crashing.py", CRASHING_MODULE)
+    study = write(folder / "tiny.yaml", TINY_STUDY + "overrides: {behaviour: [transport, crashing]}\n")
     out = folder / "out"
-    code = main(["study", str(study), "--out", str(out), "--workers", "2"])
-    return study, out, code
+    code = main(["--import", str(module), "study", str(study), "--out", str(out), "--workers", "2"])
+    yield study, out, code, module
+    behaviour._REGISTRY.pop("crashing", None)     # other test modules list the known behaviours
 
 
 def test_the_local_pool_runs_every_run_and_writes_its_files(local_study):
-    _, out, code = local_study
+    _, out, code, _ = local_study
     results = results_in(out)
-    good = "lab-6@robots.spawn.x=-1.2,-0.6"
-    assert sorted(results) == [f"{good}/seed-1", f"{good}/seed-2", "lab-6@robots.spawn.x=0,0/seed-1",
-                               "lab-6@robots.spawn.x=0,0/seed-2"]
+    assert sorted(results) == [f"{CRASHING}/seed-1", f"{CRASHING}/seed-2", f"{GOOD}/seed-1", f"{GOOD}/seed-2"]
     for seed in (1, 2):
-        result = results[f"{good}/seed-{seed}"]
+        result = results[f"{GOOD}/seed-{seed}"]
         assert result["seed"] == seed and result["failed"] is False and result["sim_time_s"] == 4.0
         fingerprint = result["study"].pop("scenario_sha1")
-        assert result["study"] == {"cell": good, "scenario": "lab-6", "overrides": {SPAWN_FAILURE: [-1.2, -0.6]},
+        assert result["study"] == {"cell": GOOD, "scenario": "lab-6", "overrides": {"behaviour": "transport"},
                                    "time_limit_s": 4.0}
         assert len(fingerprint) == 16 and int(fingerprint, 16) >= 0
-        assert (out / good / f"seed-{seed}" / "trajectory.npz").stat().st_size > 0
+        assert (out / GOOD / f"seed-{seed}" / "trajectory.npz").stat().st_size > 0
     assert code == 1   # some runs failed: the command says so
     assert (out / "summary.csv").is_file() and (out / "report.md").is_file()
 
 
-def test_a_run_that_fails_at_start_is_recorded_with_its_reason(local_study):
-    _, out, _ = local_study
-    result = json.loads((out / "lab-6@robots.spawn.x=0,0" / "seed-1" / "result.json").read_text())
-    assert result["failed"] is True
-    assert result["error"].startswith("ConfigError: robots.spawn: 6 robots need about")
-    assert result["study"]["overrides"] == {SPAWN_FAILURE: [0.0, 0.0]}
+def test_a_run_whose_behaviour_crashes_is_recorded_with_its_reason(local_study):
+    _, out, _, _ = local_study
+    result = json.loads((out / CRASHING / "seed-1" / "result.json").read_text())
+    assert result["failed"] is True and result["stop_reason"] == "crashed"
+    assert result["error"].startswith("robot 0, step(): RuntimeError: a deliberate bug, 1 s in")
+    assert result["study"]["overrides"] == {"behaviour": "crashing"}
     report = (out / "report.md").read_text()
-    assert "- `lab-6@robots.spawn.x=0,0` seed 1: ConfigError: robots.spawn: 6 robots need about" in report
+    assert f"- `{CRASHING}` seed 1: robot 0, step(): RuntimeError: a deliberate bug, 1 s in" in report
+
+
+def test_a_cell_whose_robots_cannot_be_placed_is_refused_before_anything_runs(tmp_path, capsys):
+    """Only the world finds it (the scenario itself is valid): the study builds each cell's world first."""
+    study = write(tmp_path / "tiny.yaml", TINY_STUDY + "overrides: {robots.spawn.x: [[-1.2, -0.6], [0.0, 0.0]]}\n")
+    assert main(["study", str(study), "--out", str(tmp_path / "out")]) == 2
+    assert "khepri: error: overrides (lab-6@robots.spawn.x=0,0): robots.spawn: 6 robots need about" in \
+        capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 def test_resume_skips_finished_runs_and_retries_failed_ones_only_when_asked(local_study, capsys):
-    study, out, _ = local_study
-    finished = out / "lab-6@robots.spawn.x=-1.2,-0.6" / "seed-1" / "result.json"
-    failed = out / "lab-6@robots.spawn.x=0,0" / "seed-1" / "result.json"
+    study, out, _, module = local_study
+    finished = out / GOOD / "seed-1" / "result.json"
+    failed = out / CRASHING / "seed-1" / "result.json"
     marks = {path: path.read_text() + " " for path in (finished, failed)}
     for path, text in marks.items():   # a trailing space marks the files: a re-run would rewrite them
         path.write_text(text)
     capsys.readouterr()
-    main(["study", str(study), "--out", str(out), "--workers", "2"])
+    main(["--import", str(module), "study", str(study), "--out", str(out), "--workers", "2"])
     assert "ran 0 runs (0 failed), skipped 2 finished and 2 failed" in capsys.readouterr().out
     assert all(path.read_text() == text for path, text in marks.items())
-    main(["study", str(study), "--out", str(out), "--workers", "2", "--retry-failed"])
+    main(["--import", str(module), "study", str(study), "--out", str(out), "--workers", "2", "--retry-failed"])
     assert "ran 2 runs (2 failed), skipped 2 finished" in capsys.readouterr().out
     assert finished.read_text() == marks[finished] and failed.read_text() != marks[failed]
-    main(["study", str(study), "--out", str(out), "--time-limit", "3", "--no-figures"])
+    main(["--import", str(module), "study", str(study), "--out", str(out), "--time-limit", "3", "--no-figures"])
     assert "warning: 4 runs already in" in capsys.readouterr().err   # kept, though their time limit differs
 
 
@@ -249,8 +281,9 @@ def test_the_driver_writes_the_result_a_remote_worker_could_not(tmp_path):
 
 
 def test_a_dask_local_cluster_gives_the_same_results_as_the_local_pool(local_study, tmp_path, capsys):
-    study, local_out, _ = local_study
-    code = main(["study", str(study), "--executor", "dask", "--workers", "1", "--out", str(tmp_path)])
+    study, local_out, _, module = local_study
+    code = main(["--import", str(module), "study", str(study), "--executor", "dask", "--workers", "1",
+                 "--out", str(tmp_path)])
     assert code == 1   # the failing cell fails on Dask too
     assert "on Dask LocalCluster, 1 workers" in capsys.readouterr().out
     dask_results, local_results = results_in(tmp_path), results_in(local_out)
@@ -273,7 +306,8 @@ def waypoint(index, position, centroid, orientation, pushers, rotators=0.0):
 
 def transport_result(seed, cage, complete, waypoints, completed=True):
     return {"scenario": "paper-25-straight", "seed": seed, "robots": 25, "behaviour": "transport",
-            "sim_time_s": 500.0, "wall_time_s": 10.0 * seed, "failed": False, "caged": True,
+            "sim_time_s": 500.0, "wall_time_s": 10.0 * seed, "stop_reason": "behaviour finished", "failed": False,
+            "caged": True,
             "time_to_cage_s": cage, "cage_size": 18 + seed, "completed": completed, "time_to_complete_s": complete,
             "waypoints": waypoints, "final_position_error_m": 0.05, "final_orientation_error_rad": 0.01,
             "cage_spacing_m": {"mean": 0.42 + 0.02 * seed, "std": 0.01 * seed ** 2},
@@ -293,8 +327,10 @@ def known_study(tmp_path):
         "paper-25-straight/seed-4": {"scenario": "paper-25-straight", "seed": 4, "robots": 25, "failed": True,
                                      "error": "RuntimeError: boom", "study": {"cell": "paper-25-straight"}},
         "irregular-clover/seed-1": {"scenario": "irregular-clover", "seed": 1, "robots": 30, "failed": False,
+                                    "stop_reason": "behaviour finished",
                                     "caged": True, "time_to_cage_s": 280.0, "cage_size": 22},
         "irregular-clover/seed-2": {"scenario": "irregular-clover", "seed": 2, "robots": 30, "failed": False,
+                                    "stop_reason": "time limit",
                                     "caged": False, "time_to_cage_s": None, "cage_size": 0},
     }
     for run_dir, result in runs.items():
@@ -346,6 +382,52 @@ def test_report_md_puts_ours_next_to_the_paper(known_study):
     assert "| irregular-clover | 30 | 2 | 0 | 1/2 | – | 50% | 280 | 300 | – | – | 22 | – |" in report
     assert "| 0 | 3 | 0.4 [0.3–0.5] | 0.102 | 0.2 [0.15–0.25] | 0.0747 | 0.03 [0.02–0.04] | 0.0218 |" in report
     assert "- `paper-25-straight` seed 4: RuntimeError: boom" in report
+
+
+def test_the_report_counts_what_is_missing_and_says_what_actually_ran(known_study):
+    """Planned runs without a result are counted; the time limits are the runs' own; a result.json that is
+    valid JSON but no run's result is left out and listed; warnings the runs carried are shown."""
+    write(known_study / "study.json", json.dumps({
+        "name": "known", "time_limit_s": 100.0, "commands": ["khepri study known.yaml --time-limit 100"],
+        "planned": ["paper-25-straight/seed-1", "paper-25-straight/seed-5", "irregular-clover/seed-3"]}))
+    clover = known_study / "irregular-clover" / "seed-1" / "result.json"
+    data = json.loads(clover.read_text())
+    data["study"] = {"cell": "irregular-clover", "overrides": {}, "time_limit_s": 1500.0}
+    data["warnings"] = ["comm.range_m: 0.3 m is shorter than the cage spacing I_d"]
+    write(clover, json.dumps(data))
+    (known_study / "junk" / "seed-1").mkdir(parents=True)
+    write(known_study / "junk" / "seed-1" / "result.json", json.dumps({"scenario": "x"}))
+    write_study_outputs(known_study, figures=False)
+    report = (known_study / "report.md").read_text()
+    assert "**2 of the 8 runs the commands above asked for have no result yet**" in report
+    assert "`paper-25-straight/seed-5`, `irregular-clover/seed-3`" in report
+    assert "Time limit: mixed: each scenario’s own (5 runs), 1500 s (1 runs)." in report   # not study.json's 100
+    assert "- `irregular-clover`: comm.range_m: 0.3 m is shorter than the cage spacing I_d" in report
+    assert "- `junk/seed-1/result.json`" in report and len(load_results(known_study).cells) == 2
+
+
+def test_a_behaviour_without_caging_gets_no_success_rate(tmp_path):
+    result = {"scenario": "aggregate-20", "seed": 1, "robots": 20, "behaviour": "aggregate", "failed": False,
+              "stop_reason": "time limit", "spread_ratio": 0.2, "study": {"cell": "aggregate-20", "overrides": {}}}
+    (tmp_path / "aggregate-20" / "seed-1").mkdir(parents=True)
+    write(tmp_path / "aggregate-20" / "seed-1" / "result.json", json.dumps(result))
+    write_study_outputs(tmp_path, figures=False)
+    assert "| aggregate-20 | 20 | 1 | 0 | – | – | – |" in (tmp_path / "report.md").read_text()
+
+
+def test_override_values_that_would_share_a_folder_are_refused(tmp_path, capsys):
+    study = write(tmp_path / "s.yaml", TINY_STUDY + "overrides: {comm.drop: [0.1234561, 0.1234564]}\n")
+    assert main(["study", str(study), "--dry-run"]) == 2
+    assert ("khepri: error: overrides: comm.drop=0.1234561 and comm.drop=0.1234564 give the same folder name "
+            "'lab-6@comm.drop=0.123456'") in capsys.readouterr().err
+
+
+def test_the_simulators_warnings_are_said_once_per_cell_before_the_study_runs(tmp_path, capsys):
+    study = write(tmp_path / "s.yaml", TINY_STUDY + "overrides: {comm.range_m: [3.0, 0.3]}\n")
+    assert main(["study", str(study), "--dry-run"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("khepri: warning: lab-6@comm.range_m=0.3: comm.range_m: 0.3 m is shorter than") == 1
+    assert "lab-6@comm.range_m=3:" not in err
 
 
 def test_figures_are_written_as_non_empty_images(known_study):

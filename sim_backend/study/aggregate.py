@@ -147,8 +147,13 @@ class SummaryRow:
 
 
 def success_rate(cell: Cell) -> Optional[float]:
-    """Completed (every waypoint, within tolerance) for a transport; caged for a caging-only run."""
-    return cell.rate(lambda r: bool(r.get("completed"))) if cell.has_path else cell.rate(lambda r: bool(r.get("caged")))
+    """Completed (every waypoint, within tolerance) for a transport; caged for a caging-only run; None for a
+    behaviour whose results say neither (another behaviour's own metrics are in its result.json)."""
+    if cell.has_path:
+        return cell.rate(lambda r: bool(r.get("completed")))
+    if any("caged" in r for r in cell.ok):
+        return cell.rate(lambda r: bool(r.get("caged")))
+    return None
 
 
 def cell_rows(cell: Cell) -> List[SummaryRow]:

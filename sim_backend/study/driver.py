@@ -11,7 +11,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, TextIO, Tuple
+from typing import Any, Dict, List, Optional, Sequence, TextIO, Tuple
 
 from onboard.config import to_mapping
 
@@ -75,7 +75,7 @@ def longest_first(runs: List[RunSpec]) -> List[RunSpec]:
 def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, retry_failed: bool = False,
               command: str = "", stream: Optional[TextIO] = None) -> StudyOutcome:
     out_dir.mkdir(parents=True, exist_ok=True)
-    record_study(spec, out_dir, command)
+    record_study(spec, out_dir, command, [run.run_dir for run in runs])
     plan = plan_runs(runs, out_dir, retry_failed)
     outcome = StudyOutcome(skipped=len(plan.finished), kept_failed=len(plan.kept_failed))
     for run in plan.to_run:
@@ -107,15 +107,20 @@ def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, ret
     return outcome
 
 
-def record_study(spec: StudySpec, out_dir: Path, command: str) -> None:
-    """study.json: the grid and every command that ran into this folder (the report quotes them)."""
+def record_study(spec: StudySpec, out_dir: Path, command: str, run_dirs: Sequence[str] = ()) -> None:
+    """study.json: the latest command's grid, every command that ran into this folder (the report quotes
+    them) and every run folder they asked for (``planned``: the report counts those without a result)."""
     path = out_dir / STUDY_FILE
     previous = read_study(out_dir)
     if path.is_file() and not previous:      # damaged: keep it beside the new one rather than lose its history
         path.replace(path.with_name(STUDY_FILE + ".unreadable"))
     earlier = previous.get("commands")
     commands = (list(earlier) if isinstance(earlier, list) else []) + ([command] if command else [])
-    data = dict(to_mapping(spec), commands=commands)
+    planned = previous.get("planned")
+    planned = [d for d in planned if isinstance(d, str)] if isinstance(planned, list) else []
+    known = set(planned)
+    planned += [d for d in run_dirs if d not in known]
+    data = dict(to_mapping(spec), commands=commands, planned=planned)
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
     tmp.replace(path)

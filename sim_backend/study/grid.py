@@ -56,6 +56,7 @@ class RunSpec:
     # imports them too, from import_dir (the driver's working folder) or its own path.
     imports: List[str] = field(default_factory=list)
     import_dir: Optional[str] = None
+    warnings: List[str] = field(default_factory=list)   # what the simulator knows will doom this cell's runs
 
     @property
     def run_dir(self) -> str:
@@ -194,12 +195,19 @@ def expand(spec: StudySpec) -> List[RunSpec]:
     combos = list(itertools.product(*spec.overrides.values())) or [()]
     for i, scenario_ref in enumerate(spec.scenarios):
         base = scenario_mapping(scenario_ref, f"scenarios[{i}]")
+        named: Dict[str, Dict[str, Any]] = {}
         for combo in combos:
             chosen = dict(zip(spec.overrides, combo))
             data = apply_overrides(base, chosen)
             cell = cell_name(str(data["name"]), chosen)
-            check_cell(data, cell, chosen)
-            runs.extend(RunSpec(cell, scenario_ref, data, seed, chosen, spec.time_limit_s) for seed in spec.seeds)
+            if cell in named:
+                raise ConfigError("overrides", f"{overrides_text(named[cell])} and {overrides_text(chosen)} give "
+                                  f"the same folder name {cell!r}: their runs would share it (give values that "
+                                  f"differ in their first 6 digits and in letters or digits)")
+            named[cell] = chosen
+            warnings = check_cell(data, cell, chosen, spec.seeds[0])
+            runs.extend(RunSpec(cell, scenario_ref, data, seed, chosen, spec.time_limit_s, warnings=list(warnings))
+                        for seed in spec.seeds)
     runs_per_cell = Counter(r.cell for r in runs)
     duplicate = next((c for c, count in runs_per_cell.items() if count > len(spec.seeds)), None)
     if duplicate:
@@ -232,12 +240,21 @@ def apply_overrides(base: Dict[str, Any], chosen: Dict[str, Any]) -> Dict[str, A
     return data
 
 
-def check_cell(data: Dict[str, Any], cell: str, chosen: Dict[str, Any]) -> None:
+def check_cell(data: Dict[str, Any], cell: str, chosen: Dict[str, Any], seed: int) -> List[str]:
+    """Build the cell's simulation once, as its first run would, so that what only the world can find (a spawn
+    area too small for the robots, an object across the walls) fails now, not in every run; and return the
+    simulator's warnings for the cell."""
+    from sim_backend.runner import Simulation
+
     try:
-        parse_scenario(data)
+        return Simulation(parse_scenario(data), seed=seed).warnings
     except ConfigError as err:
         where = f"overrides ({cell})" if chosen else "scenarios"
         raise ConfigError(where, str(err)) from None
+
+
+def overrides_text(chosen: Dict[str, Any]) -> str:
+    return ", ".join(f"{key}={value!r}" for key, value in chosen.items())
 
 
 def cell_name(scenario_name: str, chosen: Dict[str, Any]) -> str:

@@ -60,6 +60,7 @@ def write_study_outputs(out_dir: Path, figures: bool = True) -> Dict[str, Path]:
 
 def write_report(results: StudyResults, study: Dict[str, Any], path: Path, figures: Dict[str, Path]) -> Path:
     lines = header(results, study)
+    lines += warning_section(results.cells)
     lines += outcome_table(results.cells)
     lines += error_tables(results.cells)
     lines += effective_tables(results.cells)
@@ -77,14 +78,58 @@ def header(results: StudyResults, study: Dict[str, Any]) -> List[str]:
     commands = study.get("commands") or []
     if commands:
         lines += ["Commands that wrote this folder:", "", "```sh", *commands, "```", ""]
-    limit = study.get("time_limit_s")
     unreadable = f", {len(results.unreadable)} unreadable (listed below)" if results.unreadable else ""
     lines += [f"{runs} runs in {len(results.cells)} cells, {failed} failed (crashed; excluded from the "
-              f"statistics){unreadable}. "
-              f"Time limit: {f'{limit:g} s for every run' if limit else 'each scenario’s own'}.",
-              "", "Values are medians over the runs that did not fail, with the interquartile range in brackets. "
+              f"statistics){unreadable}. Time limit: {time_limit_text(results.cells)}.", ""]
+    missing = missing_runs(results, study)
+    if missing:
+        shown = ", ".join(f"`{d}`" for d in missing[:8]) + (" ..." if len(missing) > 8 else "")
+        lines += [f"**{len(missing)} of the {len(missing) + runs} runs the commands above asked for have no "
+                  f"result yet** (not run, or interrupted): {shown}. Running the same command again runs them.",
+                  ""]
+    lines += ["Values are medians over the runs that did not fail, with the interquartile range in brackets. "
               "Paper: medians from the paper (times quoted in its text; errors from its per-run data).", ""]
     return lines
+
+
+def time_limit_text(cells: List[Cell]) -> str:
+    """The limits the runs here ran with (each result.json records its own), not the latest command's."""
+    counts: Dict[Any, int] = {}
+    for cell in cells:
+        for result in cell.results.values():
+            limit = (result.get("study") or {}).get("time_limit_s")
+            counts[limit] = counts.get(limit, 0) + 1
+    if not counts:
+        return "–"
+
+    def text(limit: Any) -> str:
+        return f"{limit:g} s" if isinstance(limit, (int, float)) else "each scenario’s own"
+
+    if len(counts) == 1:
+        limit = next(iter(counts))
+        return f"{text(limit)} for every run" if isinstance(limit, (int, float)) else text(limit)
+    return "mixed: " + ", ".join(f"{text(limit)} ({n} runs)" for limit, n in counts.items())
+
+
+def missing_runs(results: StudyResults, study: Dict[str, Any]) -> List[str]:
+    """Run folders the study's commands asked for (study.json ``planned``) that hold no result."""
+    present = {f"{cell.name}/seed-{seed}" for cell in results.cells for seed in cell.results}
+    planned = study.get("planned")
+    return [d for d in planned if isinstance(d, str) and d not in present] if isinstance(planned, list) else []
+
+
+def warning_section(cells: List[Cell]) -> List[str]:
+    """What the simulator said before the runs would doom them (result.json ``warnings``), once per cell."""
+    lines = []
+    for cell in cells:
+        seen: List[str] = []
+        for result in cell.results.values():
+            seen += [w for w in result.get("warnings") or [] if isinstance(w, str) and w not in seen]
+        lines += [f"- `{cell.name}`: {warning}" for warning in seen]
+    if not lines:
+        return []
+    return ["## Warnings", "", "Said before the runs started: these cells were not expected to succeed.", "",
+            *lines, ""]
 
 
 def outcome_table(cells: List[Cell]) -> List[str]:
@@ -172,10 +217,17 @@ def failure_section(results: StudyResults) -> List[str]:
     failed = [(cell.name, seed, result) for cell in results.cells for seed, result in cell.failed]
     if not failed and not results.unreadable:
         return []
-    lines = ["## Failed runs", "", "Re-run them with `--retry-failed`.", ""]
-    lines += [f"- `{name}` seed {seed}: {outcome_text(result)[len('FAILED: '):]}" for name, seed, result in failed]
-    lines += [f"- `{path}`: unreadable result.json (resuming the study runs it again)" for path in results.unreadable]
-    return lines + [""]
+    lines = ["## Failed runs", ""]
+    if failed:
+        lines += ["Re-run them with `--retry-failed`.", ""]
+        lines += [f"- `{name}` seed {seed}: {outcome_text(result)[len('FAILED: '):]}" for name, seed, result in failed]
+        lines.append("")
+    if results.unreadable:
+        lines += ["Unreadable, or not a run's result.json (left out; a run of the study's grid is run again when "
+                  "the study resumes, other folders are ignored):", ""]
+        lines += [f"- `{path}`" for path in results.unreadable]
+        lines.append("")
+    return lines
 
 
 def source_section() -> List[str]:

@@ -108,9 +108,21 @@ def json_value(value: Any) -> Any:
 
 
 def read_result(run_dir: Path) -> Dict[str, Any]:
-    """A run's result.json, or {} when it is missing or unreadable (then the run counts as not done)."""
+    """A run's result.json, or {} when it is missing, unreadable or not a run's result (then the run counts
+    as not done): valid JSON is not enough, it must say which run it is and how it ended."""
     try:
         data = json.loads((run_dir / RESULT_FILE).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
-    return data if isinstance(data, dict) else {}
+    return data if is_run_result(data) else {}
+
+
+def is_run_result(data: Any) -> bool:
+    """What every result.json a run writes has: its scenario and seed, and how it ended (``stop_reason``, or
+    ``failed`` with its ``error``)."""
+    if not isinstance(data, dict) or not isinstance(data.get("scenario"), str):
+        return False
+    if not isinstance(data.get("seed"), int) or isinstance(data.get("seed"), bool):
+        return False
+    ended = isinstance(data.get("stop_reason"), str)
+    return ended or (data.get("failed") is True and isinstance(data.get("error"), str))
