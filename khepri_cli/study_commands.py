@@ -125,20 +125,24 @@ def study_grid(args: argparse.Namespace):
 
 
 def print_dry_run(runs, out: Path, retry_failed: bool) -> int:
-    from sim_backend.study.driver import plan_runs
+    from sim_backend.study.driver import plan_runs, plan_warnings
     from sim_backend.study.grid import grid_table
 
     plan = plan_runs(runs, out, retry_failed)
+    for warning in plan_warnings(plan, out):
+        print(f"warning: {warning}", file=sys.stderr)
     done = {(r.cell, r.seed) for r in plan.finished}
     kept = {(r.cell, r.seed) for r in plan.kept_failed}
     print(f"{len(runs)} runs, {len(plan.to_run)} to run, {len(done)} finished, {len(kept)} failed kept; out {out}")
-    for cell, seeds in grid_table(runs):
+    table = grid_table(runs)
+    width = max([40] + [len(cell) for cell, _ in table])
+    for cell, seeds in table:
         cell_runs = [r for r in runs if r.cell == cell]
         finished = sum((r.cell, r.seed) in done for r in cell_runs)
         failed = sum((r.cell, r.seed) in kept for r in cell_runs)
         limit = cell_runs[0].time_limit_s
         limit_text = f"{limit:g} s" if limit else f"{cell_runs[0].scenario_data.get('time_limit_s'):g} s (scenario)"
-        print(f"  {cell:40s} seeds {seeds:10s} time limit {limit_text:16s} finished {finished}, failed {failed}")
+        print(f"  {cell:{width}s} seeds {seeds:10s} time limit {limit_text:16s} finished {finished}, failed {failed}")
     return 0
 
 

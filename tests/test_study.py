@@ -602,9 +602,10 @@ def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_pa
     main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"])
     assert "changed since" not in capsys.readouterr().err
     write(tmp_path / "mine.yaml", (tmp_path / "mine.yaml").read_text().replace("count: 6", "count: 4"))
-    main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"])
-    err = capsys.readouterr().err
-    assert "warning: 1 runs already in" in err and "ran a scenario that has changed since (cells mine)" in err
+    for dry_run in (["--dry-run"], []):     # --dry-run says so too, before anything would run
+        main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", *dry_run])
+        err = capsys.readouterr().err
+        assert "warning: 1 runs already in" in err and "ran a scenario that has changed since (cells mine)" in err
 
 
 def test_reps_on_the_command_line_gives_a_study_file_its_seeds(tmp_path, capsys):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -128,11 +129,18 @@ def load_results(out_dir: Path) -> StudyResults:
 
 
 def cell_order(cell: Cell) -> tuple:
-    """Paper cells in the paper's order (robots, then path), then irregular objects, then the rest."""
+    """Paper cells in the paper's order (robots, then path), then irregular objects, then the rest; within
+    one scenario, numbers in the cell name by value (``count=6`` before ``count=40``)."""
     case = cell.case
     if case.robots is not None:
-        return (0, case.robots, paper.PAPER_PATHS.index(case.path), cell.name)
-    return (1 if case.irregular else 2, 0, 0, cell.name)
+        return (0, case.robots, paper.PAPER_PATHS.index(case.path), natural_key(cell.name))
+    return (1 if case.irregular else 2, 0, 0, natural_key(cell.name))
+
+
+def natural_key(text: str) -> tuple:
+    """Text with its numbers compared as numbers: [(0, 'lab-'), (1, 6.0), ...]."""
+    parts = re.split(r"(\d+(?:\.\d+)?)", text)
+    return tuple((1, float(part)) if i % 2 else (0, part) for i, part in enumerate(parts) if part)
 
 
 @dataclass

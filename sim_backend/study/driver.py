@@ -54,6 +54,20 @@ def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) ->
     return plan
 
 
+def plan_warnings(plan: StudyPlan, out_dir: Path) -> List[str]:
+    """Finished runs that are kept although they do not match what the study asks now."""
+    found = []
+    if plan.other_limit:
+        found.append(f"{len(plan.other_limit)} runs already in {out_dir} ran with another time limit and are "
+                     f"kept; use another --out to run them again")
+    if plan.other_scenario:
+        cells = sorted({run.cell for run in plan.other_scenario})
+        found.append(f"{len(plan.other_scenario)} runs already in {out_dir} ran a scenario that has changed since "
+                     f"(cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}) and are kept; use another "
+                     f"--out, or delete those cells' folders, to run them again")
+    return found
+
+
 def expected_cost(run: RunSpec) -> float:
     """Robots x simulated seconds allowed: how long a run may take, roughly (a step's cost grows with the
     robots; most paper runs end well before their limit, but the 100-robot ones go on for thousands of s)."""
@@ -82,14 +96,8 @@ def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, ret
         # A retried run's old result.json goes first, so "missing" below means "the worker could not write".
         (out_dir / run.run_dir / RESULT_FILE).unlink(missing_ok=True)
     stream = stream or sys.stderr
-    if plan.other_limit:
-        stream.write(f"warning: {len(plan.other_limit)} runs already in {out_dir} ran with another time limit "
-                     f"and are kept; use another --out to run them again\n")
-    if plan.other_scenario:
-        cells = sorted({run.cell for run in plan.other_scenario})
-        stream.write(f"warning: {len(plan.other_scenario)} runs already in {out_dir} ran a scenario that has "
-                     f"changed since (cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}) and are "
-                     f"kept; use another --out, or delete those cells' folders, to run them again\n")
+    for warning in plan_warnings(plan, out_dir):
+        stream.write(f"warning: {warning}\n")
     by_key = {(run.cell, run.seed): run for run in plan.to_run}
     progress = StudyProgress(len(plan.to_run), stream,
                              costs={(run.cell, run.seed): expected_cost(run) for run in plan.to_run})
