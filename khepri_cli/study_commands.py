@@ -56,11 +56,11 @@ def cmd_study(args: argparse.Namespace) -> int:
     if args.dry_run:
         return print_dry_run(runs, out, args.retry_failed)
     from khepri_cli.sim_commands import require_out_folder
-
-    require_out_folder(out)
     from sim_backend.study.driver import run_study
 
     executor = make_executor(choice, workers)
+    executor.prepare()          # a Dask scheduler that cannot be reached: said before the folder is touched
+    require_out_folder(out)
     print(f"study {spec.name}: {len(runs)} runs on {executor.describe()}, writing to {out}")
     # `kill` (SIGTERM) ends a study like Ctrl-C: workers stopped, finished runs kept, resumable. Without
     # this the driver died alone and its pool's workers ran on, orphaned, until their runs finished.

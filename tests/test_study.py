@@ -580,6 +580,22 @@ def test_a_dask_address_that_never_answers_as_dask_is_an_error_not_a_hang(tmp_pa
         listener.close()
 
 
+def test_a_dask_scheduler_that_cannot_be_reached_is_said_before_the_folder_is_made(tmp_path, capsys, monkeypatch):
+    import socket
+
+    from sim_backend.study import executors
+
+    real = executors.connect_to_scheduler
+    monkeypatch.setattr(executors, "connect_to_scheduler", lambda address: real(address, timeout_s=1.0))
+    with socket.socket() as probe:       # a free port, closed again: nothing listens there
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    study = write(tmp_path / "tiny.yaml", TINY_STUDY)
+    assert main(["study", str(study), "--executor", f"dask:tcp://127.0.0.1:{port}", "--out", str(tmp_path / "o")]) == 2
+    assert f"cannot use the Dask scheduler tcp://127.0.0.1:{port}" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("damaged", ["[1, 2]", '{"commands": "khepri study x"}', '{"name": "tr'])
 def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_path, damaged):
     from sim_backend.study.driver import read_study, record_study

@@ -90,6 +90,9 @@ class LocalExecutor:
     def describe(self) -> str:
         return f"local process pool, {self.workers} workers"
 
+    def prepare(self) -> None:
+        """Nothing to reach before the study starts."""
+
     def results(self, runs: Iterable[RunSpec], out_root: str) -> Iterator[Dict[str, Any]]:
         queue = deque(runs)
         pool = self._new_pool()
@@ -208,16 +211,24 @@ class DaskExecutor:
         self.address = address
         self.workers = workers
         self.run_function = run_function
+        self.client = None          # connected by prepare(), before the study writes anything
 
     def describe(self) -> str:
         return f"Dask scheduler at {self.address}" if self.address else f"Dask LocalCluster, {self.workers} workers"
+
+    def prepare(self) -> None:
+        """Reach the scheduler now: an address that cannot be used is an error before the study folder is
+        made or its command recorded."""
+        if self.address is not None and self.client is None:
+            self.client = connect_to_scheduler(self.address)   # a ConfigError naming the address
 
     def results(self, runs: Iterable[RunSpec], out_root: str) -> Iterator[Dict[str, Any]]:
         from distributed import Client, LocalCluster, as_completed
 
         cluster = None
         if self.address is not None:
-            client = connect_to_scheduler(self.address)     # a ConfigError naming the address if it cannot be used
+            self.prepare()
+            client, self.client = self.client, None
         else:
             # One thread per worker: the simulator is pure Python, threads would only contend for the GIL.
             cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
