@@ -6,6 +6,7 @@ other scenario is its own panel) and one *series* per robot count (or per parame
 """
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import Dict, List, Optional
 
@@ -54,7 +55,9 @@ def write_figures(results: StudyResults, folder: Path) -> Dict[str, Path]:
     # Every transport cell gets its panel, even one whose runs reached no waypoint: an empty panel says so.
     path_cells = [c for c in results.cells if c.has_path]
     drawn: Dict[str, Path] = {}
-    if any(c.values("time_to_cage_s") or c.values("time_to_complete_s") for c in results.cells):
+    # Also when nothing caged: the paper's medians alone still say where the runs should have been.
+    if any(c.values("time_to_cage_s") or c.values("time_to_complete_s") or paper.time_to_cage_s(c.case) is not None
+           for c in results.cells):
         drawn["Time to cage and to complete"] = plot_times(results.cells, folder / "times.png")
     if path_cells:
         drawn["Errors per waypoint"] = plot_waypoint_rows(path_cells, ERROR_ROWS, folder / "errors.png", True)
@@ -118,12 +121,15 @@ def plot_waypoint_rows(cells: List[Cell], rows, target: Path, with_paper: bool) 
             ax.grid(axis="y", alpha=0.3)
             if row == 0:
                 ax.set_title(panel)
-        handles = [plt.Rectangle((0, 0), 1, 1, color=colour(s), alpha=0.6) for s in range(len(members))]
-        labels = [series_label(c) for c in members]
+        # Only the series that have a box here: a cell that reached no waypoint has nothing to point at.
+        shown = [s for s, c in enumerate(members) if c.waypoint_indices()]
+        handles = [plt.Rectangle((0, 0), 1, 1, color=colour(s), alpha=0.6) for s in shown]
+        labels = [series_label(members[s]) for s in shown]
         if with_paper and any(c.case.robots for c in members):
             handles.append(plt.Rectangle((0, 0), 1, 1, facecolor="white", edgecolor="grey", **PAPER_STYLE))
             labels.append("paper (hatched)")
-        axes[0, column].legend(handles, labels, fontsize=8, loc="best")
+        if handles:
+            axes[0, column].legend(handles, labels, fontsize=8, loc="best")
     return save(figure, target)
 
 
@@ -177,18 +183,21 @@ def draw_cell_trajectories(ax, cell: Cell, root: Path) -> None:
             continue
         track, path = arrays
         start = track[0]
-        ax.plot(track[:, 0], track[:, 1], lw=0.8, alpha=0.7, color=colour(seed),
-                label="object centroid (one line per run)" if not drawn else None)
+        ax.plot(track[:, 0], track[:, 1], lw=1.0, alpha=0.8, color=colour(seed), zorder=3,
+                label="object centroid (a colour per run)" if not drawn else None)
         drawn += 1
     if path is not None and len(path):
         # The desired path runs from where the object starts through the waypoints.
-        ax.plot([start[0], *path[:, 0]], [start[1], *path[:, 1]], "k--", lw=1, label="desired path")
-        ax.plot(path[:, 0], path[:, 1], "ko", markersize=4)
+        # Under the runs (zorder): on a straight path a good run's line lies right on it.
+        ax.plot([start[0], *path[:, 0]], [start[1], *path[:, 1]], "--", color="grey", lw=0.8, zorder=1,
+                label="desired path")
+        ax.plot(path[:, 0], path[:, 1], "o", color="grey", markersize=4, zorder=2)
         for i, (x, y, _) in enumerate(path):
             ax.annotate(str(i), (x, y), textcoords="offset points", xytext=(3, 3), fontsize=7)
         ax.legend(fontsize=7, loc="best")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_title(f"{cell.name} ({drawn} of {len(cell.results)} runs drawn)", fontsize=9)
+    title = textwrap.fill(cell.name.replace("@", " @"), 48)     # long override cells wrap, not overlap
+    ax.set_title(f"{title} ({drawn} of {len(cell.results)} runs drawn)", fontsize=9)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(alpha=0.3)
