@@ -8,6 +8,7 @@ from typing import List, Optional
 
 from onboard.behaviour import BehaviourError
 from onboard.config import ConfigError
+from onboard.drivers import DriverError
 from onboard.plugins import import_user_modules
 
 from . import lab_commands, log_commands, sim_commands, study_commands
@@ -62,8 +63,9 @@ def _run(argv: Optional[List[str]]) -> int:
     except ConfigError as err:
         print(f"khepri: error: {err}", file=sys.stderr)
         return 2
-    except BehaviourError as err:     # the user's behaviour raised before a run could start (its __init__)
-        print(f"khepri: error: the behaviour failed: {err}", file=sys.stderr)
+    except BehaviourError as err:     # the user's behaviour raised (before a run could start, or in an agent)
+        what = "the robot's driver failed" if isinstance(err.exc, DriverError) else "the behaviour failed"
+        print(f"khepri: error: {what}: {err}", file=sys.stderr)
         print("\n".join(err.lines), file=sys.stderr)
         return 1
     except OSError as err:

@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 from typing import Dict, List, Tuple
 
@@ -276,6 +277,41 @@ def test_a_stop_that_keeps_failing_raises_instead_of_pretending(stub_library, st
     driver.close()
 
 
+def test_a_sensor_read_that_errs_now_and_then_gives_the_last_good_value_then_raises(stub_library, stub_log,
+                                                                                     monkeypatch):
+    """One I2C glitch must not end a run; a bus that stays broken must not pass for a quiet IR ring."""
+    monkeypatch.setenv("KH4_STUB_IR", hardware_ir({"front": 500}))
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        good, odometry = driver.proximity(), driver.encoders()
+        monkeypatch.setenv("KH4_STUB_FAIL", "kh4_proximity_ir")
+        assert [driver.proximity() for _ in range(5)] == [good] * 5
+        with pytest.raises(LibkheperaError, match="kh4_proximity_ir failed"):
+            driver.proximity()                                  # the sixth in a row
+        monkeypatch.setenv("KH4_STUB_FAIL", "kh4_get_position")
+        assert driver.encoders() == odometry
+        monkeypatch.setenv("KH4_STUB_FAIL", "kh4_battery_status")
+        assert driver.battery_v() is None                       # an optional figure: never fatal
+        monkeypatch.delenv("KH4_STUB_FAIL")
+        assert driver.proximity() == good and driver.battery_v() is not None
+
+
+@pytest.mark.parametrize("speed", ["0.5", True, b"1"])
+def test_text_and_flags_are_not_wheel_speeds(stub_library, stub_log, speed):
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        driver.set_wheel_speeds(0.2, 0.2)
+        with pytest.raises(ValueError, match="left_m_s: must be a finite number of m/s"):
+            driver.set_wheel_speeds(speed, 0.1)
+        assert speed_commands(stub_log)[-1] == (0, 0)            # and the last command is cancelled
+
+
+def test_close_idles_the_motors_even_when_the_stop_fails(stub_library, stub_log, monkeypatch):
+    driver = KheperaIV(library_path=str(stub_library))
+    monkeypatch.setenv("KH4_STUB_FAIL", "kh4_set_speed")
+    with pytest.raises(LibkheperaError, match="kh4_set_speed"):
+        driver.close()
+    assert calls(stub_log)[-2:] == [("kh4_SetMode", {"mode": "0", "dev": "ok"}), ("knet_close", {"dev": "ok"})]
+
+
 # --- stopping on every way out ------------------------------------------------------------------------------
 def test_close_stops_the_wheels_idles_the_motors_and_later_stops_are_harmless(stub_library, stub_log):
     driver = KheperaIV(library_path=str(stub_library))
@@ -301,6 +337,8 @@ def terminate(signum, frame):          # what the agent does: turn SIGTERM into 
 
 signal.signal(signal.SIGTERM, terminate)
 driver = KheperaIV(library_path=sys.argv[1])
+if sys.argv[2] in ("sigkill", "guarded"):
+    driver.start_guard()               # what the agent does with the kh4 driver
 driver.set_wheel_speeds(0.2, 0.2)
 print("driving", flush=True)
 if sys.argv[2] == "raise":
@@ -316,8 +354,10 @@ def run_child(stub_library: Path, stub_log: Path, tmp_path: Path, mode: str) -> 
     child = subprocess.Popen([sys.executable, str(script), str(stub_library), mode], env=env, cwd=tmp_path,
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert child.stdout.readline() == "driving\n"
-    if mode == "sigterm":
+    if mode in ("sigterm", "guarded"):
         child.send_signal(signal.SIGTERM)
+    elif mode == "sigkill":
+        child.send_signal(signal.SIGKILL)
     stdout, stderr = child.communicate(timeout=20)
     return subprocess.CompletedProcess(child.args, child.returncode, stdout, stderr)
 
@@ -332,4 +372,37 @@ def test_a_process_killed_with_sigterm_stops_the_wheels(stub_library, stub_log, 
 def test_a_process_dying_of_an_exception_stops_the_wheels(stub_library, stub_log, tmp_path):
     finished = run_child(stub_library, stub_log, tmp_path, "raise")
     assert finished.returncode == 1 and "a behaviour bug" in finished.stderr
+    assert speed_commands(stub_log) == [(295, 295), (0, 0)]
+
+
+
+def wait_for_calls(log: Path, wanted, timeout_s: float = 20.0) -> List[Call]:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        logged = calls(log)
+        if wanted(logged):
+            return logged
+        time.sleep(0.05)
+    return calls(log)
+
+
+def test_a_process_killed_with_sigkill_has_its_wheels_stopped_by_the_guard(stub_library, stub_log, tmp_path):
+    """SIGKILL runs none of the process's own code: the guard, a process of its own, stops the wheels and
+    idles the motors once the pipe from the dead process closes."""
+    started = time.monotonic()
+    finished = run_child(stub_library, stub_log, tmp_path, "sigkill")
+    assert finished.returncode == -signal.SIGKILL
+    logged = wait_for_calls(stub_log, lambda c: c and c[-1] == ("knet_close", {"dev": "ok"}))
+    assert speed_commands(stub_log) == [(295, 295), (0, 0)]
+    assert logged[-3:] == [("kh4_set_speed", {"left": "0", "right": "0", "dev": "ok"}),
+                           ("kh4_SetMode", {"mode": "0", "dev": "ok"}), ("knet_close", {"dev": "ok"})]
+    assert [name for name, _ in logged].count("kh4_init") == 2      # the guard opened the robot itself
+    assert time.monotonic() - started < 20.0
+
+
+def test_the_guard_leaves_the_wheels_alone_after_an_orderly_exit(stub_library, stub_log, tmp_path):
+    finished = run_child(stub_library, stub_log, tmp_path, "guarded")
+    assert finished.returncode == 0, finished.stderr
+    time.sleep(1.0)                                              # time enough for a guard to act, if it did
+    assert [name for name, _ in calls(stub_log)].count("kh4_init") == 1
     assert speed_commands(stub_log) == [(295, 295), (0, 0)]

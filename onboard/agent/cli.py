@@ -12,7 +12,7 @@ import zmq
 
 from onboard.behaviour import BehaviourError, behaviour_names
 from onboard.config import ConfigError
-from onboard.drivers import Driver
+from onboard.drivers import Driver, DriverError
 from onboard.plugins import import_user_modules
 from onboard.protocol import MAX_ROBOT_ID
 
@@ -46,6 +46,9 @@ def run_agent(args: argparse.Namespace) -> int:
         raise ConfigError("--id", f"must be a robot id 0..{MAX_ROBOT_ID} (got {args.robot_id})")
     if not 1 <= args.port <= 65535:
         raise ConfigError("--port", f"must be a port 1..65535 (got {args.port})")
+    for option in ("library", "calibration"):     # "" (an unset shell variable) must not mean the default
+        if getattr(args, option) is not None and not getattr(args, option).strip():
+            raise ConfigError(f"--{option}", "an empty path; leave the option out for the default")
     if not 0.0 < args.watchdog <= 0.3:
         raise ConfigError("--watchdog", f"must be in (0, 0.3] seconds (got {args.watchdog})")
     keys = load_robot_keys(args.keys, args.robot_id) if args.keys is not None else None
@@ -85,9 +88,11 @@ def open_driver(args: argparse.Namespace, agent) -> Driver:
     except ImportError as err:
         raise ConfigError("--driver", f"the kh4 driver is not available here ({err})") from None
     try:
-        return kh4.KheperaIV(library_path=args.library, calibration_path=args.calibration)
+        driver = kh4.KheperaIV(library_path=args.library, calibration_path=args.calibration)
     except (OSError, RuntimeError, ValueError) as err:
         raise ConfigError("--driver", f"cannot open the KheperaIV: {err}") from None
+    driver.start_guard()      # stops the wheels should this process die without closing the driver (SIGKILL)
+    return driver
 
 
 def _logger(quiet: bool):
@@ -109,7 +114,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"agent: error: {err}", file=sys.stderr)
         return 2
     except BehaviourError as err:      # already logged with its traceback; the wheels are stopped
-        print(f"agent: error: the behaviour crashed: {err}", file=sys.stderr)
+        what = "the driver failed" if isinstance(err.exc, DriverError) else "the behaviour crashed"
+        print(f"agent: error: {what}: {err}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

@@ -21,7 +21,7 @@ from typing import Any, Callable, Dict, List, Optional
 
 from onboard.behaviour import Behaviour, BehaviourError, build_params, get_behaviour, telemetry_of
 from onboard.config import ConfigError
-from onboard.drivers import Driver
+from onboard.drivers import Driver, DriverError
 from onboard.hal import RobotSpec
 from onboard.protocol import ProtocolError
 
@@ -87,6 +87,7 @@ class Agent:
         self.last_waiting_log = -math.inf
         self.stop_requested = False
         self.slow_step_said_at = -math.inf
+        self.watchdog_said = False        # the watchdog's trip was logged (so its end is logged too)
 
     # --- main loop ----------------------------------------------------------------------------------------
     def serve(self, should_stop: Callable[[], bool] = lambda: False) -> None:
@@ -97,12 +98,21 @@ class Agent:
             while not (self.stop_requested or should_stop()):
                 self.loop_once()
         finally:
-            self.driver.stop()
+            self._stop_wheels_on_the_way_out()
             farewell: Dict[str, Any] = {"type": "telemetry", "step": self.state.seq, "mode": "exiting"}
             if self.error:                 # the last word the hub hears must still say why
                 farewell["error"] = self.error[:200]
             self.link.send(farewell)
             self._restore_signal_handlers(previous)
+
+    def _stop_wheels_on_the_way_out(self) -> None:
+        """Stop the wheels as the agent leaves; a driver that cannot (the bus is gone) is said in one line and
+        in the farewell telemetry, and the exception that got us here goes on (the wheel guard tries next)."""
+        try:
+            self.driver.stop()
+        except DriverError as err:
+            self.error = self.error or f"driver failed: cannot stop the wheels: {err}"
+            self.log(f"agent {self.robot_id}: cannot stop the wheels: {err}")
 
     def loop_once(self) -> None:
         now = time.monotonic()
@@ -152,7 +162,9 @@ class Agent:
             apply_frame(self.state, message, self.clock, now)
             if self.watchdog_tripped:
                 self.watchdog_tripped = False
-                self.log(f"agent {self.robot_id}: hub frames are back")
+                if self.watchdog_said:         # not at the first frame: the watchdog trips quietly before it
+                    self.log(f"agent {self.robot_id}: hub frames are back")
+                self.watchdog_said = False
             self.apply_mode(message["mode"], message.get("reason", ""))
         else:
             self.on_command(message)
@@ -223,9 +235,11 @@ class Agent:
         """The behaviour's code raised: the wheels stop, the hub hears why (telemetry ``error``: its status
         and SIL show it), the log gets the traceback, and the agent ends (``serve`` stops the wheels again
         on the way out)."""
-        self.driver.stop()
+        self._stop_wheels_on_the_way_out()
         self.behaviour = None
-        self.error = f"behaviour crashed: {err} (at t = {self.clock.now():.1f} s)"
+        # The robot's own hardware failing inside step() (IR, encoders) is not the behaviour's bug.
+        what = "driver failed" if isinstance(err.exc, DriverError) else "behaviour crashed"
+        self.error = f"{what}: {err} (at t = {self.clock.now():.1f} s)"
         self.log(f"agent {self.robot_id}: {self.error}")
         for line in err.lines:
             self.log(f"agent {self.robot_id}:   {line}")
@@ -248,6 +262,7 @@ class Agent:
             # After a step slower than the watchdog, the frames waited for us: tick() has said so already.
             if self.state.received_at > -math.inf and self.stats.last_step_s <= self.watchdog_s:
                 self.log(f"agent {self.robot_id}: no frame from the hub for {self.watchdog_s:g} s: wheels stopped")
+                self.watchdog_said = True
 
     # --- one control step ---------------------------------------------------------------------------------
     def tick(self, now: float) -> None:

@@ -13,6 +13,10 @@ from typing import List, Optional
 from onboard.hal import WheelOdometry
 
 
+class DriverError(RuntimeError):
+    """The robot's own hardware failed (a bus error, a device that will not open): not the behaviour's bug."""
+
+
 class Driver(ABC):
     """The robot's own hardware. Every method must be cheap: the agent calls them at 10 Hz."""
 

@@ -14,11 +14,12 @@ import atexit
 import ctypes
 import math
 import os
+import sys
 import threading
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple, Union
+from typing import Any, Callable, Dict, List, Optional, Tuple, Union
 
-from onboard.drivers import Driver
+from onboard.drivers import Driver, DriverError
 from onboard.drivers.calibration import IRCalibration, default_calibration, load_calibration
 from onboard.hal import RobotSpec, WheelOdometry, clamp_wheel_speeds
 
@@ -46,6 +47,7 @@ LIBRARY_ENV = "KHEPRI_LIBKHEPERA"
 CALIBRATION_ENV = "KHEPRI_KH4_CALIBRATION"
 DEFAULT_LIBRARY = "libkhepera.so"
 STOP_ATTEMPTS = 3               # a stop that fails on the I2C bus is retried before giving up
+SENSOR_FAILURES_TOLERATED = 5   # IR or encoder reads in a row that may fail (a bus glitch) before one raises
 
 _DEV = ctypes.c_void_p          # knet_dev_t *: a 64-bit pointer, never let ctypes truncate it to int
 _ARGV = ctypes.POINTER(ctypes.c_char_p)
@@ -70,7 +72,7 @@ OPTIONAL_SIGNATURES: Dict[str, Tuple[Any, List[Any]]] = {
 }
 
 
-class LibkheperaError(RuntimeError):
+class LibkheperaError(DriverError):
     """libkhepera could not be loaded, lacks a function, or a call returned an error code."""
 
 
@@ -162,6 +164,9 @@ class KheperaIV(Driver):
             self._release()
             raise
         self._travelled_counts = [0, 0]
+        self._last_good: Dict[str, Any] = {}     # the latest reading of each sensor, for a read that errs
+        self._failures: Dict[str, int] = {}      # reads in a row that erred, per sensor
+        self.guard: Optional[Any] = None         # the wheel guard process, if start_guard() was called
         atexit.register(self._stop_at_exit)   # last resort; close() unregisters it
 
     # --- lifecycle ----------------------------------------------------------------------------------------
@@ -187,10 +192,21 @@ class KheperaIV(Driver):
                 return
             atexit.unregister(self._stop_at_exit)
             try:
-                self.stop()
-                self.library.call("kh4_SetMode", KH4_REG_IDLE, self._dspic)
+                try:
+                    self.stop()
+                finally:    # idle even when the stop failed: unpowered motors are the other way to stop them
+                    self.library.call("kh4_SetMode", KH4_REG_IDLE, self._dspic)
+                if self.guard is not None:
+                    self.guard.release()      # stopped in order: the guard has nothing left to do
             finally:
                 self._release()
+
+    def start_guard(self) -> None:
+        """Start the wheel guard (:mod:`onboard.drivers.kh4_guard`): a separate process that stops the wheels
+        if this one dies without closing the driver, SIGKILL and the OOM killer included."""
+        from onboard.drivers.kh4_guard import WheelGuard
+
+        self.guard = WheelGuard.start(self.library.path)
 
     def _release(self) -> None:
         if self._dspic is not None:
@@ -198,7 +214,10 @@ class KheperaIV(Driver):
             self._dspic = None
 
     def _stop_at_exit(self) -> None:
-        self.close()
+        try:
+            self.close()
+        except DriverError as err:      # one line, not a traceback; the wheel guard tries again after us
+            print(f"kh4: cannot stop the wheels at exit: {err}", file=sys.stderr)
 
     def __enter__(self) -> KheperaIV:
         return self
@@ -220,8 +239,8 @@ class KheperaIV(Driver):
         self._send_speed(self.speed_units(left_m_s), self.speed_units(right_m_s))
 
     def _finite_speed(self, name: str, value: Any) -> float:
-        try:
-            speed = float(value)
+        try:    # a number only: float("0.5") and float(True) would pass text and flags as speeds
+            speed = math.nan if isinstance(value, (str, bytes, bool)) else float(value)
         except (TypeError, ValueError):
             speed = math.nan
         if not math.isfinite(speed):
@@ -263,7 +282,21 @@ class KheperaIV(Driver):
 
     def proximity(self) -> List[float]:
         """Eight readings in [0, 1] in the HAL's order, through the robot's calibration."""
-        return self.calibration.normalise(self.raw_proximity())
+        return self._tolerated("IR", lambda: self.calibration.normalise(self.raw_proximity()))
+
+    def _tolerated(self, sensor: str, read: Callable[[], Any]) -> Any:
+        """A read that errs on the bus gives the sensor's latest good value instead, up to
+        SENSOR_FAILURES_TOLERATED times in a row (one glitch must not end the run); then it raises."""
+        try:
+            value = read()
+        except LibkheperaError:
+            self._failures[sensor] = self._failures.get(sensor, 0) + 1
+            if sensor in self._last_good and self._failures[sensor] <= SENSOR_FAILURES_TOLERATED:
+                return self._last_good[sensor]
+            raise
+        self._failures[sensor] = 0
+        self._last_good[sensor] = value
+        return value
 
     def _read_position(self) -> Tuple[int, int]:
         left, right = ctypes.c_int(0), ctypes.c_int(0)
@@ -273,6 +306,9 @@ class KheperaIV(Driver):
 
     def encoders(self) -> WheelOdometry:
         """Signed distance each wheel rolled since the driver opened (m), from KH4_PULSE_TO_MM."""
+        return self._tolerated("encoders", self._read_encoders)
+
+    def _read_encoders(self) -> WheelOdometry:
         with self._lock:
             counts = self._read_position()
             for wheel in (0, 1):
@@ -282,12 +318,16 @@ class KheperaIV(Driver):
         return WheelOdometry(left_m=left * KH4_PULSE_TO_MM / 1000.0, right_m=right * KH4_PULSE_TO_MM / 1000.0)
 
     def battery_v(self) -> Optional[float]:
-        """Battery voltage from kh4_battery_status, or None if this libkhepera lacks it."""
+        """Battery voltage from kh4_battery_status, or None if this libkhepera lacks it or the read failed (an
+        optional figure for the operator: a bus error here must not stop the robot)."""
         if not self.library.has("kh4_battery_status"):
             return None
         buffer = ctypes.create_string_buffer(BATTERY_BUFFER_BYTES)
-        with self._lock:
-            self.library.call("kh4_battery_status", buffer, self._require_open())
+        try:
+            with self._lock:
+                self.library.call("kh4_battery_status", buffer, self._require_open())
+        except LibkheperaError:
+            return None
         return int.from_bytes(buffer.raw[10:12], "little") * BATTERY_V_PER_COUNT
 
 
