@@ -263,3 +263,39 @@ def test_kh4_options_with_the_sim_driver_are_said_to_be_ignored(capsys):
     with pytest.raises(ConfigError):      # stops at the address, after the options were looked at
         run_agent(args)
     assert "agent 0: --calibration: only for the kh4 driver, ignored with --driver sim" in capsys.readouterr().err
+
+
+class BrokenIRDriver(SimDriver):
+    """A robot whose IR bus has given up: the hardware fails, not the behaviour's code."""
+
+    def proximity(self):
+        from onboard.drivers import DriverError
+
+        raise DriverError("kh4_proximity_ir failed with code -4")
+
+
+def test_a_driver_failing_inside_step_is_reported_as_the_drivers_fault_not_the_behaviours():
+    from onboard.behaviour import BehaviourError
+
+    link = HubLink(0, "tcp://127.0.0.1:9")            # nothing there: the agent only ticks here
+    agent = Agent(0, link, lambda a: BrokenIRDriver(link.send, lambda: a.state.sim), log=lambda line: None)
+    try:
+        agent.start_run({"run_id": "r1", "behaviour": "aggregate", "params": {}, "control_hz": 10.0})
+        agent.state.mode = "run"
+        with pytest.raises(BehaviourError):
+            agent.tick(time.monotonic())
+        assert agent.error.startswith("driver failed: robot 0, step(): DriverError: kh4_proximity_ir failed")
+    finally:
+        link.close()
+
+
+def test_an_empty_library_or_calibration_path_is_refused_not_taken_as_the_default():
+    from onboard.agent.cli import add_agent_arguments, run_agent
+    from onboard.config import ConfigError
+
+    parser = argparse.ArgumentParser()
+    add_agent_arguments(parser)
+    for option in ("--library", "--calibration"):
+        args = parser.parse_args(["--id", "0", "--driver", "kh4", option, ""])
+        with pytest.raises(ConfigError, match=f"^{option}: an empty path"):
+            run_agent(args)
