@@ -72,8 +72,17 @@ class Uplink:
                  f"robot) and {peer or '?'} (ignored while the first is alive); is a second agent running with "
                  f"--id {robot.id}?")
 
+    def _note_driver(self, robot: RobotLink, driver: str) -> None:
+        """A real robot's agent talking to a hub that simulates that robot drives real wheels the hub never
+        sees, while the simulated robot stands still: almost surely a mistake, so say it when it starts."""
+        if driver != robot.driver and driver != "sim" and getattr(self.source, "command", None) is not None:
+            self.log(f"hub: robot {robot.id}'s agent uses the {driver} driver, but this hub simulates robot "
+                     f"{robot.id} (sim source): the agent gets the simulated robot's sensors and drives real "
+                     f"wheels, and the simulated robot never moves; start the agent with --driver sim")
+        robot.driver = driver
+
     def _on_hello(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
-        robot.driver = message["driver"]
+        self._note_driver(robot, message["driver"])
         robot.run_id = message.get("run_id")
         if self.run_id is not None and robot.run_id != self.run_id and self.mode != "idle":
             self.send_command(robot, "start")          # a late or restarted agent joins the current run
@@ -86,7 +95,7 @@ class Uplink:
         robot.telemetry = message
         robot.step_answered = message["step"]
         robot.run_id = message.get("run_id", robot.run_id)
-        robot.driver = message.get("driver", robot.driver)
+        self._note_driver(robot, message.get("driver", robot.driver))
         if robot.run_id is not None and robot.run_id != self.run_id and robot.pending is None:
             # An agent that holds a run this hub did not start: the hub restarted while it was running. Its
             # hellos were lost while it reconnected, and a connected agent says no more hellos, so its

@@ -246,3 +246,19 @@ def test_an_unknown_sim_scenario_names_the_lab_configs_field():
         with pytest.raises(ConfigError) as info:
             build_hub(config, log=lambda line: None)
         assert info.value.field == field and "not built in" in str(info.value)
+
+
+def test_a_real_robots_agent_joining_a_sim_hub_is_told_about_once():
+    lines = []
+    hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True}}),
+                    log=lines.append)
+    try:
+        robot = hub.robots[0]
+        for message in ({"driver": "kh4"}, {"driver": "kh4"}):
+            hub._on_hello(robot, message, time.monotonic())
+        hub._on_hello(hub.robots[1], {"driver": "sim"}, time.monotonic())
+        said = [line for line in lines if "driver, but this hub simulates" in line]
+        assert said == [said[0]] and said[0].startswith("hub: robot 0's agent uses the kh4 driver")
+        assert robot.driver == "kh4"
+    finally:
+        hub.close()
