@@ -242,6 +242,13 @@ def test_a_missing_library_names_its_path_and_how_to_set_it(stub_log, monkeypatc
     assert str(absent) in str(caught.value)
 
 
+def test_a_bare_library_name_found_only_in_the_current_folder_is_pointed_at(stub_library, stub_log, monkeypatch):
+    monkeypatch.chdir(stub_library.parent)         # the loader does not look here for a bare name
+    with pytest.raises(LibkheperaError, match=r"\./libkhepera\.so is here: pass that"):
+        KheperaIV(library_path="libkhepera.so")
+    KheperaIV(library_path="./libkhepera.so").close()
+
+
 def test_a_library_without_a_needed_function_is_named(stub_log, tmp_path):
     library = compile_stub(tmp_path / "no-set-speed", "KH4_STUB_WITHOUT_SET_SPEED")
     with pytest.raises(LibkheperaError, match="has no function kh4_set_speed") as caught:

@@ -109,7 +109,9 @@ class Libkhepera:
         try:
             self._cdll = ctypes.CDLL(path)
         except OSError as err:
-            raise LibkheperaError(f"cannot load libkhepera from {path!r} ({err}); pass --library PATH "
+            # A bare name is searched by the loader, never in the current folder: say so when it is there.
+            here = f"; ./{path} is here: pass that" if os.sep not in path and os.path.isfile(path) else ""
+            raise LibkheperaError(f"cannot load libkhepera from {path!r} ({err}){here}; pass --library PATH "
                                   f"or set {LIBRARY_ENV}") from err
         self.functions = {name: self._bind(name, *signature) for name, signature in SIGNATURES.items()}
         for name, signature in OPTIONAL_SIGNATURES.items():
