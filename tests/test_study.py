@@ -399,7 +399,7 @@ def test_the_report_counts_what_is_missing_and_says_what_actually_ran(known_stud
     write(known_study / "junk" / "seed-1" / "result.json", json.dumps({"scenario": "x"}))
     write_study_outputs(known_study, figures=False)
     report = (known_study / "report.md").read_text()
-    assert "**2 of the 8 runs the commands above asked for have no result yet**" in report
+    assert "**2 of the 3 runs the commands above asked for have no result yet**" in report
     assert "`paper-25-straight/seed-5`, `irregular-clover/seed-3`" in report
     assert "Time limit: mixed: each scenario’s own (5 runs), 1500 s (1 runs)." in report   # not study.json's 100
     assert "- `irregular-clover`: comm.range_m: 0.3 m is shorter than the cage spacing I_d" in report

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -81,10 +81,10 @@ def header(results: StudyResults, study: Dict[str, Any]) -> List[str]:
     unreadable = f", {len(results.unreadable)} unreadable (listed below)" if results.unreadable else ""
     lines += [f"{runs} runs in {len(results.cells)} cells, {failed} failed (crashed; excluded from the "
               f"statistics){unreadable}. Time limit: {time_limit_text(results.cells)}.", ""]
-    missing = missing_runs(results, study)
+    planned, missing = missing_runs(results, study)
     if missing:
         shown = ", ".join(f"`{d}`" for d in missing[:8]) + (" ..." if len(missing) > 8 else "")
-        lines += [f"**{len(missing)} of the {len(missing) + runs} runs the commands above asked for have no "
+        lines += [f"**{len(missing)} of the {len(planned)} runs the commands above asked for have no "
                   f"result yet** (not run, or interrupted): {shown}. Running the same command again runs them.",
                   ""]
     lines += ["Values are medians over the runs that did not fail, with the interquartile range in brackets. "
@@ -111,11 +111,13 @@ def time_limit_text(cells: List[Cell]) -> str:
     return "mixed: " + ", ".join(f"{text(limit)} ({n} runs)" for limit, n in counts.items())
 
 
-def missing_runs(results: StudyResults, study: Dict[str, Any]) -> List[str]:
-    """Run folders the study's commands asked for (study.json ``planned``) that hold no result."""
+def missing_runs(results: StudyResults, study: Dict[str, Any]) -> Tuple[List[str], List[str]]:
+    """The run folders the study's commands asked for (study.json ``planned``), and those that hold no
+    result."""
     present = {f"{cell.name}/seed-{seed}" for cell in results.cells for seed in cell.results}
     planned = study.get("planned")
-    return [d for d in planned if isinstance(d, str) and d not in present] if isinstance(planned, list) else []
+    planned = [d for d in planned if isinstance(d, str)] if isinstance(planned, list) else []
+    return planned, [d for d in planned if d not in present]
 
 
 def warning_section(cells: List[Cell]) -> List[str]:
