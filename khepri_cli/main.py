@@ -68,6 +68,9 @@ def _run(argv: Optional[List[str]]) -> int:
         print(f"khepri: error: {what}: {err}", file=sys.stderr)
         print("\n".join(err.lines), file=sys.stderr)
         return 1
+    except DriverError as err:        # an agent's robot hardware, outside any behaviour call
+        print(f"khepri: error: the robot's driver failed: {err}", file=sys.stderr)
+        return 1
     except OSError as err:
         # A path the user gave that cannot be read or written (--record, keys folder, a full or read-only
         # disk, ...): one line that names it. An OS error without a path is a bug: keep its traceback.

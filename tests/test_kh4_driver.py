@@ -413,3 +413,16 @@ def test_the_guard_leaves_the_wheels_alone_after_an_orderly_exit(stub_library, s
     time.sleep(1.0)                                              # time enough for a guard to act, if it did
     assert [name for name, _ in calls(stub_log)].count("kh4_init") == 1
     assert speed_commands(stub_log) == [(295, 295), (0, 0)]
+
+
+def test_an_agent_whose_wheels_cannot_be_stopped_says_so_in_one_line_and_exits(stub_library, stub_log, tmp_path):
+    """The bus refuses every speed command: the agent's first stop (its watchdog, no hub yet) fails; it leaves
+    with one line per layer that tried (agent, driver at exit, wheel guard), no traceback, and exit code 1."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT), KH4_STUB_LOG=str(stub_log), KH4_STUB_FAIL="kh4_set_speed")
+    done = subprocess.run([sys.executable, "-m", "onboard.agent", "--id", "0", "--driver", "kh4", "--library",
+                           str(stub_library), "--hub", "tcp://127.0.0.1:9"], env=env, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=30)
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert "agent: error: the driver failed: " in done.stderr and "kh4_set_speed failed" in done.stderr
+    logged = wait_for_calls(stub_log, lambda c: [name for name, _ in c].count("knet_close") == 2)
+    assert ("kh4_SetMode", {"mode": "0", "dev": "ok"}) in logged      # the motors idled all the same

@@ -117,5 +117,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         what = "the driver failed" if isinstance(err.exc, DriverError) else "the behaviour crashed"
         print(f"agent: error: {what}: {err}", file=sys.stderr)
         return 1
+    except DriverError as err:         # the robot's hardware, outside any behaviour call (a stop that failed)
+        print(f"agent: error: the driver failed: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130

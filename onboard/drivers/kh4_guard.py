@@ -68,10 +68,11 @@ def guard(library_path: str, parent_pid: int, stream: IO[bytes]) -> int:
     try:
         KheperaIV(library_path=library_path).close()      # opens the dsPic, stops, idles, releases
     except (LibkheperaError, OSError) as err:
-        print(f"kh4 wheel guard: agent {parent_pid} died and the wheels could not be stopped: {err}",
+        print(f"kh4 wheel guard: agent {parent_pid} ended without stopping the wheels, and they could not be "
+              f"stopped: {err}",
               file=sys.stderr, flush=True)
         return 1
-    print(f"kh4 wheel guard: agent {parent_pid} died without stopping the wheels; they are stopped now",
+    print(f"kh4 wheel guard: agent {parent_pid} ended without stopping the wheels; they are stopped now",
           file=sys.stderr, flush=True)
     return 0
 
