@@ -304,6 +304,45 @@ def test_a_robot_whose_estimate_disagrees_arrives_once_the_majority_has_waited_b
     assert (transport.waypoint, transport.phase) == (2, "p")              # and the barrier passed
 
 
+@pytest.mark.parametrize("mode, path_turns, expected_deg", [
+    ("auto", True, 30.0),                  # a turn asked: the contact normals (they turn with the faces)
+    ("auto", False, 45.0),                 # no turn asked: the edges, precise while the yaw is kept
+    ("edges", True, 45.0),
+    ("contact_normals", False, 30.0),
+])
+def test_a_small_cage_reads_the_yaw_from_contact_normals_when_its_path_turns(mode, path_turns, expected_deg):
+    """Four members round a box: the edges between them say 45 degrees (they slid round the box as they
+    turned it), their contact normals say 30 (the faces they press on turned that far)."""
+    scenario = load_scenario("lab-6").with_overrides(params={"small_cage_yaw": mode})
+    transport = Simulation(scenario, seed=1).behaviours[0]
+    ring_then = {0: (1.0, 0.0), 1: (0.0, 1.0), 2: (-1.0, 0.0), 3: (0.0, -1.0)}
+    turned = math.radians(45.0)
+    ring_now = {k: (x * math.cos(turned) - y * math.sin(turned), x * math.sin(turned) + y * math.cos(turned))
+                for k, (x, y) in ring_then.items()}
+    for rid in range(4):
+        transport.space.put(f"member/{rid}", {"tid": f"L{rid}", "branch": "L", "index": rid})
+        transport.space.put(f"pos/{rid}", [*ring_then[rid], round(math.pi + rid * math.pi / 2, 3), None])
+    transport.board.refresh_liveness(0.0)
+    transport.percept = SimpleNamespace(position=ring_then[transport.robot.id], neighbours={})
+    transport.params.path = [(0.0, 0.5, 90.0 if path_turns else 0.0)]     # read at _begin_transport
+    transport._begin_transport(0.0)
+    for rid in range(4):      # the members slid 45 degrees round the centre; the faces turned 30
+        transport.space.put(f"pos/{rid}", [*ring_now[rid], round(math.pi + rid * math.pi / 2 + math.radians(30), 3),
+                                           None])
+    transport.percept = SimpleNamespace(position=ring_now[transport.robot.id], neighbours={})
+    estimate = transport._rotation_since_reference(ring_now, (0.0, 0.0))
+    assert math.degrees(estimate) == pytest.approx(expected_deg, abs=0.1)
+
+
+def test_small_cage_yaw_must_name_a_source():
+    from onboard.behaviours.transport.params import TransportParams
+
+    with pytest.raises(ConfigError, match=r"^params.small_cage_yaw: must be one of auto, edges, contact_normals"):
+        build_params(get_behaviour("transport"), {"small_cage_yaw": "gyro"})
+    assert build_params(get_behaviour("transport"), {"profile": "faithful"}).small_cage_yaw == "edges"
+    assert TransportParams().small_cage_yaw == "auto"
+
+
 def test_a_reinforcer_at_the_object_pushes_straight_on_instead_of_sliding_into_the_rear_member():
     """reinforce_push: behind the cage, 8 cm off the line of travel through the centroid, a spare robot lines
     up sideways while free; once its IR sees the object (beside the rear member) it only pushes forward."""

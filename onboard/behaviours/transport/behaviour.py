@@ -64,6 +64,8 @@ class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
         self.reference_surface: Dict[int, Vec] = {}
         self.reference_yaw = 0.0
         self.reference_edges: Dict[tuple, float] = {}
+        self.reference_contacts: Dict[int, float] = {}   # members' contact normal angles when transport began
+        self.yaw_from_normals = False            # a small cage reads the yaw from contact normals (small_cage_yaw)
         self.formation: Dict[int, Vec] = {}
         self.waypoint = 0
         self.phase = "p"

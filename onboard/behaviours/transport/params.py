@@ -16,6 +16,7 @@ PROFILES = ("improved", "faithful")
 IMPROVEMENT_FLAGS = ("pipeline_allocation", "equalise_spacing", "hold_yaw_while_pushing", "soft_side_contact",
                      "keep_contact", "reinforce_push", "seed_from_rear", "keep_gap_while_caging",
                      "surface_estimate", "pace_formation", "regroup_when_cut_off")
+SMALL_CAGE_YAW = ("auto", "edges", "contact_normals")
 
 
 @dataclass
@@ -86,15 +87,25 @@ class TransportParams:
     surface_estimate: bool = True            # centroid from how the IR-seen surface points moved (estimator.py)
     surface_estimate_min_points: int = 6     # ... when at least this many members see the object, else the ring
     pace_formation: bool = True              # small cages: robots beside the object keep pace with the pushers
+    # Ours: where a small cage (fewer than surface_estimate_min_points members) reads the object's yaw from:
+    # "edges" between neighbouring members (precise while the object keeps its yaw, but members sliding
+    # round the object as they turn it make the ring turn up to 1.4 times as far), "contact_normals" (the
+    # members' IR directions to the object: they turn with the faces, sliding or not, but are noisier), or
+    # "auto": contact normals when the path asks for a turn, edges otherwise. docs/behaviour.md section 8.
+    small_cage_yaw: str = "auto"
     regroup_when_cut_off: bool = True        # a spare out of radio range of every robot at work moves toward
     #                                          the object estimate until it hears one again (behaviour.py)
 
     def validate(self, where: str) -> None:
         if self.profile not in PROFILES:
             raise ConfigError(f"{where}.profile", f"must be one of {', '.join(PROFILES)} (got {self.profile!r})")
+        if self.small_cage_yaw not in SMALL_CAGE_YAW:
+            raise ConfigError(f"{where}.small_cage_yaw", f"must be one of {', '.join(SMALL_CAGE_YAW)} "
+                              f"(got {self.small_cage_yaw!r})")
         if self.profile == "faithful":
             for flag in IMPROVEMENT_FLAGS:
                 setattr(self, flag, False)
+            self.small_cage_yaw = "edges"
             self.settle_time_s = 0.0
             self.position_tolerance_m = self.push_tolerance_m
             self.rotation_tolerance_deg = self.orientation_tolerance_deg

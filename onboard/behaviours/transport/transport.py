@@ -156,6 +156,7 @@ class TransportPhases:
         self.reference_centre = ring_centroid(np.asarray(list(ring.values()))) if ring else self.hint
         self.reference_yaw = self.initial_yaw
         self.reference_edges = ring_edges(ring, self.reference_centre, EDGE_FACTOR * self._spacing())
+        self.reference_contacts = self._contact_angles(ring)
         self.reference_surface = self._member_surfaces(ring)
         self.reference_normals = surface_normals(self.reference_surface, ring)
         noise = 0.02
@@ -164,6 +165,7 @@ class TransportPhases:
         self.path = [tuple(w) for w in (self.space.get("path") or self.params.path)]
         self.waypoint, self.phase, self.state = 0, "p", "push"
         self.estimated_at = now
+        self.yaw_from_normals = self._yaw_from_contact_normals()   # the path is known from here on
 
     def _formation_now(self) -> Dict[int, Vec]:
         """N_f: cage members within k * I_d, as world-frame vectors from this robot."""
@@ -190,13 +192,35 @@ class TransportPhases:
         return surfaces
 
     def _rotation_since_reference(self, ring: Dict[int, Vec], centre: Vec) -> Optional[float]:
-        """How far the object turned since transport began: from the edges between neighbouring members
+        """How far the object turned since transport began: in a small cage, from how the members' contact
+        normals turned (yaw_from_contact_normals); else from the edges between neighbouring members
         (estimator.edge_rotation), else from how the ring turned about the centroid."""
+        if self.yaw_from_normals and self._small_cage():
+            turned = edge_rotation(self._contact_angles(ring), self.reference_contacts)
+            if turned is not None:
+                return turned
         edges = ring_edges(ring, centre, EDGE_FACTOR * self._spacing())
         turned = edge_rotation(edges, self.reference_edges)
         if turned is not None:
             return turned
         return ring_rotation(ring, self.reference_ring, centre, self.reference_centre)
+
+    def _yaw_from_contact_normals(self) -> bool:
+        mode = self.params.small_cage_yaw
+        if mode == "auto":      # a path that turns: the sliding members would fool the edges
+            tolerance = math.radians(self.params.rotation_tolerance_deg)
+            return any(abs(wrap_angle(math.radians(w[2]) - self.initial_yaw)) > tolerance for w in self.path)
+        return mode == "contact_normals"
+
+    def _contact_angles(self, ring: Dict[int, Vec]) -> Dict[int, float]:
+        """The world angle of each member's contact normal x_o, as its heartbeat publishes it (members that
+        touch the object): it turns with the face the member presses on, even while the member slides."""
+        angles = {}
+        for rid in ring:
+            angle = self.board.contact_normal(rid)
+            if angle is not None:
+                angles[rid] = angle
+        return angles
 
     def _estimate_object(self, now: float) -> Tuple[float, float, float]:
         """C_o and yaw from the live members' shared positions, filtered (constant-velocity Kalman)."""
