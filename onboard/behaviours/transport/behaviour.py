@@ -18,6 +18,7 @@ from ...motion import vector_to_wheels
 from . import control as c
 from .caging import CagingPhases
 from .control import Vec
+from .estimation import ObjectEstimation
 from .estimator import ObjectFilter, ring_centroid, surrounds
 from .params import TransportParams
 from .perception import Percept, near, perceive, world_to_robot
@@ -36,7 +37,7 @@ REGROUP_STANDOFF_M = 1.0
 
 
 @register("transport")
-class Transport(CagingPhases, TransportPhases, ReinforcePhase, Behaviour):
+class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase, Behaviour):
     Params = TransportParams
 
     def __init__(self, robot, params: Optional[TransportParams] = None):
