@@ -7,7 +7,7 @@ by it. Nothing here senses anything the robots do not: every input is a member's
 from __future__ import annotations
 
 import math
-from typing import Dict, Optional, Tuple
+from typing import Callable, Dict, Iterable, Optional, Tuple, TypeVar
 
 import numpy as np
 
@@ -17,6 +17,7 @@ from .control import Vec
 from .estimator import edge_rotation, normal_displacement, ring_centroid, ring_edges, ring_rotation
 
 EDGE_FACTOR = 1.5             # edges between cage neighbours longer than 1.5 I_d are gaps, not faces
+T = TypeVar("T")
 
 
 class ObjectEstimation:
@@ -31,17 +32,12 @@ class ObjectEstimation:
     def _member_surfaces(self, members: Dict[int, Vec]) -> Dict[int, Vec]:
         """The object's surface points that ``members`` last saw with their IR (those that saw it), as
         published: this robot's own too, so that every member estimates from the same points."""
-        surfaces = {}
-        for rid in members:
-            point = self.board.surface_point(rid)
-            if point is not None:
-                surfaces[rid] = point
-        return surfaces
+        return published(members, self.board.surface_point)
 
     def _rotation_since_reference(self, ring: Dict[int, Vec], centre: Vec) -> Optional[float]:
-        """How far the object turned since transport began: in a small cage, from how the members' contact
-        normals turned (yaw_from_contact_normals); else from the edges between neighbouring members
-        (estimator.edge_rotation), else from how the ring turned about the centroid."""
+        """How far the object turned since transport began: in a small cage whose path turns, from how the
+        members' contact normals turned (params.small_cage_yaw); else from the edges between neighbouring
+        members (estimator.edge_rotation), else from how the ring turned about the centroid."""
         if self.yaw_from_normals and self._small_cage():
             turned = edge_rotation(self._contact_angles(ring), self.reference_contacts)
             if turned is not None:
@@ -62,12 +58,7 @@ class ObjectEstimation:
     def _contact_angles(self, ring: Dict[int, Vec]) -> Dict[int, float]:
         """The world angle of each member's contact normal x_o, as its heartbeat publishes it (members that
         touch the object): it turns with the face the member presses on, even while the member slides."""
-        angles = {}
-        for rid in ring:
-            angle = self.board.contact_normal(rid)
-            if angle is not None:
-                angles[rid] = angle
-        return angles
+        return published(ring, self.board.contact_normal)
 
     def _estimate_object(self, now: float) -> Tuple[float, float, float]:
         """C_o and yaw from the live members' shared positions, filtered (constant-velocity Kalman)."""
@@ -99,3 +90,13 @@ class ObjectEstimation:
         moved = normal_displacement(surfaces, self.reference_surface, self.reference_normals,
                                     self.reference_centre, turned or 0.0)
         return None if moved is None else c.add(self.reference_centre, moved)
+
+
+def published(members: Iterable[int], read: Callable[[int], Optional[T]]) -> Dict[int, T]:
+    """``read(rid)`` for each of ``members`` whose heartbeat carries it (None: it published none)."""
+    found = {}
+    for rid in members:
+        value = read(rid)
+        if value is not None:
+            found[rid] = value
+    return found
