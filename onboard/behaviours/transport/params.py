@@ -63,8 +63,8 @@ class TransportParams:
     # arrived, for this long arrives too. The few still moving cannot move the object alone, so their
     # estimates stop changing; when one differs from the others' by more than the tolerance (members that
     # disagree about which ring edges are short enough to measure the rotation by), the barrier never
-    # passed: a 14-robot cage sat 750 s at a 90-degree turn, one member 20 degrees off the rest. math.inf:
-    # wait for ever. Faithful runs keep it too: it only ends a deadlock.
+    # passed: a 5-member cage (14 robots) sat 750 s at a 90-degree turn, one member 20 degrees off the rest.
+    # A very large value (1e9) waits for ever. Faithful runs keep it too: it only ends a deadlock.
     barrier_stall_s: float = 30.0
     # --- The mission: given by the operator (scenario path and the paper's assumed initial estimate) ---
     path: List[Tuple[float, float, float]] = field(default_factory=list)   # waypoints [x, y, yaw_deg]
