@@ -37,6 +37,7 @@ UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
 NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
 NO_POSE_YET_REPEAT_S = 30.0    # ...and again this often while none does
+SHUTDOWN_ACK_WAIT_S = 0.3      # at shutdown, how long the hub waits for the agents to acknowledge its stop
 
 
 @dataclass
@@ -131,7 +132,9 @@ class Hub(Downlink, Uplink):
         return sock
 
     def close(self) -> None:
-        self.send_command_to_all("stop", reason="hub shutting down")
+        if self.robot_socket is not None:
+            self.send_command_to_all("stop", reason="hub shutting down")
+            self._wait_for_acknowledgements(time.monotonic() + SHUTDOWN_ACK_WAIT_S)
         for sock in (self.robot_socket, self.control_socket):
             if sock is not None:
                 sock.close(0)
@@ -140,6 +143,19 @@ class Hub(Downlink, Uplink):
         self.source.close()
         if self.recorder is not None:
             self.recorder.close()
+
+    def _wait_for_acknowledgements(self, deadline: float) -> None:
+        """The shutdown stops are only queued: closing the socket at once dropped them, and every agent kept
+        its run, held by nothing but its watchdog. Read the uplink until each connected agent acknowledged
+        its stop, or the deadline passed."""
+        while time.monotonic() < deadline:
+            now = time.monotonic()
+            waiting = [r for r in self.robots.values() if r.pending is not None and r.routing is not None
+                       and r.connected(now, self.config.watchdog_s)]
+            if not waiting:
+                return
+            if self.robot_socket.poll(20, zmq.POLLIN):
+                self.handle_uplink_events({self.robot_socket: zmq.POLLIN})
 
     # --- the real-time loop -----------------------------------------------------------------------------
     def serve(self, should_stop: Callable[[], bool] = lambda: False) -> None:

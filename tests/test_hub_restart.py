@@ -98,3 +98,36 @@ def test_agents_survive_a_hub_restart(tmp_path):
         hub_code = stop_processes([hub])
         hub.stdout.close()
     assert agent_codes == [0, 0] and hub_code == [0]
+
+
+def test_a_hub_stopped_with_sigterm_tells_its_agents_to_stop_their_run(tmp_path):
+    """'SIGINT or SIGTERM tells every agent stop': the stops used to be dropped with the socket, so the
+    agents kept their runs, held only by their watchdogs. The hub now waits for their acknowledgements."""
+    (tmp_path / "two.yaml").write_text(yaml.safe_dump({
+        "behaviour": "aggregate", "robots": {"count": 2, "spawn": {"x": [-1.0, 1.0], "y": [-1.0, 1.0]}},
+        "arena": {"walls": [-2, -2, 2, 2]}, "time_limit_s": 600}))
+    robot_port, control_port = free_port(), free_port()
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump({
+        "source": {"type": "sim", "scenario": str(tmp_path / "two.yaml")},
+        "network": {"bind": "127.0.0.1", "robot_port": robot_port, "control_port": control_port},
+        "security": {"insecure": True}}))
+    control = f"tcp://127.0.0.1:{control_port}"
+    hub = start_hub(config)
+    agents = [spawn_agent(f"tcp://127.0.0.1:{robot_port}", i, tmp_path / f"agent-{i}.log") for i in range(2)]
+    try:
+        wait_status(control, all_robots("connected", True))
+        request(control, "start")
+        wait_status(control, lambda s: all(r["agent_mode"] == "run" for r in s["robots"]))
+        hub.send_signal(signal.SIGTERM)
+        assert hub.wait(timeout=10) == 0
+        for i in range(2):
+            deadline = time.monotonic() + 5.0
+            while "run stopped: hub shutting down" not in (tmp_path / f"agent-{i}.log").read_text():
+                assert time.monotonic() < deadline, (tmp_path / f"agent-{i}.log").read_text()
+                time.sleep(0.05)
+    finally:
+        agent_codes = stop_processes(agents)
+        stop_processes([hub])
+        hub.stdout.close()
+    assert agent_codes == [0, 0]

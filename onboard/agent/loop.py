@@ -176,6 +176,9 @@ class Agent:
         elif cmd == "clear":
             self.apply_mode("hold", "e-stop cleared")
         elif cmd == "stop":
+            if self.run is not None:     # said: the operator's stop, or the hub going away
+                why = message.get("reason")
+                self.log(f"agent {self.robot_id}: run stopped{': ' + why if why else ''}")
             self.end_run()
             self.apply_mode("idle", "")
         elif cmd == "start":
