@@ -53,7 +53,9 @@ def all_robots(key, value):
     return lambda s: all(r[key] == value for r in s["robots"])
 
 
-def test_agents_survive_a_hub_restart(tmp_path):
+def two_robot_lab(tmp_path: Path):
+    """A lab config (sim source, two aggregate robots, insecure, free ports on loopback): its path and the
+    robot and control endpoints."""
     (tmp_path / "two.yaml").write_text(yaml.safe_dump({
         "behaviour": "aggregate", "robots": {"count": 2, "spawn": {"x": [-1.0, 1.0], "y": [-1.0, 1.0]}},
         "arena": {"walls": [-2, -2, 2, 2]}, "time_limit_s": 600}))
@@ -63,9 +65,13 @@ def test_agents_survive_a_hub_restart(tmp_path):
         "source": {"type": "sim", "scenario": str(tmp_path / "two.yaml")},
         "network": {"bind": "127.0.0.1", "robot_port": robot_port, "control_port": control_port},
         "security": {"insecure": True}}))
-    control = f"tcp://127.0.0.1:{control_port}"
+    return config, f"tcp://127.0.0.1:{robot_port}", f"tcp://127.0.0.1:{control_port}"
+
+
+def test_agents_survive_a_hub_restart(tmp_path):
+    config, robots, control = two_robot_lab(tmp_path)
     hub = start_hub(config)
-    agents = [spawn_agent(f"tcp://127.0.0.1:{robot_port}", i, tmp_path / f"agent-{i}.log") for i in range(2)]
+    agents = [spawn_agent(robots, i, tmp_path / f"agent-{i}.log") for i in range(2)]
     try:
         wait_status(control, all_robots("connected", True))
         request(control, "start")
@@ -103,18 +109,9 @@ def test_agents_survive_a_hub_restart(tmp_path):
 def test_a_hub_stopped_with_sigterm_tells_its_agents_to_stop_their_run(tmp_path):
     """'SIGINT or SIGTERM tells every agent stop': the stops used to be dropped with the socket, so the
     agents kept their runs, held only by their watchdogs. The hub now waits for their acknowledgements."""
-    (tmp_path / "two.yaml").write_text(yaml.safe_dump({
-        "behaviour": "aggregate", "robots": {"count": 2, "spawn": {"x": [-1.0, 1.0], "y": [-1.0, 1.0]}},
-        "arena": {"walls": [-2, -2, 2, 2]}, "time_limit_s": 600}))
-    robot_port, control_port = free_port(), free_port()
-    config = tmp_path / "lab.yaml"
-    config.write_text(yaml.safe_dump({
-        "source": {"type": "sim", "scenario": str(tmp_path / "two.yaml")},
-        "network": {"bind": "127.0.0.1", "robot_port": robot_port, "control_port": control_port},
-        "security": {"insecure": True}}))
-    control = f"tcp://127.0.0.1:{control_port}"
+    config, robots, control = two_robot_lab(tmp_path)
     hub = start_hub(config)
-    agents = [spawn_agent(f"tcp://127.0.0.1:{robot_port}", i, tmp_path / f"agent-{i}.log") for i in range(2)]
+    agents = [spawn_agent(robots, i, tmp_path / f"agent-{i}.log") for i in range(2)]
     try:
         wait_status(control, all_robots("connected", True))
         request(control, "start")
