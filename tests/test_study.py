@@ -17,7 +17,7 @@ from sim_backend.study.aggregate import load_results
 from sim_backend.study.driver import StudyProgress, longest_first, run_study
 from sim_backend.study.executors import WORKER_DIED, LocalExecutor
 from sim_backend.study.grid import expand, load_study_file, paper_study, parse_study
-from sim_backend.study.report import write_study_outputs
+from sim_backend.study.report import FIGURE_FILES, write_study_outputs
 from sim_backend.study.worker import execute_run
 
 # Small and fast: lab-6 (6 robots) and a failing cell, a few simulated seconds each.
@@ -434,11 +434,22 @@ def test_figures_are_written_as_non_empty_images(known_study):
     files = write_study_outputs(known_study)
     figures = sorted(p.name for name, p in files.items() if name.startswith("figure"))
     assert figures == ["effective.png", "errors.png", "times.png", "trajectories.png"]
+    assert set(figures) <= set(FIGURE_FILES)     # what a later aggregation removes if it does not redraw it
     for name in figures:
         with Image.open(known_study / "figures" / name) as image:
             pixels = np.asarray(image.convert("L"))
         assert pixels.shape[0] > 300 and pixels.std() > 5   # something is drawn, not a blank canvas
     assert "![Errors per waypoint](figures/errors.png)" in (known_study / "report.md").read_text()
+
+
+def test_an_aggregation_without_figures_removes_the_earlier_ones(known_study):
+    """Figures left from an earlier aggregation would show other runs than summary.csv and report.md."""
+    write_study_outputs(known_study)
+    assert (known_study / "figures" / "errors.png").exists()
+    (known_study / "figures" / "mine.png").write_bytes(b"a user's own file")
+    write_study_outputs(known_study, figures=False)
+    assert sorted(p.name for p in (known_study / "figures").iterdir()) == ["mine.png"]
+    assert "## Figures" not in (known_study / "report.md").read_text()
 
 
 def test_study_report_reaggregates_a_folder_without_running(known_study, capsys):

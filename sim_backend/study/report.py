@@ -10,6 +10,10 @@ from . import paper_reference as paper
 from .aggregate import Cell, StudyResults, distribution, load_results, success_rate, write_summary_csv
 from .driver import outcome_text, read_study
 
+# Every file ``write_figures`` may draw. One this aggregation does not draw is removed: it would show an earlier
+# aggregation's runs beside a summary of the current ones (and report.md would not link it).
+FIGURE_FILES = ("times.png", "errors.png", "effective.png", "trajectories.png")
+
 ERROR_COLUMNS = (("centroid_estimation_error_m", "centroid est. err (m)"),
                  ("position_error_m", "position err (m)"),
                  ("orientation_error_rad", "orientation err (rad)"))
@@ -53,9 +57,19 @@ def write_study_outputs(out_dir: Path, figures: bool = True) -> Dict[str, Path]:
         from .figures import write_figures  # matplotlib only when drawing
 
         drawn = write_figures(results, out_dir / "figures")
+    remove_stale_figures(out_dir / "figures", drawn)
     files["report"] = write_report(results, read_study(out_dir), out_dir / "report.md", drawn)
     files.update({f"figure {name}": path for name, path in drawn.items()})
     return files
+
+
+def remove_stale_figures(folder: Path, drawn: Dict[str, Path]) -> None:
+    """Remove the figures of an earlier aggregation that this one did not redraw (``--no-figures``, or a
+    figure whose data is gone); ``khepri study report DIR`` draws them again from the runs."""
+    kept = {path.name for path in drawn.values()}
+    for name in FIGURE_FILES:
+        if name not in kept:
+            (folder / name).unlink(missing_ok=True)
 
 
 def write_report(results: StudyResults, study: Dict[str, Any], path: Path, figures: Dict[str, Path]) -> Path:
