@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
-from typing import List, Optional
+import threading
+from typing import Any, List, Optional
 
 from onboard.behaviour import BehaviourError
 from onboard.config import ConfigError
@@ -30,13 +32,50 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    try:
-        return _run(argv)
-    except BrokenPipeError:
-        # The reader went away (`khepri sim list | head`): stop quietly, as the Python docs recommend ("Note on
-        # SIGPIPE"): point stdout at /dev/null so the interpreter's final flush does not fail a second time.
-        _silence_stdout()
-        return 1
+    """``argv`` None: the ``khepri`` command itself, which exits when this returns."""
+    with PatientInterrupts(exiting=argv is None):
+        try:
+            return _run(argv)
+        except BrokenPipeError:
+            # The reader went away (`khepri sim list | head`): stop quietly, as the Python docs recommend ("Note
+            # on SIGPIPE"): point stdout at /dev/null so the interpreter's final flush does not fail again.
+            _silence_stdout()
+            return 1
+
+
+class PatientInterrupts:
+    """Ctrl-C stops a command cleanly: the first raises KeyboardInterrupt, so its ``finally`` blocks stop the
+    runs, workers and agents it started. A second one while that cleanup runs would cut it short (orphaned
+    processes, an agent's wheels not yet stopped) and print a traceback from the middle of it: it only says
+    that khepri is stopping. A third quits at once, for a cleanup that hangs.
+
+    Installed only over Python's default handler in the main thread (a command with its own handler, such as
+    the hub, keeps it). ``exiting``: the process ends when the command returns, so Ctrl-C stays quiet until
+    then (the interpreter's own shutdown would print a traceback for it)."""
+
+    def __init__(self, exiting: bool):
+        self.exiting, self.count, self.installed = exiting, 0, False
+
+    def __enter__(self) -> PatientInterrupts:
+        if threading.current_thread() is threading.main_thread() \
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            signal.signal(signal.SIGINT, self._on_interrupt)
+            self.installed = True
+        return self
+
+    def _on_interrupt(self, signum: int, frame: Any) -> None:
+        self.count += 1
+        if self.count == 1:
+            raise KeyboardInterrupt
+        if self.count == 2:
+            print("khepri: stopping; press Ctrl-C again to quit at once", file=sys.stderr)
+            return
+        os._exit(130)
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.installed:
+            interrupted_exit = self.exiting and self.count
+            signal.signal(signal.SIGINT, signal.SIG_IGN if interrupted_exit else signal.default_int_handler)
 
 
 def _silence_stdout() -> None:

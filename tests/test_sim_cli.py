@@ -1,10 +1,13 @@
 """`khepri sim run` and `khepri bench` from the command line: outputs land where --out says, and bad options
 are refused before any simulated second is spent."""
 import json
+import os
+import signal
+import time
 
 import pytest
 
-from khepri_cli.main import main
+from khepri_cli.main import PatientInterrupts, main
 
 
 def test_sim_run_writes_its_outputs_into_out(tmp_path, capsys):
@@ -108,3 +111,23 @@ def test_a_run_without_a_plot_removes_an_earlier_runs_plot_from_its_folder(tmp_p
     assert (out / "trajectory.png").is_file()
     assert main(["sim", "run", "lab-6", "--time-limit", "1", "--no-plot", "--out", str(out)]) == 0
     assert not (out / "trajectory.png").exists()          # it would describe the earlier run, not this one
+
+
+# --- Ctrl-C ------------------------------------------------------------------------------------------------
+
+def test_a_second_ctrl_c_does_not_cut_the_first_ones_cleanup_short(capsys):
+    """The first Ctrl-C stops the command through its finally blocks (runs, workers, agents); a second one,
+    pressed while those run, used to raise in the middle of them and print a traceback."""
+    cleaned = []
+    with PatientInterrupts(exiting=False):
+        with pytest.raises(KeyboardInterrupt):
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(1.0)                        # the signal is handled before this ends
+            finally:
+                os.kill(os.getpid(), signal.SIGINT)    # pressed again during the cleanup
+                time.sleep(0.05)
+                cleaned.append(True)
+    assert cleaned == [True]
+    assert "khepri: stopping; press Ctrl-C again to quit at once" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler     # the test process gets it back
