@@ -17,7 +17,8 @@ class BackgroundRecorder:
     nothing is encoded in the caller's thread. The writer thread encodes and writes everything in call order
     when :meth:`kick` wakes it (the hub kicks once its downlink frames are out) and at least every
     ``idle_s``. An error in the writer (e.g. a full disk) is raised by the next call, as the Recorder itself
-    would have. ``close`` writes what is queued and closes the file.
+    would have; or, with ``on_failure``, handed to that once, after which every call does nothing (a lab
+    run goes on without its log rather than end). ``close`` writes what is queued and closes the file.
 
     Why a thread: encoding a 100-robot lab's frames as JSON takes about 1 ms per motion-capture frame. Done
     by the hub's loop thread, that CPU time makes the kernel treat the thread as busy, so every ZeroMQ send
@@ -25,9 +26,12 @@ class BackgroundRecorder:
     slower (docs/lab.md, "Hub latency").
     """
 
-    def __init__(self, recorder: Recorder, idle_s: float = 0.05):
+    def __init__(self, recorder: Recorder, idle_s: float = 0.05,
+                 on_failure: Optional[Callable[[BaseException], None]] = None):
         self.recorder = recorder
         self.path = recorder.path
+        self.on_failure = on_failure
+        self.failure: Optional[str] = None      # why recording stopped (with on_failure), else None
         self._queue: Deque[Tuple[Any, ...]] = deque()
         self._kick = threading.Event()
         self._idle_s = idle_s
@@ -37,17 +41,20 @@ class BackgroundRecorder:
         self._thread.start()
 
     def write(self, topic: str, payload: dict, stamp_s: Optional[float] = None) -> None:
-        self._check()
+        if self._check():
+            return
         self._queue.append((topic, payload, None, time.time() if stamp_s is None else stamp_s))
 
     def write_later(self, topic: str, build: Callable[..., dict], args: Tuple[Any, ...],
                     stamp_s: Optional[float] = None) -> None:
         """Record ``build(*args)``, called in the writer thread: the arguments must not change afterwards."""
-        self._check()
+        if self._check():
+            return
         self._queue.append((topic, build, args, time.time() if stamp_s is None else stamp_s))
 
     def count_drop(self, reason: str, sender: Optional[str] = None, stamp_s: Optional[float] = None) -> None:
-        self._check()
+        if self._check():
+            return
         self._queue.append((None, reason, sender, time.time() if stamp_s is None else stamp_s))
 
     def kick(self) -> None:
@@ -58,8 +65,8 @@ class BackgroundRecorder:
     def flush(self) -> None:
         """Write what is queued, then flush the file (waits for the writer thread)."""
         self._drain_wait()
-        self._check()
-        self.recorder.flush()
+        if not self._check():
+            self.recorder.flush()
 
     def close(self) -> None:
         """Write what is queued, close the file and stop the writer thread. Safe to call twice."""
@@ -69,8 +76,13 @@ class BackgroundRecorder:
             self._thread.join()
         try:
             self.recorder.close()
-        finally:
-            self._check()
+        except Exception as err:
+            if self.on_failure is None:
+                self._check()             # the writer's own error, if it had one, says more
+                raise
+            if self.failure is None and self._error is None:
+                self._error = err         # reported below, once
+        self._check()
 
     def __enter__(self) -> BackgroundRecorder:
         return self
@@ -78,10 +90,16 @@ class BackgroundRecorder:
     def __exit__(self, *exc_info) -> None:
         self.close()
 
-    def _check(self) -> None:
+    def _check(self) -> bool:
+        """Raise the writer's error, or with ``on_failure`` report it once; True once recording has failed."""
         if self._error is not None:
             error, self._error = self._error, None
-            raise error
+            if self.on_failure is None:
+                raise error
+            self.failure = str(error)
+            self._queue.clear()
+            self.on_failure(error)
+        return self.failure is not None
 
     def _drain_wait(self) -> None:
         while self._queue and self._thread.is_alive():
@@ -95,7 +113,7 @@ class BackgroundRecorder:
             stopping = self._stopping
             while self._queue:
                 topic, first, second, stamp = self._queue.popleft()
-                if self._error is not None:
+                if self._error is not None or self.failure is not None:
                     continue                      # reported once; the rest cannot be written either
                 try:
                     if topic is None:

@@ -142,6 +142,8 @@ class LabConfig:
             if xmax <= xmin or ymax <= ymin:
                 raise ConfigError("geofence", "must be [xmin, ymin, xmax, ymax] with min < max")
         check_range("watchdog_s", self.watchdog_s, 0.0, 10.0, low_open=True)
+        if self.record is not None and not str(self.record).strip():
+            raise ConfigError("record", "is empty: name the MCAP file (e.g. logs/run-{time}.mcap), or leave it out")
         if self.robots is not None:
             for i, rid in enumerate(self.robots):
                 check_robot_id(f"robots[{i}]", rid)

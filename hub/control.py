@@ -72,6 +72,9 @@ def status_table(status: Dict[str, Any]) -> str:
     lines = [f"hub: {status['mode']}  run: {status.get('run_id') or '-'}  behaviour: {status.get('behaviour')}  "
              f"source: {status['source']}  mocap: {status['mocap_hz']:.1f} Hz  "
              f"{'secure (CURVE)' if status.get('secure') else 'INSECURE'}"]
+    recording = status.get("recording")
+    if recording and recording.get("error"):
+        lines.append(f"RECORDING STOPPED ({recording['path']}): {recording['error']}")
     header = f"{'robot':>5}  {'connected':9}  {'last seen':>9}  {'mode':7}  {'state':14}  {'loop Hz':>7}  " \
              f"{'misses':>6}  {'battery':>7}  note"
     lines.append(header)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import time
 import uuid
-from typing import TYPE_CHECKING, Any, Dict, List, Tuple
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
 
 import zmq
 
@@ -122,10 +122,18 @@ class ControlService:
             "uptime_s": round(now - hub.started_at, 3),
             "cpu_s": round(time.process_time(), 4),
             "secure": hub.keyring is not None,
+            "recording": recording_status(hub.recorder),
             "drops": dict(hub.drops.counts),
             "relay": hub.relay.stats.as_dict(),
             "robots": rows,
         }
+
+
+def recording_status(recorder: Any) -> Optional[Dict[str, Any]]:
+    """None when the hub does not record; else the log's path and, once a write failed, why it stopped."""
+    if recorder is None:
+        return None
+    return {"path": str(recorder.path), "error": getattr(recorder, "failure", None)}
 
 
 def encode_reply(reply: Dict[str, Any]) -> bytes:

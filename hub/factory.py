@@ -1,6 +1,7 @@
 """From a validated :class:`LabConfig` to a ready :class:`Hub`: source, robot list, run, sensing, keys, log."""
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
 
@@ -45,8 +46,10 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         ids = robot_ids(config, source)
         run = run_template(config, scenario)
         keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
-        if recorder is None and config.record:
-            recorder = open_recorder(config.record, {"source": source.description, "behaviour": run.behaviour})
+        if recorder is None and config.record is not None:
+            path = record_path(config)
+            recorder = open_recorder(path, {"source": source.description, "behaviour": run.behaviour})
+            log(f"hub: recording to {path}")
     except Exception:
         source.close()
         raise
@@ -113,7 +116,23 @@ def relay_drop(config: LabConfig, scenario) -> float:
     return scenario.comm.drop if scenario is not None else 0.0
 
 
-def open_recorder(path: str, metadata: Dict[str, Any]):
+def record_path(config: LabConfig, now: Optional[float] = None) -> Path:
+    """The log file for ``record``: ``{time}`` in it becomes the local start time (``logs/run-{time}.mcap`` ->
+    ``logs/run-20261121-201502.mcap``). An existing file is refused: the hub never writes over a log (an
+    earlier run's, the one being replayed, or one another hub is still writing)."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
+    path = Path(str(config.record).replace("{time}", stamp))
+    if config.source.type == "replay" and path.exists() and path.resolve() == Path(config.source.file).resolve():
+        raise ConfigError("record", f"{path} is the log being replayed (source.file): recording would erase it; "
+                          "name another file")
+    if path.exists() or path.is_symlink():
+        raise ConfigError("record", f"{path} exists (an earlier run's log, or one a hub is writing): the hub does "
+                          "not write over a log. Remove it, name another file, or put {time} in the name "
+                          "(e.g. logs/run-{time}.mcap)")
+    return path
+
+
+def open_recorder(path: Path, metadata: Dict[str, Any]):
     try:
         from hub.recording import Recorder
     except ImportError as err:
@@ -123,4 +142,4 @@ def open_recorder(path: str, metadata: Dict[str, Any]):
     if blocker is not None:      # mkdir would say "File exists", which points at the wrong problem
         raise ConfigError("record", f"cannot make the folder {folder}: {blocker} is a file, not a folder")
     folder.mkdir(parents=True, exist_ok=True)
-    return Recorder(path, flush_period_s=1.0, metadata={k: str(v) for k, v in metadata.items()})
+    return Recorder(path, flush_period_s=1.0, metadata={k: str(v) for k, v in metadata.items()}, exclusive=True)

@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
+from onboard.agent.parent import PARENT_ENV
+
 from .config import LabConfig
 from .control import request
 from .factory import build_hub
@@ -86,8 +88,11 @@ class HubThread:
 
 def spawn_agent(endpoint: str, robot_id: int, log_path: Path, keys: Optional[Path] = None,
                 driver: str = "sim", extra: Optional[List[str]] = None) -> subprocess.Popen:
-    """A real agent process (``python -m onboard.agent``) writing its log to ``log_path``."""
+    """A real agent process (``python -m onboard.agent``) writing its log to ``log_path``. It ends (SIGTERM:
+    wheels stopped) when the thread that started it does, even if this process is killed with SIGKILL
+    (``onboard/agent/parent.py``), so start agents from a thread that outlives them."""
     env = dict(os.environ)
+    env[PARENT_ENV] = str(os.getpid())
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     command = [sys.executable, "-m", "onboard.agent", "--id", str(robot_id), "--hub", endpoint, "--driver", driver]
     if keys is not None:

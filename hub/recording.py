@@ -69,13 +69,16 @@ class Recorder:
     """
 
     def __init__(self, path: PathLike, *, flush_period_s: float = 1.0, metadata: Optional[dict] = None,
-                 chunk_size: int = 4 * 1024 * 1024):
+                 chunk_size: int = 4 * 1024 * 1024, exclusive: bool = False):
+        """``exclusive``: refuse a file that exists (the hub's logs) instead of writing over it."""
         if not flush_period_s > 0:
             raise LogError("flush_period_s", f"must be > 0 (got {flush_period_s!r})")
         user_metadata = metadata_as_text(metadata or {})
         self.path = Path(path)
         try:
-            self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+            self._file = open(self.path, "xb" if exclusive else "wb")  # noqa: SIM115 - closed in close()
+        except FileExistsError:
+            raise LogError(str(self.path), "exists: the log is not written over") from None
         except OSError as err:
             raise LogError(str(self.path), f"cannot create the log: {err.strerror or err}") from None
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)

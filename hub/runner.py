@@ -20,6 +20,19 @@ def print_now(line: str) -> None:
     print(line, flush=True)     # flushed: supervisors and tests read these lines through a pipe
 
 
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+def discard_log(hub) -> None:
+    """A hub that could not start (a port in use, ...) recorded nothing: its new log would only stand in the
+    way of the next attempt, since the hub never writes over a log."""
+    if hub.recorder is not None:
+        try:
+            hub.recorder.path.unlink()
+        except OSError:
+            pass
+
+
 def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
     if config.security.insecure:
         print(INSECURE_WARNING, file=sys.stderr, flush=True)
@@ -29,14 +42,19 @@ def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
     def request_stop(signum, frame):
         stop["requested"] = True
 
-    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    # SIGHUP: the terminal closed or the SSH session dropped. Stop as for Ctrl-C: agents told, log closed.
+    previous = {sig: signal.signal(sig, request_stop) for sig in STOP_SIGNALS}
+    served = False
     try:
         hub.bind()
+        served = True
         if config.run.autostart:
             hub.control.execute("start", "config (run.autostart)")
         hub.serve(lambda: stop["requested"])
     finally:
         hub.close()
+        if not served:
+            discard_log(hub)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     log("hub: stopped")

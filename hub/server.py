@@ -65,7 +65,9 @@ class Hub(Downlink, Uplink):
                  sensing: SensingModel, relay_drop: float, seed=None, keyring: Optional[KeyRing] = None,
                  recorder=None, log: Callable[[str], None] = print, context: Optional[zmq.Context] = None):
         if recorder is not None and not isinstance(recorder, BackgroundRecorder):
-            recorder = BackgroundRecorder(recorder)     # the loop only queues; a thread of its own writes
+            # The loop only queues; a thread of its own writes. A write that fails (a full disk) ends the
+            # recording, not the lab run: the robots keep being served, and the operator is told.
+            recorder = BackgroundRecorder(recorder, on_failure=self._recording_failed)
         self.config, self.source, self.run, self.keyring, self.recorder, self.log = \
             config, source, run, keyring, recorder, log
         self.context = context or zmq.Context.instance()
@@ -310,6 +312,9 @@ class Hub(Downlink, Uplink):
         else:
             self.log(f"hub: the frames from {source} hold none of this lab's robots yet after {after} "
                      f"(check source.bodies and robots; this lab's robots: {format_ids(self.ids)})")
+
+    def _recording_failed(self, error: BaseException) -> None:
+        self.log(f"hub: RECORDING STOPPED: {error}; the run goes on without a log (ctl status says so)")
 
     def _record_drop(self, reason: str, sender: str) -> None:
         if self.recorder is not None:

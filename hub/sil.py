@@ -58,6 +58,9 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
         if options.log_to_console:
             print(line, flush=True)
 
+    # The folder is this run's: an earlier run's log would pass for this one's (and the hub never writes
+    # over a log), so it goes, also with --no-record.
+    (out / "hub.mcap").unlink(missing_ok=True)
     with tempfile.TemporaryDirectory(prefix="khepri-sil-keys-") as key_dir:
         keys = Path(key_dir)
         init_keys(keys, list(range(scenario.robots.count)), ["sil"])

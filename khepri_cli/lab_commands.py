@@ -71,7 +71,9 @@ def cmd_hub(args: argparse.Namespace) -> int:
         print("khepri hub: no --config: sim source on lab-6 (see docs/lab.md for a lab config)", file=sys.stderr)
     if args.insecure:
         config.security.insecure = True
-    if args.record:
+    if args.record is not None:
+        if not args.record.strip():    # an unset shell variable: say so rather than record nothing
+            raise ConfigError("--record", "is empty: name the MCAP file (e.g. logs/run-{time}.mcap)")
         config.record = args.record
     if args.bind:
         if args.demo and not is_loopback(args.bind):

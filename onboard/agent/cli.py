@@ -41,6 +41,9 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
 def run_agent(args: argparse.Namespace) -> int:
     from .link import HubLink, load_robot_keys
     from .loop import Agent
+    from .parent import end_with_parent
+
+    end_with_parent()
 
     if not 0 <= args.robot_id <= MAX_ROBOT_ID:     # the hub would drop every message of any other id
         raise ConfigError("--id", f"must be a robot id 0..{MAX_ROBOT_ID} (got {args.robot_id})")

@@ -1,0 +1,159 @@
+"""A hub's log is never lost to the hub itself: it does not write over a log (an earlier run's, the one being
+replayed, one another hub is writing), a hub that cannot start leaves no file behind, a full disk ends the
+recording but not the lab run, and a closed terminal (SIGHUP) stops the hub as Ctrl-C does. Real hub
+processes on free ports; the full disk is a file size limit (RLIMIT_FSIZE)."""
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from hub.config import parse_config
+from hub.control import request
+from hub.factory import record_path
+from hub.harness import stop_processes
+from khepri_cli.main import main
+from onboard.config import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = dict(os.environ, PYTHONPATH=str(ROOT))
+
+# The hub under a file size limit, with SIGXFSZ ignored so that a write past it fails (EFBIG) instead of
+# killing the process: a disk that fills up during a run.
+LIMITED_HUB = """
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (6000, 6000))
+from khepri_cli.main import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def lab_config(tmp_path: Path, record: Path, robot_port: int = 0) -> Path:
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump({"source": {"type": "sim", "scenario": "lab-6"},
+                                      "network": {"bind": "127.0.0.1", "robot_port": robot_port, "control_port": 0},
+                                      "security": {"insecure": True}, "record": str(record)}))
+    return config
+
+
+def start_hub(tmp_path: Path, *command: str) -> subprocess.Popen:
+    log = open(tmp_path / "hub.log", "w")
+    hub = subprocess.Popen([sys.executable, *command], stdout=log, stderr=subprocess.STDOUT, env=ENV, text=True)
+    deadline = time.monotonic() + 30
+    while (tmp_path / "hub.log").read_text().count("listening ") < 2:
+        assert hub.poll() is None and time.monotonic() < deadline, (tmp_path / "hub.log").read_text()
+        time.sleep(0.1)
+    return hub
+
+
+def control_endpoint(tmp_path: Path) -> str:
+    line = next(x for x in (tmp_path / "hub.log").read_text().splitlines() if x.startswith("listening control"))
+    return line.split()[-1]
+
+
+def test_an_existing_log_is_refused_and_left_as_it_was(tmp_path, capsys):
+    log = tmp_path / "run.mcap"
+    log.write_bytes(b"an earlier run's log")
+    assert main(["hub", "--demo", "--record", str(log)]) == 2
+    err = capsys.readouterr().err
+    assert f"khepri: error: record: {log} exists" in err and "{time}" in err
+    assert log.read_bytes() == b"an earlier run's log"
+
+
+def test_time_in_the_log_name_gives_each_start_its_own_file(tmp_path):
+    config = parse_config({"record": str(tmp_path / "run-{time}.mcap")})
+    at = time.mktime((2026, 11, 21, 20, 15, 2, 0, 0, -1))
+    assert record_path(config, at) == tmp_path / "run-20261121-201502.mcap"
+
+
+def test_recording_onto_the_log_being_replayed_is_refused(tmp_path):
+    replayed = tmp_path / "run.mcap"
+    replayed.write_bytes(b"a recorded run")
+    config = parse_config({"source": {"type": "replay", "file": str(replayed)}, "record": str(replayed)})
+    with pytest.raises(ConfigError, match="is the log being replayed"):
+        record_path(config)
+
+
+def test_an_empty_log_name_is_an_error_not_a_run_without_a_log(tmp_path, capsys):
+    assert main(["hub", "--demo", "--record", ""]) == 2
+    assert "khepri: error: --record: is empty" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="record: is empty"):
+        parse_config({"record": " "})
+
+
+def test_a_hub_that_cannot_bind_leaves_no_log(tmp_path, capsys):
+    """It used to erase the log of the hub that held the port; now it would leave an empty one that then
+    blocks the next start (the hub does not write over a log)."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        log = tmp_path / "run.mcap"
+        assert main(["hub", "--config", str(lab_config(tmp_path, log, taken.getsockname()[1]))]) == 2
+    assert "network.robot_port" in capsys.readouterr().err
+    assert not log.exists()
+
+
+def test_a_full_disk_ends_the_recording_not_the_run(tmp_path):
+    log = tmp_path / "run.mcap"
+    hub = start_hub(tmp_path, "-c", LIMITED_HUB, "hub", "--config", str(lab_config(tmp_path, log)))
+    try:
+        deadline = time.monotonic() + 30
+        while "RECORDING STOPPED" not in (tmp_path / "hub.log").read_text():
+            assert hub.poll() is None and time.monotonic() < deadline, (tmp_path / "hub.log").read_text()
+            time.sleep(0.1)
+        status = request(control_endpoint(tmp_path), "status", timeout_s=5.0)["status"]   # still serving
+        assert status["recording"]["path"] == str(log) and "File too large" in status["recording"]["error"]
+        assert request(control_endpoint(tmp_path), "start", timeout_s=5.0)["ok"]
+        hub.send_signal(signal.SIGINT)
+        assert hub.wait(timeout=15) == 0
+    finally:
+        stop_processes([hub])
+    assert "hub: stopped" in (tmp_path / "hub.log").read_text()
+    summary = subprocess.run([sys.executable, "-m", "khepri_cli.main", "log", "info", str(log), "--json"],
+                             capture_output=True, text=True, env=ENV, timeout=60)
+    assert json.loads(summary.stdout)["message_count"] > 0        # what was written before the disk filled is readable
+
+
+def test_a_closed_terminal_stops_the_hub_as_ctrl_c_does(tmp_path):
+    log = tmp_path / "run.mcap"
+    hub = start_hub(tmp_path, "-m", "khepri_cli.main", "hub", "--config", str(lab_config(tmp_path, log)))
+    try:
+        time.sleep(1.0)
+        hub.send_signal(signal.SIGHUP)
+        assert hub.wait(timeout=15) == 0
+    finally:
+        stop_processes([hub])
+    assert "hub: stopped" in (tmp_path / "hub.log").read_text()
+    summary = subprocess.run([sys.executable, "-m", "khepri_cli.main", "log", "info", str(log), "--json"],
+                             capture_output=True, text=True, env=ENV, timeout=60)
+    assert json.loads(summary.stdout)["truncated"] is False    # closed properly: footer and summary written
+
+
+def test_agents_end_with_the_process_that_started_them(tmp_path):
+    """A `khepri sil` killed with SIGKILL left its agents running for ever."""
+    starter = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from pathlib import Path; from hub.harness import spawn_agent\n"
+        f"agent = spawn_agent('tcp://127.0.0.1:9', 0, Path({str(tmp_path / 'agent.log')!r}))\n"
+        "print(agent.pid, flush=True); time.sleep(60)")], stdout=subprocess.PIPE, text=True, env=ENV)
+    agent_pid = int(starter.stdout.readline())
+    time.sleep(1.0)
+    starter.kill()
+    starter.wait()
+    deadline = time.monotonic() + 10
+    while Path(f"/proc/{agent_pid}").exists() and "zombie" not in _state(agent_pid):
+        assert time.monotonic() < deadline, "the agent outlived its starter"
+        time.sleep(0.1)
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split("\n")[0]
+    except (OSError, IndexError):
+        return "zombie"
