@@ -8,9 +8,9 @@ import dataclasses
 import io
 import json
 import struct
+import zlib
 from collections import Counter
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
 from typing import Any, Dict, Iterable, Iterator, List, Optional, Tuple, Union
 
@@ -42,7 +42,9 @@ class LogReader:
 
     After iterating, ``complete`` says whether the file ended with a footer, ``stop_reason`` says why reading
     stopped otherwise, and ``readable_bytes`` is how much of the file was read. ``metadata`` holds the MCAP
-    metadata records seen (name -> {key: text}).
+    metadata records seen (name -> {key: text}). A damaged record whose length still fits the file (a chunk
+    that fails its CRC or does not decompress, a bit flipped on disk) is skipped and said in ``damaged``: the
+    records after it are read, as they are intact.
     """
 
     def __init__(self, path: PathLike):
@@ -53,6 +55,9 @@ class LogReader:
         self.readable_bytes = 0
         self.channels: Dict[int, Channel] = {}
         self.metadata: Dict[str, Dict[str, str]] = {}
+        self.damaged: List[str] = []       # what was skipped, one line each
+        self._lost_channels: set = set()
+        self._summary: Any = None          # the summary section, once needed: False if there is none
 
     def records(self, topics: Optional[Iterable[str]] = None) -> Iterator[LogRecord]:
         wanted = None if topics is None else {topics} if isinstance(topics, str) else set(topics)
@@ -64,9 +69,13 @@ class LogReader:
         """``(topic, raw MCAP message)`` pairs, without decoding the JSON (cheap, for counting)."""
         for record in self._file_records():
             if isinstance(record, Message):
-                channel = self.channels.get(record.channel_id)
-                if channel is None:
-                    raise LogError(str(self.path), f"a message uses channel {record.channel_id}, never defined")
+                channel = self.channels.get(record.channel_id) or self._indexed_channel(record.channel_id)
+                if channel is None:        # its channel record was damaged (skipped), or never written
+                    if record.channel_id not in self._lost_channels:
+                        self._lost_channels.add(record.channel_id)
+                        self.damaged.append(f"messages of channel {record.channel_id}, whose channel record "
+                                            "is damaged or missing")
+                    continue
                 yield channel.topic, record
             elif isinstance(record, Channel):
                 self.channels[record.id] = record
@@ -93,21 +102,53 @@ class LogReader:
                     self.stop_reason = "the file has no footer (the hub did not close it)"
                     return
                 opcode, length = struct.unpack("<BQ", head) if len(head) == 9 else (0, 0)
-                if len(head) < 9 or length > self.file_bytes - offset - 9:
-                    self.stop_reason = f"the file ends inside a record at byte {offset}"
-                    return
-                if opcode == 0:   # opcode 0 is invalid in MCAP: zeros left by a crash, or garbage
-                    self.stop_reason = f"unreadable bytes at byte {offset}"
+                overrun = len(head) < 9 or length > self.file_bytes - offset - 9
+                if overrun or opcode == 0:     # opcode 0 is invalid in MCAP: zeros left by a crash, or garbage
+                    resume = self._next_chunk_after(offset)
+                    if resume is not None:     # a complete file's index says where the next chunk starts
+                        self.damaged.append(f"bytes {offset}-{resume} (a record's length or opcode is damaged)")
+                        offset = file.seek(resume)
+                        continue
+                    self.stop_reason = (f"the file ends inside a record at byte {offset}" if overrun
+                                        else f"unreadable bytes at byte {offset}")
                     return
                 records = self._parse(opcode, file.read(length), offset)
-                if records is None:
-                    return
                 offset += 9 + length
+                if records is None:        # damaged, but its length fits: the records after it are intact
+                    continue
                 if opcode == Opcode.FOOTER:
                     self._finish_at_footer(file, offset)
                     return
                 self.readable_bytes = offset
                 yield from records
+
+    def _index(self) -> Any:
+        """A complete file's summary section (chunk offsets, channels), read once; None if it has none or it
+        is damaged. Only needed to walk past damage."""
+        if self._summary is None:
+            self._summary = False
+            if _ends_with_footer(self.path, self.file_bytes) and _summary_crc_holds(self.path, self.file_bytes):
+                try:
+                    with open(self.path, "rb") as file:
+                        self._summary = SeekingReader(file).get_summary() or False
+                except Exception:  # noqa: BLE001 - a damaged summary: walk without it
+                    self._summary = False
+        return self._summary or None
+
+    def _next_chunk_after(self, offset: int) -> Optional[int]:
+        index = self._index()
+        starts = sorted(c.chunk_start_offset for c in index.chunk_indexes) if index is not None else []
+        return next((start for start in starts if start > offset), None)
+
+    def _indexed_channel(self, channel_id: int) -> Optional[Channel]:
+        """A channel whose own record was in a damaged chunk: the summary section repeats every channel."""
+        if not self.damaged:
+            return None
+        index = self._index()
+        channel = index.channels.get(channel_id) if index is not None else None
+        if channel is not None:
+            self.channels[channel_id] = channel
+        return channel
 
     def _finish_at_footer(self, file: io.BufferedReader, offset: int) -> None:
         if file.read(len(MCAP_MAGIC)) == MCAP_MAGIC:
@@ -133,8 +174,13 @@ class LogReader:
             return []   # indexes, statistics, attachments, unknown opcodes: not needed to read messages
         except Exception as err:  # noqa: BLE001 - zstd, lz4, CRC, struct and UTF-8 errors all mean "damaged record"
             reason = str(err) or type(err).__name__      # mcap's EndOfFile has no message
-            self.stop_reason = f"damaged record (opcode {opcode:#04x}) at byte {offset}: {reason}"
+            self.damaged.append(f"{_RECORD_NAMES.get(opcode, f'record (opcode {opcode:#04x})')} at byte {offset}: "
+                                f"{reason}")
             return None
+
+
+_RECORD_NAMES = {Opcode.CHUNK: "chunk", Opcode.CHANNEL: "channel record", Opcode.SCHEMA: "schema record",
+                 Opcode.MESSAGE: "message", Opcode.METADATA: "metadata record"}
 
 
 def _check_is_mcap(path: Path) -> int:
@@ -177,6 +223,7 @@ class LogSummary:
     drops_by_sender: Dict[str, int]
     metadata: Dict[str, Any]      # the Recorder's ``metadata`` dict
     format_version: Optional[int]
+    damaged_records: List[str] = dataclasses.field(default_factory=list)   # skipped: what and where
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -206,12 +253,27 @@ def summarise(path: PathLike, *, use_index: bool = True) -> LogSummary:
     ``use_index=False`` always reads every record (the two give the same summary for a complete file).
     """
     reader = LogReader(path)
-    if use_index and _ends_with_footer(reader.path, reader.file_bytes):
+    if use_index and _ends_with_footer(reader.path, reader.file_bytes) \
+            and _summary_crc_holds(reader.path, reader.file_bytes):
         try:
             return _summary_from_index(reader)
-        except (McapError, ValueError, KeyError, struct.error):
-            pass   # a damaged summary section: fall back to walking the records, which says where it breaks
+        except Exception:  # noqa: BLE001 - zstd, CRC, struct, overflow: a damaged index or drops chunk
+            reader = LogReader(path)   # walk the records instead, which skips what is damaged and says so
     return _summary_from_records(reader)
+
+
+def _summary_crc_holds(path: Path, size: int) -> bool:
+    """The footer's CRC of the summary section (0: not computed) matches: its counts can be trusted."""
+    with open(path, "rb") as file:
+        file.seek(size - len(MCAP_MAGIC) - FOOTER_RECORD_BYTES + 9)
+        summary_start, _offsets, crc = struct.unpack("<QQI", file.read(20))
+        if crc == 0:
+            return True
+        if not len(MCAP_MAGIC) <= summary_start < size:
+            return False
+        file.seek(summary_start)
+        covered = file.read(size - len(MCAP_MAGIC) - 4 - summary_start)
+    return zlib.crc32(covered) == crc
 
 
 def _ends_with_footer(path: Path, size: int) -> bool:
@@ -227,7 +289,7 @@ def _ends_with_footer(path: Path, size: int) -> bool:
 def _summary_from_index(reader: LogReader) -> LogSummary:
     tally = _Tally()
     with open(reader.path, "rb") as file:
-        indexed = SeekingReader(file)
+        indexed = SeekingReader(file, validate_crcs=True)
         index = indexed.get_summary()
         if index is None or index.statistics is None:
             raise McapError("no statistics in the summary section")
@@ -239,7 +301,11 @@ def _summary_from_index(reader: LogReader) -> LogSummary:
             tally.start_ns, tally.end_ns = stats.message_start_time, stats.message_end_time
         for _schema, _channel, message in indexed.iter_messages(topics=[HUB_DROPS], log_time_order=False):
             tally.add_drops(_json_or_none(message.data))
-        metadata = {record.name: record.metadata for record in indexed.iter_metadata()}
+        try:
+            metadata = {record.name: record.metadata for record in indexed.iter_metadata()}
+        except Exception as err:  # noqa: BLE001 - the counts above stand without it
+            metadata = {}
+            reader.damaged.append(f"metadata record: {str(err) or type(err).__name__}")
     reader.complete, reader.readable_bytes = True, reader.file_bytes
     return _build_summary(reader, tally, metadata)
 
@@ -270,7 +336,7 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         robots=_robot_ids(tally.counts), drops=dict(sorted(tally.drops.items())),
         drops_by_sender=dict(sorted(tally.drops_by_sender.items())),
         metadata=metadata_from_text(metadata.get(USER_METADATA, {})),
-        format_version=int(version) if version.isdigit() else None)
+        format_version=int(version) if version.isdigit() else None, damaged_records=list(reader.damaged))
 
 
 def _json_or_none(data: bytes) -> Any:
@@ -284,67 +350,3 @@ def _robot_ids(topics: Iterable[str]) -> List[RobotId]:
     ids = {split_robot_topic(topic)[0] for topic in topics if split_robot_topic(topic)}
     typed = [int(robot) if robot.isdigit() else robot for robot in ids]
     return sorted(typed, key=lambda robot: (isinstance(robot, str), robot))
-
-
-def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
-    """The text ``khepri log info`` prints. Robot topics are grouped by kind unless ``all_topics``."""
-    lines = [f"log:       {summary.path} ({_size(summary.file_bytes)})", f"status:    {_status(summary)}"]
-    if summary.start_s is None:
-        lines.append("messages:  none")
-    else:
-        lines += [f"start:     {_clock(summary.start_s)}", f"end:       {_clock(summary.end_s)}",
-                  f"duration:  {summary.duration_s:.3f} s"]
-    robots = ", ".join(str(robot) for robot in summary.robots) or "none"
-    lines.append(f"robots:    {len(summary.robots)} ({robots})" if summary.robots else "robots:    none")
-    if summary.start_s is not None:
-        lines.append(f"messages:  {summary.message_count}")
-        rows = summary.topic_counts.items() if all_topics else _grouped_topic_counts(summary.topic_counts)
-        width = max(len(topic) for topic, _ in rows)
-        lines += [f"  {topic:<{width}}  {count:>10}" for topic, count in rows]
-    lines.append(f"drops:     {_drops_text(summary)}")
-    for key, value in summary.metadata.items():
-        lines.append(f"metadata:  {key} = {json.dumps(value)}")
-    return "\n".join(lines)
-
-
-def _status(summary: LogSummary) -> str:
-    if not summary.truncated:
-        return "complete"
-    until = _clock(summary.end_s) if summary.end_s is not None else "no message"
-    return (f"TRUNCATED, recovered up to {until} ({summary.readable_bytes} of {summary.file_bytes} bytes): "
-            f"{summary.stop_reason}")
-
-
-def _grouped_topic_counts(counts: Dict[str, int]) -> List[Tuple[str, int]]:
-    plain: Dict[str, int] = {}
-    by_kind: Dict[str, Counter] = {}
-    for topic, count in counts.items():
-        robot = split_robot_topic(topic)
-        if robot is None:
-            plain[topic] = count
-        else:
-            by_kind.setdefault(robot[1], Counter())[robot[0]] += count
-    rows = sorted(plain.items())
-    for kind, per_robot in sorted(by_kind.items()):
-        label = f"/robot/*/{kind} ({len(per_robot)} robot{'s' if len(per_robot) != 1 else ''})"
-        rows.append((label, sum(per_robot.values())))
-    return rows
-
-
-def _drops_text(summary: LogSummary) -> str:
-    if not summary.drops:
-        return "none"
-    reasons = ", ".join(f"{reason} {count}" for reason, count in summary.drops.items())
-    return f"{sum(summary.drops.values())} ({reasons})"
-
-
-def _clock(stamp_s: Optional[float]) -> str:
-    return datetime.fromtimestamp(stamp_s).astimezone().isoformat(sep=" ", timespec="milliseconds")
-
-
-def _size(size: int) -> str:
-    for unit in ("B", "kB", "MB", "GB"):
-        if size < 1000 or unit == "GB":
-            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
-        size /= 1000
-    return f"{size} B"

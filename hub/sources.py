@@ -316,6 +316,11 @@ class ReplaySource(PoseSource):
         self.pending = None
         if not self.finished and self.first_stamp is not None:
             self.finished = True
+            damaged = self.reader.damaged
+            if damaged:      # skipped on the way, the records after them were replayed
+                reason = "; ".join(filter(None, [reason, f"{len(damaged)} damaged record(s) skipped: {damaged[0]}"]))
+            if self._skips_unsaid:
+                reason = "; ".join(filter(None, [reason, f"{self.skipped} unreadable pose records skipped in all"]))
             self.log("hub: replay reached the end of the log" + (f" ({reason})" if reason else ""))
 
     def _stamp(self, message) -> float:

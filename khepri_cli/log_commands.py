@@ -16,15 +16,20 @@ def add_log(groups) -> None:
                                            "frames by reason, and whether the file was cut short (a killed hub).")
     info.add_argument("file", type=Path, metavar="FILE", help="an .mcap log written by the hub")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    info.add_argument("--check", action="store_true",
+                      help="read every record and check every chunk's CRC, also in a complete log (slower; by "
+                           "default a complete log is summarised from its index)")
     info.add_argument("--all-topics", action="store_true",
                       help="list every robot's topics (default: one line per kind, e.g. /robot/*/frame)")
     info.set_defaults(func=cmd_info)
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from hub.log_summary import format_summary, summarise
+    from hub.log_summary import summarise
+    from hub.log_text import format_summary
 
-    summary = summarise(args.file)   # LogError (a ConfigError) naming the file for missing, empty or non-MCAP files
+    # LogError (a ConfigError) naming the file for missing, empty or non-MCAP files
+    summary = summarise(args.file, use_index=not args.check)
     if args.json:
         print(json.dumps(summary.to_dict(), indent=2))
     else:

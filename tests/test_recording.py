@@ -223,18 +223,73 @@ def test_a_log_cut_anywhere_reads_as_a_prefix(tmp_path):
         summarise(cut_path)
 
 
-def test_a_damaged_chunk_stops_reading_there(tmp_path):
-    path, everything = several_chunk_log(tmp_path)
-    with open(path, "rb") as file:
-        second_chunk = make_reader(file).get_summary().chunk_indexes[1]
+def damage(path, offset, count=10):
     data = bytearray(path.read_bytes())
-    for offset in range(second_chunk.chunk_start_offset + 80, second_chunk.chunk_start_offset + 90):
-        data[offset] ^= 0xFF   # inside the compressed records: the chunk's CRC no longer matches
+    for k in range(offset, offset + count):
+        data[k] ^= 0xFF
     path.write_bytes(bytes(data))
+
+
+def chunk_starts(path):
+    with open(path, "rb") as file:
+        return [c.chunk_start_offset for c in make_reader(file).get_summary().chunk_indexes]
+
+
+def test_a_damaged_chunk_is_skipped_and_said_and_the_rest_is_read(tmp_path):
+    """A bit flipped on disk cost every record after it: a replay stopped there, silently."""
+    path, everything = several_chunk_log(tmp_path)
+    damage(path, chunk_starts(path)[1] + 80)    # inside the compressed records: the chunk's CRC no longer matches
     got = [r.payload["i"] for r in read_log(path)]
-    assert got == everything[:10]
-    summary = summarise(path, use_index=False)
-    assert summary.truncated and "damaged" in summary.stop_reason
+    assert got == everything[:10] + everything[20:]
+    checked = summarise(path, use_index=False)
+    assert not checked.truncated and checked.message_count == 50
+    assert len(checked.damaged_records) == 1 and checked.damaged_records[0].startswith("chunk at byte")
+    assert summarise(path).message_count == 60      # the index counts what was written (log info --check reads all)
+
+
+def test_a_damaged_record_length_is_walked_past_with_the_index(tmp_path):
+    path, everything = several_chunk_log(tmp_path)
+    starts = chunk_starts(path)
+    damage(path, starts[2] + 1, 8)              # the chunk's length field: it now runs past the end of the file
+    got = [r.payload["i"] for r in read_log(path)]
+    assert got == everything[:20] + everything[30:]
+    checked = summarise(path, use_index=False)
+    assert checked.message_count == 50 and checked.damaged_records == [f"bytes {starts[2]}-{starts[3]} (a record's "
+                                                                       "length or opcode is damaged)"]
+
+
+def test_a_damaged_summary_is_not_trusted(tmp_path):
+    """One flipped bit in the statistics record made log info print half a million messages, as complete."""
+    path, _ = several_chunk_log(tmp_path)
+    data = path.read_bytes()
+    footer = len(data) - 8 - 29                 # magic 8 bytes; footer record: opcode, length, 2 offsets, CRC
+    summary_start = int.from_bytes(data[footer + 9:footer + 17], "little")
+    statistics = data.index(bytes([0x0B]), summary_start)      # the statistics record: opcode 0x0B
+    # The first channel's message count: after message_count, the schema, channel, attachment, metadata and
+    # chunk counts, the start and end times, the map's length and the channel id: 8+2+4+4+4+4+8+8+4+2 bytes.
+    damage(path, statistics + 9 + 48 + 2, 1)    # its third byte: +/- 0xFF0000 messages
+    summary = summarise(path)
+    assert summary.message_count == 60 and summary.topic_counts == summarise(path, use_index=False).topic_counts
+
+
+def test_log_info_on_a_damaged_drops_chunk_says_so_instead_of_a_traceback(tmp_path):
+    """log info reads the drops from the index's chunks: a damaged one raised zstd's error, uncaught."""
+    path = tmp_path / "drops.mcap"
+    with Recorder(path) as recorder:
+        recorder.write("/hub/status", {"i": 0}, T0)
+        recorder.flush()
+        for k in range(50):
+            recorder.count_drop("bad message", f"peer {k}", T0 + 1)
+        recorder.write("/hub/status", {"i": 1}, T0 + 1)
+        recorder.flush()
+        recorder.write("/hub/status", {"i": 2}, T0 + 2)
+    damage(path, chunk_starts(path)[1] + 80)
+    result = run_khepri(path)
+    assert result.returncode == 0 and result.stderr == ""
+    assert "status:    complete; DAMAGED, skipped 1: chunk at byte" in result.stdout
+    assert "/hub/status" in result.stdout and "Traceback" not in result.stdout
+    checked = run_khepri(path, "--check")
+    assert checked.returncode == 0 and "DAMAGED, skipped 1" in checked.stdout
 
 
 @pytest.mark.parametrize("content, problem", [(b"", "empty file"), (b"this is not a log\n" * 20, "not an MCAP"),

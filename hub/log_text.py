@@ -1,0 +1,77 @@
+"""The text ``khepri log info`` prints for a :class:`~hub.log_summary.LogSummary`."""
+from __future__ import annotations
+
+import json
+from collections import Counter
+from datetime import datetime
+from typing import Dict, List, Optional, Tuple
+
+from hub.log_format import split_robot_topic
+from hub.log_summary import LogSummary
+
+
+def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
+    """The text ``khepri log info`` prints. Robot topics are grouped by kind unless ``all_topics``."""
+    lines = [f"log:       {summary.path} ({_size(summary.file_bytes)})", f"status:    {_status(summary)}"]
+    if summary.start_s is None:
+        lines.append("messages:  none")
+    else:
+        lines += [f"start:     {_clock(summary.start_s)}", f"end:       {_clock(summary.end_s)}",
+                  f"duration:  {summary.duration_s:.3f} s"]
+    robots = ", ".join(str(robot) for robot in summary.robots) or "none"
+    lines.append(f"robots:    {len(summary.robots)} ({robots})" if summary.robots else "robots:    none")
+    if summary.start_s is not None:
+        lines.append(f"messages:  {summary.message_count}")
+        rows = summary.topic_counts.items() if all_topics else _grouped_topic_counts(summary.topic_counts)
+        width = max(len(topic) for topic, _ in rows)
+        lines += [f"  {topic:<{width}}  {count:>10}" for topic, count in rows]
+    lines.append(f"drops:     {_drops_text(summary)}")
+    for key, value in summary.metadata.items():
+        lines.append(f"metadata:  {key} = {json.dumps(value)}")
+    return "\n".join(lines)
+
+
+def _status(summary: LogSummary) -> str:
+    damaged = summary.damaged_records
+    skipped = (f"; DAMAGED, skipped {len(damaged)}: {damaged[0]}" + (" ..." if len(damaged) > 1 else "")
+               if damaged else "")
+    if not summary.truncated:
+        return "complete" + skipped
+    until = _clock(summary.end_s) if summary.end_s is not None else "no message"
+    return (f"TRUNCATED, recovered up to {until} ({summary.readable_bytes} of {summary.file_bytes} bytes): "
+            f"{summary.stop_reason}{skipped}")
+
+
+def _grouped_topic_counts(counts: Dict[str, int]) -> List[Tuple[str, int]]:
+    plain: Dict[str, int] = {}
+    by_kind: Dict[str, Counter] = {}
+    for topic, count in counts.items():
+        robot = split_robot_topic(topic)
+        if robot is None:
+            plain[topic] = count
+        else:
+            by_kind.setdefault(robot[1], Counter())[robot[0]] += count
+    rows = sorted(plain.items())
+    for kind, per_robot in sorted(by_kind.items()):
+        label = f"/robot/*/{kind} ({len(per_robot)} robot{'s' if len(per_robot) != 1 else ''})"
+        rows.append((label, sum(per_robot.values())))
+    return rows
+
+
+def _drops_text(summary: LogSummary) -> str:
+    if not summary.drops:
+        return "none"
+    reasons = ", ".join(f"{reason} {count}" for reason, count in summary.drops.items())
+    return f"{sum(summary.drops.values())} ({reasons})"
+
+
+def _clock(stamp_s: Optional[float]) -> str:
+    return datetime.fromtimestamp(stamp_s).astimezone().isoformat(sep=" ", timespec="milliseconds")
+
+
+def _size(size: int) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if size < 1000 or unit == "GB":
+            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
+        size /= 1000
+    return f"{size} B"
