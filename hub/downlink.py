@@ -110,6 +110,7 @@ class Downlink:
             sock.send(data, _SEND_LAST)
         except zmq.Again:
             robot.frames_dropped += 1      # the agent is not reading: drop rather than queue stale data
+            self.drops.count("downlink queue full", f"robot {robot.id}")     # in status and /hub/drops
             return False
         except zmq.ZMQError:               # EHOSTUNREACH: the agent's connection is gone
             robot.routing = None

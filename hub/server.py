@@ -86,6 +86,10 @@ class Hub(Downlink, Uplink):
         self.clock_s: Optional[float] = None
         self.last_frame_stamp = -math.inf
         self.mocap_rate = RateMeter()
+        # A replay slower than real time spaces its frames out by 1/rate: a pose is stale only after as many
+        # of them as at real time (or every robot flickers between run and hold at rate 0.1).
+        slowed = min(1.0, getattr(source, "rate", 1.0))
+        self.stale_s = config.source.stale_s / slowed if config.source.type == "replay" else config.source.stale_s
         self.mocap_silent = False
         self.placed_a_robot = False       # some frame has held a pose for one of this lab's robots
         self.mode = "idle"
@@ -231,7 +235,7 @@ class Hub(Downlink, Uplink):
         self.clock_s = frame.clock_s
         self.last_frame_stamp = frame.stamp
         self.mocap_rate.tick(frame.stamp)
-        present = frame.stamp - self.seen_at <= self.config.source.stale_s
+        present = frame.stamp - self.seen_at <= self.stale_s
         for rid in self.killed:
             present[self.row[rid]] = False
         self.sensors.update(self.poses, present)
@@ -294,7 +298,7 @@ class Hub(Downlink, Uplink):
         """Bodies not seen for ``source.stale_s`` lose their pose, and their robots are held, also when no
         frame comes at all (motion capture stopped, the replay ended). Presence used to be recomputed only
         when a frame arrived, so without frames every robot ran on, for ever, on its last pose."""
-        stale = self.sensors.present & (now - self.seen_at > self.config.source.stale_s)
+        stale = self.sensors.present & (now - self.seen_at > self.stale_s)
         if stale.any():
             present = self.sensors.present & ~stale
             self.sensors.update(self.poses, present)

@@ -69,7 +69,8 @@ def sil_figures(hub, lockstep, round_trips: List[float], missing_answers: int, i
         "loop_step_ms": {"mean": _mean([loop.get("mean_ms") for loop in loops]),
                          "max": max([loop.get("max_ms") or 0.0 for loop in loops], default=None)},
         "dropped": {
-            "hub_rejected": dict(hub.drops.counts),
+            # what the hub refused from the agents; its own full downlink queues are counted just below
+            "hub_rejected": {k: v for k, v in hub.drops.counts.items() if k != "downlink queue full"},
             "downlink_queue_full": sum(r.frames_dropped for r in hub.robots.values()),
             "frames_lost_at_agents": sum(lost),
             "bad_frames_at_agents": sum(bad),

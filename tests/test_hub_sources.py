@@ -235,6 +235,33 @@ def test_replay_serves_recorded_poses(tmp_path):
         assert frame["neighbours"][0][:2] == [1, pytest.approx(1.0, abs=0.05)]
 
 
+def test_a_slowed_replay_keeps_the_robots_tracked_between_its_frames(tmp_path):
+    """At rate 0.1 a 20 Hz log gives a frame every 0.5 s, five times source.stale_s: every robot was held as
+    'not tracked by motion capture' between two frames."""
+    log = tmp_path / "run.mcap"
+    with Recorder(log) as recorder:
+        for k in range(40):
+            poses = np.array([[0.01 * k, 0.0, 0.0], [0.01 * k, 1.0, 0.0]])
+            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0, 1], poses)), stamp_s=1.7e9 + 0.05 * k)
+    config = parse_config({"source": {"type": "replay", "file": str(log), "rate": 0.1}, "robots": [0, 1],
+                           "network": NETWORK, "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+    hub = build_hub(config, log=lambda line: None)
+    try:
+        hub.bind()
+        held = []
+        deadline = time.monotonic() + 2.5      # about five replayed frames
+        while time.monotonic() < deadline:
+            for frame in hub.source.poll(time.monotonic()):
+                hub.on_pose_frame(frame)
+            hub.housekeeping(time.monotonic())
+            if hub.last_frame_stamp > -math.inf:
+                held.append(not hub.sensors.present.all())
+            time.sleep(0.02)
+        assert held and not any(held)
+    finally:
+        hub.close()
+
+
 def test_an_unknown_sim_scenario_names_the_lab_configs_field():
     """The lab config's field is source.scenario; a field inside a scenario file keeps its own path."""
     for scenario, field in (("no-such-scenario", "source.scenario"), ("lab-6", None)):
