@@ -67,11 +67,9 @@ _POSE7 = {"type": "array", "items": {"type": "number"}, "minItems": 7, "maxItems
 # Schema name -> JSON schema. Topic kinds map onto these in schema_name_for.
 SCHEMAS: Dict[str, dict] = {
     "khepri.MocapPoses": _object_schema(
-        "khepri.MocapPoses", "One motion-capture frame: raw rigid bodies, or robot poses.",
-        {"bodies": {"type": "object", "additionalProperties": _POSE7, "description": "rigid-body name -> pose"},
-         "ids": {"type": "array", "items": {"type": "integer"}, "description": "robot ids, one per row of poses"},
-         "poses": {"type": "array", "items": {"type": "array", "items": {"type": "number"}},
-                   "description": "[x (m), y (m), yaw (rad)] per robot, world frame"},
+        "khepri.MocapPoses", "One motion-capture frame, as the hub's robots' poses.",
+        {"bodies": {"type": "object", "additionalProperties": _POSE7,
+                    "description": "robot id (as text) -> [x, y, z, qx, qy, qz, qw], world frame, z up"},
          "clock_s": {"type": ["number", "null"], "description": "simulated time, with the sim source"}}),
     "khepri.RobotFrame": _object_schema("khepri.RobotFrame", "The downlink frame the hub sent to one robot."),
     "khepri.RobotBroadcast": _object_schema("khepri.RobotBroadcast", "A radio message one robot sent (uplink)."),

@@ -14,7 +14,7 @@ def add_log(groups) -> None:
     info = commands.add_parser("info", help="summarise a log: duration, robots, message counts, drops",
                                description="Print a log's start, duration, robots, messages per topic, dropped "
                                            "frames by reason, and whether the file was cut short (a killed hub).")
-    info.add_argument("file", type=Path, metavar="FILE", help="an .mcap log written by the hub")
+    info.add_argument("file", metavar="FILE", help="an .mcap log written by the hub")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.add_argument("--check", action="store_true",
                       help="read every record and check every chunk's CRC, also in a complete log (slower; by "
@@ -27,9 +27,13 @@ def add_log(groups) -> None:
 def cmd_info(args: argparse.Namespace) -> int:
     from hub.log_summary import summarise
     from hub.log_text import format_summary
+    from onboard.config import ConfigError
+
+    if not args.file.strip():     # Path("") is ".", which would be reported as a folder
+        raise ConfigError("FILE", "an empty path: name the .mcap log")
 
     # LogError (a ConfigError) naming the file for missing, empty or non-MCAP files
-    summary = summarise(args.file, use_index=not args.check)
+    summary = summarise(Path(args.file), use_index=not args.check)
     if args.json:
         print(json.dumps(summary.to_dict(), indent=2))
     else:
