@@ -453,7 +453,9 @@ def test_a_damaged_chunk_says_what_is_wrong_with_it(tmp_path):
     path = tmp_path / "cut-chunk.mcap"
     body = bytes.fromhex("628d672349855219")          # a chunk record whose fields end before they should
     path.write_bytes(MCAP_MAGIC + struct.pack("<BQ", 0x06, len(body)) + body)
-    assert summarise(path).stop_reason == "damaged record (opcode 0x06) at byte 8: EndOfFile"
+    summary = summarise(path)
+    assert summary.damaged_records == ["chunk at byte 8: EndOfFile"]
+    assert summary.stop_reason == "the file has no footer (the hub did not close it)"
 
 
 def test_a_record_path_under_a_file_names_the_file(tmp_path, capsys):
