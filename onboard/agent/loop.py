@@ -5,7 +5,9 @@ Safety rules, in order of precedence:
 - the hub's mode: ``estop`` and ``hold`` stop the wheels at once and pause the behaviour; ``idle`` has none;
 - the watchdog: no frame from the hub for ``watchdog_s`` (0.25 s) -> wheels stopped, behaviour held, until
   frames return;
-- leaving for any reason (SIGINT, SIGTERM, an exception in the behaviour) stops the wheels first.
+- leaving for any reason (SIGINT, SIGTERM, an exception in the behaviour) stops the wheels first;
+- wheel commands pass only in ``run`` mode with live frames, from whatever thread they come, and a step that
+  runs longer than the watchdog has the wheels stopped by a thread of its own (``safety.py``).
 
 Pacing: in real time the loop ticks on its own clock at ``control_hz``; in lockstep (SIL) it ticks once per
 hub frame. Everything else is the same code.
@@ -27,6 +29,7 @@ from onboard.protocol import ProtocolError
 
 from .devices import AgentClock, HubState, apply_frame, make_robot
 from .link import HubLink
+from .safety import GuardedDriver, StepWatchdog
 
 SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is said at most this often
 HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
@@ -73,7 +76,7 @@ class Agent:
         self.watchdog_s = watchdog_s
         self.state = HubState()
         self.clock = AgentClock(self.state)
-        self.driver = driver_factory(self)
+        self.driver = GuardedDriver(driver_factory(self))
         self.behaviour: Optional[Behaviour] = None
         self.run: Optional[Dict[str, Any]] = None
         self.error: Optional[str] = None
@@ -88,16 +91,19 @@ class Agent:
         self.stop_requested = False
         self.slow_step_said_at = -math.inf
         self.watchdog_said = False        # the watchdog's trip was logged (so its end is logged too)
+        self.step_watchdog = StepWatchdog(self.driver, watchdog_s, lambda: self.stop_requested, log, robot_id)
 
     # --- main loop ----------------------------------------------------------------------------------------
     def serve(self, should_stop: Callable[[], bool] = lambda: False) -> None:
         """Run until ``should_stop()`` or a signal; the wheels are stopped on every way out."""
         previous = self._install_signal_handlers()
+        self.step_watchdog.start()
         try:
             self.hello(time.monotonic())
             while not (self.stop_requested or should_stop()):
                 self.loop_once()
         finally:
+            self.step_watchdog.stop()
             self._stop_wheels_on_the_way_out()
             farewell: Dict[str, Any] = {"type": "telemetry", "step": self.state.seq, "mode": "exiting"}
             if self.error:                 # the last word the hub hears must still say why
@@ -109,7 +115,7 @@ class Agent:
         """Stop the wheels as the agent leaves; a driver that cannot (the bus is gone) is said in one line and
         in the farewell telemetry, and the exception that got us here goes on (the wheel guard tries next)."""
         try:
-            self.driver.stop()
+            self.driver.close_gate()
         except DriverError as err:
             self.error = self.error or f"driver failed: cannot stop the wheels: {err}"
             self.log(f"agent {self.robot_id}: cannot stop the wheels: {err}")
@@ -189,7 +195,7 @@ class Agent:
         if mode == self.state.mode:
             return
         if mode != "run":
-            self.driver.stop()      # hold, estop and idle never leave a wheel turning
+            self.driver.close_gate()      # hold, estop and idle never leave a wheel turning
         if mode in ("estop", "hold"):
             self.log(f"agent {self.robot_id}: {mode}{': ' + reason if reason else ''}")
         self.state.mode = mode
@@ -232,7 +238,7 @@ class Agent:
             except Exception as exc:      # its own stop() failing must not keep the wheels turning
                 self.log(f"agent {self.robot_id}: {BehaviourError(self.robot_id, 'stop()', exc)}")
         self.behaviour, self.run = None, None
-        self.driver.stop()
+        self.driver.close_gate()
 
     def behaviour_failed(self, err: BehaviourError) -> None:
         """The behaviour's code raised: the wheels stop, the hub hears why (telemetry ``error``: its status
@@ -261,7 +267,7 @@ class Agent:
     def check_watchdog(self, now: float) -> None:
         if not self.watchdog_tripped and now - self.state.received_at > self.watchdog_s:
             self.watchdog_tripped = True
-            self.driver.stop()
+            self.driver.close_gate()
             # After a step slower than the watchdog, the frames waited for us: tick() has said so already.
             if self.state.received_at > -math.inf and self.stats.last_step_s <= self.watchdog_s:
                 self.log(f"agent {self.robot_id}: no frame from the hub for {self.watchdog_s:g} s: wheels stopped")
@@ -273,10 +279,14 @@ class Agent:
         scheduled = started if self._lockstep() else self.next_tick
         stepped = self.behaviour is not None and self.state.mode == "run" and not self.watchdog_tripped
         if stepped:
+            self.driver.open_gate()
+            self.step_watchdog.begin()
             try:
                 self.behaviour.step()
             except Exception as exc:
                 self.behaviour_failed(BehaviourError(self.robot_id, "step()", exc))
+            finally:
+                self.step_watchdog.end()
             finished = time.monotonic()
             self.stats.record(started, finished, scheduled + self.period)
             self._say_if_slow(finished - started, finished)

@@ -1,0 +1,140 @@
+"""What keeps the wheels safe when the agent's own loop cannot: a gate on wheel commands, and a step watchdog.
+
+The agent checks the hub's mode, its watchdog and signals between behaviour steps, on one thread. Two ways
+around that were found by trying it:
+
+- a ``step()`` that never returns (a "wait for a message" loop) left the last wheel speeds on, deaf to the
+  e-stop, the watchdog and SIGTERM;
+- a behaviour that drives from a thread of its own kept sending wheel commands through an e-stop.
+
+:class:`GuardedDriver` wraps the robot's driver: every hardware call takes one lock (the loop and the step
+watchdog may both call it), and wheel commands pass only while the gate is open, which the agent keeps so
+only in ``run`` mode with live hub frames. :class:`StepWatchdog` is a thread that closes the gate and stops
+the wheels once a step has run longer than the watchdog, and ends the process if a stop was asked for (SIGINT,
+SIGTERM) and the step still has not returned a second later.
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+from typing import Callable, List, Optional
+
+from onboard.drivers import Driver, DriverError
+from onboard.hal import WheelOdometry
+
+STUCK_EXIT_AFTER_S = 1.0     # a stop asked for while a step is stuck: the process ends this long after
+POLL_S = 0.02
+
+
+class GuardedDriver(Driver):
+    """The agent's driver: one lock around the hardware, and wheel commands only through an open gate."""
+
+    def __init__(self, driver: Driver):
+        self.inner = driver
+        self.name = driver.name
+        self.lock = threading.RLock()
+        self.gate_open = False
+        # A stop from the watchdog thread: safe when the driver talks to its own hardware under our lock
+        # (kh4). The sim driver sends over the agent's socket, which only the loop's thread may use; the hub
+        # holds the simulated wheels of an agent that goes silent.
+        self.stoppable_from_any_thread = driver.name != "sim"
+
+    def open_gate(self) -> None:
+        self.gate_open = True
+
+    def close_gate(self) -> None:
+        """No wheel command passes from now on, from any thread, and the wheels stop."""
+        with self.lock:
+            self.gate_open = False
+            self.inner.stop()
+
+    def set_wheel_speeds(self, left_m_s: float, right_m_s: float) -> None:
+        with self.lock:
+            if self.gate_open:        # hold, e-stop, watchdog: a command from anywhere is dropped
+                self.inner.set_wheel_speeds(left_m_s, right_m_s)
+
+    def stop(self) -> None:
+        with self.lock:
+            self.inner.stop()
+
+    def proximity(self) -> List[float]:
+        with self.lock:
+            return self.inner.proximity()
+
+    def encoders(self) -> WheelOdometry:
+        with self.lock:
+            return self.inner.encoders()
+
+    def battery_v(self) -> Optional[float]:
+        with self.lock:
+            return self.inner.battery_v()
+
+    def close(self) -> None:
+        with self.lock:
+            self.gate_open = False
+            self.inner.close()
+
+
+class StepWatchdog:
+    """A daemon thread watching the behaviour's step: ``begin()`` and ``end()`` bracket each call."""
+
+    def __init__(self, driver: GuardedDriver, limit_s: float, stop_requested: Callable[[], bool],
+                 log: Callable[[str], None], robot_id: int):
+        self.driver, self.limit_s, self.stop_requested = driver, limit_s, stop_requested
+        self.log, self.robot_id = log, robot_id
+        self.started_at: Optional[float] = None
+        self.tripped = False
+        self._running = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+
+    def start(self) -> None:
+        if self._thread is None or not self._thread.is_alive():
+            self._running.set()
+            self._thread = threading.Thread(target=self._watch, name="step-watchdog", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._running.clear()
+
+    def begin(self) -> None:
+        self.started_at = time.monotonic()
+
+    def end(self) -> None:
+        self.started_at = None
+        if self.tripped:
+            self.tripped = False
+            self.log(f"agent {self.robot_id}: the behaviour's step() returned; the wheels stay stopped until the "
+                     "next step commands them")
+
+    def _watch(self) -> None:
+        stop_asked_at: Optional[float] = None
+        while self._running.is_set():
+            time.sleep(POLL_S)
+            started = self.started_at
+            now = time.monotonic()
+            if started is None:
+                stop_asked_at = None
+                continue
+            if not self.tripped and now - started > self.limit_s:
+                self.tripped = True
+                self._stop_wheels()
+                self.log(f"agent {self.robot_id}: the behaviour's step() has run for {now - started:.2f} s: "
+                         "wheels stopped (e-stop and the hub's watchdog act between steps only: step() must "
+                         "return)")
+            if self.stop_requested():
+                stop_asked_at = stop_asked_at or now
+                if now - stop_asked_at > STUCK_EXIT_AFTER_S:
+                    self._stop_wheels()
+                    self.log(f"agent {self.robot_id}: asked to stop, but step() has not returned for "
+                             f"{now - started:.1f} s: exiting without it")
+                    os._exit(1)
+
+    def _stop_wheels(self) -> None:
+        if not self.driver.stoppable_from_any_thread:
+            self.driver.gate_open = False    # what the stuck step sends is dropped; the hub holds the wheels
+            return
+        try:
+            self.driver.close_gate()
+        except DriverError as err:
+            self.log(f"agent {self.robot_id}: cannot stop the wheels: {err}")
