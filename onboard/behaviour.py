@@ -116,6 +116,9 @@ def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
     def decorate(cls: Type[Behaviour]) -> Type[Behaviour]:
         if inspect.isgeneratorfunction(getattr(cls, "step", None)):    # calling it would only make a generator
             raise ConfigError("register", f"{_qualified(cls)}.step contains `yield`: it would never run")
+        if inspect.isfunction(inspect.getattr_static(cls, "finished", None)):   # a method is always truthy
+            raise ConfigError("register", f"{_qualified(cls)}.finished must be a property: put @property above "
+                                          "`def finished(self)` (as a method it would end every run at once)")
         taken = _REGISTRY.get(name)
         if taken is not None and _qualified(taken) != _qualified(cls):   # the same class imported again is fine
             raise ConfigError("register", f"the behaviour name {name!r} is taken by {_qualified(taken)}; "
@@ -141,7 +144,12 @@ def get_behaviour(name: str, where: str = "behaviour") -> Type[Behaviour]:
     try:
         return _REGISTRY[name]
     except KeyError:
-        raise ConfigError(where, f"unknown behaviour {name!r} (known: {', '.join(sorted(_REGISTRY))})") from None
+        from .behaviours import BROKEN
+
+        hints = "".join(f"; {file} did not import: {why}" for file, why in BROKEN.items())
+        raise ConfigError(where, f"unknown behaviour {name!r} (known: {', '.join(sorted(_REGISTRY))}{hints}; a "
+                                 "behaviour of your own needs @register and, outside onboard/behaviours/, "
+                                 "--import)") from None
 
 
 def build_params(cls: Type[Behaviour], overrides: Optional[Mapping[str, Any]], where: str = "params") -> Any:

@@ -82,3 +82,33 @@ def test_sil_stops_with_the_reason_when_an_agent_cannot_start_the_run(tmp_path, 
     assert "agent 0: cannot start the run: run.behaviour: unknown behaviour 'sil-lonely'" in err
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 1.0
+
+
+# --- mistakes in a behaviour module ---------------------------------------------------------------------------
+
+def test_finished_written_as_a_method_is_refused_where_it_is_registered(tmp_path):
+    """As a method (no @property) it is always truthy: every run ended after its first step, 'finished'."""
+    module = tmp_path / "early.py"
+    method = "\n    def finished(self):\n        return False\n"
+    module.write_text(DRIVE_BEHAVIOUR.format(name="early_finisher") + method)
+    with pytest.raises(ConfigError, match=r"early\.Drive\.finished must be a property: put @property above"):
+        import_user_modules([str(module)])
+
+
+def test_a_broken_module_in_the_behaviours_folder_does_not_take_the_others_down(tmp_path):
+    """A syntax error in a behaviour being written gave a traceback on every command, built-in scenarios too."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    broken = root / "onboard" / "behaviours" / f"zz_test_broken_{tmp_path.name[-12:].replace('-', '_')}.py"
+    broken.write_text("from onboard.behaviour import register\n\n\ndef half_written(:\n")
+    try:
+        run = subprocess.run([sys.executable, "-m", "khepri_cli.main", "sim", "run", "lab-6", "--time-limit", "1",
+                              "--no-plot", "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                             cwd=tmp_path, env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"}, timeout=120)
+    finally:
+        broken.unlink()
+    assert run.returncode == 0, run.stderr
+    assert f"khepri: warning: onboard/behaviours/{broken.name} did not import" in run.stderr
+    assert "SyntaxError" in run.stderr and "line 4" in run.stderr and "Traceback" not in run.stderr
