@@ -49,9 +49,9 @@ class PatientInterrupts:
     processes, an agent's wheels not yet stopped) and print a traceback from the middle of it: it only says
     that khepri is stopping. A third quits at once, for a cleanup that hangs.
 
-    Installed only over Python's default handler in the main thread (a command with its own handler, such as
-    the hub, keeps it). ``exiting``: the process ends when the command returns, so Ctrl-C stays quiet until
-    then (the interpreter's own shutdown would print a traceback for it)."""
+    Installed only over Python's default handler in the main thread; a command that sets its own (the hub, an
+    agent) replaces it while it runs. ``exiting``: the process ends when the command returns, so Ctrl-C
+    stays quiet until then (the interpreter's own shutdown would print a traceback for it)."""
 
     def __init__(self, exiting: bool):
         self.exiting, self.count, self.installed = exiting, 0, False

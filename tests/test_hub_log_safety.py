@@ -53,6 +53,13 @@ def start_hub(tmp_path: Path, *command: str) -> subprocess.Popen:
     return hub
 
 
+def log_info(log: Path) -> dict:
+    """``khepri log info --json`` of ``log``, as a user would run it."""
+    summary = subprocess.run([sys.executable, "-m", "khepri_cli.main", "log", "info", str(log), "--json"],
+                             capture_output=True, text=True, env=ENV, timeout=60)
+    return json.loads(summary.stdout)
+
+
 def control_endpoint(tmp_path: Path) -> str:
     line = next(x for x in (tmp_path / "hub.log").read_text().splitlines() if x.startswith("listening control"))
     return line.split()[-1]
@@ -116,9 +123,7 @@ def test_a_full_disk_ends_the_recording_not_the_run(tmp_path):
     finally:
         stop_processes([hub])
     assert "hub: stopped" in (tmp_path / "hub.log").read_text()
-    summary = subprocess.run([sys.executable, "-m", "khepri_cli.main", "log", "info", str(log), "--json"],
-                             capture_output=True, text=True, env=ENV, timeout=60)
-    assert json.loads(summary.stdout)["message_count"] > 0        # what was written before the disk filled is readable
+    assert log_info(log)["message_count"] > 0        # what was written before the disk filled is readable
 
 
 def test_a_closed_terminal_stops_the_hub_as_ctrl_c_does(tmp_path):
@@ -131,9 +136,7 @@ def test_a_closed_terminal_stops_the_hub_as_ctrl_c_does(tmp_path):
     finally:
         stop_processes([hub])
     assert "hub: stopped" in (tmp_path / "hub.log").read_text()
-    summary = subprocess.run([sys.executable, "-m", "khepri_cli.main", "log", "info", str(log), "--json"],
-                             capture_output=True, text=True, env=ENV, timeout=60)
-    assert json.loads(summary.stdout)["truncated"] is False    # closed properly: footer and summary written
+    assert log_info(log)["truncated"] is False       # closed properly: footer and summary written
 
 
 def test_agents_end_with_the_process_that_started_them(tmp_path):
