@@ -158,7 +158,8 @@ def test_docs_list_every_builtin():
     ({"params": {"barrier_fraction": 0}}, "params.barrier_fraction",
      "params.barrier_fraction: must be > 0 (got 0)"),
     ({"behaviour": "dance"}, "behaviour",
-     "behaviour: unknown behaviour 'dance' (known: " + ", ".join(behaviour_names()) + ")"),
+     "behaviour: unknown behaviour 'dance' (known: " + ", ".join(behaviour_names()) + "; a behaviour of your own "
+     "needs @register and, outside onboard/behaviours/, --import)"),
     ({"object": {"shape": "triangle"}}, "object.shape", "object.shape: must be one of box, circle, polygon, "
      "compound, cloud, box_rotation, clover (got 'triangle')"),
     ({"object": {"shape": "box"}}, "object.size", "object.size: a box needs size: [width, height] in metres"),
