@@ -24,7 +24,7 @@ from sim_backend.scenario import Scenario
 from .config import parse_config
 from .factory import build_hub
 from .harness import spawn_agent, stop_processes
-from .lockstep import Lockstep
+from .lockstep import UNRESPONSIVE_AFTER_STEPS, Lockstep
 from .security import init_keys
 from .sil_report import SilRecording, sil_figures
 
@@ -152,14 +152,29 @@ class SilSession:
                 return f"agent {i} exited with code {agent.returncode}"
         return None
 
-    def _crash_line(self, index: int) -> str:
-        """The agent's own account of its crash (``behaviour crashed: ...``) from its log, if it wrote one."""
+    def _check_answering(self, missing: List[int]) -> None:
+        """An agent alive but silent for UNRESPONSIVE_AFTER_STEPS steps in a row ends the run as crashed: in
+        lockstep every agent answers every frame, so one that does not is stuck (a step() that never returns,
+        say), and the run would otherwise go on to its time limit as if nothing were wrong."""
+        for rid in missing:
+            robot = self.hub.robots[rid]
+            if robot.unresponsive_steps >= UNRESPONSIVE_AFTER_STEPS and rid not in self.hub.killed:
+                said = self._log_line(rid, f"agent {rid}: the behaviour's step() has run for ")
+                raise AgentError(f"agent {rid} stopped answering ({robot.unresponsive_steps} frames in a row, "
+                                 f"{self.options.step_timeout_s:g} s each)"
+                                 + (f": {said}" if said else "") + f"; its log is in {self.out / 'agents'}")
+
+    def _log_line(self, index: int, marker: str) -> str:
+        """The rest of the agent's last log line that starts with ``marker``, or ""."""
         try:
             lines = (self.out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
         except OSError:
             return ""
-        marker = f"agent {index}: behaviour crashed: "
         return next((line[len(marker):] for line in reversed(lines) if line.startswith(marker)), "")
+
+    def _crash_line(self, index: int) -> str:
+        """The agent's own account of its crash (``behaviour crashed: ...``) from its log, if it wrote one."""
+        return self._log_line(index, f"agent {index}: behaviour crashed: ")
 
     def _run_lockstep(self, lockstep: Lockstep) -> None:
         period = self.source.control_period
@@ -168,6 +183,7 @@ class SilSession:
             report = lockstep.step()
             self.round_trips.extend(report.round_trip_s)
             self.missing_answers += len(report.missing)
+            self._check_answering(report.missing)
             reason = self._observe(report.time_s)
             if reason:
                 self.stop_reason = reason

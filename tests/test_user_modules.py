@@ -112,3 +112,42 @@ def test_a_broken_module_in_the_behaviours_folder_does_not_take_the_others_down(
     assert run.returncode == 0, run.stderr
     assert f"khepri: warning: onboard/behaviours/{broken.name} did not import" in run.stderr
     assert "SyntaxError" in run.stderr and "line 4" in run.stderr and "Traceback" not in run.stderr
+
+
+HANGS_AT_STEP_5 = DRIVE_BEHAVIOUR + '''
+    def stop(self) -> None:
+        self.robot.wheels.stop()
+
+    @property
+    def finished(self) -> bool:
+        return False
+
+
+class Hangs(Drive):
+    """Robot 0 waits in its fifth step for ever (a 'wait for a message' loop); the others drive on."""
+
+    def step(self) -> None:
+        import time
+
+        self.steps = getattr(self, "steps", 0) + 1
+        while self.robot.id == 0 and self.steps >= 5:
+            time.sleep(0.01)
+        super().step()
+
+
+register("{name}-hangs")(Hangs)
+'''
+
+
+def test_sil_ends_as_crashed_when_an_agent_stops_answering(tmp_path, monkeypatch, capsys):
+    """A hung agent was written off by the lockstep, and the run went on to its time limit: exit 0."""
+    (tmp_path / "sil_hangs.py").write_text(HANGS_AT_STEP_5.format(name="sil-drive2"))
+    (tmp_path / "hangs.yaml").write_text(SCENARIO.format(name="sil-drive2-hangs").replace("time_limit_s: 3",
+                                                                                          "time_limit_s: 30"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["--import", "sil_hangs.py", "sil", "hangs.yaml", "--out", "out", "--no-plot", "--no-record"]) == 1
+    err = capsys.readouterr().err
+    assert "khepri: error: agent 0 stopped answering (3 frames in a row, 2 s each): " in err
+    assert "s: wheels stopped" in err                 # the agent's own step watchdog, from its log
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 2.0
