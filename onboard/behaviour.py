@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import inspect
+import math
 import os
 import sys
 import traceback
@@ -69,6 +70,20 @@ def telemetry_of(behaviour: Behaviour) -> Dict[str, Any]:
     data = dict(behaviour.telemetry())
     data["finished"] = bool(behaviour.finished)
     return data
+
+
+def plain_json(value: Any) -> Any:
+    """A behaviour's telemetry as plain JSON values, as the simulator's evaluator would take it: numpy numbers
+    and arrays become Python ones, tuples lists, and NaN or infinity (which JSON cannot carry) None."""
+    if isinstance(value, dict):
+        return {key: plain_json(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_json(item) for item in value]
+    if hasattr(value, "tolist"):            # numpy arrays and scalars, without importing numpy here
+        return plain_json(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 class BehaviourError(RuntimeError):

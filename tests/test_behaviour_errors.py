@@ -53,6 +53,8 @@ class Buggy(Behaviour):
                 self.params.speed_m_s = 0.0
 
     def telemetry(self):
+        if self.params.bug == "set" and self.robot.clock.now() > 0.5:
+            return {"state": "ok", "neighbours": {1, 2}}       # a set: fine in Python, not on the wire
         return {"state": "ok", "seen": len(self.params.seen), "numpy": np.float32(1.5), "x": math.nan}
 
     def stop(self):
@@ -114,6 +116,15 @@ def test_nan_in_a_broadcast_is_refused_as_the_wire_would(buggy, capsys):
     message = b'{"v": 2, "type": "broadcast", "id": 3, "sent_s": 1.0, "payload": {"a": [1, NaN]}}'
     with pytest.raises(ProtocolError, match="from robot 3: broadcast.payload: radio payload is not JSON: Out of range"):
         decode(message, "robot 3")
+
+
+def test_telemetry_the_wire_cannot_carry_fails_in_simulation_too(buggy, capsys):
+    """A set in telemetry ran fine in sim run and study, then stopped every agent at t = 0 in sil."""
+    assert run("sim", "run", buggy("set"), "--no-plot", "--out", "set") == 1
+    err = capsys.readouterr().err
+    assert "robot 0, telemetry(): ValueError: the hub could not be sent this telemetry" in err
+    assert "not JSON serializable" in err
+    assert run("sim", "run", buggy("none"), "--no-plot", "--out", "none") == 0   # numpy and NaN are fine
 
 
 def test_a_behaviour_cannot_reach_other_robots_through_its_params_or_sensor_columns(buggy, capsys):

@@ -21,7 +21,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
-from onboard.behaviour import Behaviour, BehaviourError, build_params, get_behaviour, telemetry_of
+from onboard.behaviour import Behaviour, BehaviourError, build_params, get_behaviour, plain_json, telemetry_of
 from onboard.config import ConfigError
 from onboard.drivers import Driver, DriverError
 from onboard.hal import RobotSpec
@@ -349,18 +349,3 @@ class Agent:
     def _restore_signal_handlers(previous: List[Any]) -> None:
         for sig, handler in previous:
             signal.signal(sig, handler)
-
-
-def plain_json(value: Any) -> Any:
-    """A behaviour's telemetry as plain JSON values, as the simulator's evaluator would take it: numpy numbers
-    and arrays become Python ones, tuples lists, and NaN or infinity (which JSON cannot carry) None."""
-    if isinstance(value, dict):
-        return {key: plain_json(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [plain_json(item) for item in value]
-    if hasattr(value, "tolist"):            # numpy arrays and scalars, without importing numpy here
-        return plain_json(value.tolist())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
