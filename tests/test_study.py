@@ -635,6 +635,29 @@ def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_pa
         assert "warning: 1 runs already in" in err and "ran a scenario that has changed since (cells mine)" in err
 
 
+def test_resume_warns_about_finished_runs_of_a_behaviour_edited_since(tmp_path, capsys, monkeypatch):
+    """Only the scenario was fingerprinted: after a fix to the behaviour, a re-run kept the old results
+    without a word."""
+    from sim_backend.study.grid import behaviour_code_sha1
+
+    module = write(tmp_path / "edited_walk.py", "from onboard.behaviour import Behaviour, register\n\n\n"
+                                                "@register('edited-walk')\nclass Walk(Behaviour):\n"
+                                                "    def step(self):\n        self.robot.wheels.set_speeds(0.1, 0.1)\n")
+    write(tmp_path / "walk.yaml", "name: walk\nbehaviour: edited-walk\ntime_limit_s: 1\n"
+                                  "robots: {count: 2, spawn: {x: [-0.5, 0.5], y: [-0.5, 0.5]}}\n")
+    study = write(tmp_path / "s.yaml", "scenarios: [walk.yaml]\nreps: 1\n")
+    monkeypatch.chdir(tmp_path)
+    command = ["--import", "edited_walk", "study", str(study), "--out", "out", "--workers", "1", "--no-figures"]
+    assert main(command) == 0
+    main(command)
+    assert "behaviour's code" not in capsys.readouterr().err
+    module.write_text(module.read_text().replace("0.1, 0.1", "0.2, 0.2"))
+    behaviour_code_sha1.cache_clear()           # a new `khepri study` process would read the file afresh
+    main(command + ["--dry-run"])
+    err = capsys.readouterr().err
+    assert "warning: 1 runs already in out ran another version of their behaviour's code" in err
+
+
 def test_reps_on_the_command_line_gives_a_study_file_its_seeds(tmp_path, capsys):
     study = write(tmp_path / "no-seeds.yaml", "scenarios: [lab-6]\ntime_limit_s: 1\n")
     assert main(["study", str(study), "--reps", "2", "--dry-run", "--out", str(tmp_path / "out")]) == 0

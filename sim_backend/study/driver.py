@@ -28,6 +28,7 @@ class StudyPlan:
     kept_failed: List[RunSpec] = field(default_factory=list)    # failed before, not retried: skipped
     other_limit: List[RunSpec] = field(default_factory=list)    # skipped, but ran with another time limit
     other_scenario: List[RunSpec] = field(default_factory=list)  # skipped, but the scenario changed since
+    other_code: List[RunSpec] = field(default_factory=list)      # skipped, but the behaviour's code changed since
 
 
 @dataclass
@@ -51,6 +52,8 @@ def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) ->
             plan.other_limit.append(run)
         if recorded.get("scenario_sha1") not in (None, run.scenario_sha1):   # None: written before we recorded it
             plan.other_scenario.append(run)
+        if recorded.get("behaviour_sha1") not in (None, "", run.behaviour_sha1):
+            plan.other_code.append(run)
     return plan
 
 
@@ -65,6 +68,11 @@ def plan_warnings(plan: StudyPlan, out_dir: Path) -> List[str]:
         found.append(f"{len(plan.other_scenario)} runs already in {out_dir} ran a scenario that has changed since "
                      f"(cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}) and are kept; use another "
                      f"--out, or delete those cells' folders, to run them again")
+    if plan.other_code:
+        cells = sorted({run.cell for run in plan.other_code})
+        found.append(f"{len(plan.other_code)} runs already in {out_dir} ran another version of their behaviour's "
+                     f"code (its files changed since; cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}"
+                     f") and are kept; use another --out, or delete those cells' folders, to run them again")
     return found
 
 

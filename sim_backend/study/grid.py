@@ -7,7 +7,9 @@ a worker on another machine needs neither the study file nor the scenario file.
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
+import inspect
 import itertools
 import json
 import math
@@ -17,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
+from onboard.behaviour import get_behaviour
 from onboard.config import ConfigError, to_mapping
 from onboard.yamlfile import read_yaml
 from sim_backend.scenario import load_scenario, parse_scenario
@@ -63,11 +66,39 @@ class RunSpec:
         return f"{self.cell}/seed-{self.seed}"
 
     @property
+    def behaviour_sha1(self) -> str:
+        """A fingerprint of the behaviour's code (:func:`behaviour_code_sha1`)."""
+        return behaviour_code_sha1(str(self.scenario_data.get("behaviour", "")))
+
+    @property
     def scenario_sha1(self) -> str:
         """A fingerprint of the scenario as run (every default filled in, overrides applied): a resumed study
         can tell a finished run of an edited scenario file from one of the scenario it would run now."""
         text = json.dumps(self.scenario_data, sort_keys=True, default=str)
         return hashlib.sha1(text.encode("utf-8")).hexdigest()[:16]
+
+
+@functools.cache
+def behaviour_code_sha1(name: str) -> str:
+    """A fingerprint of the files that hold behaviour ``name``'s code: its module, and when that module is part
+    of a package of its own (the transport behaviour is ``onboard.behaviours.transport``), every module in
+    that package's folder. A resumed study can then tell runs of an edited behaviour from runs of the code it
+    would run now. Shared helpers elsewhere (``onboard.motion``, ...) are not included. "" when the code
+    cannot be found."""
+    try:
+        module = inspect.getmodule(get_behaviour(name))
+        source = Path(inspect.getsourcefile(module) or "")
+    except (ConfigError, TypeError, OSError):
+        return ""
+    own_package = bool(module.__package__) and module.__package__ != "onboard.behaviours"
+    files = sorted(source.parent.glob("*.py")) if own_package else [source]
+    digest = hashlib.sha1()
+    for path in files:
+        try:
+            digest.update(path.name.encode("utf-8") + b"\0" + path.read_bytes())
+        except OSError:
+            return ""
+    return digest.hexdigest()[:16]
 
 
 def paper_study(reps: int) -> StudySpec:

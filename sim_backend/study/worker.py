@@ -50,7 +50,8 @@ def with_study_fields(result: Dict[str, Any], spec: RunSpec, failed: bool) -> Di
     result = dict(result)
     result["failed"] = failed
     result["study"] = {"cell": spec.cell, "scenario": spec.scenario, "overrides": spec.overrides,
-                       "time_limit_s": spec.time_limit_s, "scenario_sha1": spec.scenario_sha1}
+                       "time_limit_s": spec.time_limit_s, "scenario_sha1": spec.scenario_sha1,
+                       "behaviour_sha1": spec.behaviour_sha1}
     return result
 
 
