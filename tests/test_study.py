@@ -16,7 +16,7 @@ from sim_backend.study import paper_reference as paper
 from sim_backend.study.aggregate import load_results
 from sim_backend.study.driver import StudyProgress, longest_first, run_study
 from sim_backend.study.executors import WORKER_DIED, LocalExecutor
-from sim_backend.study.grid import expand, load_study_file, paper_study, parse_study
+from sim_backend.study.grid import behaviour_code_sha1, expand, load_study_file, paper_study, parse_study
 from sim_backend.study.report import FIGURE_FILES, write_study_outputs
 from sim_backend.study.worker import execute_run
 
@@ -186,9 +186,11 @@ def test_the_local_pool_runs_every_run_and_writes_its_files(local_study):
         result = results[f"{GOOD}/seed-{seed}"]
         assert result["seed"] == seed and result["failed"] is False and result["sim_time_s"] == 4.0
         fingerprint = result["study"].pop("scenario_sha1")
+        code_fingerprint = result["study"].pop("behaviour_sha1")
         assert result["study"] == {"cell": GOOD, "scenario": "lab-6", "overrides": {"behaviour": "transport"},
                                    "time_limit_s": 4.0}
         assert len(fingerprint) == 16 and int(fingerprint, 16) >= 0
+        assert code_fingerprint == behaviour_code_sha1("transport") and len(code_fingerprint) == 16
         assert (out / GOOD / f"seed-{seed}" / "trajectory.npz").stat().st_size > 0
     assert code == 1   # some runs failed: the command says so
     assert (out / "summary.csv").is_file() and (out / "report.md").is_file()
@@ -638,8 +640,6 @@ def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_pa
 def test_resume_warns_about_finished_runs_of_a_behaviour_edited_since(tmp_path, capsys, monkeypatch):
     """Only the scenario was fingerprinted: after a fix to the behaviour, a re-run kept the old results
     without a word."""
-    from sim_backend.study.grid import behaviour_code_sha1
-
     module = write(tmp_path / "edited_walk.py", "from onboard.behaviour import Behaviour, register\n\n\n"
                                                 "@register('edited-walk')\nclass Walk(Behaviour):\n"
                                                 "    def step(self):\n        self.robot.wheels.set_speeds(0.1, 0.1)\n")
