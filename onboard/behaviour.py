@@ -100,12 +100,24 @@ class BehaviourError(RuntimeError):
         super().__init__(f"robot {robot_id}, {call}: {type(exc).__name__}: {exc}{at}")
 
 
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# khepri's own code, which a behaviour calls (the HAL, motion helpers, the simulator): an error raised in it
+# is about the behaviour's call, so the line to show is the behaviour's. Behaviours live in onboard/behaviours.
+_FRAMEWORK = tuple(os.path.join(_ROOT, name) + os.sep for name in ("onboard", "sim_backend", "hub", "khepri_cli"))
+_BEHAVIOURS = os.path.join(_ROOT, "onboard", "behaviours") + os.sep
+
+
 def _users_frame(frames: traceback.StackSummary) -> Optional[traceback.FrameSummary]:
-    """The innermost frame outside Python's and the installed packages' own files: the line to look at."""
+    """The innermost frame outside Python's, the installed packages' and khepri's own files: the line to look
+    at (for NaN wheel speeds, the behaviour's ``set_speeds`` call, not the HAL's check)."""
     library = tuple({sys.prefix, sys.base_prefix, os.path.dirname(os.__file__)})
     for frame in reversed(frames):
-        if not frame.filename.startswith(library) and not frame.filename.startswith("<"):
-            return frame
+        name = os.path.abspath(frame.filename)
+        if name.startswith(library) or frame.filename.startswith("<"):
+            continue
+        if name.startswith(_FRAMEWORK) and not name.startswith(_BEHAVIOURS):
+            continue
+        return frame
     return frames[-1] if frames else None
 
 

@@ -45,6 +45,8 @@ class Buggy(Behaviour):
             [1, 2][5]
         if self.params.bug == "nan" and late:
             self.robot.radio.broadcast({"a": math.nan})
+        if self.params.bug == "nanwheels" and late:
+            self.robot.wheels.set_speeds(math.nan, 0.1)
         if self.params.bug == "columns":
             self.robot.range_and_bearing.neighbours().ids[:] = 0
         if self.params.bug == "share":
@@ -116,6 +118,15 @@ def test_nan_in_a_broadcast_is_refused_as_the_wire_would(buggy, capsys):
     message = b'{"v": 2, "type": "broadcast", "id": 3, "sent_s": 1.0, "payload": {"a": [1, NaN]}}'
     with pytest.raises(ProtocolError, match="from robot 3: broadcast.payload: radio payload is not JSON: Out of range"):
         decode(message, "robot 3")
+
+
+def test_an_error_raised_by_the_hal_points_at_the_behaviours_call(buggy, capsys):
+    """The line shown was the HAL's check (hal.py), not the behaviour's call that passed the NaN."""
+    assert run("sim", "run", buggy("nanwheels"), "--no-plot", "--out", "nanwheels") == 1
+    err = capsys.readouterr().err
+    assert "step(): ValueError: wheel speeds must be finite (got nan, 0.1) at buggy_behaviour.py:" in err
+    assert run("sim", "run", buggy("nan"), "--no-plot", "--out", "nan") == 1      # a broadcast the wire refuses
+    assert "not JSON compliant at buggy_behaviour.py:" in capsys.readouterr().err
 
 
 def test_telemetry_the_wire_cannot_carry_fails_in_simulation_too(buggy, capsys):
