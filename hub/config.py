@@ -28,7 +28,8 @@ class SourceConfig:
     frame_hz: float = 50.0                  # sim, real time: pose frames per second (physics in between)
     system: str = "mock"                    # motioncapture: the library's backend name
     options: Dict[str, Any] = field(default_factory=dict)   # motioncapture: passed to connect(), as strings
-    bodies: Dict[str, int] = field(default_factory=dict)     # motioncapture: rigid body name -> robot id
+    # motioncapture: rigid body name -> robot id (checked by check_robot_id, whose message names the range)
+    bodies: Dict[str, Any] = field(default_factory=dict)
     up_axis: str = "z"                      # motioncapture: which axis of the mocap frame points up
     stale_s: float = 0.1                    # a body not seen for this long has no pose
     connect_timeout_s: float = 10.0         # motioncapture: give up on a system that does not answer
@@ -152,8 +153,8 @@ class LabConfig:
 
 
 def check_robot_id(where: str, value: Any) -> int:
-    """A robot id the wire protocol can carry. The loader does not check the types of a mapping's values (e.g.
-    ``source.bodies``), so a string, a float or a boolean (YAML ``true``) is refused here too."""
+    """A robot id the wire protocol can carry. ``source.bodies`` leaves its values to this check (its message
+    names the range), so a string, a float or a boolean (YAML ``true``) is refused here too."""
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_ROBOT_ID:
         raise ConfigError(where, f"must be an integer robot id 0..{MAX_ROBOT_ID} (got {value!r})")
     return value

@@ -110,6 +110,8 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     if origin is dict or tp is dict:
         if not isinstance(value, Mapping):
             raise ConfigError(where, f"must be a mapping (got {value!r})")
+        if len(args) == 2:         # Dict[str, float]: every value checked, as a field of that type would be
+            return {key: coerce(item, args[1], join(where, key)) for key, item in value.items()}
         return dict(value)
     raise ConfigError(where, f"unsupported type {_type_name(tp)}")
 

@@ -151,3 +151,19 @@ def test_sil_ends_as_crashed_when_an_agent_stops_answering(tmp_path, monkeypatch
     assert "s: wheels stopped" in err                 # the agent's own step watchdog, from its log
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 2.0
+
+
+def test_the_values_of_a_dict_parameter_are_checked(tmp_path):
+    """`Dict[str, float]` params took {a: x} without a word: the behaviour met the string mid-run."""
+    from onboard.behaviour import build_params, get_behaviour
+
+    module = tmp_path / "weighted.py"
+    module.write_text(DRIVE_BEHAVIOUR.replace("speed_m_s: float = 0.1", "speed_m_s: float = 0.1\n"
+                                              "    weights: Dict[str, float] = field(default_factory=dict)")
+                      .replace("from dataclasses import dataclass", "from dataclasses import dataclass, field\n"
+                               "from typing import Dict").format(name="weighted"))
+    import_user_modules([str(module)])
+    cls = get_behaviour("weighted")
+    assert build_params(cls, {"weights": {"a": 1, "b": 0.5}}).weights == {"a": 1.0, "b": 0.5}
+    with pytest.raises(ConfigError, match=r"params\.weights\.a: must be a number \(got 'x'\)"):
+        build_params(cls, {"weights": {"a": "x"}})
