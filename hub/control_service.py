@@ -56,7 +56,7 @@ class ControlService:
             return True, {"status": self.status(time.monotonic())}
         if cmd == "estop":
             self.estop(sender)
-            return True, {}
+            return True, {"note": self._reach("told to stop") + "; acknowledgements: `khepri ctl status`"}
         if cmd == "clear":
             if hub.mode == "estop":
                 hub.mode = "hold" if hub.run_id is not None else "idle"
@@ -80,7 +80,7 @@ class ControlService:
             robot.estop_ack_s = None
         hub.send_command_to_all("estop", "operator e-stop")   # before anything else: this is the urgent part
         hub._hold_sim_wheels(time.monotonic())
-        hub.log(f"hub: E-STOP by {sender}: every robot stopped (latched until `khepri ctl clear`)")
+        hub.log(f"hub: E-STOP by {sender}: {self._reach('told to stop')} (latched until `khepri ctl clear`)")
 
     def start(self, sender: str) -> Tuple[bool, Dict[str, Any]]:
         hub = self.hub
@@ -98,7 +98,17 @@ class ControlService:
         else:
             hub.log(f"hub: run {hub.run_id} resumed by {sender}")
         hub.mode = "run"
-        return True, {}
+        # An agent that cannot start it (a behaviour it cannot import, bad params) says so in its telemetry,
+        # after this reply: the operator is pointed at the status, where its error shows.
+        return True, {"note": self._reach("sent it") + "; an agent that cannot run it says so in `khepri ctl "
+                                                        "status`"}
+
+    def _reach(self, what: str) -> str:
+        """How many robots a command reached: '4 of 6 robots connected and told to stop'."""
+        now = time.monotonic()
+        connected = sum(1 for r in self.hub.robots.values()
+                        if r.routing is not None and r.connected(now, self.hub.config.watchdog_s))
+        return f"{connected} of {len(self.hub.robots)} robots connected and {what}"
 
     def stop(self, sender: str) -> None:
         hub = self.hub

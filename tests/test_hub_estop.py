@@ -18,11 +18,11 @@ def test_estop_reaches_25_agents_within_50_ms(make_scenario, tmp_path):
                   for i in range(ROBOTS)]
         try:
             hub.wait_until(lambda s: all(r["connected"] for r in s["robots"]), timeout_s=90.0)
-            hub.request("start")
+            assert hub.request("start")["note"].startswith(f"{ROBOTS} of {ROBOTS} robots connected and sent it")
             hub.wait_until(lambda s: all(r["agent_mode"] == "run" for r in s["robots"]), timeout_s=30.0)
             time.sleep(0.5)                                   # running behaviours, not idle agents
             sent = time.monotonic()
-            hub.request("estop")
+            reply = hub.request("estop")
             request_round_trip_ms = (time.monotonic() - sent) * 1000.0
             status = hub.wait_until(lambda s: all(r["estop_ack_ms"] is not None for r in s["robots"]), timeout_s=5.0)
             acks = sorted(r["estop_ack_ms"] for r in status["robots"])
@@ -33,6 +33,7 @@ def test_estop_reaches_25_agents_within_50_ms(make_scenario, tmp_path):
                   f"ms, max {acks[-1]:.1f} ms")
             assert worst_ms < 50.0, f"slowest agent stopped {worst_ms:.1f} ms after the request"
             hub.wait_until(lambda s: all(r["agent_mode"] == "estop" for r in s["robots"]), timeout_s=2.0)
+            assert reply["note"].startswith(f"{ROBOTS} of {ROBOTS} robots connected and told to stop")
         finally:
             codes = stop_processes(agents)
     assert codes == [0] * ROBOTS

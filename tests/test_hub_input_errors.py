@@ -465,3 +465,18 @@ def test_a_record_path_under_a_file_names_the_file(tmp_path, capsys):
     blocker.write_text("not a folder")
     assert main(["hub", "--demo", "--record", str(blocker / "run.mcap")]) == 2
     assert f"record: cannot make the folder {blocker}: {blocker} is a file, not a folder" in capsys.readouterr().err
+
+
+def test_start_and_estop_say_how_many_robots_they_reached():
+    """`ctl start` said ok when no agent was there to run it."""
+    from hub.factory import build_hub
+
+    hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True}}),
+                    log=lambda line: None)
+    try:
+        ok, reply = hub.control.execute("start")
+        assert ok and reply["note"].startswith("0 of 6 robots connected and sent it")
+        ok, reply = hub.control.execute("estop")
+        assert ok and reply["note"].startswith("0 of 6 robots connected and told to stop")
+    finally:
+        hub.close()
