@@ -190,11 +190,23 @@ def first_sentence(text: str) -> str:
 def cmd_show(args: argparse.Namespace) -> int:
     import yaml
 
+    from onboard.behaviour import build_params, get_behaviour
     from onboard.config import to_mapping
     from sim_backend.scenario import load_scenario
 
-    print(yaml.safe_dump(to_mapping(load_scenario(args.scenario)), sort_keys=False), end="")
+    scenario = load_scenario(args.scenario)
+    shown = to_mapping(scenario)
+    # Every parameter of the behaviour, the scenario's own values over the defaults. The mission (path, the
+    # object's starting estimate) is left out unless the scenario sets it: the runner takes it from `path`
+    # and `object`.
+    params = to_mapping(build_params(get_behaviour(scenario.behaviour, "behaviour"), scenario.params))
+    shown["params"] = {key: value for key, value in params.items()
+                       if key not in MISSION_PARAMS or key in scenario.params}
+    print(yaml.safe_dump(shown, sort_keys=False), end="")
     return 0
+
+
+MISSION_PARAMS = ("path", "object_estimate")     # filled in by the runner from the scenario (mission_params)
 
 
 def cmd_bench_sim(args: argparse.Namespace) -> int:

@@ -131,3 +131,18 @@ def test_a_second_ctrl_c_does_not_cut_the_first_ones_cleanup_short(capsys):
     assert cleaned == [True]
     assert "khepri: stopping; press Ctrl-C again to quit at once" in capsys.readouterr().err
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler     # the test process gets it back
+
+
+def test_sim_show_fills_in_the_behaviours_parameters_and_runs_as_the_scenario_does(tmp_path, capsys):
+    """'every default filled in' left params: {} for the behaviour's 46 parameters."""
+    import numpy as np
+    import yaml
+
+    assert main(["sim", "show", "lab-6"]) == 0
+    shown = yaml.safe_load(capsys.readouterr().out)
+    assert shown["params"]["inter_robot_distance_m"] == 0.45 and "path" not in shown["params"]
+    (tmp_path / "shown.yaml").write_text(yaml.safe_dump(shown))
+    for name, scenario in (("shown", str(tmp_path / "shown.yaml")), ("built-in", "lab-6")):
+        assert main(["sim", "run", scenario, "--time-limit", "5", "--no-plot", "--out", str(tmp_path / name)]) == 0
+    runs = [np.load(tmp_path / name / "trajectory.npz")["robot_pose"] for name in ("shown", "built-in")]
+    assert np.array_equal(*runs)
