@@ -92,6 +92,8 @@ def _row(row: Dict[str, Any]) -> str:
     loop = "-" if row.get("loop_hz") is None else f"{row['loop_hz']:.1f}"
     misses = "-" if row.get("loop_misses") is None else str(row["loop_misses"])
     notes: List[str] = [n for n in (row.get("reason"), row.get("error")) if n]
+    if row.get("finished"):
+        notes.insert(0, "finished")
     if row.get("estop_ack_ms") is not None:
         notes.append(f"e-stop acknowledged in {row['estop_ack_ms']:.1f} ms")
     return f"{row['id']:>5}  {'yes' if row['connected'] else 'no':9}  {seen:>9}  {row['mode']:7}  " \

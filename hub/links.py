@@ -50,6 +50,7 @@ class RobotLink:
             "reason": reason,
             "agent_mode": telemetry.get("mode"),
             "state": behaviour.get("state"),
+            "finished": behaviour.get("finished"),     # the robot considers its job done (None: no run)
             "loop_hz": loop.get("hz"),
             "loop_misses": loop.get("misses"),
             "battery_v": telemetry.get("battery_v"),

@@ -91,6 +91,7 @@ class Hub(Downlink, Uplink):
         slowed = min(1.0, getattr(source, "rate", 1.0))
         self.stale_s = config.source.stale_s / slowed if config.source.type == "replay" else config.source.stale_s
         self.mocap_silent = False
+        self._finished_said: Optional[str] = None    # the run whose end was said
         self.placed_a_robot = False       # some frame has held a pose for one of this lab's robots
         self.mode = "idle"
         self.run_id: Optional[str] = None
@@ -293,6 +294,19 @@ class Hub(Downlink, Uplink):
         if self.recorder is not None and now >= self._next_status_record:
             self._next_status_record = now + 1.0
             self.recorder.write("/hub/status", self.control.status(now))
+        self._say_when_finished(now)
+
+    def _say_when_finished(self, now: float) -> None:
+        """Once per run, when every connected robot says its job is done (the behaviour's ``finished``, which
+        ends a simulated run): said, not acted on; ending a lab run is the operator's ``ctl stop``."""
+        if self.mode != "run" or self.run_id is None or self._finished_said == self.run_id:
+            return
+        connected = [r for r in self.robots.values() if r.connected(now, self.config.watchdog_s)]
+        runs = [((r.telemetry or {}).get("behaviour") or {}) for r in connected]
+        if connected and all(r.run_id == self.run_id for r in connected) and all(b.get("finished") for b in runs):
+            self._finished_said = self.run_id
+            self.log(f"hub: run {self.run_id}: every connected robot ({len(connected)}) reports its job finished; "
+                     "`khepri ctl stop` ends the run")
 
     def _expire_stale_poses(self, now: float) -> None:
         """Bodies not seen for ``source.stale_s`` lose their pose, and their robots are held, also when no

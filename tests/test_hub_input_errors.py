@@ -480,3 +480,33 @@ def test_start_and_estop_say_how_many_robots_they_reached():
         assert ok and reply["note"].startswith("0 of 6 robots connected and told to stop")
     finally:
         hub.close()
+
+
+def test_the_hub_says_once_when_every_robot_reports_its_job_finished():
+    """The live hub ignored `finished` (which ends a simulated run), and `ctl status` did not show it."""
+    import time
+
+    from hub.control import status_table
+    from hub.factory import build_hub
+
+    lines = []
+    hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True}}),
+                    log=lines.append)
+    try:
+        hub.control.execute("start")
+        now = time.monotonic()
+        for robot in hub.robots.values():
+            robot.routing, robot.last_uplink, robot.run_id = b"agent", now, hub.run_id
+            robot.telemetry = {"mode": "run", "behaviour": {"state": "done", "finished": robot.id != 3}}
+        hub.housekeeping(now)
+        assert not [line for line in lines if "reports its job finished" in line]     # robot 3 is not done
+        hub.robots[3].telemetry["behaviour"]["finished"] = True
+        hub.housekeeping(now)
+        hub.housekeeping(now)
+        said = [line for line in lines if "reports its job finished" in line]
+        assert said == [f"hub: run {hub.run_id}: every connected robot (6) reports its job finished; "
+                        "`khepri ctl stop` ends the run"]
+        status = hub.control.status(now)
+        assert all(row["finished"] for row in status["robots"]) and "  finished" in status_table(status)
+    finally:
+        hub.close()
