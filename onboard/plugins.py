@@ -36,6 +36,19 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
             raise ConfigError("--import", f"cannot import {name!r}: {err}") from None
 
 
+def _check_name_is_free(path: Path) -> None:
+    """A file is imported by its name: one that a loaded module or the standard library already has would
+    silently be that other module (``random.py``), and a second file of the same name would be skipped."""
+    taken = sys.modules.get(path.stem)
+    if taken is not None:
+        where = getattr(taken, "__file__", None)
+        if where is None or Path(where).resolve() != path.resolve():
+            raise ConfigError("--import", f"{path}: the module name {path.stem!r} is taken by "
+                                          f"{where or 'a built-in module'}; rename the file")
+    elif path.stem in getattr(sys, "stdlib_module_names", ()):
+        raise ConfigError("--import", f"{path}: {path.stem!r} is a standard library module's name; rename the file")
+
+
 def _module_name(name: str, base: str) -> str:
     """The importable name of ``name``; a file's folder goes on ``sys.path`` first."""
     if not name.endswith(".py") and "/" not in name and os.sep not in name:
@@ -48,6 +61,7 @@ def _module_name(name: str, base: str) -> str:
         raise ConfigError("--import", f"no such file: {path}")
     if not path.stem.isidentifier():
         raise ConfigError("--import", f"{path.name}: a module's file name must be a Python identifier")
+    _check_name_is_free(path)
     folder = str(path.resolve().parent)
     if folder not in sys.path:
         sys.path.insert(0, folder)

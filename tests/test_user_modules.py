@@ -167,3 +167,20 @@ def test_the_values_of_a_dict_parameter_are_checked(tmp_path):
     assert build_params(cls, {"weights": {"a": 1, "b": 0.5}}).weights == {"a": 1.0, "b": 0.5}
     with pytest.raises(ConfigError, match=r"params\.weights\.a: must be a number \(got 'x'\)"):
         build_params(cls, {"weights": {"a": "x"}})
+
+
+def test_a_file_whose_name_is_taken_is_refused_not_swapped_for_the_other_module(tmp_path):
+    """--import path/random.py silently imported the standard library's random, and a second wander.py
+    elsewhere was silently skipped."""
+    (tmp_path / "random.py").write_text(DRIVE_BEHAVIOUR.format(name="not-random"))
+    with pytest.raises(ConfigError, match=r"random\.py: the module name 'random' is taken by .*random\.py; "
+                                          r"rename the file"):
+        import_user_modules([str(tmp_path / "random.py")])
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    for folder in ("a", "b"):
+        (tmp_path / folder / "twin_walk.py").write_text(DRIVE_BEHAVIOUR.format(name=f"twin-{folder}"))
+    import_user_modules([str(tmp_path / "a" / "twin_walk.py")])
+    import_user_modules([str(tmp_path / "a" / "twin_walk.py")])          # the same file again: fine
+    with pytest.raises(ConfigError, match=r"b/twin_walk\.py: the module name 'twin_walk' is taken by .*a/twin_walk"):
+        import_user_modules([str(tmp_path / "b" / "twin_walk.py")])
