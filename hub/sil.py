@@ -85,9 +85,27 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
             hub.close()
             hub_log.close()
     result["sil"]["agent_exit_codes"] = [a.returncode for a in agents]
+    stop_error = stop_failure(out, len(agents))
+    if stop_error and "error" not in result:     # the run itself went well; the behaviour's stop() did not
+        result["error"] = stop_error
     result["sil"]["log"] = str(out / "hub.mcap") if options.record else None
     write_run(session.recording, result, out, plot=options.plot)
     return result
+
+
+def stop_failure(out: Path, count: int) -> Optional[str]:
+    """The first agent's account of its behaviour's ``stop()`` raising at the end of the run (the agent logs
+    it and stops the wheels all the same; ``khepri sim run`` reports the same bug as an error)."""
+    for i in range(count):
+        marker = f"agent {i}: robot {i}, stop(): "
+        try:
+            lines = (out / "agents" / f"agent-{i}.log").read_text(encoding="utf-8").splitlines()
+        except OSError:
+            continue
+        found = next((line for line in lines if line.startswith(marker)), None)
+        if found:
+            return f"after the run: {found}"
+    return None
 
 
 def spawn_agents(endpoint: str, keys: Path, count: int, out: Path, imports: List[str]) -> List[subprocess.Popen]:

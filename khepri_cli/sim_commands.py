@@ -103,7 +103,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     for name, path in files.items():
         print(f"  {name}: {path}")
     if "error" in result:
-        print(f"khepri: error: the run crashed: {result['error']}", file=sys.stderr)
+        when = "the run crashed" if result.get("stop_reason") == "crashed" else \
+            f"after the run ({result.get('stop_reason')})"      # the behaviour's stop() raised at the end
+        print(f"khepri: error: {when}: {result['error']}", file=sys.stderr)
         if result.get("traceback"):
             print("\n".join(result["traceback"]), file=sys.stderr)
         return 1

@@ -107,7 +107,8 @@ def test_an_init_or_stop_that_raises_is_reported_without_losing_the_run(buggy, t
     assert run("sim", "run", buggy("init"), "--no-plot", "--out", "init") == 1
     assert "the behaviour failed: robot 0, Buggy.__init__: RuntimeError: boom in init" in capsys.readouterr().err
     assert run("sim", "run", buggy("stop"), "--no-plot", "--out", "stop") == 1
-    assert "robot 0, stop(): RuntimeError: bug in stop" in capsys.readouterr().err
+    err = capsys.readouterr().err         # the run reached its time limit; then stop() raised
+    assert "khepri: error: after the run (time limit): robot 0, stop(): RuntimeError: bug in stop" in err
     result = json.loads((tmp_path / "stop" / "result.json").read_text())
     assert result["sim_time_s"] == pytest.approx(2.0)           # the whole run, written
 
@@ -149,6 +150,15 @@ def test_a_behaviour_cannot_reach_other_robots_through_its_params_or_sensor_colu
     assert [len(b.params.seen) for b in sim.behaviours] == [10, 10, 10]
     assert run("sim", "run", buggy("columns"), "--no-plot", "--out", "columns") == 1
     assert "ValueError: assignment destination is read-only" in capsys.readouterr().err
+
+
+def test_sil_reports_a_stop_that_raises_as_sim_run_does(buggy, tmp_path, capsys):
+    """The agent logged it and stopped the wheels, and sil exited 0 without a word."""
+    assert run("sil", buggy("stop"), "--no-plot", "--no-record", "--out", "sil-stop") == 1
+    assert "khepri: error: after the run: agent 0: robot 0, stop(): RuntimeError: bug in stop" in \
+        capsys.readouterr().err
+    result = json.loads((tmp_path / "sil-stop" / "result.json").read_text())
+    assert result["stop_reason"] == "time limit" and "stop(): RuntimeError: bug in stop" in result["error"]
 
 
 def test_sil_reports_the_crashed_agent_and_stops(buggy, tmp_path, capsys):

@@ -104,6 +104,7 @@ class Agent:
                 self.loop_once()
         finally:
             self.step_watchdog.stop()
+            self._stop_behaviour()         # leaving mid-run (SIGTERM before the hub's stop): its stop() too
             self._stop_wheels_on_the_way_out()
             farewell: Dict[str, Any] = {"type": "telemetry", "step": self.state.seq, "mode": "exiting"}
             if self.error:                 # the last word the hub hears must still say why
@@ -232,13 +233,17 @@ class Agent:
         self.log(f"agent {self.robot_id}: run {run.get('run_id')}: {run.get('behaviour')}")
 
     def end_run(self) -> None:
+        self._stop_behaviour()
+        self.behaviour, self.run = None, None
+        self.driver.close_gate()
+
+    def _stop_behaviour(self) -> None:
+        """The behaviour's own ``stop()``; one that raises is logged, and must not keep the wheels turning."""
         if self.behaviour is not None:
             try:
                 self.behaviour.stop()
-            except Exception as exc:      # its own stop() failing must not keep the wheels turning
+            except Exception as exc:
                 self.log(f"agent {self.robot_id}: {BehaviourError(self.robot_id, 'stop()', exc)}")
-        self.behaviour, self.run = None, None
-        self.driver.close_gate()
 
     def behaviour_failed(self, err: BehaviourError) -> None:
         """The behaviour's code raised: the wheels stop, the hub hears why (telemetry ``error``: its status
