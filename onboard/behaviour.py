@@ -65,10 +65,17 @@ class Behaviour:
         return {"state": self.state}
 
 
-def telemetry_of(behaviour: Behaviour) -> Dict[str, Any]:
-    """The behaviour's telemetry plus ``finished``: what a robot reports each step (sim runner and agent)."""
-    data = dict(behaviour.telemetry())
-    data["finished"] = bool(behaviour.finished)
+def telemetry_of(behaviour: Behaviour, robot_id: int) -> Dict[str, Any]:
+    """The behaviour's telemetry plus ``finished``: what a robot reports each step (sim runner and agent).
+    BehaviourError names which of the two raised."""
+    try:
+        data = dict(behaviour.telemetry())
+    except Exception as exc:
+        raise BehaviourError(robot_id, "telemetry()", exc) from exc
+    try:
+        data["finished"] = bool(behaviour.finished)
+    except Exception as exc:
+        raise BehaviourError(robot_id, "finished", exc) from exc
     return data
 
 

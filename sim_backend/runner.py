@@ -184,12 +184,8 @@ class Simulation:
         self.world.command_many(commands)
 
     def _collect_telemetry(self, alive: np.ndarray) -> List[Optional[Dict[str, Any]]]:
-        telemetry: List[Optional[Dict[str, Any]]] = []
-        try:
-            for i, behaviour in enumerate(self.behaviours):
-                telemetry.append(telemetry_of(behaviour) if alive[i] else None)
-        except Exception as exc:
-            raise BehaviourError(len(telemetry), "telemetry()", exc) from exc
+        telemetry: List[Optional[Dict[str, Any]]] = [
+            telemetry_of(behaviour, i) if alive[i] else None for i, behaviour in enumerate(self.behaviours)]
         # Every robot's at the first step, then one robot's per step, in turn: a value the wire cannot carry
         # (a set, an object, too many bytes) fails here, not only in `khepri sil` or on the robots. Encoding
         # every robot's every step would cost 100 robots about a tenth of the simulator's time.

@@ -59,6 +59,12 @@ class Buggy(Behaviour):
             return {"state": "ok", "neighbours": {1, 2}}       # a set: fine in Python, not on the wire
         return {"state": "ok", "seen": len(self.params.seen), "numpy": np.float32(1.5), "x": math.nan}
 
+    @property
+    def finished(self):
+        if self.params.bug == "finished":
+            raise RuntimeError("bug in finished")
+        return False
+
     def stop(self):
         super().stop()
         if self.params.bug == "stop":
@@ -109,6 +115,9 @@ def test_an_init_or_stop_that_raises_is_reported_without_losing_the_run(buggy, t
     assert run("sim", "run", buggy("stop"), "--no-plot", "--out", "stop") == 1
     err = capsys.readouterr().err         # the run reached its time limit; then stop() raised
     assert "khepri: error: after the run (time limit): robot 0, stop(): RuntimeError: bug in stop" in err
+    assert run("sim", "run", buggy("finished"), "--no-plot", "--out", "finished") == 1     # was "telemetry()"
+    assert "the run crashed: robot 0, finished: RuntimeError: bug in finished at buggy_behaviour.py:" in \
+        capsys.readouterr().err
     result = json.loads((tmp_path / "stop" / "result.json").read_text())
     assert result["sim_time_s"] == pytest.approx(2.0)           # the whole run, written
 

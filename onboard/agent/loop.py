@@ -315,9 +315,9 @@ class Agent:
         behaviour = None
         if self.behaviour is not None:
             try:
-                behaviour = plain_json(telemetry_of(self.behaviour))
-            except Exception as exc:
-                self.behaviour_failed(BehaviourError(self.robot_id, "telemetry()", exc))
+                behaviour = plain_json(telemetry_of(self.behaviour, self.robot_id))
+            except BehaviourError as err:
+                self.behaviour_failed(err)
         message: Dict[str, Any] = {
             "type": "telemetry", "step": self.state.seq, "mode": mode, "behaviour": behaviour,
             "loop": self.stats.as_dict(), "battery_v": self.driver.battery_v(),
