@@ -23,13 +23,12 @@ import copy
 import dataclasses
 import inspect
 import math
-import os
-import sys
 import traceback
 from typing import Any, Callable, Dict, List, Mapping, Optional, Type
 
 from .config import ConfigError, from_mapping
 from .hal import Robot
+from .tracebacks import where_in_users_code
 
 
 @dataclasses.dataclass
@@ -102,30 +101,10 @@ class BehaviourError(RuntimeError):
         frames = traceback.extract_tb(exc.__traceback__)[1:]    # [0] is the caller's frame (runner, agent)
         self.lines: List[str] = [line.rstrip() for line in traceback.format_list(frames[-6:])]
         self.lines += [line.rstrip() for line in traceback.format_exception_only(type(exc), exc)]
-        where = _users_frame(frames)
-        at = f" at {os.path.basename(where.filename)}:{where.lineno}" if where is not None else ""
+        at = where_in_users_code(frames)
         super().__init__(f"robot {robot_id}, {call}: {type(exc).__name__}: {exc}{at}")
 
 
-_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-# khepri's own code, which a behaviour calls (the HAL, motion helpers, the simulator): an error raised in it
-# is about the behaviour's call, so the line to show is the behaviour's. Behaviours live in onboard/behaviours.
-_FRAMEWORK = tuple(os.path.join(_ROOT, name) + os.sep for name in ("onboard", "sim_backend", "hub", "khepri_cli"))
-_BEHAVIOURS = os.path.join(_ROOT, "onboard", "behaviours") + os.sep
-
-
-def _users_frame(frames: traceback.StackSummary) -> Optional[traceback.FrameSummary]:
-    """The innermost frame outside Python's, the installed packages' and khepri's own files: the line to look
-    at (for NaN wheel speeds, the behaviour's ``set_speeds`` call, not the HAL's check)."""
-    library = tuple({sys.prefix, sys.base_prefix, os.path.dirname(os.__file__)})
-    for frame in reversed(frames):
-        name = os.path.abspath(frame.filename)
-        if name.startswith(library) or frame.filename.startswith("<"):
-            continue
-        if name.startswith(_FRAMEWORK) and not name.startswith(_BEHAVIOURS):
-            continue
-        return frame
-    return frames[-1] if frames else None
 
 
 def make_behaviours(cls: Type[Behaviour], robots: List[Robot], params: Any) -> List[Behaviour]:

@@ -10,6 +10,8 @@ import math
 import typing
 from typing import Any, Dict, Mapping, Type, TypeVar
 
+from .tracebacks import describe
+
 T = TypeVar("T")
 
 
@@ -146,6 +148,8 @@ def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
             raise
         except ValueError as err:      # a user's Params.validate raising a plain ValueError: name the record
             raise ConfigError(where, str(err)) from None
+        except Exception as err:       # a bug in a user's validate: one line with its place, not a traceback
+            raise ConfigError(where or cls.__name__, f"{cls.__name__}.validate raised {describe(err)}") from None
     return obj
 
 

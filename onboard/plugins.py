@@ -12,14 +12,15 @@ from pathlib import Path
 from typing import Iterable, Optional
 
 from .config import ConfigError
+from .tracebacks import describe
 
 
 def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) -> None:
     """Import each of ``names``: a module name (``wander``, ``mylab.behaviours``) found in ``base_dir`` (default:
     the current folder) or on ``sys.path``, or the path of a ``.py`` file (relative to ``base_dir``).
 
-    A module that cannot be found or imported, or whose file does not parse, is a ConfigError naming it; any
-    other exception raised by the module's own code keeps its traceback (it is a bug in that module)."""
+    A module that cannot be found or imported, whose file does not parse, or whose own code raises while it is
+    imported, is a ConfigError naming it (and, for the last, the file and line)."""
     from .behaviour import behaviour_names
 
     behaviour_names()      # the built-ins first: a user's module reusing one of their names is then the one told
@@ -34,6 +35,10 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
             raise ConfigError("--import", f"{err.filename}:{err.lineno}: {err.msg}") from None
         except ImportError as err:
             raise ConfigError("--import", f"cannot import {name!r}: {err}") from None
+        except ConfigError:
+            raise                  # e.g. @register refusing a name: it says what is wrong already
+        except Exception as err:   # the module's own code raised while it was imported: where, in one line
+            raise ConfigError("--import", f"importing {name!r} raised {describe(err)}") from None
 
 
 def _check_name_is_free(path: Path) -> None:

@@ -54,7 +54,9 @@ def test_a_module_name_a_file_path_and_what_goes_wrong(tmp_path, monkeypatch):
         with pytest.raises(ConfigError) as caught:
             import_user_modules([name], str(tmp_path))
         assert caught.value.field == "--import" and problem in caught.value.problem, caught.value
-    with pytest.raises(ZeroDivisionError):            # the module's own bug keeps its traceback
+    # The module's own bug: one line with its place (it was a raw traceback, which outputs.md says is khepri's)
+    with pytest.raises(ConfigError, match=r"importing 'plugin_raises' raised ZeroDivisionError: division by zero "
+                                          r"at plugin_raises\.py:1"):
         import_user_modules(["plugin_raises"], str(tmp_path))
     (tmp_path / "plugin_clash.py").write_text(DRIVE_BEHAVIOUR.format(name="transport"))
     with pytest.raises(ConfigError, match="'transport' is taken by onboard.behaviours.transport.+plugin_clash.Drive"):
@@ -184,3 +186,17 @@ def test_a_file_whose_name_is_taken_is_refused_not_swapped_for_the_other_module(
     import_user_modules([str(tmp_path / "a" / "twin_walk.py")])          # the same file again: fine
     with pytest.raises(ConfigError, match=r"b/twin_walk\.py: the module name 'twin_walk' is taken by .*a/twin_walk"):
         import_user_modules([str(tmp_path / "b" / "twin_walk.py")])
+
+
+def test_a_bug_in_a_params_validate_is_one_line_with_its_place(tmp_path):
+    module = tmp_path / "typo_params.py"
+    module.write_text(DRIVE_BEHAVIOUR.replace("speed_m_s: float = 0.1", "speed_m_s: float = 0.1\n\n"
+                                              "    def validate(self, where):\n"
+                                              "        if self.sped_m_s > 1:\n            pass")
+                      .format(name="typo-params"))
+    from onboard.behaviour import build_params, get_behaviour
+
+    import_user_modules([str(module)])
+    with pytest.raises(ConfigError, match=r"^params: DriveParams\.validate raised AttributeError: .*'sped_m_s' "
+                                          r"at typo_params\.py:\d+$"):
+        build_params(get_behaviour("typo-params"), {})

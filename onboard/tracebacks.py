@@ -1,0 +1,38 @@
+"""Where in the user's code an exception came from: the line a behaviour's author should look at."""
+from __future__ import annotations
+
+import os
+import sys
+import traceback
+from typing import Optional
+
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# khepri's own code, which a behaviour calls (the HAL, motion helpers, the simulator): an error raised in it
+# is about the behaviour's call, so the line to show is the behaviour's. Behaviours live in onboard/behaviours.
+_FRAMEWORK = tuple(os.path.join(_ROOT, name) + os.sep for name in ("onboard", "sim_backend", "hub", "khepri_cli"))
+_BEHAVIOURS = os.path.join(_ROOT, "onboard", "behaviours") + os.sep
+
+
+def users_frame(frames: traceback.StackSummary) -> Optional[traceback.FrameSummary]:
+    """The innermost frame outside Python's, the installed packages' and khepri's own files: the line to look
+    at (for NaN wheel speeds, the behaviour's ``set_speeds`` call, not the HAL's check)."""
+    library = tuple({sys.prefix, sys.base_prefix, os.path.dirname(os.__file__)})
+    for frame in reversed(frames):
+        name = os.path.abspath(frame.filename)
+        if name.startswith(library) or frame.filename.startswith("<"):
+            continue
+        if name.startswith(_FRAMEWORK) and not name.startswith(_BEHAVIOURS):
+            continue
+        return frame
+    return frames[-1] if frames else None
+
+
+def where_in_users_code(frames: traceback.StackSummary) -> str:
+    """`` at wander.py:9`` for the user's frame among ``frames``, or "" when there is none."""
+    where = users_frame(frames)
+    return f" at {os.path.basename(where.filename)}:{where.lineno}" if where is not None else ""
+
+
+def describe(exc: BaseException) -> str:
+    """``ZeroDivisionError: division by zero at wander.py:12``: one line for an exception in the user's code."""
+    return f"{type(exc).__name__}: {exc}{where_in_users_code(traceback.extract_tb(exc.__traceback__))}"
