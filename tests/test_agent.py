@@ -299,3 +299,14 @@ def test_an_empty_library_or_calibration_path_is_refused_not_taken_as_the_defaul
         args = parser.parse_args(["--id", "0", "--driver", "kh4", option, ""])
         with pytest.raises(ConfigError, match=f"^{option}: an empty path"):
             run_agent(args)
+
+
+def test_the_agents_neighbour_columns_are_read_only_as_in_the_simulator():
+    """Writing into them raised in simulation but not on the agent, so such a bug showed up only in sim."""
+    state = HubState()
+    apply_frame(state, {"seq": 1, "pose": [0.0, 0.0, 0.0], "neighbours": [[1, 2.0, 0.5]], "messages": []},
+                AgentClock(state), 0.0)
+    table = state.neighbours
+    for column in (table.ids, table.ranges_m, table.bearings_rad, table.xy):
+        with pytest.raises(ValueError, match="read-only"):
+            column[...] = 0

@@ -74,6 +74,8 @@ def apply_frame(state: HubState, frame: Dict[str, Any], clock: AgentClock, recei
     else:                                    # [[id, range_m, bearing_rad], ...]
         state.neighbours = Neighbours([n[0] for n in neighbours], [n[1] for n in neighbours],
                                       [n[2] for n in neighbours])
+    for column in (state.neighbours.ids, state.neighbours.ranges_m, state.neighbours.bearings_rad):
+        column.flags.writeable = False       # as in the simulator: a behaviour writing into them gets an error
     state.neighbours_at = measured
     for sender, sent_s, payload in frame["messages"]:
         state.inbox.append(Message(sender, payload, sent_s))

@@ -123,6 +123,7 @@ class Neighbours(Sequence):
         if self._xy is None:
             self._xy = np.array([self.ranges_m * np.cos(self.bearings_rad),
                                  self.ranges_m * np.sin(self.bearings_rad)]).reshape(2, -1)
+            self._xy.flags.writeable = False     # one table may be handed out to several calls
         return self._xy
 
     @property
