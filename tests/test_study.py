@@ -658,6 +658,19 @@ def test_resume_warns_about_finished_runs_of_a_behaviour_edited_since(tmp_path, 
     assert "warning: 1 runs already in out ran another version of their behaviour's code" in err
 
 
+def test_scenarios_picks_a_scenario_file_by_its_name_too(tmp_path, capsys):
+    """--scenarios took only the file's stem, not the name inside it, which is what its cells are called."""
+    scenario = load_scenario("lab-6")
+    write(tmp_path / "my-file.yaml", f"name: friday-demo\nbehaviour: aggregate\ntime_limit_s: 1\n"
+                                     f"robots: {{count: 6, spawn: {{x: {list(scenario.robots.spawn.x)}, "
+                                     f"y: {list(scenario.robots.spawn.y)}}}}}\n")
+    study = write(tmp_path / "s.yaml", "scenarios: [my-file.yaml, lab-6]\nreps: 1\n")
+    for name in ("friday-demo", "my-file"):
+        assert main(["study", str(study), "--scenarios", name, "--dry-run", "--out", str(tmp_path / "o")]) == 0
+        out = capsys.readouterr().out
+        assert "friday-demo" in out and "lab-6" not in out.replace(str(tmp_path), "")
+
+
 def test_reps_on_the_command_line_gives_a_study_file_its_seeds(tmp_path, capsys):
     study = write(tmp_path / "no-seeds.yaml", "scenarios: [lab-6]\ntime_limit_s: 1\n")
     assert main(["study", str(study), "--reps", "2", "--dry-run", "--out", str(tmp_path / "out")]) == 0

@@ -209,8 +209,12 @@ def parse_time_limit(where: str, value: Any) -> Optional[float]:
 
 
 def restrict(spec: StudySpec, names: Sequence[str]) -> StudySpec:
-    """Keep only the named scenarios (``--scenarios``), in the study's order."""
+    """Keep only the named scenarios (``--scenarios``), in the study's order. A scenario file can be named by
+    its path, its file name without ``.yaml``, or the ``name:`` inside it (what its cells are called)."""
     known = {Path(s).stem if s.endswith((".yaml", ".yml")) else s: s for s in spec.scenarios}
+    for ref in spec.scenarios:
+        if ref.endswith((".yaml", ".yml")):
+            known.setdefault(str(scenario_mapping(ref, "scenarios").get("name")), ref)
     missing = [n for n in names if n not in known and n not in spec.scenarios]
     if missing:
         raise ConfigError("--scenarios", f"not in the study: {', '.join(missing)} "
