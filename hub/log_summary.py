@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import re
 import struct
 import zlib
 from collections import Counter
@@ -217,7 +218,7 @@ class LogSummary:
     end_s: Optional[float]        # latest message stamp: for a truncated file, what was recovered up to
     duration_s: float
     message_count: int
-    topic_counts: Dict[str, int]  # topic -> messages, sorted by topic
+    topic_counts: Dict[str, int]  # topic -> messages, numbers in order (/robot/2 before /robot/10)
     robots: List[RobotId]         # ids seen in /robot/<id>/... topics, numeric ids as int, sorted
     drops: Dict[str, int]         # reason -> frames dropped (from /hub/drops)
     drops_by_sender: Dict[str, int]
@@ -332,11 +333,17 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         path=str(reader.path), file_bytes=reader.file_bytes, truncated=not reader.complete,
         stop_reason="" if reader.complete else reader.stop_reason, readable_bytes=reader.readable_bytes,
         start_s=start_s, end_s=end_s, duration_s=(end_s - start_s) if start_s is not None else 0.0,
-        message_count=sum(tally.counts.values()), topic_counts=dict(sorted(tally.counts.items())),
+        message_count=sum(tally.counts.values()),
+        topic_counts=dict(sorted(tally.counts.items(), key=lambda item: _natural(item[0]))),
         robots=_robot_ids(tally.counts), drops=dict(sorted(tally.drops.items())),
         drops_by_sender=dict(sorted(tally.drops_by_sender.items())),
         metadata=metadata_from_text(metadata.get(USER_METADATA, {})),
         format_version=int(version) if version.isdigit() else None, damaged_records=list(reader.damaged))
+
+
+def _natural(text: str) -> Tuple[Any, ...]:
+    """Sort key: numbers inside a topic by value, so /robot/2/... comes before /robot/10/..."""
+    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", text))
 
 
 def _json_or_none(data: bytes) -> Any:

@@ -338,3 +338,11 @@ def test_cli_log_info_bad_files_exit_2_with_one_line(tmp_path):
         result = run_khepri(path)
         assert result.returncode == 2 and result.stdout == ""
         assert result.stderr.count("\n") == 1 and str(path) in result.stderr and "Traceback" not in result.stderr
+
+
+def test_topics_are_listed_with_their_robot_numbers_in_order(tmp_path):
+    path = tmp_path / "order.mcap"
+    with Recorder(path) as recorder:
+        for rid in (10, 2, 1):
+            recorder.write(robot_topic(rid, "frame"), {"i": rid}, T0 + rid)
+    assert list(summarise(path).topic_counts) == ["/robot/1/frame", "/robot/2/frame", "/robot/10/frame"]
