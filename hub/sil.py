@@ -7,6 +7,8 @@ seconds. ``realtime``: the hub's normal loop paces physics by the wall clock and
 from __future__ import annotations
 
 import math
+import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -61,7 +63,8 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     # The folder is this run's: an earlier run's log would pass for this one's (and the hub never writes
     # over a log), so it goes, also with --no-record.
     (out / "hub.mcap").unlink(missing_ok=True)
-    with tempfile.TemporaryDirectory(prefix="khepri-sil-keys-") as key_dir:
+    remove_stale_key_folders()
+    with tempfile.TemporaryDirectory(prefix=f"{KEY_FOLDER_PREFIX}{os.getpid()}-") as key_dir:
         keys = Path(key_dir)
         init_keys(keys, list(range(scenario.robots.count)), ["sil"])
         config = parse_config({
@@ -91,6 +94,28 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     result["sil"]["log"] = str(out / "hub.mcap") if options.record else None
     write_run(session.recording, result, out, plot=options.plot)
     return result
+
+
+KEY_FOLDER_PREFIX = "khepri-sil-keys-"      # + the pid of the sil that made it
+
+
+def remove_stale_key_folders() -> None:
+    """The throwaway CURVE keys of a ``khepri sil`` that was killed (SIGKILL runs no cleanup) stay in the temp
+    folder, secret keys included: the next sil removes those whose process is gone."""
+    for folder in Path(tempfile.gettempdir()).glob(f"{KEY_FOLDER_PREFIX}*-*"):
+        pid = folder.name[len(KEY_FOLDER_PREFIX):].split("-")[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:        # another user's process: alive, and not ours to clean
+        return True
+    return True
 
 
 def stop_failure(out: Path, count: int) -> Optional[str]:

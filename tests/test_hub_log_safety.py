@@ -160,3 +160,21 @@ def _state(pid: int) -> str:
         return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split("\n")[0]
     except (OSError, IndexError):
         return "zombie"
+
+
+def test_the_keys_of_a_killed_sil_are_removed_by_the_next_one(tmp_path, monkeypatch):
+    """SIGKILL runs no cleanup: a killed `khepri sil` left its temporary folder of secret keys behind."""
+    import tempfile
+
+    from hub.sil import KEY_FOLDER_PREFIX, remove_stale_key_folders
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f"{KEY_FOLDER_PREFIX}{dead.pid}-abc"
+    live = tmp_path / f"{KEY_FOLDER_PREFIX}{os.getpid()}-def"
+    for folder in (stale, live):
+        (folder / "robots").mkdir(parents=True)
+        (folder / "robots" / "robot-0.key_secret").write_text("secret")
+    remove_stale_key_folders()
+    assert not stale.exists() and live.exists()
