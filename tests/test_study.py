@@ -414,7 +414,9 @@ def test_a_behaviour_without_caging_gets_no_success_rate(tmp_path):
     (tmp_path / "aggregate-20" / "seed-1").mkdir(parents=True)
     write(tmp_path / "aggregate-20" / "seed-1" / "result.json", json.dumps(result))
     write_study_outputs(tmp_path, figures=False)
-    assert "| aggregate-20 | 20 | 1 | 0 | – | – | – |" in (tmp_path / "report.md").read_text()
+    report = (tmp_path / "report.md").read_text()
+    assert "| aggregate-20 | 20 | 1 | 0 | time limit 1 | – | – |" in report    # how it ended; no success column
+    assert "success" not in report.split("## Outcome per cell (other behaviours)")[1]
 
 
 def test_override_values_that_would_share_a_folder_are_refused(tmp_path, capsys):
@@ -669,6 +671,20 @@ def test_scenarios_picks_a_scenario_file_by_its_name_too(tmp_path, capsys):
         assert main(["study", str(study), "--scenarios", name, "--dry-run", "--out", str(tmp_path / "o")]) == 0
         out = capsys.readouterr().out
         assert "friday-demo" in out and "lab-6" not in out.replace(str(tmp_path), "")
+
+
+def test_the_report_of_another_behaviour_says_how_its_runs_ended(tmp_path):
+    """A study of a behaviour without caging got empty transport tables and nothing about its runs."""
+    scenario = load_scenario("lab-6")
+    write(tmp_path / "gather.yaml", f"name: gather\nbehaviour: aggregate\ntime_limit_s: 2\n"
+                                    f"robots: {{count: 6, spawn: {{x: {list(scenario.robots.spawn.x)}, "
+                                    f"y: {list(scenario.robots.spawn.y)}}}}}\n")
+    study = write(tmp_path / "s.yaml", "scenarios: [gather.yaml]\nreps: 2\n")
+    assert main(["study", str(study), "--out", str(tmp_path / "out"), "--workers", "1", "--no-figures"]) == 0
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "## Outcome per cell (other behaviours)" in report
+    assert "| gather | 6 | 2 | 0 | time limit 2 | – | 2 [2–2] |" in report
+    assert "caged" not in report and "## Errors per waypoint" not in report
 
 
 def test_reps_on_the_command_line_gives_a_study_file_its_seeds(tmp_path, capsys):

@@ -1,6 +1,7 @@
 """``report.md``: a study's outcome per cell and its errors per waypoint, next to the paper's numbers."""
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -148,8 +149,18 @@ def warning_section(cells: List[Cell]) -> List[str]:
             *lines, ""]
 
 
+def is_transport(cell: Cell) -> bool:
+    """A cell whose runs report caging (the transport's evaluator): the transport tables apply to it."""
+    return cell.has_path or any("caged" in r for r in cell.ok)
+
+
 def outcome_table(cells: List[Cell]) -> List[str]:
-    lines = ["## Outcome per cell", "",
+    others = [c for c in cells if not is_transport(c)]
+    cells = [c for c in cells if is_transport(c)]
+    lines = generic_outcome_table(others)
+    if not cells:
+        return lines
+    lines += ["## Outcome per cell", "",
              "Success = completed (every waypoint reached within the tolerances) for a transport, caged for a "
              "caging-only run.", "",
              "| cell | robots | runs | failed | caged | all waypoints | success | time to cage (s) | paper | "
@@ -168,6 +179,25 @@ def outcome_table(cells: List[Cell]) -> List[str]:
     return lines + [""]
 
 
+def generic_outcome_table(cells: List[Cell]) -> List[str]:
+    """Cells of another behaviour (no caging, no path): how their runs ended, and when."""
+    if not cells:
+        return []
+    lines = ["## Outcome per cell (other behaviours)", "",
+             "How the runs ended, and the simulated time of those whose robots all reported `finished`.", "",
+             "| cell | robots | runs | failed | ended by | time to finish (s) | simulated (s) |",
+             "|---|---|---|---|---|---|---|"]
+    for cell in cells:
+        reasons = Counter(str(r.get("stop_reason")) for r in cell.ok)
+        ended = ", ".join(f"{reason} {count}" for reason, count in reasons.most_common()) or "–"
+        finished = [float(r["sim_time_s"]) for r in cell.ok
+                    if r.get("stop_reason") == "behaviour finished" and isinstance(r.get("sim_time_s"), (int, float))]
+        lines.append(f"| {cell.name} | {cell.robots if cell.robots is not None else '–'} | {len(cell.results)} | "
+                     f"{len(cell.failed)} | {ended} | {median_and_spread(finished, 4)} | "
+                     f"{median_and_spread(cell.values('sim_time_s'), 4)} |")
+    return lines + [""]
+
+
 def spacing_text(cell: Cell) -> str:
     """The median over runs of each run's mean distance between neighbouring members while transporting, and
     the median of their standard deviations (``±``): a cage that opens up shows as a large ``±``."""
@@ -179,6 +209,8 @@ def spacing_text(cell: Cell) -> str:
 
 
 def error_tables(cells: List[Cell]) -> List[str]:
+    if not any(cell.waypoint_indices() for cell in cells):
+        return []                  # no cell follows a path: no waypoint, no table, no heading
     lines = ["## Errors per waypoint, ours vs the paper", "",
              "`n` = our runs that reached the waypoint. Paper: median over its runs (MISTLab/SwarmHaul "
              "`Errors.csv`).", ""]
