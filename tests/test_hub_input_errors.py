@@ -430,8 +430,10 @@ def test_two_agents_with_one_id_are_said_once_and_the_first_keeps_the_robot(tmp_
             assert len(joined) == 1, joined       # no hand-over back and forth
             assert hub.status()["drops"]["duplicate robot"] > 0
             stop_processes([first])               # the first goes: the second gets the robot
+            # At least 2: the second agent reopens its socket after 2 s without frames, and when that falls just
+            # after the hub took it, it connects once more (seen once in a fresh-clone run on a loaded machine).
             hub.wait_until(lambda s: s["robots"][0]["connected"]
-                           and len([line for line in hub.lines if "robot 0 connected from" in line]) == 2)
+                           and len([line for line in hub.lines if "robot 0 connected from" in line]) >= 2)
         finally:
             stop_processes([p for p in (first, second) if p is not None])
 
