@@ -622,11 +622,16 @@ def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_pat
         assert (tmp_path / "study.json.unreadable").read_text() == damaged
 
 
-def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_path, capsys):
+def write_gathering(path: Path, name: str, time_limit_s: float) -> Path:
+    """A scenario file of six robots running `aggregate` where lab-6 places them, named ``name``."""
     scenario = load_scenario("lab-6")
-    write(tmp_path / "mine.yaml", f"name: mine\nbehaviour: aggregate\ntime_limit_s: 2\n"
-                                  f"robots: {{count: 6, spawn: {{x: {list(scenario.robots.spawn.x)}, "
-                                  f"y: {list(scenario.robots.spawn.y)}}}}}\n")
+    return write(path, f"name: {name}\nbehaviour: aggregate\ntime_limit_s: {time_limit_s:g}\n"
+                       f"robots: {{count: 6, spawn: {{x: {list(scenario.robots.spawn.x)}, "
+                       f"y: {list(scenario.robots.spawn.y)}}}}}\n")
+
+
+def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_path, capsys):
+    write_gathering(tmp_path / "mine.yaml", "mine", time_limit_s=2)
     study = write(tmp_path / "edits.yaml", "scenarios: [mine.yaml]\nreps: 1\n")
     out = tmp_path / "out"
     assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
@@ -662,10 +667,7 @@ def test_resume_warns_about_finished_runs_of_a_behaviour_edited_since(tmp_path, 
 
 def test_scenarios_picks_a_scenario_file_by_its_name_too(tmp_path, capsys):
     """--scenarios took only the file's stem, not the name inside it, which is what its cells are called."""
-    scenario = load_scenario("lab-6")
-    write(tmp_path / "my-file.yaml", f"name: friday-demo\nbehaviour: aggregate\ntime_limit_s: 1\n"
-                                     f"robots: {{count: 6, spawn: {{x: {list(scenario.robots.spawn.x)}, "
-                                     f"y: {list(scenario.robots.spawn.y)}}}}}\n")
+    write_gathering(tmp_path / "my-file.yaml", "friday-demo", time_limit_s=1)
     study = write(tmp_path / "s.yaml", "scenarios: [my-file.yaml, lab-6]\nreps: 1\n")
     for name in ("friday-demo", "my-file"):
         assert main(["study", str(study), "--scenarios", name, "--dry-run", "--out", str(tmp_path / "o")]) == 0
@@ -675,10 +677,7 @@ def test_scenarios_picks_a_scenario_file_by_its_name_too(tmp_path, capsys):
 
 def test_the_report_of_another_behaviour_says_how_its_runs_ended(tmp_path):
     """A study of a behaviour without caging got empty transport tables and nothing about its runs."""
-    scenario = load_scenario("lab-6")
-    write(tmp_path / "gather.yaml", f"name: gather\nbehaviour: aggregate\ntime_limit_s: 2\n"
-                                    f"robots: {{count: 6, spawn: {{x: {list(scenario.robots.spawn.x)}, "
-                                    f"y: {list(scenario.robots.spawn.y)}}}}}\n")
+    write_gathering(tmp_path / "gather.yaml", "gather", time_limit_s=2)
     study = write(tmp_path / "s.yaml", "scenarios: [gather.yaml]\nreps: 2\n")
     assert main(["study", str(study), "--out", str(tmp_path / "out"), "--workers", "1", "--no-figures"]) == 0
     report = (tmp_path / "out" / "report.md").read_text()
