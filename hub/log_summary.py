@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
-import re
 import struct
 import zlib
 from collections import Counter
@@ -33,6 +32,7 @@ from hub.log_format import (
     metadata_from_text,
     split_robot_topic,
 )
+from onboard.sorting import natural_key
 
 FOOTER_RECORD_BYTES = 1 + 8 + 20   # opcode, length, summary_start, summary_offset_start, summary_crc
 RobotId = Union[int, str]
@@ -334,16 +334,11 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         stop_reason="" if reader.complete else reader.stop_reason, readable_bytes=reader.readable_bytes,
         start_s=start_s, end_s=end_s, duration_s=(end_s - start_s) if start_s is not None else 0.0,
         message_count=sum(tally.counts.values()),
-        topic_counts=dict(sorted(tally.counts.items(), key=lambda item: _natural(item[0]))),
+        topic_counts=dict(sorted(tally.counts.items(), key=lambda item: natural_key(item[0]))),
         robots=_robot_ids(tally.counts), drops=dict(sorted(tally.drops.items())),
         drops_by_sender=dict(sorted(tally.drops_by_sender.items())),
         metadata=metadata_from_text(metadata.get(USER_METADATA, {})),
         format_version=int(version) if version.isdigit() else None, damaged_records=list(reader.damaged))
-
-
-def _natural(text: str) -> Tuple[Any, ...]:
-    """Sort key: numbers inside a topic by value, so /robot/2/... comes before /robot/10/..."""
-    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", text))
 
 
 def _json_or_none(data: bytes) -> Any:

@@ -123,14 +123,19 @@ def stop_failure(out: Path, count: int) -> Optional[str]:
     it and stops the wheels all the same; ``khepri sim run`` reports the same bug as an error)."""
     for i in range(count):
         marker = f"agent {i}: robot {i}, stop(): "
-        try:
-            lines = (out / "agents" / f"agent-{i}.log").read_text(encoding="utf-8").splitlines()
-        except OSError:
-            continue
-        found = next((line for line in lines if line.startswith(marker)), None)
-        if found:
-            return f"after the run: {found}"
+        rest = agent_log_line(out, i, marker)
+        if rest:
+            return f"after the run: {marker}{rest}"
     return None
+
+
+def agent_log_line(out: Path, index: int, marker: str) -> str:
+    """The rest of agent ``index``'s last log line that starts with ``marker``, or ""."""
+    try:
+        lines = (out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return ""
+    return next((line[len(marker):] for line in reversed(lines) if line.startswith(marker)), "")
 
 
 def spawn_agents(endpoint: str, keys: Path, count: int, out: Path, imports: List[str]) -> List[subprocess.Popen]:
@@ -202,22 +207,14 @@ class SilSession:
         for rid in missing:
             robot = self.hub.robots[rid]
             if robot.unresponsive_steps >= UNRESPONSIVE_AFTER_STEPS and rid not in self.hub.killed:
-                said = self._log_line(rid, f"agent {rid}: the behaviour's step() has run for ")
+                said = agent_log_line(self.out, rid, f"agent {rid}: the behaviour's step() has run for ")
                 raise AgentError(f"agent {rid} stopped answering ({robot.unresponsive_steps} frames in a row, "
                                  f"{self.options.step_timeout_s:g} s each)"
                                  + (f": {said}" if said else "") + f"; its log is in {self.out / 'agents'}")
 
-    def _log_line(self, index: int, marker: str) -> str:
-        """The rest of the agent's last log line that starts with ``marker``, or ""."""
-        try:
-            lines = (self.out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
-        except OSError:
-            return ""
-        return next((line[len(marker):] for line in reversed(lines) if line.startswith(marker)), "")
-
     def _crash_line(self, index: int) -> str:
         """The agent's own account of its crash (``behaviour crashed: ...``) from its log, if it wrote one."""
-        return self._log_line(index, f"agent {index}: behaviour crashed: ")
+        return agent_log_line(self.out, index, f"agent {index}: behaviour crashed: ")
 
     def _run_lockstep(self, lockstep: Lockstep) -> None:
         period = self.source.control_period

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import csv
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+
+from onboard.sorting import natural_key
 
 from . import paper_reference as paper
 from .paper_reference import PaperCase
@@ -135,12 +136,6 @@ def cell_order(cell: Cell) -> tuple:
     if case.robots is not None:
         return (0, case.robots, paper.PAPER_PATHS.index(case.path), natural_key(cell.name))
     return (1 if case.irregular else 2, 0, 0, natural_key(cell.name))
-
-
-def natural_key(text: str) -> tuple:
-    """Text with its numbers compared as numbers: [(0, 'lab-'), (1, 6.0), ...]."""
-    parts = re.split(r"(\d+(?:\.\d+)?)", text)
-    return tuple((1, float(part)) if i % 2 else (0, part) for i, part in enumerate(parts) if part)
 
 
 @dataclass
