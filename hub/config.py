@@ -101,9 +101,9 @@ class SensingConfig:
 @dataclass
 class RelayConfig:
     drop: Optional[float] = None    # probability a message to one receiver is lost; default 0
-    # Messages waiting per receiver; the oldest is dropped beyond. As many as the agent keeps between two steps
-    # (INBOX_LIMIT): 64 dropped 11 % of the messages of 25 robots sending 3 each per step, which the
-    # simulator's radio (no queue) delivers all of.
+    # Messages waiting per receiver; the oldest is dropped beyond. As many as the agent (and the simulator)
+    # keeps between two steps (Radio.INBOX_LIMIT): 64 dropped 11 % of the messages of 25 robots sending 3
+    # each per step, which the simulator delivers all of.
     queue: int = 256
     max_bytes: int = 8192           # largest payload (compact JSON)
 

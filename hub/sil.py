@@ -271,15 +271,21 @@ class SilSession:
         telemetry = self.hub.robots[index].telemetry
         return None if telemetry is None else telemetry.get("behaviour")
 
+    def _radio_counts(self) -> Dict[str, int]:
+        """The simulator's radio counts (``RadioNetwork.stats``) from the hub's relay and the agents' inboxes:
+        a message is lost to overflow in the hub's queue or in a full inbox on the robot."""
+        relay = self.hub.relay.stats
+        overflowed = sum(int((r.telemetry or {}).get("inbox_dropped") or 0) for r in self.hub.robots.values())
+        return {"sent": relay.sent, "delivered": relay.delivered - overflowed, "dropped": relay.dropped_random,
+                "dropped_overflow": relay.dropped_overflow + overflowed}
+
     def _result(self, wall: float, lockstep: Lockstep, error: Optional[str]) -> Dict[str, Any]:
         sim_time = self.recording.t[-1] + self.source.control_period if self.recording.t else 0.0
-        relay = self.hub.relay.stats
         result: Dict[str, Any] = {
             "scenario": self.scenario.name, "seed": self.scenario.seed, "robots": len(self.agents),
             "behaviour": self.scenario.behaviour, "sim_time_s": round(sim_time, 6), "wall_time_s": round(wall, 3),
             "real_time_factor": round(sim_time / wall, 2) if wall > 0 else None, "stop_reason": self.stop_reason,
-            "radio": {"sent": relay.sent, "delivered": relay.delivered,
-                      "dropped": relay.dropped_random + relay.dropped_overflow},
+            "radio": self._radio_counts(),
         }
         if self.warnings:
             result["warnings"] = list(self.warnings)

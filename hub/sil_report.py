@@ -56,6 +56,7 @@ def sil_figures(hub, lockstep, round_trips: List[float], missing_answers: int, i
     lost = [int((r.telemetry or {}).get("frames_lost") or 0) for r in hub.robots.values()]
     bad = [int((r.telemetry or {}).get("frames_bad") or 0) for r in hub.robots.values()]
     unsent = [int((r.telemetry or {}).get("unsent") or 0) for r in hub.robots.values()]
+    overflowed = [int((r.telemetry or {}).get("inbox_dropped") or 0) for r in hub.robots.values()]
     return {
         "agents": len(hub.robots),
         "lockstep": is_lockstep,
@@ -75,6 +76,7 @@ def sil_figures(hub, lockstep, round_trips: List[float], missing_answers: int, i
             "frames_lost_at_agents": sum(lost),
             "bad_frames_at_agents": sum(bad),
             "unsent_at_agents": sum(unsent),    # the agents' sockets were full: their messages never left
+            "inbox_overflow_at_agents": sum(overflowed),  # more than Radio.INBOX_LIMIT arrived between two steps
             "relay": hub.relay.stats.as_dict(),
         },
     }

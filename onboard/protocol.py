@@ -184,7 +184,8 @@ SCHEMAS: Dict[str, Dict[str, Schema]] = {
         "required": {"id": robot_id, "step": integer, "mode": text},
         "optional": {"behaviour": optional(mapping), "loop": mapping, "battery_v": optional(number),
                      "clock_s": optional(number), "frames_lost": integer, "frames_bad": integer,
-                     "unsent": integer, "run_id": optional(text), "error": optional(text), "driver": text},
+                     "unsent": integer, "inbox_dropped": integer, "run_id": optional(text),
+                     "error": optional(text), "driver": text},
     },
     "broadcast": {
         "required": {"id": robot_id, "payload": mapping, "sent_s": number},

@@ -2,7 +2,9 @@
 
 A message broadcast at control step k reaches receivers within d_C (at send time) no earlier than step k+1,
 plus ``latency_s`` rounded up to whole control periods; each receiver independently loses it with
-probability ``drop``.
+probability ``drop``. A robot keeps at most ``Radio.INBOX_LIMIT`` messages between two of its steps, as the
+agent on a robot does: beyond, the oldest are dropped (``dropped_overflow``), so a behaviour that floods its
+neighbours loses messages here as it would in the lab.
 """
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ from typing import Any, Deque, Dict, List, Tuple
 
 import numpy as np
 
-from onboard.hal import Message
+from onboard.hal import Message, Radio
 
 _new_instance = object.__new__
 
@@ -29,6 +31,7 @@ class RadioNetwork:
         self.sent = 0
         self.delivered = 0
         self.dropped = 0
+        self.dropped_overflow = 0
 
     def send(self, step: int, sender: int, payload: Dict[str, Any], sent_s: float, receivers: np.ndarray) -> None:
         self.sent += 1
@@ -52,6 +55,14 @@ class RadioNetwork:
                 if living[receiver]:
                     inboxes[receiver].append(message)
                     self.delivered += 1
+        limit = Radio.INBOX_LIMIT
+        for inbox in inboxes:
+            if len(inbox) > limit:        # the oldest go, as from the agent's inbox (onboard/agent/devices.py)
+                excess = len(inbox) - limit
+                del inbox[:excess]
+                self.delivered -= excess
+                self.dropped_overflow += excess
 
     def stats(self) -> Dict[str, int]:
-        return {"sent": self.sent, "delivered": self.delivered, "dropped": self.dropped}
+        return {"sent": self.sent, "delivered": self.delivered, "dropped": self.dropped,
+                "dropped_overflow": self.dropped_overflow}

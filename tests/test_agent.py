@@ -310,3 +310,15 @@ def test_the_agents_neighbour_columns_are_read_only_as_in_the_simulator():
     for column in (table.ids, table.ranges_m, table.bearings_rad, table.xy):
         with pytest.raises(ValueError, match="read-only"):
             column[...] = 0
+
+
+def test_a_flooded_agent_keeps_the_newest_messages_and_counts_the_others():
+    """A robot keeps Radio.INBOX_LIMIT messages between two steps, as the simulator does; the rest is counted,
+    not lost without a trace."""
+    from onboard.hal import Radio
+
+    state = HubState()
+    flood = [[1, 0.5, {"n": n}] for n in range(Radio.INBOX_LIMIT + 44)]
+    apply_frame(state, {"seq": 1, "pose": None, "neighbours": [], "messages": flood}, AgentClock(state), 0.0)
+    assert len(state.inbox) == Radio.INBOX_LIMIT and state.inbox_dropped == 44
+    assert state.inbox[0].payload == {"n": 44} and state.inbox[-1].payload == {"n": Radio.INBOX_LIMIT + 43}

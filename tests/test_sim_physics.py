@@ -221,3 +221,32 @@ def test_a_script_that_registers_its_own_behaviour_exits_cleanly(tmp_path):
                           env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"})
     assert done.returncode == 0, done.stderr[-2000:]
     assert "finished 5" in done.stdout
+
+
+def test_a_robot_flooded_with_messages_keeps_what_a_real_one_would(make_scenario):
+    """The agent keeps Radio.INBOX_LIMIT messages between two steps; the simulator's radio did not, so a
+    behaviour that flooded its neighbours worked in simulation and lost messages in the lab."""
+    from onboard.behaviour import Behaviour, register
+    from onboard.hal import Radio
+
+    @register("flood-test")
+    class Flood(Behaviour):
+        most_received = 0
+
+        def step(self):
+            received = self.robot.radio.receive()
+            Flood.most_received = max(Flood.most_received, len(received))
+            if received:
+                assert [m.payload["n"] for m in received[-3:]] == [197, 198, 199]   # the newest are kept
+            for n in range(200):
+                self.robot.radio.broadcast({"n": n})
+
+    scenario = make_scenario(behaviour="flood-test", robots={"count": 3, "spawn": {"x": [-0.3, 0.3], "y": [-0.3, 0.3]}},
+                             time_limit_s=1.0)
+    result = Simulation(scenario).run()
+    assert "error" not in result, result.get("error")
+    radio = result["radio"]
+    assert Flood.most_received == Radio.INBOX_LIMIT
+    assert radio["dropped_overflow"] > 0
+    in_flight = 2 * 600        # the last step's 600 broadcasts, each to the two others
+    assert radio["delivered"] + radio["dropped_overflow"] == 2 * radio["sent"] - in_flight

@@ -14,7 +14,7 @@ from onboard import hal
 from onboard.drivers import Driver
 from onboard.hal import Message, Neighbours, Pose, ProximityReading, RobotSpec, WheelOdometry, clamp_wheel_speeds
 
-INBOX_LIMIT = 256    # relayed messages kept between two behaviour steps; the oldest go first
+INBOX_LIMIT = hal.Radio.INBOX_LIMIT    # relayed messages kept between two behaviour steps; the oldest go first
 
 
 @dataclass
@@ -32,6 +32,7 @@ class HubState:
     sim: Optional[Dict[str, Any]] = None    # IR and odometry from the hub's sim source
     inbox: Deque[Message] = field(default_factory=lambda: deque(maxlen=INBOX_LIMIT))
     frames_lost: int = 0
+    inbox_dropped: int = 0                  # relayed messages pushed out of a full inbox before a step read them
 
 
 class AgentClock(hal.Clock):
@@ -77,8 +78,11 @@ def apply_frame(state: HubState, frame: Dict[str, Any], clock: AgentClock, recei
     for column in (state.neighbours.ids, state.neighbours.ranges_m, state.neighbours.bearings_rad):
         column.flags.writeable = False       # as in the simulator: a behaviour writing into them gets an error
     state.neighbours_at = measured
+    inbox = state.inbox
     for sender, sent_s, payload in frame["messages"]:
-        state.inbox.append(Message(sender, payload, sent_s))
+        if len(inbox) == INBOX_LIMIT:
+            state.inbox_dropped += 1            # the deque drops the oldest itself; count it
+        inbox.append(Message(sender, payload, sent_s))
 
 
 class HubPositioning(hal.Positioning):

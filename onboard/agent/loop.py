@@ -322,7 +322,7 @@ class Agent:
             "type": "telemetry", "step": self.state.seq, "mode": mode, "behaviour": behaviour,
             "loop": self.stats.as_dict(), "battery_v": self.driver.battery_v(),
             "clock_s": round(self.clock.now(), 6), "frames_lost": self.state.frames_lost,
-            "frames_bad": self.link.bad, "unsent": self.link.unsent,
+            "frames_bad": self.link.bad, "unsent": self.link.unsent, "inbox_dropped": self.state.inbox_dropped,
             "run_id": self.run.get("run_id") if self.run else None, "driver": self.driver_name(),
         }
         if self.error:

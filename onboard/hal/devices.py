@@ -29,6 +29,9 @@ class RangeAndBearingSensor(ABC):
 class Radio(ABC):
     #: Largest payload (bytes of compact JSON) a backend must carry; larger broadcasts are refused.
     MAX_PAYLOAD_BYTES = 8192
+    #: Messages a robot keeps between two of its steps; beyond, the oldest are dropped (and counted). The
+    #: simulator and the agent both keep this many, so a swarm that floods a robot loses the same messages.
+    INBOX_LIMIT = 256
 
     @abstractmethod
     def broadcast(self, payload: Mapping[str, Any]) -> None:
