@@ -10,12 +10,13 @@ from pathlib import Path
 from typing import Optional
 
 
-def check_time_limit(seconds: Optional[float]) -> None:
-    """``--time-limit`` of sim run, sil and study: argparse's float() also takes ``nan`` and ``inf``."""
+def check_time_limit(seconds: Optional[float], option: str = "--time-limit") -> None:
+    """``--time-limit`` (or ``--wall-limit``) of sim run, sil and study: argparse's float() also takes ``nan``
+    and ``inf``."""
     from onboard.config import ConfigError
 
     if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
-        raise ConfigError("--time-limit", f"must be a finite number of seconds > 0 (got {seconds:g})")
+        raise ConfigError(option, f"must be a finite number of seconds > 0 (got {seconds:g})")
 
 
 def folder_arg(text: str) -> Path:
@@ -37,6 +38,9 @@ def add_sim(groups) -> None:
     run.add_argument("--seed", type=seed_value, help="random seed (default: the scenario's)")
     run.add_argument("--out", type=folder_arg, help="output folder (default: out/<scenario>-seed<N>)")
     run.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
+    run.add_argument("--wall-limit", type=float, metavar="S",
+                     help="stop the run after S seconds of wall-clock time (a behaviour that hangs), keeping "
+                          "what was recorded")
     run.add_argument("--video", type=Path, metavar="FILE", help="also write an animation (.gif, or .mp4 with ffmpeg)")
     run.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
     run.set_defaults(func=cmd_run)
@@ -81,6 +85,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     scenario = load_scenario(args.scenario)
     check_time_limit(args.time_limit)
+    check_time_limit(args.wall_limit, "--wall-limit")
     problem = video_problem(args.video) if args.video is not None else None
     if problem:
         print(f"khepri: error: --video: {problem}", file=sys.stderr)
@@ -95,16 +100,21 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"khepri: warning: {warning}", file=sys.stderr)
     bar = ProgressBar(f"{scenario.name} seed {sim.seed}")
     try:
-        result = sim.run(time_limit_s=args.time_limit, progress=bar)
+        result = sim.run(time_limit_s=args.time_limit, progress=bar, wall_limit_s=args.wall_limit)
     finally:
         bar.close()
-    files = write_run(sim, result, out, video=args.video, plot=not args.no_plot)
+    interrupted = result.get("stop_reason") == "interrupted"
+    files = write_run(sim, result, out, video=None if interrupted else args.video, plot=not args.no_plot)
     print_summary(result)
     for name, path in files.items():
         print(f"  {name}: {path}")
+    if interrupted:             # Ctrl-C: what was recorded is written, and where the run was is said
+        print(f"khepri: {result['error']}", file=sys.stderr)
+        return 130
     if "error" in result:
-        when = "the run crashed" if result.get("stop_reason") == "crashed" else \
-            f"after the run ({result.get('stop_reason')})"      # the behaviour's stop() raised at the end
+        reason = result.get("stop_reason")
+        when = "the run crashed" if reason == "crashed" else "the run was stopped" if reason == "wall-clock limit" \
+            else f"after the run ({reason})"      # the behaviour's stop() raised at the end
         print(f"khepri: error: {when}: {result['error']}", file=sys.stderr)
         if result.get("traceback"):
             print("\n".join(result["traceback"]), file=sys.stderr)

@@ -34,6 +34,9 @@ def add_study(groups) -> None:
     study.add_argument("--workers", type=int, metavar="N", help="worker processes (default: the number of cores)")
     study.add_argument("--out", type=folder_arg, help="study folder (default out/study-<name>)")
     study.add_argument("--time-limit", type=float, metavar="S", help="cap every run at S simulated seconds")
+    study.add_argument("--wall-limit", type=float, metavar="S",
+                       help="stop any run after S seconds of wall-clock time and record it as failed (a behaviour "
+                            "that hangs would otherwise hold its worker forever)")
     study.add_argument("--retry-failed", action="store_true", help="run again the runs recorded as failed")
     study.add_argument("--dry-run", action="store_true", help="print the grid and what is done; run nothing")
     study.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
@@ -98,6 +101,7 @@ def study_grid(args: argparse.Namespace):
     if args.reps is not None:
         check_reps("--reps", args.reps)
     check_time_limit(args.time_limit)
+    check_time_limit(args.wall_limit, "--wall-limit")
     if args.target == "paper":
         spec = paper_study(args.reps or DEFAULT_REPS)
     else:
@@ -115,6 +119,7 @@ def study_grid(args: argparse.Namespace):
     runs = expand(spec)
     for run in runs:   # workers import what `khepri --import` imported here (a user's behaviour)
         run.imports, run.import_dir = list(getattr(args, "imports", [])), os.getcwd()
+        run.wall_limit_s = args.wall_limit
     warned = set()
     for run in runs:   # once per cell, before anything runs (each run's result.json keeps them too)
         if run.cell not in warned:
@@ -164,7 +169,8 @@ def command_line(args: argparse.Namespace) -> str:
     """The command as it could be typed again (recorded in study.json and quoted by report.md)."""
     words = ["khepri"] + [f"--import={name}" for name in getattr(args, "imports", [])] + ["study", args.target]
     options = (("--reps", args.reps), ("--scenarios", args.scenarios), ("--executor", args.executor),
-               ("--workers", args.workers), ("--out", args.out), ("--time-limit", args.time_limit))
+               ("--workers", args.workers), ("--out", args.out), ("--time-limit", args.time_limit),
+               ("--wall-limit", args.wall_limit))
     for flag, value in options:
         if value is not None and not (flag == "--executor" and value == "local"):
             words += [flag, format(value, "g") if isinstance(value, float) else str(value)]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import random
 import time
+import traceback
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, List, Optional
 
@@ -22,12 +23,14 @@ from onboard.behaviour import (
 )
 from onboard.geometry import neighbour_mask, pairwise_range_bearing, wrap
 from onboard.protocol import ProtocolError, encode
+from onboard.tracebacks import where_in_users_code
 
 from .hal import SensorFrame, make_robot
 from .metrics import evaluator_for
 from .radio import RadioNetwork
 from .scenario import Scenario
 from .sensing import ProximityModel
+from .wall_clock import WallClockLimit, WallClockLimitReached
 from .world import World
 
 Progress = Callable[[float, float], None]
@@ -44,6 +47,15 @@ class Recording:
     robot_alive: List[np.ndarray] = field(default_factory=list)
     object_pose: List[np.ndarray] = field(default_factory=list)
     centroid_estimate: List[np.ndarray] = field(default_factory=list)
+
+    def trim(self, has_object: bool) -> None:
+        """Drop a sample left half-written by a run stopped from outside (between two of its appends)."""
+        lists = [self.t, self.robot_pose, self.robot_alive, self.centroid_estimate]
+        if has_object:
+            lists.append(self.object_pose)
+        complete = min(len(samples) for samples in lists)
+        for samples in lists:
+            del samples[complete:]
 
 
 def mission_params(behaviour_cls, scenario: Scenario) -> Dict[str, Any]:
@@ -181,6 +193,9 @@ class Simulation:
                     commands.append((i, wheels.left, wheels.right))
         except Exception as exc:     # the user's code: name the robot and the line (a try costs nothing here)
             raise BehaviourError(i, "step()", exc) from exc
+        except (KeyboardInterrupt, WallClockLimitReached) as exc:   # stopped from outside: say in whose step
+            exc.where = f"{i}'s step(){where_in_users_code(traceback.extract_tb(exc.__traceback__)[1:])}"
+            raise
         self.world.command_many(commands)
 
     def _collect_telemetry(self, alive: np.ndarray) -> List[Optional[Dict[str, Any]]]:
@@ -234,7 +249,11 @@ class Simulation:
                 raise BehaviourError(i, "finished", exc) from exc
         return True
 
-    def run(self, time_limit_s: Optional[float] = None, progress: Optional[Progress] = None) -> Dict[str, Any]:
+    def run(self, time_limit_s: Optional[float] = None, progress: Optional[Progress] = None,
+            wall_limit_s: Optional[float] = None) -> Dict[str, Any]:
+        """Run to the end (time limit, finished behaviour, every robot failed) and return the result. A run
+        that crashes, outlives ``wall_limit_s`` seconds of wall time, or is interrupted (Ctrl-C) still
+        returns what was recorded up to there, with ``stop_reason`` and ``error`` saying why it ended."""
         limit = self.scenario.time_limit_s if time_limit_s is None else time_limit_s
         started = time.perf_counter()
         steps = int(math.ceil(limit / self.period - 1e-9))
@@ -242,16 +261,24 @@ class Simulation:
         error: Optional[str] = None
         trace: Optional[List[str]] = None
         try:
-            for _ in range(steps):
-                self.step()
-                if progress is not None and self.step_index % 10 == 0:
-                    progress(self.step_index * self.period, limit)
-                if self.done():
-                    self.stop_reason = "behaviour finished"
-                    break
-                if not self.world.alive().any():      # nothing can happen any more: no need to wait for the limit
-                    self.stop_reason = "every robot failed"
-                    break
+            with WallClockLimit(wall_limit_s):
+                for _ in range(steps):
+                    self.step()
+                    if progress is not None and self.step_index % 10 == 0:
+                        progress(self.step_index * self.period, limit)
+                    if self.done():
+                        self.stop_reason = "behaviour finished"
+                        break
+                    if not self.world.alive().any():   # nothing can happen any more: no need to wait for the limit
+                        self.stop_reason = "every robot failed"
+                        break
+        except (WallClockLimitReached, KeyboardInterrupt) as exc:   # a hung behaviour, or the user: keep the results
+            self.stop_reason = "wall-clock limit" if isinstance(exc, WallClockLimitReached) else "interrupted"
+            what = f"wall-clock limit of {wall_limit_s:g} s reached" if isinstance(exc, WallClockLimitReached) \
+                else "interrupted (Ctrl-C)"
+            inside = f" while robot {exc.where} ran" if getattr(exc, "where", None) else ""
+            error = f"{what}{inside} (at t = {self.step_index * self.period:.1f} s)"
+            self.recording.trim(has_object=self.world.object_pose() is not None)
         except Exception as exc:  # a crashed run is recorded, not lost: results up to here are kept
             what = str(exc) if isinstance(exc, BehaviourError) else f"{type(exc).__name__}: {exc}"
             error = f"{what} (at t = {self.step_index * self.period:.1f} s)"

@@ -49,6 +49,12 @@ class Buggy(Behaviour):
             self.robot.wheels.set_speeds(math.nan, 0.1)
         if self.params.bug == "columns":
             self.robot.range_and_bearing.neighbours().ids[:] = 0
+        if self.params.bug == "hang" and self.robot.id == 1 and late:
+            while True:                      # waits for a message that only the next step could bring
+                try:
+                    self.robot.radio.receive()
+                except Exception:
+                    pass
         if self.params.bug == "share":
             self.params.seen.append(self.robot.id)
             if self.robot.id == 0:
@@ -120,6 +126,42 @@ def test_an_init_or_stop_that_raises_is_reported_without_losing_the_run(buggy, t
         capsys.readouterr().err
     result = json.loads((tmp_path / "stop" / "result.json").read_text())
     assert result["sim_time_s"] == pytest.approx(2.0)           # the whole run, written
+
+
+def test_a_hung_step_is_stopped_by_the_wall_limit_and_named_with_the_results_kept(buggy, tmp_path, capsys):
+    """A step() that never returns used to hold `sim run` (and a study's worker) forever."""
+    assert run("sim", "run", buggy("hang"), "--no-plot", "--out", "out", "--wall-limit", "1.5") == 1
+    err = capsys.readouterr().err
+    assert "the run was stopped: wall-clock limit of 1.5 s reached while robot 1's step() at buggy_behaviour.py:" \
+        in err and "(at t = 0.6 s)" in err
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["stop_reason"] == "wall-clock limit" and result["sim_time_s"] == pytest.approx(0.6)
+    assert np.load(tmp_path / "out" / "trajectory.npz")["t"].shape == (6,)
+
+
+def test_ctrl_c_keeps_what_was_recorded_and_says_which_step_was_running(buggy, tmp_path, capsys):
+    import os
+    import signal
+    import threading
+
+    threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT)).start()
+    assert run("sim", "run", buggy("hang"), "--no-plot", "--out", "out") == 130
+    assert "khepri: interrupted (Ctrl-C) while robot 1's step() at buggy_behaviour.py:" in capsys.readouterr().err
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["stop_reason"] == "interrupted" and result["sim_time_s"] == pytest.approx(0.6)
+
+
+def test_a_study_records_a_hung_run_as_failed_and_runs_the_others(buggy, tmp_path, capsys):
+    for bug in ("hang", "none"):
+        (tmp_path / f"{bug}.yaml").write_text(SCENARIO.format(bug=bug).replace("name: buggy", f"name: {bug}"))
+    (tmp_path / "study.yaml").write_text("name: hangs\nscenarios: [hang.yaml, none.yaml]\nseeds: [1]\n")
+    assert run("study", "study.yaml", "--out", "st", "--workers", "2", "--wall-limit", "3", "--no-figures") == 1
+    hung = json.loads((tmp_path / "st" / "hang" / "seed-1" / "result.json").read_text())
+    assert hung["failed"] and hung["stop_reason"] == "wall-clock limit"
+    assert "robot 1's step() at buggy_behaviour.py:" in hung["error"]
+    fine = json.loads((tmp_path / "st" / "none" / "seed-1" / "result.json").read_text())
+    assert not fine["failed"] and fine["stop_reason"] == "time limit"
+    assert "wall-clock limit of 3 s reached" in (tmp_path / "st" / "report.md").read_text()
 
 
 def test_nan_in_a_broadcast_is_refused_as_the_wire_would(buggy, capsys):

@@ -55,6 +55,7 @@ class RunSpec:
     seed: int
     overrides: Dict[str, Any] = field(default_factory=dict)
     time_limit_s: Optional[float] = None
+    wall_limit_s: Optional[float] = None   # stop the run after this much wall time (a hung behaviour); None: never
     # Modules the driver was started with (``khepri --import``), e.g. a user's behaviour: a worker process
     # imports them too, from import_dir (the driver's working folder) or its own path.
     imports: List[str] = field(default_factory=list)

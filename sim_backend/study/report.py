@@ -94,7 +94,7 @@ def header(results: StudyResults, study: Dict[str, Any]) -> List[str]:
     if commands:
         lines += ["Commands that wrote this folder:", "", "```sh", *commands, "```", ""]
     unreadable = f", {len(results.unreadable)} unreadable (listed below)" if results.unreadable else ""
-    lines += [f"{runs} runs in {len(results.cells)} cells, {failed} failed (crashed; excluded from the "
+    lines += [f"{runs} runs in {len(results.cells)} cells, {failed} failed (crashed or stopped; excluded from the "
               f"statistics){unreadable}. Time limit: {time_limit_text(results.cells)}.", ""]
     planned, missing = missing_runs(results, study)
     if missing:

@@ -30,7 +30,7 @@ def execute_run(spec: RunSpec, out_root: str) -> Dict[str, Any]:
 
         import_user_modules(spec.imports, spec.import_dir)
         sim = Simulation(parse_scenario(spec.scenario_data), seed=spec.seed)
-        result = sim.run(time_limit_s=spec.time_limit_s)
+        result = sim.run(time_limit_s=spec.time_limit_s, wall_limit_s=spec.wall_limit_s)
     except Exception as exc:  # a run that cannot start is recorded as failed with its reason, not lost
         result = failed_result(spec, f"{type(exc).__name__}: {exc}", traceback.format_exc())
         try:
@@ -38,6 +38,8 @@ def execute_run(spec: RunSpec, out_root: str) -> Dict[str, Any]:
         except OSError:
             pass
         return result
+    if result.get("stop_reason") == "interrupted":
+        raise KeyboardInterrupt    # the study is stopping: no result.json, so a resume runs it again
     result = with_study_fields(result, spec, failed="error" in result)
     try:
         write_run_files(sim, result, Path(out_root) / spec.run_dir)
