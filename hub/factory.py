@@ -31,9 +31,9 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         try:
             scenario = scenario or load_scenario(config.source.scenario)
         except ConfigError as err:
-            if err.field != "scenario":
-                raise          # a field inside the scenario file: its own path says which
-            raise ConfigError("source.scenario", err.problem) from None   # the lab config's field
+            # The lab config's field, and for a field inside the scenario file, which file and field.
+            problem = err.problem if err.field == "scenario" else f"{config.source.scenario}: {err}"
+            raise ConfigError("source.scenario", problem) from None
         source: PoseSource = SimSource(scenario, config.source.seed, config.source.frame_hz)
         seed = source.hub_seed
     elif config.source.type == "motioncapture":

@@ -28,7 +28,21 @@ def build_parser() -> argparse.ArgumentParser:
     lab_commands.add_lab(groups)
     log_commands.add_log(groups)
     study_commands.add_study(groups)
+    _accept_import_after_the_command(parser)
     return parser
+
+
+def _accept_import_after_the_command(parser: argparse.ArgumentParser) -> None:
+    """``khepri sim run wander.yaml --import wander`` as well as ``khepri --import wander sim run ...``: every
+    command takes ``--import`` too (``agent`` has its own, as on a robot)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for command in set(action.choices.values()):
+                _accept_import_after_the_command(command)
+            return
+    if not any("--import" in action.option_strings for action in parser._actions):
+        parser.add_argument("--import", dest="late_imports", action="append", default=[], metavar="MODULE",
+                            help="as `khepri --import MODULE`")
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -93,6 +107,7 @@ def _run(argv: Optional[List[str]]) -> int:
     except SystemExit:
         sys.stdout.flush()          # --help into a closed pipe fails here, inside main(), not at exit
         raise
+    args.imports = args.imports + getattr(args, "late_imports", [])
     try:
         if args.imports:
             import_user_modules(args.imports)

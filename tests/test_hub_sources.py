@@ -263,7 +263,7 @@ def test_a_slowed_replay_keeps_the_robots_tracked_between_its_frames(tmp_path):
 
 
 def test_an_unknown_sim_scenario_names_the_lab_configs_field():
-    """The lab config's field is source.scenario; a field inside a scenario file keeps its own path."""
+    """The lab config's field is source.scenario."""
     for scenario, field in (("no-such-scenario", "source.scenario"), ("lab-6", None)):
         config = parse_config({"source": {"type": "sim", "scenario": scenario}, "network": NETWORK,
                                "security": {"insecure": True}})
@@ -273,6 +273,15 @@ def test_an_unknown_sim_scenario_names_the_lab_configs_field():
         with pytest.raises(ConfigError) as info:
             build_hub(config, log=lambda line: None)
         assert info.value.field == field and "not built in" in str(info.value)
+
+
+def test_a_bad_field_inside_the_sim_scenario_file_names_the_file_and_the_field(tmp_path):
+    """It said only "behaviour: unknown behaviour 'goto'", which reads as a key of the lab config."""
+    (tmp_path / "goto.yaml").write_text("behaviour: goto\nrobots: {count: 2}\n")
+    config = parse_config({"source": {"type": "sim", "scenario": str(tmp_path / "goto.yaml")}, "network": NETWORK,
+                           "security": {"insecure": True}})
+    with pytest.raises(ConfigError, match=r"^source.scenario: .*goto.yaml: behaviour: unknown behaviour 'goto'"):
+        build_hub(config, log=lambda line: None)
 
 
 def test_a_real_robots_agent_joining_a_sim_hub_is_told_about_once():

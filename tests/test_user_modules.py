@@ -200,3 +200,14 @@ def test_a_bug_in_a_params_validate_is_one_line_with_its_place(tmp_path):
     with pytest.raises(ConfigError, match=r"^params: DriveParams\.validate raised AttributeError: .*'sped_m_s' "
                                           r"at typo_params\.py:\d+$"):
         build_params(get_behaviour("typo-params"), {})
+
+
+def test_import_may_also_follow_the_command(tmp_path, monkeypatch):
+    """`khepri sim run drive.yaml --import late_drive` was refused ("unrecognized arguments") while `khepri
+    agent ... --import` is how a robot takes it."""
+    (tmp_path / "late_drive.py").write_text(DRIVE_BEHAVIOUR.format(name="late-drive"))
+    (tmp_path / "drive.yaml").write_text(SCENARIO.format(name="late-drive"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["sim", "run", "drive.yaml", "--import", "late_drive", "--time-limit", "1", "--no-plot",
+                 "--out", "out"]) == 0
+    assert json.loads((tmp_path / "out" / "result.json").read_text())["behaviour"] == "late-drive"
