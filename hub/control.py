@@ -2,7 +2,8 @@
 from __future__ import annotations
 
 import random
-from typing import Any, Dict, List, Optional
+import time
+from typing import Any, Dict, List, Optional, Tuple
 
 import zmq
 
@@ -48,6 +49,21 @@ def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, ti
     if not reply["ok"]:
         raise ControlError(f"the hub refused {cmd}: {reply.get('error', 'no reason given')}")
     return reply
+
+
+def refusals_after_start(endpoint: str, keys: Optional[Dict[str, bytes]] = None, timeout_s: float = 2.0,
+                         wait_s: float = 1.5) -> List[Tuple[int, str]]:
+    """After ``start``: the connected robots that say they cannot run it (an unknown behaviour, bad params, an
+    ``__init__`` that raised), as (id, error). An agent says so in its telemetry, after the hub's reply, so
+    this asks the status until every connected robot reports the new run or ``wait_s`` has passed."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        status = request(endpoint, "status", keys=keys, timeout_s=timeout_s)["status"]
+        connected = [row for row in status["robots"] if row.get("connected")]
+        started = all(row.get("run_id") == status.get("run_id") for row in connected)
+        if (started and not any(row.get("error") for row in connected)) or time.monotonic() >= deadline:
+            return [(row["id"], str(row["error"])) for row in connected if row.get("error")]
+        time.sleep(0.1)
 
 
 def _await_reply(sock: zmq.Socket, nonce: int, timeout_s: float, endpoint: str) -> Dict[str, Any]:

@@ -126,7 +126,7 @@ def _add_ctl(groups) -> None:
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:
-    from hub.control import BadEndpoint, ControlError, request, status_table
+    from hub.control import BadEndpoint, ControlError, refusals_after_start, request, status_table
     from hub.security import operator_client_keys
 
     check_port("--port", args.port)
@@ -144,6 +144,15 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         print(json.dumps(reply["status"], indent=2) if args.json else status_table(reply["status"]))
     else:
         print(f"{args.command}: ok{' (' + reply['note'] + ')' if reply.get('note') else ''}")
+    if args.command == "start":    # the hub is in run mode now; say which robots will not run (ctl said ok)
+        try:
+            refused = refusals_after_start(endpoint, keys, args.timeout)
+        except ControlError as err:
+            print(f"khepri: error: {err}", file=sys.stderr)
+            return 1
+        for robot_id, error in refused:
+            print(f"khepri: error: robot {robot_id}: {error}", file=sys.stderr)
+        return 1 if refused else 0
     return 0
 
 

@@ -46,34 +46,75 @@ def test_the_insecure_demo_hub_refuses_to_listen_beyond_loopback(bind, capsys):
     assert capsys.readouterr().err.startswith("khepri: error: --bind: --demo runs without encryption")
 
 
-def test_hub_answers_ctl_and_takes_an_agent(tmp_path):
-    config = tmp_path / "lab.yaml"     # the demo (sim source on lab-6, loopback) on free ports; --insecure below
-    config.write_text(yaml.safe_dump({"source": {"type": "sim", "scenario": "lab-6"},
+def hub_ports(log_path: Path, hub: subprocess.Popen) -> dict:
+    """The robots and control ports a hub on port 0 bound, read from its `listening` lines."""
+    deadline = time.monotonic() + 30
+    while log_path.read_text().count("listening ") < 2:
+        assert hub.poll() is None and time.monotonic() < deadline, log_path.read_text()
+        time.sleep(0.1)
+    ports = dict(re.findall(r"listening (robots|control) tcp://127\.0\.0\.1:(\d+)", log_path.read_text()))
+    assert set(ports) == {"robots", "control"}, log_path.read_text()
+    return ports
+
+
+def wait_until_connected(robot_id: int, control_port: str) -> None:
+    deadline = time.monotonic() + 60
+    while True:
+        status = khepri("ctl", "status", "--json", "--port", control_port)
+        assert status.returncode == 0, status.stderr
+        if json.loads(status.stdout)["robots"][robot_id]["connected"]:
+            return
+        assert time.monotonic() < deadline, "the agent did not join"
+        time.sleep(0.2)
+
+
+def lab_config(tmp_path: Path, scenario: str) -> Path:
+    """The demo (sim source, loopback) on free ports; --insecure is given on the command line."""
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump({"source": {"type": "sim", "scenario": scenario},
                                       "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}}))
+    return config
+
+
+def test_hub_answers_ctl_and_takes_an_agent(tmp_path):
     hub_log = open(tmp_path / "hub.log", "w")
-    hub = spawn("hub", "--config", str(config), "--insecure", log=hub_log)
+    hub = spawn("hub", "--config", str(lab_config(tmp_path, "lab-6")), "--insecure", log=hub_log)
     agent = None
     try:
-        deadline = time.monotonic() + 30
-        while (tmp_path / "hub.log").read_text().count("listening ") < 2:
-            assert hub.poll() is None and time.monotonic() < deadline, (tmp_path / "hub.log").read_text()
-            time.sleep(0.1)
-        text = (tmp_path / "hub.log").read_text()
-        ports = dict(re.findall(r"listening (robots|control) tcp://127\.0\.0\.1:(\d+)", text))
-        assert set(ports) == {"robots", "control"}, text
-        assert "WARNING: --insecure" in text
+        ports = hub_ports(tmp_path / "hub.log", hub)
+        assert "WARNING: --insecure" in (tmp_path / "hub.log").read_text()
         agent = spawn("agent", "--id", "2", "--driver", "sim", "--port", ports["robots"],
                       log=open(tmp_path / "agent.log", "w"))
-        while True:
-            status = khepri("ctl", "status", "--json", "--port", ports["control"])
-            assert status.returncode == 0, status.stderr
-            robots = json.loads(status.stdout)["robots"]
-            if robots[2]["connected"]:
-                break
-            assert time.monotonic() < deadline + 30, "the agent did not join"
-            time.sleep(0.2)
+        wait_until_connected(2, ports["control"])
         table = khepri("ctl", "status", "--port", ports["control"]).stdout
         assert table.splitlines()[0].startswith("hub: idle") and "INSECURE" in table
+    finally:
+        codes = stop_processes([p for p in (agent, hub) if p is not None])
+        hub_log.close()
+    assert codes == [0] * len(codes)
+
+
+def test_ctl_start_names_the_robots_that_cannot_run_it(tmp_path):
+    """`ctl start` said ok (exit 0) when every agent refused the run, here a behaviour only the hub imported."""
+    (tmp_path / "hub_only.py").write_text("from onboard.behaviour import Behaviour, register\n\n\n"
+                                          "@register('hub-only')\nclass HubOnly(Behaviour):\n"
+                                          "    def step(self):\n        pass\n")
+    (tmp_path / "hub-only.yaml").write_text("behaviour: hub-only\nrobots: {count: 3}\n")
+    hub_log = open(tmp_path / "hub.log", "w")
+    hub = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "--import", "hub_only", "hub", "--config",
+                            str(lab_config(tmp_path, "hub-only.yaml")), "--insecure"],
+                           stdout=hub_log, stderr=subprocess.STDOUT, env=ENV, text=True, cwd=tmp_path)
+    agent = None
+    try:
+        ports = hub_ports(tmp_path / "hub.log", hub)
+        agent = spawn("agent", "--id", "1", "--driver", "sim", "--port", ports["robots"],
+                      log=open(tmp_path / "agent.log", "w"))
+        wait_until_connected(1, ports["control"])
+        start = khepri("ctl", "start", "--port", ports["control"])
+        assert start.returncode == 1, start
+        assert start.stdout.startswith("start: ok (1 of 3 robots connected and sent it")
+        assert "khepri: error: robot 1: cannot start the run: run.behaviour: unknown behaviour 'hub-only'" \
+            in start.stderr
     finally:
         codes = stop_processes([p for p in (agent, hub) if p is not None])
         hub_log.close()
