@@ -110,7 +110,8 @@ def _run(argv: Optional[List[str]]) -> int:
     args.imports = args.imports + getattr(args, "late_imports", [])
     try:
         if args.imports:
-            import_user_modules(args.imports)
+            for warning in import_user_modules(args.imports):
+                print(f"khepri: warning: --import {warning}", file=sys.stderr)
         code = int(args.func(args) or 0)
         sys.stdout.flush()          # buffered output meets a closed pipe here, inside main(), not at exit
         return code

@@ -5,32 +5,39 @@ A module registers its behaviours with ``@register`` when it is imported, so imp
 """
 from __future__ import annotations
 
+import ast
 import importlib
 import os
 import sys
 from pathlib import Path
-from typing import Iterable, Optional
+from typing import Iterable, List, Optional
 
 from .config import ConfigError
 from .tracebacks import describe
 
+#: What a robot does not have: a behaviour's module that imports these runs in simulation and fails on a robot.
+NOT_ON_ROBOTS = ("sim_backend", "hub", "khepri_cli", "pymunk", "matplotlib")
 
-def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) -> None:
+
+def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) -> List[str]:
     """Import each of ``names``: a module name (``wander``, ``mylab.behaviours``) found in ``base_dir`` (default:
     the current folder) or on ``sys.path``, or the path of a ``.py`` file (relative to ``base_dir``).
 
     A module that cannot be found or imported, whose file does not parse, or whose own code raises while it is
-    imported, is a ConfigError naming it (and, for the last, the file and line)."""
-    from .behaviour import behaviour_names
+    imported, is a ConfigError naming it (and, for the last, the file and line). Returns warnings: a module that
+    registers a behaviour and imports what robots do not have (:data:`NOT_ON_ROBOTS`)."""
+    from .behaviour import _REGISTRY, behaviour_names
 
     behaviour_names()      # the built-ins first: a user's module reusing one of their names is then the one told
     base = base_dir or os.getcwd()
     if base not in sys.path:
         sys.path.insert(0, base)
+    warnings = []
     for name in names:
         module = _module_name(name, base)
+        known = set(_REGISTRY)
         try:
-            importlib.import_module(module)
+            loaded = importlib.import_module(module)
         except SyntaxError as err:
             raise ConfigError("--import", f"{err.filename}:{err.lineno}: {err.msg}") from None
         except ImportError as err:
@@ -39,6 +46,31 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
             raise                  # e.g. @register refusing a name: it says what is wrong already
         except Exception as err:   # the module's own code raised while it was imported: where, in one line
             raise ConfigError("--import", f"importing {name!r} raised {describe(err)}") from None
+        registered = sorted(set(_REGISTRY) - known)
+        missing = imports_robots_lack(getattr(loaded, "__file__", None)) if registered else []
+        if missing:
+            warnings.append(f"{name}: registers the behaviour {', '.join(registered)} and imports "
+                            f"{', '.join(missing)}: it runs in simulation but will fail on a robot, which has only "
+                            "onboard/ (put an evaluator in a module of its own)")
+    return warnings
+
+
+def imports_robots_lack(path: Optional[str]) -> List[str]:
+    """The packages of :data:`NOT_ON_ROBOTS` that the file at ``path`` imports, at any depth of its code."""
+    try:
+        tree = ast.parse(Path(path).read_text(encoding="utf-8")) if path else None
+    except (OSError, SyntaxError, ValueError):
+        return []
+    found = set()
+    for node in ast.walk(tree) if tree is not None else ():
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names = [node.module]
+        else:
+            continue
+        found.update(n.split(".")[0] for n in names if n.split(".")[0] in NOT_ON_ROBOTS)
+    return sorted(found)
 
 
 def _check_name_is_free(path: Path) -> None:

@@ -211,3 +211,18 @@ def test_import_may_also_follow_the_command(tmp_path, monkeypatch):
     assert main(["sim", "run", "drive.yaml", "--import", "late_drive", "--time-limit", "1", "--no-plot",
                  "--out", "out"]) == 0
     assert json.loads((tmp_path / "out" / "result.json").read_text())["behaviour"] == "late-drive"
+
+
+def test_a_behaviour_module_that_imports_the_simulator_is_warned_about(tmp_path, capsys):
+    """It ran in `sim run` and `sil` and would fail only on a robot, which has onboard/ alone. An evaluator's
+    module (no behaviour in it) may import the simulator."""
+    (tmp_path / "peeking.py").write_text(DRIVE_BEHAVIOUR.format(name="peeking") + "\n\ndef later():\n"
+                                         "    from sim_backend.runner import Simulation\n    return Simulation\n")
+    (tmp_path / "my_eval.py").write_text("from sim_backend import metrics\n")
+    warnings = import_user_modules(["peeking", "my_eval"], str(tmp_path))
+    assert warnings == ["peeking: registers the behaviour peeking and imports sim_backend: it runs in simulation "
+                        "but will fail on a robot, which has only onboard/ (put an evaluator in a module of its own)"]
+    (tmp_path / "peeking_cli.py").write_text(DRIVE_BEHAVIOUR.format(name="peeking-cli") + "import hub.sil\n")
+    assert main(["--import", str(tmp_path / "peeking_cli.py"), "sim", "list"]) == 0
+    assert "khepri: warning: --import " + str(tmp_path / "peeking_cli.py") + ": registers the behaviour " \
+        "peeking-cli and imports hub:" in capsys.readouterr().err
