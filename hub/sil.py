@@ -293,6 +293,7 @@ class SilSession:
             result.update(self.evaluator.result())
         except Exception as exc:
             error = error or f"evaluation failed: {type(exc).__name__}: {exc}"
+        result["telemetry"] = [self._behaviour_telemetry(i) for i in range(len(self.agents))]   # as sim run's
         result["sil"] = sil_figures(self.hub, lockstep, self.round_trips, self.missing_answers,
                                     not self.options.realtime)
         if error:

@@ -305,6 +305,7 @@ class Simulation:
             result.update(self.evaluator.result())
         except Exception as exc:
             error = error or f"evaluation failed: {type(exc).__name__}: {exc}"
+        result["telemetry"] = plain_json(self.telemetry)    # each robot's last telemetry(): what it ended with
         if error:
             result["error"] = error
         if trace:
