@@ -84,6 +84,7 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
                 log(f"hub: warning: {warning}")
             result = session.run()
         finally:
+            let_crashed_agents_exit(hub, agents)
             stop_processes(agents)        # SIGTERM: each agent stops its wheels and exits
             hub.close()
             hub_log.close()
@@ -94,6 +95,19 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     result["sil"]["log"] = str(out / "hub.mcap") if options.record else None
     write_run(session.recording, result, out, plot=options.plot)
     return result
+
+
+def let_crashed_agents_exit(hub, agents: List[subprocess.Popen], timeout_s: float = 2.0) -> None:
+    """An agent whose behaviour raised says so, then exits with code 1 by itself: wait for that (briefly), so
+    ``agent_exit_codes`` shows its 1, not the -15 of the SIGTERM that ends the others."""
+    deadline = time.monotonic() + timeout_s
+    for robot_id, agent in enumerate(agents):
+        error = str((hub.robots[robot_id].telemetry or {}).get("error") or "")
+        if error.startswith(("behaviour crashed", "driver failed")):
+            try:
+                agent.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
 
 
 KEY_FOLDER_PREFIX = "khepri-sil-keys-"      # + the pid of the sil that made it

@@ -218,6 +218,7 @@ def test_sil_reports_the_crashed_agent_and_stops(buggy, tmp_path, capsys):
     assert "agent 2: behaviour crashed: robot 2, step(): IndexError: list index out of range" in err
     result = json.loads((tmp_path / "sil" / "result.json").read_text())
     assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 1.0
+    assert result["sil"]["agent_exit_codes"][2] == 1          # as lab.md says: it was listed as -15 (SIGTERM)
     log = (tmp_path / "sil" / "agents" / "agent-2.log").read_text()
     assert "[1, 2][5]" in log                                     # the traceback is in the agent's log
 
