@@ -100,7 +100,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"khepri: warning: {warning}", file=sys.stderr)
     bar = ProgressBar(f"{scenario.name} seed {sim.seed}")
     try:
-        result = sim.run(time_limit_s=args.time_limit, progress=bar, wall_limit_s=args.wall_limit)
+        result = sim.run(time_limit_s=args.time_limit, progress=bar, wall_limit_s=args.wall_limit,
+                         keep_on_interrupt=True)
     finally:
         bar.close()
     interrupted = result.get("stop_reason") == "interrupted"

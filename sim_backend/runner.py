@@ -194,7 +194,7 @@ class Simulation:
         except Exception as exc:     # the user's code: name the robot and the line (a try costs nothing here)
             raise BehaviourError(i, "step()", exc) from exc
         except (KeyboardInterrupt, WallClockLimitReached) as exc:   # stopped from outside: say in whose step
-            exc.where = f"{i}'s step(){where_in_users_code(traceback.extract_tb(exc.__traceback__)[1:])}"
+            exc.where = f"robot {i}'s step(){where_in_users_code(traceback.extract_tb(exc.__traceback__)[1:])}"
             raise
         self.world.command_many(commands)
 
@@ -250,10 +250,11 @@ class Simulation:
         return True
 
     def run(self, time_limit_s: Optional[float] = None, progress: Optional[Progress] = None,
-            wall_limit_s: Optional[float] = None) -> Dict[str, Any]:
+            wall_limit_s: Optional[float] = None, keep_on_interrupt: bool = False) -> Dict[str, Any]:
         """Run to the end (time limit, finished behaviour, every robot failed) and return the result. A run
-        that crashes, outlives ``wall_limit_s`` seconds of wall time, or is interrupted (Ctrl-C) still
-        returns what was recorded up to there, with ``stop_reason`` and ``error`` saying why it ended."""
+        that crashes or outlives ``wall_limit_s`` seconds of wall time still returns what was recorded up to
+        there, with ``stop_reason`` and ``error`` saying why it ended; so does one interrupted (Ctrl-C) if
+        ``keep_on_interrupt``, else KeyboardInterrupt goes on up (a study's worker must leave no result)."""
         limit = self.scenario.time_limit_s if time_limit_s is None else time_limit_s
         started = time.perf_counter()
         steps = int(math.ceil(limit / self.period - 1e-9))
@@ -273,10 +274,12 @@ class Simulation:
                         self.stop_reason = "every robot failed"
                         break
         except (WallClockLimitReached, KeyboardInterrupt) as exc:   # a hung behaviour, or the user: keep the results
+            if isinstance(exc, KeyboardInterrupt) and not keep_on_interrupt:
+                raise
             self.stop_reason = "wall-clock limit" if isinstance(exc, WallClockLimitReached) else "interrupted"
             what = f"wall-clock limit of {wall_limit_s:g} s reached" if isinstance(exc, WallClockLimitReached) \
                 else "interrupted (Ctrl-C)"
-            inside = f" while robot {exc.where} ran" if getattr(exc, "where", None) else ""
+            inside = f" while {exc.where} ran" if getattr(exc, "where", None) else ""
             error = f"{what}{inside} (at t = {self.step_index * self.period:.1f} s)"
             self.recording.trim(has_object=self.world.object_pose() is not None)
         except Exception as exc:  # a crashed run is recorded, not lost: results up to here are kept

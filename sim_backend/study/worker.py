@@ -38,8 +38,6 @@ def execute_run(spec: RunSpec, out_root: str) -> Dict[str, Any]:
         except OSError:
             pass
         return result
-    if result.get("stop_reason") == "interrupted":
-        raise KeyboardInterrupt    # the study is stopping: no result.json, so a resume runs it again
     result = with_study_fields(result, spec, failed="error" in result)
     try:
         write_run_files(sim, result, Path(out_root) / spec.run_dir)
