@@ -68,15 +68,20 @@ def two_robot_lab(tmp_path: Path):
     return config, f"tcp://127.0.0.1:{robot_port}", f"tcp://127.0.0.1:{control_port}"
 
 
+def running(control: str) -> None:
+    """Wait for both agents to connect, start the run, and wait until both are running it."""
+    wait_status(control, all_robots("connected", True))
+    request(control, "start")
+    wait_status(control, lambda s: all(r["agent_mode"] == "run" and r["state"] not in (None, "init")
+                                       for r in s["robots"]))
+
+
 def test_agents_survive_a_hub_restart(tmp_path):
     config, robots, control = two_robot_lab(tmp_path)
     hub = start_hub(config)
     agents = [spawn_agent(robots, i, tmp_path / f"agent-{i}.log") for i in range(2)]
     try:
-        wait_status(control, all_robots("connected", True))
-        request(control, "start")
-        wait_status(control, lambda s: all(r["agent_mode"] == "run" and r["state"] not in (None, "init")
-                                           for r in s["robots"]))
+        running(control)
 
         hub.send_signal(signal.SIGKILL)                       # no goodbye: a crash or a pulled cable
         hub.wait()
@@ -113,9 +118,7 @@ def test_a_hub_stopped_with_sigterm_tells_its_agents_to_stop_their_run(tmp_path)
     hub = start_hub(config)
     agents = [spawn_agent(robots, i, tmp_path / f"agent-{i}.log") for i in range(2)]
     try:
-        wait_status(control, all_robots("connected", True))
-        request(control, "start")
-        wait_status(control, lambda s: all(r["agent_mode"] == "run" for r in s["robots"]))
+        running(control)
         hub.send_signal(signal.SIGTERM)
         assert hub.wait(timeout=10) == 0
         for i in range(2):
