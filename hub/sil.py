@@ -28,7 +28,7 @@ from .factory import build_hub
 from .harness import spawn_agent, stop_processes
 from .lockstep import UNRESPONSIVE_AFTER_STEPS, Lockstep
 from .security import init_keys
-from .sil_report import SilRecording, sil_figures
+from .sil_report import SilRecording, agents_total, sil_figures
 
 CONNECT_TIMEOUT_S = 60.0
 
@@ -289,7 +289,7 @@ class SilSession:
         """The simulator's radio counts (``RadioNetwork.stats``) from the hub's relay and the agents' inboxes:
         a message is lost to overflow in the hub's queue or in a full inbox on the robot."""
         relay = self.hub.relay.stats
-        overflowed = sum(int((r.telemetry or {}).get("inbox_dropped") or 0) for r in self.hub.robots.values())
+        overflowed = agents_total(self.hub, "inbox_dropped")
         return {"sent": relay.sent, "delivered": relay.delivered - overflowed, "dropped": relay.dropped_random,
                 "dropped_overflow": relay.dropped_overflow + overflowed}
 

@@ -50,13 +50,14 @@ class SilRecording:
         return arrays
 
 
+def agents_total(hub, key: str) -> int:
+    """The sum over the agents of a count in their last telemetry (``frames_lost``, ``inbox_dropped``, ...)."""
+    return sum(int((r.telemetry or {}).get(key) or 0) for r in hub.robots.values())
+
+
 def sil_figures(hub, lockstep, round_trips: List[float], missing_answers: int, is_lockstep: bool) -> Dict[str, Any]:
     """Hub and agent figures: frame-to-answer latency, agents' loop timing and misses, every kind of drop."""
     loops = [((r.telemetry or {}).get("loop") or {}) for r in hub.robots.values()]
-    lost = [int((r.telemetry or {}).get("frames_lost") or 0) for r in hub.robots.values()]
-    bad = [int((r.telemetry or {}).get("frames_bad") or 0) for r in hub.robots.values()]
-    unsent = [int((r.telemetry or {}).get("unsent") or 0) for r in hub.robots.values()]
-    overflowed = [int((r.telemetry or {}).get("inbox_dropped") or 0) for r in hub.robots.values()]
     return {
         "agents": len(hub.robots),
         "lockstep": is_lockstep,
@@ -73,10 +74,10 @@ def sil_figures(hub, lockstep, round_trips: List[float], missing_answers: int, i
             # what the hub refused from the agents; its own full downlink queues are counted just below
             "hub_rejected": {k: v for k, v in hub.drops.counts.items() if k != "downlink queue full"},
             "downlink_queue_full": sum(r.frames_dropped for r in hub.robots.values()),
-            "frames_lost_at_agents": sum(lost),
-            "bad_frames_at_agents": sum(bad),
-            "unsent_at_agents": sum(unsent),    # the agents' sockets were full: their messages never left
-            "inbox_overflow_at_agents": sum(overflowed),  # more than Radio.INBOX_LIMIT arrived between two steps
+            "frames_lost_at_agents": agents_total(hub, "frames_lost"),
+            "bad_frames_at_agents": agents_total(hub, "frames_bad"),
+            "unsent_at_agents": agents_total(hub, "unsent"),   # the agents' sockets were full: never left
+            "inbox_overflow_at_agents": agents_total(hub, "inbox_dropped"),   # > Radio.INBOX_LIMIT in a step
             "relay": hub.relay.stats.as_dict(),
         },
     }
