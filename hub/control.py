@@ -60,8 +60,9 @@ def refusals_after_start(endpoint: str, keys: Optional[Dict[str, bytes]] = None,
     while True:
         status = request(endpoint, "status", keys=keys, timeout_s=timeout_s)["status"]
         connected = [row for row in status["robots"] if row.get("connected")]
+        # A robot that reports the new run has also dropped any older error (a fresh one: its __init__ raised)
         started = all(row.get("run_id") == status.get("run_id") for row in connected)
-        if (started and not any(row.get("error") for row in connected)) or time.monotonic() >= deadline:
+        if started or time.monotonic() >= deadline:
             return [(row["id"], str(row["error"])) for row in connected if row.get("error")]
         time.sleep(0.1)
 

@@ -57,12 +57,14 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
 
 def imports_robots_lack(path: Optional[str]) -> List[str]:
     """The packages of :data:`NOT_ON_ROBOTS` that the file at ``path`` imports, at any depth of its code."""
+    if not path:
+        return []
     try:
-        tree = ast.parse(Path(path).read_text(encoding="utf-8")) if path else None
+        tree = ast.parse(Path(path).read_text(encoding="utf-8"))
     except (OSError, SyntaxError, ValueError):
         return []
     found = set()
-    for node in ast.walk(tree) if tree is not None else ():
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
