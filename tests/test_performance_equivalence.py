@@ -336,6 +336,36 @@ def test_a_heartbeat_is_written_when_it_says_something_new():
     assert board.surface_point(3) is None and board.position(3) == (0.011, 0.0)
 
 
+def test_travellers_and_caged_members_write_fewer_heartbeats_and_a_new_state_writes_at_once():
+    space = new_space(3)
+    board = TaskBoard(space, 4.0)
+    writes = []
+    for step in range(25):                       # 2 cm a step, as a traveller at 0.2 m/s
+        board.refresh_liveness(step * 0.1)
+        before = space.entry("pos/3")
+        board.heartbeat(3, 0.02 * step, 0.0, None, state="travel")
+        writes.append(space.entry("pos/3") is not before)
+    assert [step for step, wrote in enumerate(writes) if wrote] == [0, 10, 20]
+    board.refresh_liveness(2.5)
+    board.heartbeat(3, 0.5, 0.0, None, state="attach")      # now a member-to-be: others steer by it
+    assert board.position(3) == (0.5, 0.0)
+    board.refresh_liveness(2.6)
+    board.heartbeat(3, 0.52, 0.0, None, state="attach")     # and every centimetre counts again
+    assert board.position(3) == (0.52, 0.0)
+    board.refresh_liveness(2.7)
+    board.heartbeat(3, 0.54, 0.0, 0.3, state="travel")      # a contact appearing still counts for a traveller
+    board.refresh_liveness(2.8)
+    board.heartbeat(3, 0.56, 0.0, 0.3, state="travel")
+    assert board.position(3) == (0.54, 0.0) and board.contact_normal(3) == 0.3
+    for t, x in [(2.9, 0.56), (3.0, 0.575), (3.1, 0.585)]:  # caged: 2 cm from the last write counts
+        board.refresh_liveness(t)
+        board.heartbeat(3, x, 0.0, 0.3, state="caged")
+    assert board.position(3) == (0.585, 0.0)
+    board.refresh_liveness(3.2)
+    board.heartbeat(3, 0.60, 0.0, 0.3, state="caged")      # 1.5 cm: not yet
+    assert board.position(3) == (0.585, 0.0)
+
+
 # --- traffic options of the tuple space --------------------------------------------------------------------
 
 def test_plain_tuple_space_defaults_still_relay_at_once_and_gossip_every_message():

@@ -102,7 +102,8 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
                                     robot.proximity.read())
             getattr(self, f"_on_{self.state}")(now)
             if self.state not in ("idle", "done"):
-                self.board.heartbeat(robot.id, pose.x, pose.y, self._contact_normal(), self._published_surface())
+                self.board.heartbeat(robot.id, pose.x, pose.y, self._contact_normal(), self._published_surface(),
+                                     state=self.state)
         self.last_step = now
         gossip = self.space.outgoing()
         if gossip:      # nothing new and no anti-entropy turn: stay quiet (most steps in a large swarm)

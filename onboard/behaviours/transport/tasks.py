@@ -34,6 +34,15 @@ BRANCH_DIRECTION = {"L": 1, "R": -1, "S": 0}   # L grows counter-clockwise aroun
 HEARTBEAT_MOVE_M = 0.01
 HEARTBEAT_TURN_RAD = 0.1
 HEARTBEAT_PERIOD_S = 1.0
+# Every heartbeat is a version that every robot in range merges, which is most of a large swarm's cost
+# (docs/performance.md), so two states write less. A traveller's position only tells the swarm that it is
+# alive: nobody steers by it (a robot steers by its predecessor and the branch tips, which are members, and
+# by range and bearing), so moving does not make it write; the period does. A caged member holds its place,
+# yet its position wanders by a centimetre now and then (spacing corrections, pose noise); others use it for
+# the ring's shape (neighbours in range are steered by range and bearing), where 2 cm is plenty. These two
+# were 60 % of all heartbeats. A change of state writes at once, so a member starts to push from a fresh
+# position.
+HEARTBEAT_MOVE_M_BY_STATE: Dict[str, Optional[float]] = {"travel": None, "caged": 0.02}
 
 
 @dataclass
@@ -74,6 +83,7 @@ class TaskBoard:
         self._heartbeats: Dict[int, Tuple[int, float]] = {}   # rid -> (timestamp seen, local time it changed)
         self._now: Optional[float] = None          # the time of the latest refresh_liveness
         self._beat_at: Optional[float] = None      # when this robot last wrote its heartbeat
+        self._beat_state: Optional[str] = None     # the state it was in then
         # Views parsed from the space, rebuilt only when their family's revision moves (space.revision):
         # behaviours ask for tasks, owners and members several times per step, and they rarely change.
         self._tasks_at = -1
@@ -277,20 +287,23 @@ class TaskBoard:
         return self._members
 
     def heartbeat(self, robot: int, x: float, y: float, normal: Optional[float],
-                  surface: Optional[Tuple[float, float]] = None, now: Optional[float] = None) -> None:
+                  surface: Optional[Tuple[float, float]] = None, now: Optional[float] = None,
+                  state: Optional[str] = None) -> None:
         """Publish this robot's position, contact normal and the point of the object's surface its IR sees,
-        if one of them changed enough or the last heartbeat is getting old; ``now`` defaults to the time
-        given to the latest ``refresh_liveness``."""
+        if one of them changed enough, the last heartbeat is getting old or the robot's ``state`` changed;
+        ``now`` defaults to the time given to the latest ``refresh_liveness``. In a state listed in
+        HEARTBEAT_MOVE_M_BY_STATE, moving counts only as far as that table says."""
         now = self._now if now is None else now
         key = f"pos/{robot}"
         value = [round(x, 4), round(y, 4), None if normal is None else round(normal, 3),
                  None if surface is None else [round(surface[0], 4), round(surface[1], 4)]]
         held = self.space.get(key)
         if now is not None and self._beat_at is not None and now - self._beat_at < HEARTBEAT_PERIOD_S - 1e-9 \
-                and isinstance(held, list) and len(held) == 4 and _close_heartbeat(held, value):
+                and state == self._beat_state and isinstance(held, list) and len(held) == 4 \
+                and _close_heartbeat(held, value, HEARTBEAT_MOVE_M_BY_STATE.get(state, HEARTBEAT_MOVE_M)):
             return
         self.space.put(key, value)
-        self._beat_at = now
+        self._beat_at, self._beat_state = now, state
 
     def refresh_liveness(self, now: float) -> None:
         self._now = now
@@ -362,12 +375,12 @@ class TaskBoard:
             self.space.put(key, 1)
 
 
-def _close_heartbeat(held: list, value: list) -> bool:
-    """True if ``value`` says nothing new against the heartbeat ``held``: moved less than HEARTBEAT_MOVE_M, and
-    the same contact (both none, or normals within HEARTBEAT_TURN_RAD), and the same surface point (both none,
-    or within HEARTBEAT_MOVE_M)."""
+def _close_heartbeat(held: list, value: list, move_m: Optional[float] = HEARTBEAT_MOVE_M) -> bool:
+    """True if ``value`` says nothing new against the heartbeat ``held``: moved less than ``move_m`` (None:
+    any distance), and the same contact (both none, or normals within HEARTBEAT_TURN_RAD), and the same
+    surface point (both none, or within HEARTBEAT_MOVE_M)."""
     try:
-        if math.hypot(value[0] - held[0], value[1] - held[1]) >= HEARTBEAT_MOVE_M:
+        if move_m is not None and math.hypot(value[0] - held[0], value[1] - held[1]) >= move_m:
             return False
         if (held[3] is None) != (value[3] is None):
             return False
