@@ -1,6 +1,16 @@
+import signal
+
 import pytest
 
 from sim_backend.scenario import parse_scenario
+
+
+def pytest_configure(config):
+    """A shell that starts the suite in the background (`make test &`, nohup, some CI runners) makes it ignore
+    SIGINT, and so every process it starts. The Ctrl-C tests send SIGINT to this process and to hubs and
+    agents: give it Python's own handler, as a terminal's foreground job has (children get the default)."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture

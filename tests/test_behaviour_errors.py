@@ -145,7 +145,8 @@ def test_ctrl_c_keeps_what_was_recorded_and_says_which_step_was_running(buggy, t
     import threading
 
     threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT)).start()
-    assert run("sim", "run", buggy("hang"), "--no-plot", "--out", "out") == 130
+    # The wall limit is a backstop: should the signal be lost, the test fails instead of hanging the suite.
+    assert run("sim", "run", buggy("hang"), "--no-plot", "--out", "out", "--wall-limit", "30") == 130
     assert "khepri: interrupted (Ctrl-C) while robot 1's step() at buggy_behaviour.py:" in capsys.readouterr().err
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["stop_reason"] == "interrupted" and result["sim_time_s"] == pytest.approx(0.6)
