@@ -337,6 +337,7 @@ def test_a_heartbeat_is_written_when_it_says_something_new():
 
 
 def test_travellers_and_caged_members_write_fewer_heartbeats_and_a_new_state_writes_at_once():
+    """Travellers: once a second; caged: on 2 cm, else every 10 s; other states: 1 cm and once a second."""
     space = new_space(3)
     board = TaskBoard(space, 4.0)
     writes = []
@@ -364,6 +365,19 @@ def test_travellers_and_caged_members_write_fewer_heartbeats_and_a_new_state_wri
     board.refresh_liveness(3.2)
     board.heartbeat(3, 0.60, 0.0, 0.3, state="caged")      # 1.5 cm: not yet
     assert board.position(3) == (0.585, 0.0)
+    writes = []
+    for step in range(33, 136):                             # a still caged member: every 10 s, not every 1 s
+        board.refresh_liveness(step * 0.1)
+        before = space.entry("pos/3")
+        board.heartbeat(3, 0.60, 0.0, 0.3, state="caged")
+        writes.append(space.entry("pos/3") is not before)
+    assert [33 + i for i, wrote in enumerate(writes) if wrote] == [131]    # 10 s after the write at 3.1 s
+    board.refresh_liveness(13.6)
+    board.heartbeat(3, 0.60, 0.0, 0.3, state="settle")     # closure: a new state writes at once,
+    board.refresh_liveness(14.7)
+    before = space.entry("pos/3")
+    board.heartbeat(3, 0.60, 0.0, 0.3, state="settle")     # and from then on once a second again
+    assert space.entry("pos/3") is not before
 
 
 # --- traffic options of the tuple space --------------------------------------------------------------------

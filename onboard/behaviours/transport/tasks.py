@@ -10,7 +10,8 @@ Keys (values are small JSON mappings):
                                             of the object's surface the IR sees (null when unseen, and
                                             outside settle/push/rotate): written when the robot or that
                                             point moved HEARTBEAT_MOVE_M or the normal changed, and at
-                                            least every HEARTBEAT_PERIOD_S (liveness times out after 4 s)
+                                            least every HEARTBEAT_PERIOD_S (liveness times out after 4 s;
+                                            a still caged member: every 10 s, see below)
   closed        {"pair": [a, b]}            the cage is closed (Proposition 1)
   grow          {"level": n}               out of robots: I_d grows by 2 % per level until closure
   path          [[x, y, yaw_deg], ...]      the agreed path
@@ -43,6 +44,14 @@ HEARTBEAT_PERIOD_S = 1.0
 # were 60 % of all heartbeats. A change of state writes at once, so a member starts to push from a fresh
 # position.
 HEARTBEAT_MOVE_M_BY_STATE: Dict[str, Optional[float]] = {"travel": None, "caged": 0.02}
+# A caged member that holds still still wrote once a second: late in a 100-robot caging some 85 members did,
+# which was most of what every robot merged (docs/performance.md, round 4). Nobody asks whether a caged
+# member is alive before closure. Liveness is consulted for task owners that have not joined the cage (to
+# re-open a dead one's task), for the members that push and estimate (after closure, which changes every
+# member's state and so writes at once), and for whether a spare is cut off (REGROUP_AFTER_S, 30 s).
+# So a still caged member writes every 10 s. A member that dies during caging is still found dead after
+# closure: its last heartbeat is then older than the liveness timeout.
+HEARTBEAT_PERIOD_S_BY_STATE: Dict[str, float] = {"caged": 10.0}
 
 
 @dataclass
@@ -292,13 +301,15 @@ class TaskBoard:
         """Publish this robot's position, contact normal and the point of the object's surface its IR sees,
         if one of them changed enough, the last heartbeat is getting old or the robot's ``state`` changed;
         ``now`` defaults to the time given to the latest ``refresh_liveness``. In a state listed in
-        HEARTBEAT_MOVE_M_BY_STATE, moving counts only as far as that table says."""
+        HEARTBEAT_MOVE_M_BY_STATE, moving counts only as far as that table says; in one listed in
+        HEARTBEAT_PERIOD_S_BY_STATE, the heartbeat gets old at that period instead of HEARTBEAT_PERIOD_S."""
         now = self._now if now is None else now
         key = f"pos/{robot}"
         value = [round(x, 4), round(y, 4), None if normal is None else round(normal, 3),
                  None if surface is None else [round(surface[0], 4), round(surface[1], 4)]]
         held = self.space.get(key)
-        if now is not None and self._beat_at is not None and now - self._beat_at < HEARTBEAT_PERIOD_S - 1e-9 \
+        period = HEARTBEAT_PERIOD_S_BY_STATE.get(state, HEARTBEAT_PERIOD_S)
+        if now is not None and self._beat_at is not None and now - self._beat_at < period - 1e-9 \
                 and state == self._beat_state and isinstance(held, list) and len(held) == 4 \
                 and _close_heartbeat(held, value, HEARTBEAT_MOVE_M_BY_STATE.get(state, HEARTBEAT_MOVE_M)):
             return
