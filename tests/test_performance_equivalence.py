@@ -337,7 +337,8 @@ def test_a_heartbeat_is_written_when_it_says_something_new():
 
 
 def test_travellers_and_caged_members_write_fewer_heartbeats_and_a_new_state_writes_at_once():
-    """Travellers: once a second; caged: on 2 cm, else every 10 s; other states: 1 cm and once a second."""
+    """Travellers: once a second; caged: on 2 cm, else every 10 s, normals aside; other states: on 1 cm or a
+    change of contact, and once a second."""
     space = new_space(3)
     board = TaskBoard(space, 4.0)
     writes = []
@@ -366,10 +367,10 @@ def test_travellers_and_caged_members_write_fewer_heartbeats_and_a_new_state_wri
     board.heartbeat(3, 0.60, 0.0, 0.3, state="caged")      # 1.5 cm: not yet
     assert board.position(3) == (0.585, 0.0)
     writes = []
-    for step in range(33, 136):                             # a still caged member: every 10 s, not every 1 s
+    for step in range(33, 136):                             # a still caged member: every 10 s, not every 1 s,
         board.refresh_liveness(step * 0.1)
         before = space.entry("pos/3")
-        board.heartbeat(3, 0.60, 0.0, 0.3, state="caged")
+        board.heartbeat(3, 0.60, 0.0, (0.3, 0.6, None)[step % 3], state="caged")   # whatever its normal does
         writes.append(space.entry("pos/3") is not before)
     assert [33 + i for i, wrote in enumerate(writes) if wrote] == [131]    # 10 s after the write at 3.1 s
     board.refresh_liveness(13.6)

@@ -35,23 +35,37 @@ BRANCH_DIRECTION = {"L": 1, "R": -1, "S": 0}   # L grows counter-clockwise aroun
 HEARTBEAT_MOVE_M = 0.01
 HEARTBEAT_TURN_RAD = 0.1
 HEARTBEAT_PERIOD_S = 1.0
+
+
+@dataclass(frozen=True)
+class HeartbeatRule:
+    """When a robot in one state writes its heartbeat again (a change of state always writes at once)."""
+
+    move_m: Optional[float] = HEARTBEAT_MOVE_M      # it moved this far; None: moving alone never writes
+    period_s: float = HEARTBEAT_PERIOD_S            # its last heartbeat is this old
+    contact: bool = True                            # its contact normal appeared, vanished or turned
+
+
 # Every heartbeat is a version that every robot in range merges, which is most of a large swarm's cost
-# (docs/performance.md), so two states write less. A traveller's position only tells the swarm that it is
-# alive: nobody steers by it (a robot steers by its predecessor and the branch tips, which are members, and
-# by range and bearing), so moving does not make it write; the period does. A caged member holds its place,
-# yet its position wanders by a centimetre now and then (spacing corrections, pose noise); others use it for
-# the ring's shape (neighbours in range are steered by range and bearing), where 2 cm is plenty. These two
-# were 60 % of all heartbeats. A change of state writes at once, so a member starts to push from a fresh
-# position.
-HEARTBEAT_MOVE_M_BY_STATE: Dict[str, Optional[float]] = {"travel": None, "caged": 0.02}
-# A caged member that holds still still wrote once a second: late in a 100-robot caging some 85 members did,
-# which was most of what every robot merged (docs/performance.md, round 4). Nobody asks whether a caged
-# member is alive before closure. Liveness is consulted for task owners that have not joined the cage (to
-# re-open a dead one's task), for the members that push and estimate (after closure, which changes every
-# member's state and so writes at once), and for whether a spare is cut off (REGROUP_AFTER_S, 30 s).
-# So a still caged member writes every 10 s. A member that dies during caging is still found dead after
-# closure: its last heartbeat is then older than the liveness timeout.
-HEARTBEAT_PERIOD_S_BY_STATE: Dict[str, float] = {"caged": 10.0}
+# (docs/performance.md, rounds 3 and 4), so two states write less:
+# - A traveller's position only tells the swarm that it is alive: nobody steers by it (a robot steers by its
+#   predecessor and the branch tips, which are members, and by range and bearing), so moving does not make
+#   it write; the period does.
+# - A caged member holds its place, yet its position wanders by a centimetre now and then (spacing
+#   corrections, pose noise); others use it for the ring's shape (neighbours in range are steered by range
+#   and bearing), where 2 cm is plenty. Nobody asks whether a caged member is alive, nor reads its contact
+#   normal, before closure: liveness is consulted for task owners that have not joined the cage (to re-open
+#   a dead one's task), for the members that push and estimate (after closure, which changes every member's
+#   state and so writes at once), and for whether a spare is cut off (REGROUP_AFTER_S, 30 s); the normals
+#   from the push on. So a still caged member writes every 10 s, and its normal flickering with the IR noise
+#   does not make it write. (Late in a 100-robot caging some 85 still members wrote once a second, plus the
+#   flicker: most of what every robot merged.) A member that dies during caging is still found dead after
+#   closure: its last heartbeat is then older than the liveness timeout.
+HEARTBEAT_RULES: Dict[str, HeartbeatRule] = {
+    "travel": HeartbeatRule(move_m=None),
+    "caged": HeartbeatRule(move_m=0.02, period_s=10.0, contact=False),
+}
+DEFAULT_HEARTBEAT_RULE = HeartbeatRule()
 
 
 @dataclass
@@ -300,18 +314,17 @@ class TaskBoard:
                   state: Optional[str] = None) -> None:
         """Publish this robot's position, contact normal and the point of the object's surface its IR sees,
         if one of them changed enough, the last heartbeat is getting old or the robot's ``state`` changed;
-        ``now`` defaults to the time given to the latest ``refresh_liveness``. In a state listed in
-        HEARTBEAT_MOVE_M_BY_STATE, moving counts only as far as that table says; in one listed in
-        HEARTBEAT_PERIOD_S_BY_STATE, the heartbeat gets old at that period instead of HEARTBEAT_PERIOD_S."""
+        ``now`` defaults to the time given to the latest ``refresh_liveness``. What counts as enough, and
+        as old, depends on the state (HEARTBEAT_RULES)."""
         now = self._now if now is None else now
         key = f"pos/{robot}"
         value = [round(x, 4), round(y, 4), None if normal is None else round(normal, 3),
                  None if surface is None else [round(surface[0], 4), round(surface[1], 4)]]
         held = self.space.get(key)
-        period = HEARTBEAT_PERIOD_S_BY_STATE.get(state, HEARTBEAT_PERIOD_S)
-        if now is not None and self._beat_at is not None and now - self._beat_at < period - 1e-9 \
+        rule = HEARTBEAT_RULES.get(state, DEFAULT_HEARTBEAT_RULE)
+        if now is not None and self._beat_at is not None and now - self._beat_at < rule.period_s - 1e-9 \
                 and state == self._beat_state and isinstance(held, list) and len(held) == 4 \
-                and _close_heartbeat(held, value, HEARTBEAT_MOVE_M_BY_STATE.get(state, HEARTBEAT_MOVE_M)):
+                and _close_heartbeat(held, value, rule.move_m, rule.contact):
             return
         self.space.put(key, value)
         self._beat_at, self._beat_state = now, state
@@ -386,10 +399,11 @@ class TaskBoard:
             self.space.put(key, 1)
 
 
-def _close_heartbeat(held: list, value: list, move_m: Optional[float] = HEARTBEAT_MOVE_M) -> bool:
+def _close_heartbeat(held: list, value: list, move_m: Optional[float] = HEARTBEAT_MOVE_M,
+                     contact: bool = True) -> bool:
     """True if ``value`` says nothing new against the heartbeat ``held``: moved less than ``move_m`` (None:
-    any distance), and the same contact (both none, or normals within HEARTBEAT_TURN_RAD), and the same
-    surface point (both none, or within HEARTBEAT_MOVE_M)."""
+    any distance), and the same contact (both none, or normals within HEARTBEAT_TURN_RAD; not compared if
+    not ``contact``), and the same surface point (both none, or within HEARTBEAT_MOVE_M)."""
     try:
         if move_m is not None and math.hypot(value[0] - held[0], value[1] - held[1]) >= move_m:
             return False
@@ -397,6 +411,8 @@ def _close_heartbeat(held: list, value: list, move_m: Optional[float] = HEARTBEA
             return False
         if held[3] is not None and math.hypot(value[3][0] - held[3][0], value[3][1] - held[3][1]) >= HEARTBEAT_MOVE_M:
             return False
+        if not contact:
+            return True
         if held[2] is None or value[2] is None:
             return held[2] is None and value[2] is None
         return abs(math.remainder(value[2] - held[2], math.tau)) < HEARTBEAT_TURN_RAD
