@@ -131,15 +131,19 @@ def contains(geom: Geometry, points: np.ndarray) -> np.ndarray:
 def _recentre(geom: Geometry, resolution: int = 240) -> Geometry:
     """Measure area, centroid and spread by sampling the footprint, then move the origin to the centroid.
 
-    Sampling handles overlapping parts (compound, cloud, clover) without polygon boolean operations.
+    Sampling handles overlapping parts (compound, cloud, clover) without polygon boolean operations. The
+    samples are the centres of a grid of cells over the bounding box, so none lies on the outline (where
+    inside-tests disagree from edge to edge: sampling the corners made a box's centroid half a cell low) and
+    the grid is symmetric: a box's centroid and area come out exact.
     """
     points = _extent_points(geom)
     lo, hi = points.min(axis=0), points.max(axis=0)
-    xs = np.linspace(lo[0], hi[0], resolution)
-    ys = np.linspace(lo[1], hi[1], resolution)
+    step = (hi - lo) / resolution
+    xs = lo[0] + (np.arange(resolution) + 0.5) * step[0]
+    ys = lo[1] + (np.arange(resolution) + 0.5) * step[1]
     grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
     inside = grid[contains(geom, grid)]
-    cell = (xs[1] - xs[0]) * (ys[1] - ys[0])
+    cell = step[0] * step[1]
     centroid = inside.mean(axis=0)
     shifted = inside - centroid
     dist = np.hypot(shifted[:, 0], shifted[:, 1])

@@ -9,7 +9,9 @@ import pytest
 
 from onboard.geometry import neighbour_mask, pairwise_range_bearing
 from sim_backend.runner import Simulation
+from sim_backend.scenario import ObjectSpec
 from sim_backend.sensing import ir_response
+from sim_backend.shapes import build_geometry
 from sim_backend.world import World
 
 R = 0.0704
@@ -109,6 +111,25 @@ def test_a_static_object_never_moves(make_scenario):
         world.command(i, 0.2, 0.2)
     world.step(500)
     assert np.allclose(world.object_pose(), 0.0)
+
+
+@pytest.mark.parametrize("spec, area, centroid", [
+    (ObjectSpec(shape="box", size=(7.2, 12.0)), 86.4, (0.0, 0.0)),
+    (ObjectSpec(shape="box", size=(0.285, 0.435)), 0.123975, (0.0, 0.0)),
+    # a right triangle: area 6, centroid a third of each leg from the right angle
+    (ObjectSpec(shape="polygon", vertices=[(0.0, 0.0), (3.0, 0.0), (0.0, 4.0)]), 6.0, (1.0, 4.0 / 3.0)),
+])
+def test_an_objects_origin_is_its_true_centroid(spec, area, centroid):
+    """The body's origin is the footprint's centroid: the object's position, the evaluator's reference and
+    the behaviour's target all mean that point. (Sampling the bounding box's corners once put the 12 m box's
+    centroid 2.5 cm off, more than the position tolerance.)"""
+    geometry = build_geometry(spec)
+    outline = np.concatenate(geometry.outlines)
+    # The outline was moved by minus the centroid it found: the mean of its vertices says by how much.
+    given = spec.vertices if spec.shape == "polygon" else [(0.0, 0.0)]     # a box's corners average to 0
+    found = np.mean(given, axis=0) - outline.mean(axis=0)
+    assert geometry.area_m2 == pytest.approx(area, rel=2e-3)
+    assert np.allclose(found, centroid, atol=1e-9 if spec.shape == "box" else 0.005)
 
 
 def test_range_and_bearing_match_geometry_and_respect_d_c():
