@@ -45,6 +45,17 @@ def test_bench_hub_names_the_bad_option(capsys, options, message):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("options, message", [
+    (["--seconds", "nan"], "--seconds: must be a finite number of seconds > 0 (got nan)"),
+    (["--seconds", "inf"], "--seconds: must be a finite number of seconds > 0 (got inf)"),
+    (["--seconds", "0"], "--seconds: must be a finite number of seconds > 0 (got 0)"),
+    (["--robots", "5,,6"], "--robots: give positive robot counts, e.g. 25,50,100 (got '5,,6')"),
+])
+def test_bench_sim_names_the_bad_option(capsys, options, message):
+    assert main(["bench", "sim", *options]) == 2
+    assert message in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("command", [["study", "paper", "--reps", "1", "--scenarios", "irregular-cloud"],
                                      ["sil", "lab-6"]])
 def test_study_and_sil_refuse_an_out_folder_they_cannot_make(tmp_path, capsys, command):
