@@ -33,7 +33,8 @@ def add_study(groups) -> None:
                             "(an existing Dask scheduler, e.g. dask:tcp://10.0.0.5:8786)")
     study.add_argument("--workers", type=int, metavar="N", help="worker processes (default: the number of cores)")
     study.add_argument("--out", type=folder_arg, help="study folder (default out/study-<name>)")
-    study.add_argument("--time-limit", type=float, metavar="S", help="cap every run at S simulated seconds")
+    study.add_argument("--time-limit", type=float, metavar="S",
+                       help="stop every run at S simulated seconds instead of its scenario's own time_limit_s")
     study.add_argument("--wall-limit", type=float, metavar="S",
                        help="stop any run after S seconds of wall-clock time and record it as failed (a behaviour "
                             "that hangs would otherwise hold its worker forever)")

@@ -42,7 +42,7 @@ class StudySpec:
     scenarios: List[str]                       # built-in names or paths to scenario files
     seeds: List[int]
     overrides: Dict[str, List[Any]] = field(default_factory=dict)   # dotted scenario key -> values
-    time_limit_s: Optional[float] = None       # caps every run; None = each scenario's own limit
+    time_limit_s: Optional[float] = None       # replaces every scenario's own limit; None = keep those
 
 
 @dataclass
