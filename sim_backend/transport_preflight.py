@@ -20,6 +20,9 @@ CAGE_GAP_M = 0.02               # caging robots hold about this far off the surf
 def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
     spec = world.spec
     found = []
+    if scenario.object is None:
+        found.append("object: this scenario has none, and the transport behaviour cages one: no cage will "
+                     "close")
     if scenario.robots.count < MIN_CAGE:
         found.append(f"robots.count: a cage needs at least {MIN_CAGE} robots (got {scenario.robots.count})")
     spacing = getattr(params, "inter_robot_distance_m", None)

@@ -44,13 +44,15 @@ def test_an_object_near_a_wall_at_its_start_or_a_waypoint_is_warned_about(make_s
     assert Simulation(start).warnings[0].startswith("object.position: the object starts 0.15 m from an arena wall")
 
 
-def test_too_few_robots_a_short_radio_and_a_frictionless_floor_are_warned_about(make_scenario):
+def test_too_few_robots_a_short_radio_a_frictionless_floor_and_no_object_are_warned_about(make_scenario):
     few = transport(make_scenario, robots={"count": 2, "spawn": {"x": [-1.5, -0.7], "y": [-1.5, -0.7]}})
     assert Simulation(few).warnings == ["robots.count: a cage needs at least 3 robots (got 2)"]
     deaf = Simulation(transport(make_scenario, comm={"range_m": 0.3})).warnings
     assert len(deaf) == 1 and deaf[0].startswith("comm.range_m: 0.3 m is shorter than the cage spacing I_d")
     slippery = {"shape": "box", "size": [0.3, 0.4], "mass": 0.3, "position": [0, 0], "friction": 0}
     assert Simulation(transport(make_scenario, object=slippery)).warnings[0].startswith("object.friction: 0")
+    nothing = Simulation(transport(make_scenario, object=None, path=[])).warnings
+    assert nothing == ["object: this scenario has none, and the transport behaviour cages one: no cage will close"]
 
 
 def test_warnings_are_printed_before_the_run_and_kept_in_result_json(tmp_path, capsys):
