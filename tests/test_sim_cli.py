@@ -157,3 +157,13 @@ def test_sim_show_fills_in_the_behaviours_parameters_and_runs_as_the_scenario_do
         assert main(["sim", "run", scenario, "--time-limit", "5", "--no-plot", "--out", str(tmp_path / name)]) == 0
     runs = [np.load(tmp_path / name / "trajectory.npz")["robot_pose"] for name in ("shown", "built-in")]
     assert np.array_equal(*runs)
+
+
+@pytest.mark.parametrize("seed, message", [("abc", "must be a whole number >= 0 (got 'abc')"),
+                                           ("1.5", "must be a whole number >= 0 (got '1.5')"),
+                                           ("-1", "must be >= 0 (got -1)")])
+def test_a_bad_seed_is_named_in_plain_words(capsys, seed, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["sim", "run", "lab-6", "--seed", seed])
+    assert exit_info.value.code == 2
+    assert f"argument --seed: {message}" in capsys.readouterr().err
