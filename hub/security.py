@@ -43,7 +43,8 @@ class KeyRing:
 
 
 def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: bool = False) -> List[Path]:
-    """Create the hub, robot and operator key pairs. Refuses to overwrite existing keys unless ``force``."""
+    """Create the hub, robot and operator key pairs. Refuses to overwrite existing keys unless ``force``; with
+    it, the folder holds exactly the new set afterwards (``stale_keys`` names what ``force`` removes)."""
     if folder.exists() and not folder.is_dir():
         raise ConfigError("keys", f"{folder} is a file, not a folder")
     targets = [folder / "hub.key"] + [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
@@ -54,6 +55,8 @@ def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: b
     for name in operators:
         if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
             raise ConfigError("--operator", f"use letters, digits, '.', '_' or '-' only (got {name!r})")
+    for path in stale_keys(folder, targets):   # only with force (else nothing exists): rotating keys must not
+        path.unlink()                          # leave an old robot or operator key that the hub still accepts
     created = []
     for path in targets:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -61,6 +64,14 @@ def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: b
         Path(secret).chmod(0o600)
         created += [Path(public), Path(secret)]
     return created
+
+
+def stale_keys(folder: Path, keep: List[Path]) -> List[Path]:
+    """Robot and operator key files in ``folder`` (public and secret) whose pair is not among ``keep``."""
+    kept = {path.with_suffix("") for path in keep}
+    found = list((folder / "robots").glob("robot-*.key*")) + list((folder / "operators").glob("*.key*"))
+    return sorted(path for path in found
+                  if path.suffix in (".key", ".key_secret") and path.with_suffix("") not in kept)
 
 
 def load_keyring(folder: Path) -> KeyRing:

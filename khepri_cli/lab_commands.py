@@ -181,16 +181,23 @@ def _add_keys(groups) -> None:
     init.add_argument("folder", nargs="?", type=Path, default=Path("keys"), help="key folder (default ./keys)")
     init.add_argument("--robots", default="6", help="robot count N (ids 0..N-1) or a list like 0,1,5 (default 6)")
     init.add_argument("--operator", action="append", help="operator name (repeatable; default: operator)")
-    init.add_argument("--force", action="store_true", help="replace existing keys")
+    init.add_argument("--force", action="store_true",
+                      help="replace existing keys; robot and operator keys not named again are removed")
     init.set_defaults(func=cmd_keys_init)
 
 
 def cmd_keys_init(args: argparse.Namespace) -> int:
-    from hub.security import init_keys
+    from hub.security import init_keys, stale_keys
 
     ids = parse_robot_ids(args.robots)
     operators = list(dict.fromkeys(args.operator or ["operator"]))     # --operator alice twice: one key pair
+    wanted = [args.folder / "robots" / f"robot-{i}.key" for i in ids] \
+        + [args.folder / "operators" / f"{name}.key" for name in operators]
+    stale = stale_keys(args.folder, wanted) if args.force and args.folder.is_dir() else []
     created = init_keys(args.folder, ids, operators, force=args.force)
+    if stale:
+        print(f"removed {len(stale)} old key files (the hub would have gone on accepting them): "
+              + ", ".join(sorted({path.stem for path in stale})))
     print(f"created {len(created)} key files in {args.folder}: hub, robots {describe_ids(ids)} "
           f"({len(ids)}), operators {', '.join(operators)}")
     print(f"  give robot N: {args.folder}/robots/robot-N.key_secret and {args.folder}/hub.key")

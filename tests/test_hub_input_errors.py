@@ -362,6 +362,14 @@ def test_keys_init_refuses_robots_no_hub_would_take(tmp_path, robots, problem):
     assert not (tmp_path / "keys").exists()
 
 
+def test_keys_init_force_says_which_old_keys_it_removed(tmp_path):
+    assert keys_init(tmp_path / "keys", "--robots", "3").returncode == 0
+    run = keys_init(tmp_path / "keys", "--robots", "1,2", "--operator", "alice", "--force")
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("removed 4 old key files (the hub would have gone on accepting them): "
+                                 "operator, robot-0\n")
+
+
 def test_keys_init_makes_one_pair_per_operator_and_counts_what_it_made(tmp_path):
     run = keys_init(tmp_path / "keys", "--robots", "0,3", "--operator", "alice", "--operator", "alice")
     assert run.returncode == 0, run.stderr

@@ -8,7 +8,7 @@ import zmq
 from hub.config import parse_config
 from hub.control import ControlError, request
 from hub.harness import HubThread, spawn_agent, stop_processes
-from hub.security import init_keys, operator_client_keys
+from hub.security import init_keys, load_keyring, operator_client_keys
 from onboard.agent.link import load_robot_keys
 from onboard.config import ConfigError
 from onboard.protocol import encode
@@ -37,6 +37,16 @@ def test_keys_init_makes_private_secrets_and_refuses_to_overwrite(keys):
     assert (keys / "robots" / "robot-0.key").read_text().count("secret-key") == 0
     with pytest.raises(ConfigError, match="already exists"):
         init_keys(keys, [0], ["alice"])
+
+
+def test_keys_init_force_leaves_only_the_new_keys_for_the_hub_to_accept(keys):
+    old_robot_1 = (keys / "robots" / "robot-1.key").read_bytes()
+    init_keys(keys, [1, 2], ["bob"], force=True)                    # rotate: robot 0 and alice are gone
+    ring = load_keyring(keys)
+    assert sorted(ring.robots.values()) == [1, 2] and sorted(ring.operators.values()) == ["bob"]
+    assert (keys / "robots" / "robot-1.key").read_bytes() != old_robot_1
+    assert sorted(p.name for p in (keys / "robots").iterdir()) == [
+        "robot-1.key", "robot-1.key_secret", "robot-2.key", "robot-2.key_secret"]
 
 
 def test_the_hub_refuses_to_start_without_keys_unless_insecure(tmp_path, make_scenario):
