@@ -244,6 +244,7 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
     link.close()
     waiting = [line for line in lines if "no frame from the hub" in line]
     assert waiting and f"at tcp://127.0.0.1:{port} yet; still trying" in waiting[0]
+    assert "is robot 0 in the hub's lab?" in waiting[0] and "key" not in waiting[0]    # an insecure link
     assert time.monotonic() - started < 5.0
 
     parser = argparse.ArgumentParser()

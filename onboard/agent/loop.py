@@ -145,8 +145,9 @@ class Agent:
             return
         self.last_waiting_log = now
         since = "yet" if self.state.received_at == -math.inf else f"for {now - self.state.received_at:.0f} s"
+        key = ", does the hub list this robot's key" if self.link.keys is not None else ""
         self.log(f"agent {self.robot_id}: no frame from the hub at {self.link.endpoint} {since}; still trying "
-                 "(is the hub running, is --hub right, does the hub list this robot's key?)")
+                 f"(is the hub running, is --hub right, is robot {self.robot_id} in the hub's lab{key}?)")
 
     def _lockstep(self) -> bool:
         return bool(self.run and self.run.get("lockstep"))
