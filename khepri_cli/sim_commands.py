@@ -149,6 +149,8 @@ def out_folder_problem(out: Path) -> Optional[str]:
 def video_problem(path: Path):
     """Check the video target before a long run, not after it."""
     suffix = path.suffix.lower()
+    if path.is_dir():
+        return f"{path} is a folder; give a file name ending in .gif or .mp4"
     if suffix not in (".gif", ".mp4"):
         return f"unsupported file type {path.suffix!r} (use .gif or .mp4)"
     if suffix == ".mp4":
@@ -158,8 +160,6 @@ def video_problem(path: Path):
             return "mp4 needs ffmpeg, which is not installed; use a .gif file name"
     if path.parent.exists() and not path.parent.is_dir():
         return f"{path.parent} is not a folder"
-    if path.is_dir():
-        return f"{path} is a folder"
     if path.parent.is_dir():           # try to write it now: a read-only place fails here, not after the run
         existed = path.exists()
         try:

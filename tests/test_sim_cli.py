@@ -100,6 +100,9 @@ def test_a_video_that_cannot_be_written_is_refused_before_the_run(tmp_path, caps
     assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", str(tmp_path / "a-folder.gif")]) == 2
     assert f"--video: {tmp_path / 'a-folder.gif'} is a folder" in capsys.readouterr().err
     assert not (out / "result.json").exists()                 # refused up front: nothing was simulated
+    (tmp_path / "videos").mkdir()                             # a folder without a suffix: not "type ''"
+    assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", str(tmp_path / "videos")]) == 2
+    assert f"--video: {tmp_path / 'videos'} is a folder; give a file name" in capsys.readouterr().err
     readonly = "/sys/khepri-run.gif"                           # sysfs: read-only, even for root
     assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", readonly]) == 2
     assert f"--video: cannot write {readonly}" in capsys.readouterr().err
