@@ -374,6 +374,34 @@ def test_the_seed_meets_the_object_behind_its_first_leg(start_deg):
     assert c.unit(seed_heading((2.0, 2.0), centre, centre, 0.8)) == pytest.approx((-1.0, 0.0))
 
 
+def test_a_seed_wedged_on_a_corner_of_the_object_settles_there():
+    """paper-25's box moved 4 mm down (as it was before its centroid was fixed), its estimate left at the
+    origin: seed 13's seed drives at the corner (-1, -1), where no IR sensor reads contact, and pushed there
+    for ever, so the cage never started. It settles after SEED_WEDGED_S still, and the cage grows."""
+    from onboard.behaviours.transport.caging import SEED_WEDGED_S
+
+    base = load_scenario("paper-25-straight_rot")
+    box = base.object.__class__(**{**vars(base.object), "position": (0.0, -0.0041841)})
+    scenario = base.with_overrides(object=box, params={**base.params, "object_estimate": [0.0, 0.0, 0.0]})
+    sim = Simulation(scenario, seed=13)
+    seed, settled = None, None
+    while sim.step_index * sim.period < 80.0:
+        sim.step()
+        for robot, behaviour in enumerate(sim.behaviours):
+            if behaviour.state == "seed" and seed is None:
+                seed = robot
+        if seed is not None and settled is None and sim.behaviours[seed].state == "caged":
+            settled = sim.step_index * sim.period, sim.behaviours[seed].percept.object_peak
+    assert seed is not None and settled is not None, "the seed never settled"
+    when, peak = settled
+    params = sim.behaviours[seed].params
+    # Still a wedge (else this scenario no longer tests the rule): it settled without reading contact,
+    # having taken its task at about 7 s.
+    assert 0.0 < peak < params.proximity_threshold and when >= 7.0 + SEED_WEDGED_S
+    members = [b for b in sim.behaviours if b.state == "caged"]
+    assert len(members) >= 3                                  # and the branches grow from it
+
+
 def test_a_ring_that_does_not_enclose_the_estimate_is_not_a_cage():
     """The closure guard's geometry: a ring round the object encloses C_o(0); a folded branch (all members on
     one side of the object) does not, however close its two tips are."""

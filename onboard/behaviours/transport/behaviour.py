@@ -75,6 +75,7 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
         self.rotating = False
         self.last_step: Optional[float] = None
         self.progress: Tuple[float, float] = (math.inf, 0.0)   # travel: (best distance to target, when)
+        self.seed_still: Tuple[Optional[Vec], float] = (None, 0.0)   # seed: (where it last moved 2 cm, when)
         self.attach_since = 0.0                  # when this robot last went from travel to attach
         self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
@@ -252,7 +253,7 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
                 self.board.take(task, self.robot.id, float(best["bid"]))
                 self.task = task
                 self.state = "seed" if task.branch == "S" else "travel"
-                self.progress = (math.inf, now)
+                self.progress, self.seed_still = (math.inf, now), (None, now)
                 return True
         return False
 

@@ -24,6 +24,8 @@ TOUCH_ATTACH_RADIUS_M = 0.6
 # object, or behind a member that blocks the way, is unreachable; attaching slides along the surface instead).
 STALL_ATTACH_S = 20.0
 PROGRESS_STEP_M = 0.02
+# A seed that has not moved PROGRESS_STEP_M for this long while its IR sees the object is wedged (_seed_wedged).
+SEED_WEDGED_S = 10.0
 CHAIN_LINK_FACTOR = 2.0    # a branch member farther than this times I_d from its predecessor breaks the chain
 # A predecessor this far (cosine) round the object on the wrong side: slide toward it, not the branch's way.
 WRONG_SIDE_COS = 0.5
@@ -39,7 +41,7 @@ class CagingPhases:
         if not self._still_mine():
             return
         percept, p = self.percept, self.params
-        if percept.in_contact(p.proximity_threshold):
+        if percept.in_contact(p.proximity_threshold) or self._seed_wedged(now):
             self._settle_as_member(now)
             return
         path = self.space.get("path") or p.path
@@ -49,6 +51,19 @@ class CagingPhases:
         else:
             toward = c.sub(self.task.position, percept.position)
         self._drive(c.add(c.unit(toward), self._avoid()))
+
+    def _seed_wedged(self, now: float) -> bool:
+        """Ours: a seed driven at a corner of the object can touch it where no IR sensor reads contact (the
+        corner's tip between two sensors' axes) and push there for ever: in paper-25-straight_rot seed 13 (on
+        `7513162`) the seed pushed at a corner of the 2 x 2 m box from 7 s on and the cage never started. A
+        seed that has not moved PROGRESS_STEP_M for SEED_WEDGED_S while its IR sees the object settles where
+        it is, its branches starting along the tangent to what its IR sees."""
+        here = self.percept.position
+        anchor, since = self.seed_still
+        if anchor is None or distance(here, anchor) >= PROGRESS_STEP_M:
+            self.seed_still = (here, now)
+            return False
+        return self.percept.object_peak > 0 and now - since >= SEED_WEDGED_S
 
     # --- travel: reach the branch target by following the cage ---------------------------------------------
     def _on_travel(self, now: float) -> None:
