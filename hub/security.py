@@ -55,8 +55,8 @@ def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: b
     for name in operators:
         if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
             raise ConfigError("--operator", f"use letters, digits, '.', '_' or '-' only (got {name!r})")
-    for path in stale_keys(folder, targets):   # only with force (else nothing exists): rotating keys must not
-        path.unlink()                          # leave an old robot or operator key that the hub still accepts
+    for path in stale_keys(folder, targets) if force else []:   # rotating keys must not leave an old robot
+        path.unlink()                                             # or operator key that the hub still accepts
     created = []
     for path in targets:
         path.parent.mkdir(parents=True, exist_ok=True)
