@@ -179,7 +179,8 @@ def print_summary(result: dict) -> None:
 
 
 def summary_line(result: dict) -> str:
-    parts = [f"{result['scenario']} seed {result['seed']}: {result['robots']} robots, "
+    robots = "1 robot" if result["robots"] == 1 else f"{result['robots']} robots"
+    parts = [f"{result['scenario']} seed {result['seed']}: {robots}, "
              f"{result['sim_time_s']:.1f} s simulated in {result['wall_time_s']:.1f} s "
              f"({result['real_time_factor']}x real time), stopped: {result['stop_reason']}"]
     for key in ("caged", "completed", "final_position_error_m", "spread_ratio"):
