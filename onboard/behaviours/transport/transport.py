@@ -57,15 +57,9 @@ class TransportPhases:
         """Stay on the object and correct the spacing (paper: to the branch predecessor; improved: even out)."""
         percept = self.percept
         x_o = percept.object_vector if percept.object_peak > 0 else c.sub(self._centre_guess(), percept.position)
-        cw, ccw = self._cage_ring_neighbours()
-        d_cw = self._distance_to(cw)
-        d_ccw = self._distance_to(ccw)
-        if equalise and d_cw is not None and d_ccw is not None:
-            error = 0.5 * (d_cw - d_ccw)                 # > 0: move clockwise, toward the farther neighbour
-        elif self.task.pred is not None:
-            error = self._predecessor_error() * self._slide_sign(x_o)
-        else:
-            error = 0.0
+        error = self._even_spacing_error() if equalise else None    # caged robots (most of them) never even out
+        if error is None:
+            error = self._predecessor_error() * self._slide_sign(x_o) if self.task.pred is not None else 0.0
         contact = percept.in_contact(self.params.proximity_threshold)
         if abs(error) < self.params.caging_tolerance_m / 2 and contact:
             self._hold()
@@ -78,6 +72,13 @@ class TransportPhases:
             toward = c.ZERO
         u = c.add(c.u_distance_correction(x_o, error, SPACING_GAIN), toward)
         self._drive(u, speed_scale=min(1.0, 0.3 + 4.0 * abs(error)))
+
+    def _even_spacing_error(self) -> Optional[float]:
+        """Half the difference of the distances to the two ring neighbours (> 0: move clockwise, toward the
+        farther one); None unless both are known."""
+        cw, ccw = self._cage_ring_neighbours()
+        d_cw, d_ccw = self._distance_to(cw), self._distance_to(ccw)
+        return None if d_cw is None or d_ccw is None else 0.5 * (d_cw - d_ccw)
 
     def _distance_to(self, robot: Optional[int]) -> Optional[float]:
         vector = self._vector_to(robot)
