@@ -37,8 +37,8 @@ def _status(summary: LogSummary) -> str:
                if damaged else "")
     if not summary.truncated:
         return "complete" + skipped
-    until = _clock(summary.end_s) if summary.end_s is not None else "no message"
-    return (f"TRUNCATED, recovered up to {until} ({summary.readable_bytes} of {summary.file_bytes} bytes): "
+    recovered = f"recovered up to {_clock(summary.end_s)}" if summary.end_s is not None else "no message recovered"
+    return (f"TRUNCATED, {recovered} ({summary.readable_bytes} of {summary.file_bytes} bytes): "
             f"{summary.stop_reason}{skipped}")
 
 

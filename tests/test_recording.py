@@ -329,6 +329,9 @@ def test_cli_log_info_prints_the_summary_and_json(tmp_path):
     truncated.write_bytes(path.read_bytes()[:-200])
     cut = run_khepri(truncated)
     assert cut.returncode == 0 and "TRUNCATED, recovered up to" in cut.stdout
+    stub = tmp_path / "stub.mcap"                      # the magic and a torn first record: nothing to recover
+    stub.write_bytes(path.read_bytes()[:10])
+    assert "TRUNCATED, no message recovered (8 of 10 bytes)" in run_khepri(stub).stdout
 
 
 def test_cli_log_info_bad_files_exit_2_with_one_line(tmp_path):
