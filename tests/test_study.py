@@ -123,6 +123,7 @@ def test_overrides_make_a_cartesian_product_of_cells(tmp_path):
     ("scenarios: [lab-6]\nreps: 1\nreps: 2", "bad.yaml:3: not valid YAML (the key 'reps' is given twice"),
     ("scenarios: [lab-6]\nreps: 1\nrepeats: 3", "repeats: unknown key"),
     ("scenarios: [lab-6\nreps: 1", "bad.yaml:2: not valid YAML"),
+    ("# nothing but a comment\n", "bad.yaml: the file is empty (a study needs at least its scenarios)"),
 ])
 def test_a_bad_study_file_is_refused_with_the_field_named(tmp_path, capsys, text, message):
     study = write(tmp_path / "bad.yaml", text)

@@ -118,6 +118,8 @@ def check_reps(where: str, reps: Any) -> int:
 def load_study_file(path: Path, reps: Optional[int] = None) -> StudySpec:
     """A study file; ``reps`` (``--reps``) replaces its seeds, or gives them when the file has none."""
     data = read_yaml(path, "study")
+    if data is None:
+        raise ConfigError(path.name, "the file is empty (a study needs at least its scenarios)")
     if reps is not None and isinstance(data, dict):
         data = {key: value for key, value in data.items() if key not in ("seeds", "reps")}
         data["reps"] = reps
