@@ -125,6 +125,9 @@ def validate_dimensions(spec: Any, where: str) -> None:
         if spec.radius is not None and spec.size is not None:
             raise ConfigError(join(where, "size"), "a circle takes radius or size (its radius), not both")
         radius = spec.radius if spec.radius is not None else spec.size
+        if spec.radius is None and spec.size is not None and not isinstance(radius, float):
+            raise ConfigError(join(where, "size"), f"a circle's size is its radius, one number in metres "
+                                                   f"(got {list(spec.size)}); or give radius: <metres>")
         if not isinstance(radius, float):
             raise ConfigError(join(where, "radius"), "a circle needs radius: <metres>")
         check_range(join(where, "radius"), radius, 0.0, low_open=True)

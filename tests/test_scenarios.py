@@ -219,6 +219,8 @@ def test_docs_list_every_builtin():
      "path: the aggregate behaviour does not follow a path (its params have no 'path'): the path would be ignored"),
     ({"object": {"shape": "circle", "radius": 0.2, "size": 0.3}}, "object.size",
      "object.size: a circle takes radius or size (its radius), not both"),
+    ({"object": {"shape": "circle", "size": [0.2, 0.2]}}, "object.size",
+     "object.size: a circle's size is its radius, one number in metres (got [0.2, 0.2]); or give radius: <metres>"),
 ])
 def test_validation_error_names_the_field(data, field, message):
     err = error_of(data)
