@@ -267,10 +267,15 @@ class Scenario:
         if self.path and not takes_param(behaviour_cls, "path"):
             raise ConfigError("path", f"the {self.behaviour} behaviour does not follow a path (its params have "
                                       f"no 'path'): the path would be ignored")
+        failing: Dict[int, int] = {}
         for i, fault in enumerate(self.faults):
             if fault.robot >= self.robots.count:
                 raise ConfigError(f"faults[{i}].robot",
                                   f"no robot {fault.robot} (robots are 0..{self.robots.count - 1})")
+            if fault.robot in failing:      # a robot fails once: a second time is a typo for another robot
+                raise ConfigError(f"faults[{i}].robot", f"robot {fault.robot} already fails in "
+                                                        f"faults[{failing[fault.robot]}]")
+            failing[fault.robot] = i
         for i, (_x, _y, yaw) in enumerate(self.path):
             if not math.isfinite(yaw):
                 raise ConfigError(f"path[{i}]", "yaw must be finite")

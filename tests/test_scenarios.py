@@ -190,6 +190,8 @@ def test_docs_list_every_builtin():
      "sensors.pose_dropout: must be >= 0 (got -0.1)"),
     ({"robots": {"count": 6}, "faults": [{"robot": 6, "at_s": 30}]}, "faults[0].robot",
      "faults[0].robot: no robot 6 (robots are 0..5)"),
+    ({"robots": {"count": 6}, "faults": [{"robot": 2, "at_s": 30}, {"robot": 2, "at_s": 60}]}, "faults[1].robot",
+     "faults[1].robot: robot 2 already fails in faults[0]"),
     ({"faults": [{"robot": 1}]}, "faults[0].at_s", "faults[0].at_s: is required"),
     ({"object": {"shape": "clover", "static": True}, "path": [[-1, 0, 0]]}, "path",
      "path: a static object cannot follow a path (object.static is true)"),
