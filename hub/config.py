@@ -53,11 +53,24 @@ class SourceConfig:
         self.bodies = {str(name): rid for name, rid in self.bodies.items()}
         for name, rid in self.bodies.items():
             check_robot_id(join(join(where, "bodies"), name), rid)
-        ids = list(self.bodies.values())
-        if len(set(ids)) != len(ids):
-            raise ConfigError(join(where, "bodies"), "two rigid bodies map to the same robot id")
+        first_body: Dict[Any, str] = {}
+        for name, rid in self.bodies.items():
+            if rid in first_body:
+                raise ConfigError(join(join(where, "bodies"), name),
+                                  f"robot {rid} is already the body {first_body[rid]!r}: one body per robot")
+            first_body[rid] = name
+        if self.type == "motioncapture" and self.system == "mock" and "frequency" in self.options:
+            # The mock backend parses it in C++ (a bad one is a traceback there) and spins without a wait at
+            # 0 or below, starving the hub.
+            check_mock_frequency(join(join(where, "options"), "frequency"), self.options["frequency"])
         if self.type == "replay" and not self.file:
             raise ConfigError(join(where, "file"), "a replay source needs file: <log.mcap>")
+
+
+def check_mock_frequency(where: str, value: Any) -> None:
+    text = str(value).strip()
+    if isinstance(value, bool) or not text.isdigit() or not 1 <= int(text) <= 1000:
+        raise ConfigError(where, f"must be a whole number of frames per second, 1 to 1000 (got {value!r})")
 
 
 @dataclass

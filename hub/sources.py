@@ -185,6 +185,9 @@ class MotionCaptureSource(PoseSource):
             self.mocap = (connect or motioncapture.connect)(system, options)
         except RuntimeError as err:
             raise ConfigError("source.system", f"cannot connect to {system!r}: {err}") from None
+        except (ValueError, TypeError) as err:     # the SDK's own parsing of an option (std::stoi, ...)
+            raise ConfigError("source.options", f"{system!r} refused an option ({describe_options(options)}): "
+                                                f"{err}") from None
         self.frames: Deque[PoseFrame] = deque(maxlen=8)   # the hub wants the newest; old ones are useless
         self.wake = _WakeUp(context, "mocap")
         self.wake_socket = self.wake.reader

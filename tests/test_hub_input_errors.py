@@ -127,6 +127,23 @@ def test_a_body_must_map_to_an_integer_robot_id(value):
     assert info.value.problem == f"must be an integer robot id 0..999999 (got {value!r})"
 
 
+def test_two_bodies_for_one_robot_are_named():
+    with pytest.raises(ConfigError) as info:
+        parse_config(mocap_config({"kh0": 0, "kh1": 1, "spare": 0}))
+    assert str(info.value) == "source.bodies.spare: robot 0 is already the body 'kh0': one body per robot"
+
+
+@pytest.mark.parametrize("frequency", ["fast", "0", -5, "2.5", True, 5000])
+def test_a_mock_frequency_that_is_not_a_whole_rate_is_refused(frequency):
+    """The mock parses it in C++ (a traceback) and spins at 0 or below (a hub at full CPU)."""
+    config = mocap_config({"kh0": 0})
+    config["source"]["options"]["frequency"] = frequency
+    with pytest.raises(ConfigError) as info:
+        parse_config(config)
+    assert info.value.field == "source.options.frequency"
+    assert parse_config({**config, "source": {**config["source"], "options": {"frequency": "100"}}})
+
+
 def test_a_numeric_body_name_matches_the_sdks_string_name():
     assert parse_config(mocap_config({7: 0})).source.bodies == {"7": 0}
 

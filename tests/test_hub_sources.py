@@ -85,6 +85,15 @@ def fake_source(bodies, up_axis, lines):
                                connect=lambda system, options: FakeMocap())
 
 
+def test_an_option_the_sdk_cannot_parse_is_one_line_naming_source_options():
+    def refuse(system, options):
+        raise ValueError("stoi")                       # what the C++ bindings raise for a non-number
+    with pytest.raises(ConfigError) as info:
+        MotionCaptureSource(zmq.Context.instance(), "fake", {"port": "x"}, {"kh0": 0}, "z", log=lambda line: None,
+                            connect=refuse)
+    assert info.value.field == "source.options" and "'fake' refused an option" in info.value.problem
+
+
 def reference_convert(bodies, names_to_ids, up_axis):
     """The conversion body by body: listed names only, world pose per body, non-finite poses dropped."""
     ids, poses = [], []
