@@ -260,6 +260,7 @@ def _add_sil(groups) -> None:
 
 def cmd_sil(args: argparse.Namespace) -> int:
     from hub.sil import SilOptions, run_sil
+    from khepri_cli.signals import sigterm_as_ctrl_c
     from khepri_cli.sim_commands import check_time_limit, print_summary, require_out_folder
     from sim_backend.scenario import load_scenario
 
@@ -273,7 +274,8 @@ def cmd_sil(args: argparse.Namespace) -> int:
     require_out_folder(out)
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
                          record=not args.no_record, plot=not args.no_plot, imports=list(args.imports))
-    result = run_sil(scenario, out, options)
+    with sigterm_as_ctrl_c():      # `kill` stops the agents and the hub and closes the log, as Ctrl-C does
+        result = run_sil(scenario, out, options)
     print_summary(result)
     sil = result.get("sil", {})
     print(f"  agents: {sil.get('agents')}, lockstep: {sil.get('lockstep')}, frame latency p99 "

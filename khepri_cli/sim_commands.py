@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 from typing import Optional
 
+from .signals import sigterm_as_ctrl_c
+
 
 def check_time_limit(seconds: Optional[float], option: str = "--time-limit") -> None:
     """``--time-limit`` (or ``--wall-limit``) of sim run, sil and study: argparse's float() also takes ``nan``
@@ -103,8 +105,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"khepri: warning: {warning}", file=sys.stderr)
     bar = ProgressBar(f"{scenario.name} seed {sim.seed}")
     try:
-        result = sim.run(time_limit_s=args.time_limit, progress=bar, wall_limit_s=args.wall_limit,
-                         keep_on_interrupt=True)
+        with sigterm_as_ctrl_c():   # `kill` keeps what was recorded, as Ctrl-C does
+            result = sim.run(time_limit_s=args.time_limit, progress=bar, wall_limit_s=args.wall_limit,
+                             keep_on_interrupt=True)
     finally:
         bar.close()
     interrupted = result.get("stop_reason") == "interrupted"

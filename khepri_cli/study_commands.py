@@ -4,12 +4,12 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
-import signal
 import sys
 from pathlib import Path
 
 from onboard.config import ConfigError
 
+from .signals import sigterm_as_ctrl_c
 from .sim_commands import folder_arg
 
 DEFAULT_REPS = 30
@@ -68,18 +68,11 @@ def cmd_study(args: argparse.Namespace) -> int:
     print(f"study {spec.name}: {len(runs)} runs on {executor.describe()}, writing to {out}")
     # `kill` (SIGTERM) ends a study like Ctrl-C: workers stopped, finished runs kept, resumable. Without
     # this the driver died alone and its pool's workers ran on, orphaned, until their runs finished.
-    previous = signal.signal(signal.SIGTERM, _interrupt)
-    try:
+    with sigterm_as_ctrl_c():
         outcome = run_study(spec, runs, out, executor, retry_failed=args.retry_failed, command=command_line(args))
-    finally:
-        signal.signal(signal.SIGTERM, previous)
     print(f"ran {outcome.ran} runs ({outcome.failed} failed), skipped {outcome.skipped} finished"
           + (f" and {outcome.kept_failed} failed (re-run them with --retry-failed)" if outcome.kept_failed else ""))
     return print_outputs(write_study_outputs(out, figures=not args.no_figures))
-
-
-def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
 
 
 def cmd_report(args: argparse.Namespace) -> int:

@@ -1,10 +1,17 @@
 """Software in the loop, end to end: the hub's sim source and one real agent process per robot over loopback
 CURVE sockets run lab-6 and lab-6-payload in lockstep; evaluated like `khepri sim run`, with the MCAP log beside it."""
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from hub.log_summary import summarise
 from hub.recording import read_log
 from hub.sil import SilOptions, run_sil
 from sim_backend.scenario import load_scenario
@@ -32,3 +39,23 @@ def test_sil_lab6_cages_and_reaches_every_waypoint(tmp_path, name):
     topics = {record.topic for record in read_log(tmp_path / "hub.mcap")}
     assert {"/mocap/poses", "/robot/0/frame", "/robot/5/telemetry", "/robot/3/broadcast", "/robot/1/command",
             "/control"} <= topics
+
+
+def test_kill_ends_sil_as_ctrl_c_does_with_its_log_closed(tmp_path):
+    """`kill` (SIGTERM) used to end sil at once: no message, and an MCAP log without its footer."""
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "sil"
+    sil = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "sil", "lab-6", "--realtime", "--time-limit",
+                            "60", "--no-plot", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True, env=dict(os.environ, PYTHONPATH=str(root)))
+    try:
+        deadline = time.monotonic() + 30
+        while not (out / "hub.mcap").exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(2.0)                                 # the run is under way
+        sil.send_signal(signal.SIGTERM)
+        _, err = sil.communicate(timeout=30)
+    finally:
+        sil.kill()
+    assert "khepri: interrupted" in err and "Traceback" not in err
+    assert not summarise(out / "hub.mcap").truncated
