@@ -51,10 +51,9 @@ class SourceConfig:
             raise ConfigError(join(where, "bodies"), "map each rigid body name to a robot id, e.g. {kh0: 0}")
         # The SDK names bodies with strings: a YAML key like 7 must match the body "7".
         self.bodies = {str(name): rid for name, rid in self.bodies.items()}
-        for name, rid in self.bodies.items():
-            check_robot_id(join(join(where, "bodies"), name), rid)
         first_body: Dict[Any, str] = {}
         for name, rid in self.bodies.items():
+            check_robot_id(join(join(where, "bodies"), name), rid)
             if rid in first_body:
                 raise ConfigError(join(join(where, "bodies"), name),
                                   f"robot {rid} is already the body {first_body[rid]!r}: one body per robot")

@@ -35,24 +35,17 @@ def test_an_out_folder_that_cannot_be_made_is_refused_before_the_run(tmp_path, c
     assert f"--out: cannot create the folder {blocker / 'run'}" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("options, message", [
-    (["--robots", "0"], "--robots: must be >= 1 (got 0)"),
-    (["--rate", "0"], "--rate: must be > 0 (got 0)"),
-    (["--seconds", "-1"], "--seconds: must be > 0 (got -1)"),
+@pytest.mark.parametrize("bench, options, message", [
+    ("hub", ["--robots", "0"], "--robots: must be >= 1 (got 0)"),
+    ("hub", ["--rate", "0"], "--rate: must be > 0 (got 0)"),
+    ("hub", ["--seconds", "-1"], "--seconds: must be > 0 (got -1)"),
+    ("sim", ["--seconds", "nan"], "--seconds: must be a finite number of seconds > 0 (got nan)"),
+    ("sim", ["--seconds", "inf"], "--seconds: must be a finite number of seconds > 0 (got inf)"),
+    ("sim", ["--seconds", "0"], "--seconds: must be a finite number of seconds > 0 (got 0)"),
+    ("sim", ["--robots", "5,,6"], "--robots: give positive robot counts, e.g. 25,50,100 (got '5,,6')"),
 ])
-def test_bench_hub_names_the_bad_option(capsys, options, message):
-    assert main(["bench", "hub", *options]) == 2
-    assert message in capsys.readouterr().err
-
-
-@pytest.mark.parametrize("options, message", [
-    (["--seconds", "nan"], "--seconds: must be a finite number of seconds > 0 (got nan)"),
-    (["--seconds", "inf"], "--seconds: must be a finite number of seconds > 0 (got inf)"),
-    (["--seconds", "0"], "--seconds: must be a finite number of seconds > 0 (got 0)"),
-    (["--robots", "5,,6"], "--robots: give positive robot counts, e.g. 25,50,100 (got '5,,6')"),
-])
-def test_bench_sim_names_the_bad_option(capsys, options, message):
-    assert main(["bench", "sim", *options]) == 2
+def test_bench_names_the_bad_option(capsys, bench, options, message):
+    assert main(["bench", bench, *options]) == 2
     assert message in capsys.readouterr().err
 
 
