@@ -5,6 +5,7 @@ run ``hold`` (wheels stopped, behaviours paused) until the next ``start`` resume
 """
 from __future__ import annotations
 
+import json
 import time
 import uuid
 from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
@@ -13,7 +14,7 @@ import zmq
 
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
-from .links import frame_property
+from .links import frame_sender
 
 if TYPE_CHECKING:
     from .server import Hub
@@ -26,19 +27,24 @@ class ControlService:
     def handle(self, parts: List[zmq.Frame]) -> None:
         hub = self.hub
         if len(parts) != 2:
-            hub.drops.drop("malformed control message", "unknown operator", f"{len(parts) - 1} frames")
+            sender = frame_sender(parts[-1], "operator")
+            hub.drops.drop("malformed control message", sender, f"{len(parts) - 1} frames from {sender}, expected 1")
             return
         routing, body = parts
-        sender = f"{frame_property(body, 'User-Id') or 'operator'} at {frame_property(body, 'Peer-Address') or '?'}"
+        sender = frame_sender(body, "operator")
         try:
             request = decode(body.bytes, sender, accept=("request",))
         except ProtocolError as err:
             hub.drops.drop("bad control message", sender, str(err))
-            return
-        ok, extra = self.execute(request["cmd"], sender)
-        reply: Dict[str, Any] = {"type": "reply", "ok": ok, **extra}
-        if "nonce" in request:
-            reply["nonce"] = request["nonce"]
+            # A client of its own (a lab script asking for "pause") learns why at once instead of timing out.
+            reply: Dict[str, Any] = {"type": "reply", "ok": False, "error": refusal(err)}
+            nonce = request_nonce(body.bytes)
+        else:
+            ok, extra = self.execute(request["cmd"], sender)
+            reply = {"type": "reply", "ok": ok, **extra}
+            nonce = request.get("nonce")
+        if nonce is not None:
+            reply["nonce"] = nonce
         try:
             hub.control_socket.send_multipart([routing.bytes, encode_reply(reply)], zmq.NOBLOCK)
         except zmq.ZMQError:
@@ -144,6 +150,19 @@ def recording_status(recorder: Any) -> Optional[Dict[str, Any]]:
     if recorder is None:
         return None
     return {"path": str(recorder.path), "error": getattr(recorder, "failure", None)}
+
+
+def refusal(err: ProtocolError) -> str:
+    return f"refused: {err.field}: {err.problem}" if err.field else f"refused: {err.problem}"
+
+
+def request_nonce(data: bytes) -> Optional[int]:
+    """The nonce of a request that failed validation, when it has a usable one, so its refusal is matched."""
+    try:
+        nonce = json.loads(data).get("nonce")
+    except (ValueError, AttributeError, RecursionError):    # not JSON, not an object, nested past the limit
+        return None
+    return nonce if type(nonce) is int and 0 <= nonce < 1 << 53 else None
 
 
 def encode_reply(reply: Dict[str, Any]) -> bytes:

@@ -91,6 +91,16 @@ class DropLog:
             self._last_line.clear()
             self._suppressed.clear()
 
+    def flush(self, now: float) -> None:
+        """Say the drops a burst hid once its second is over, not only with that sender's next drop, which
+        may never come."""
+        if not self._suppressed:
+            return
+        for sender in [s for s in self._suppressed if now - self._last_line.get(s, -math.inf) >= 1.0]:
+            more = self._suppressed.pop(sender)
+            self.log(f"hub: dropped {more} more message{'s' if more > 1 else ''} from {sender} in the last second "
+                     f"(`khepri ctl status` counts drops by reason)")
+
     @property
     def total(self) -> int:
         return sum(self.counts.values())
@@ -121,6 +131,11 @@ class RateMeter:
 
     def current(self, now: float) -> float:
         return 0.0 if now - self.last > 2.0 * self.window_s else self.hz
+
+
+def frame_sender(frame: zmq.Frame, default_user: str) -> str:
+    """Who sent a frame, as the drop log names them: 'robot:3 at 127.0.0.1' (the key's user, the peer)."""
+    return f"{frame_property(frame, 'User-Id') or default_user} at {frame_property(frame, 'Peer-Address') or '?'}"
 
 
 def frame_property(frame: zmq.Frame, name: str) -> Optional[str]:

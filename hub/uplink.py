@@ -13,7 +13,7 @@ import zmq
 
 from onboard.protocol import UPLINK_TYPES, ProtocolError, check_payload_size, decode
 
-from .links import RobotLink, frame_property
+from .links import RobotLink, frame_property, frame_sender
 from .log_format import robot_topic
 
 DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
@@ -23,11 +23,12 @@ class Uplink:
     def handle_uplink(self, parts: List[zmq.Frame]) -> None:
         now = time.monotonic()
         if len(parts) != 2:
-            self.drops.drop("malformed message", "unknown peer", f"{len(parts) - 1} frames, expected 1")
+            sender = frame_sender(parts[-1], "peer")
+            self.drops.drop("malformed message", sender, f"{len(parts) - 1} frames from {sender}, expected 1")
             return
         routing, body = parts
         user, peer = frame_property(body, "User-Id"), frame_property(body, "Peer-Address")
-        sender = f"{user or 'peer'} at {peer or '?'}"
+        sender = frame_sender(body, "peer")
         try:
             message = decode(body.bytes, sender, accept=UPLINK_TYPES)
         except ProtocolError as err:
