@@ -165,6 +165,17 @@ class LabConfig:
                 check_robot_id(f"robots[{i}]", rid)
             if len(set(self.robots)) != len(self.robots):
                 raise ConfigError("robots", "lists a robot id twice")
+            if self.source.type == "motioncapture":
+                check_every_robot_has_a_body(self.robots, self.source.bodies)
+
+
+def check_every_robot_has_a_body(robots: List[int], bodies: Dict[str, int]) -> None:
+    """A robot without a rigid body would never get a pose: the hub would hold it for the whole run."""
+    tracked = set(bodies.values())
+    for i, rid in enumerate(robots):
+        if rid not in tracked:
+            raise ConfigError(f"robots[{i}]", f"robot {rid} has no rigid body in source.bodies (add e.g. "
+                                              f"kh{rid}: {rid} there, or take it off this list)")
 
 
 def check_robot_id(where: str, value: Any) -> int:
@@ -184,7 +195,12 @@ def parse_config(data: Any) -> LabConfig:
 
 
 def load_config(path: Path) -> LabConfig:
-    return parse_config(read_yaml(path, "--config"))
+    data = read_yaml(path, "--config")
+    if data is None:
+        # Not the defaults: an empty file is more likely a failed copy than a wish for lab-6 in simulation.
+        raise ConfigError("--config", f"{path} is empty; hub/examples/lab.yaml is a commented example "
+                                      "(`khepri hub --demo` runs the defaults)")
+    return parse_config(data)
 
 
 def demo_config() -> LabConfig:

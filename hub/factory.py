@@ -44,6 +44,7 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         source = ReplaySource(config.source.file, config.source.rate, log)
     try:
         ids = robot_ids(config, source)
+        say_untracked_bodies(config, ids, log)
         run = run_template(config, scenario)
         keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
         if recorder is None and config.record is not None:
@@ -66,6 +67,15 @@ def robot_ids(config: LabConfig, source: PoseSource):
     if config.source.type == "sim":
         check_sim_robots(config.robots, known, source.description)
     return list(config.robots)
+
+
+def say_untracked_bodies(config: LabConfig, ids: List[int], log: Callable[[str], None]) -> None:
+    """Bodies of robots not in this run are fine (four of six robots out today), but said: it may be a typo."""
+    if config.source.type != "motioncapture":
+        return
+    others = [f"{name} (robot {rid})" for name, rid in config.source.bodies.items() if rid not in ids]
+    if others:
+        log(f"hub: source.bodies {', '.join(others)}: not in robots, so not served (their poses are ignored)")
 
 
 def check_sim_robots(wanted: List[int], scenario_ids: List[int], description: str) -> None:

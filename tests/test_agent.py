@@ -302,6 +302,25 @@ def test_an_empty_library_or_calibration_path_is_refused_not_taken_as_the_defaul
             run_agent(args)
 
 
+def test_a_bad_calibration_file_is_named_as_the_option_that_gave_it(tmp_path, monkeypatch):
+    """It was said as `--driver: cannot open the KheperaIV: ...`, sending the user to the wrong option."""
+    from onboard.agent.cli import add_agent_arguments, run_agent
+    from onboard.config import ConfigError
+
+    bad = tmp_path / "kh4-0.yaml"
+    bad.write_text("proximity: [{ambient: 5, touch: 1}]\n")
+    parser = argparse.ArgumentParser()
+    add_agent_arguments(parser)
+    args = parser.parse_args(["--id", "0", "--driver", "kh4", "--calibration", str(bad)])
+    with pytest.raises(ConfigError) as info:
+        run_agent(args)
+    assert info.value.field == "--calibration" and info.value.problem.startswith(f"{bad}: proximity")
+    monkeypatch.setenv("KHEPRI_KH4_CALIBRATION", str(bad))
+    with pytest.raises(ConfigError) as info:
+        run_agent(parser.parse_args(["--id", "0", "--driver", "kh4"]))
+    assert info.value.field == "$KHEPRI_KH4_CALIBRATION"
+
+
 def test_the_agents_neighbour_columns_are_read_only_as_in_the_simulator():
     """Writing into them raised in simulation but not on the agent, so such a bug showed up only in sim."""
     state = HubState()

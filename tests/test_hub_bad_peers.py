@@ -1,0 +1,114 @@
+"""What the hub says about odd peers and odd lab files: who sent it, why it was refused, nothing left unsaid."""
+import json
+import time
+
+import pytest
+import zmq
+
+from hub.config import load_config, parse_config
+from hub.harness import HubThread
+from hub.links import DropLog
+from onboard.config import ConfigError
+from onboard.protocol import PROTOCOL_VERSION, decode, encode
+
+NETWORK = {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}
+SIM = {"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True}}
+
+
+def mocap_config(bodies, robots=None):
+    data = {"source": {"type": "motioncapture", "system": "mock", "bodies": bodies,
+                       "options": {"rigid_bodies": "kh0(0,0,0,1,0,0,0)"}},
+            "network": NETWORK, "security": {"insecure": True}, "run": {"behaviour": "aggregate"}}
+    if robots is not None:
+        data["robots"] = robots
+    return data
+
+
+def dealer(endpoint: str) -> zmq.Socket:
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.linger = 0
+    sock.connect(endpoint)
+    return sock
+
+
+def wait_for_line(hub: HubThread, fragment: str, timeout_s: float = 5.0) -> str:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for line in list(hub.lines):
+            if fragment in line:
+                return line
+        time.sleep(0.02)
+    raise AssertionError(f"no line with {fragment!r} in {hub.lines}")
+
+
+def test_a_request_the_hub_cannot_take_is_answered_with_why():
+    """A lab's own client asking for a command the hub does not know waited for its timeout, told nothing."""
+    with HubThread(parse_config(SIM)) as hub:
+        sock = dealer(hub.endpoints["control"])
+        try:
+            sock.send(json.dumps({"v": PROTOCOL_VERSION, "type": "request", "cmd": "pause", "nonce": 5}).encode())
+            assert sock.poll(3000), "no reply to a request with an unknown command"
+            reply = decode(sock.recv(), "hub", accept=("reply",))
+            sock.send(b"\xff not json")
+            assert sock.poll(3000), "no reply to a request that is not JSON"
+            garbage = decode(sock.recv(), "hub", accept=("reply",))
+        finally:
+            sock.close(0)
+        assert reply["ok"] is False and reply["nonce"] == 5
+        assert reply["error"].startswith("refused: request.cmd: must be one of") and "'pause'" in reply["error"]
+        assert garbage["ok"] is False and "nonce" not in garbage and "not a JSON message" in garbage["error"]
+        assert hub.request("status")["ok"]          # and the hub serves on
+
+
+def test_a_message_in_too_many_frames_names_its_sender():
+    with HubThread(parse_config(SIM)) as hub:
+        sock = dealer(hub.endpoints["robots"])
+        try:
+            sock.send_multipart([encode({"type": "hello", "id": 0, "driver": "test"}), b"extra"])
+            line = wait_for_line(hub, "dropped malformed message")
+        finally:
+            sock.close(0)
+    assert line.startswith("hub: dropped malformed message: 2 frames from peer at 127.0.0.1, expected 1"), line
+
+
+def test_drops_a_burst_hid_are_said_when_its_second_is_over():
+    """'+N more' was said only with the sender's next drop, which may never come."""
+    lines = []
+    drops = DropLog(lines.append)
+    for _ in range(4):
+        drops.drop("bad message", "robot:3 at 10.0.0.3", "from robot:3 at 10.0.0.3: v: unsupported")
+    start = time.monotonic()
+    drops.flush(start)                              # the burst's second is not over: nothing yet
+    assert len(lines) == 1
+    drops.flush(start + 1.5)
+    assert lines[1] == ("hub: dropped 3 more messages from robot:3 at 10.0.0.3 in the last second "
+                        "(`khepri ctl status` counts drops by reason)")
+    drops.flush(start + 3.0)                        # said once
+    assert len(lines) == 2 and drops.counts == {"bad message": 4}
+
+
+def test_a_robot_without_a_rigid_body_is_refused():
+    with pytest.raises(ConfigError) as info:
+        parse_config(mocap_config({"kh0": 0, "kh1": 1}, robots=[0, 1, 2]))
+    assert str(info.value) == ("robots[2]: robot 2 has no rigid body in source.bodies (add e.g. kh2: 2 there, "
+                               "or take it off this list)")
+    assert parse_config(mocap_config({"kh0": 0, "kh1": 1}, robots=[1])).robots == [1]
+
+
+def test_bodies_of_robots_left_out_of_the_run_are_said():
+    """Four of six robots out today is fine; a body the hub silently ignores may be a typo."""
+    with HubThread(parse_config(mocap_config({"kh0": 0, "kh1": 1, "kh5": 5}, robots=[0]))) as hub:
+        line = wait_for_line(hub, "source.bodies")
+    assert line == "hub: source.bodies kh1 (robot 1), kh5 (robot 5): not in robots, so not served (their poses " \
+                   "are ignored)"
+
+
+@pytest.mark.parametrize("content", ["", "# only a comment\n"])
+def test_an_empty_lab_file_is_refused_not_taken_as_defaults(tmp_path, content):
+    path = tmp_path / "lab.yaml"
+    path.write_text(content)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert info.value.field == "--config" and info.value.problem.startswith(f"{path} is empty")
+    path.write_text(json.dumps(SIM))
+    assert load_config(path).source.type == "sim"
