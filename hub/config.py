@@ -4,6 +4,7 @@ Every key is documented in docs/lab.md; ``hub/examples/lab.yaml`` is a commented
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
@@ -62,8 +63,34 @@ class SourceConfig:
             # The mock backend parses it in C++ (a bad one is a traceback there) and spins without a wait at
             # 0 or below, starving the hub.
             check_mock_frequency(join(join(where, "options"), "frequency"), self.options["frequency"])
+        if self.type == "motioncapture" and self.system == "mock" and "rigid_bodies" in self.options:
+            # The mock skips an entry it cannot parse without a word: the robot would just never be placed.
+            entries = mock_bodies(join(join(where, "options"), "rigid_bodies"), self.options["rigid_bodies"])
+            # The mock would keep a space after ';' in the name, and "kh1" would match no body.
+            self.options["rigid_bodies"] = ";".join(entries)
+            names = [MOCK_BODY.fullmatch(entry).group(1) for entry in entries]
+            for name in self.bodies:
+                if name not in names:
+                    raise ConfigError(join(join(where, "bodies"), name),
+                                      f"the mock has no body {name!r} (its rigid_bodies: {', '.join(names)})")
         if self.type == "replay" and not self.file:
             raise ConfigError(join(where, "file"), "a replay source needs file: <log.mcap>")
+
+
+_NUMBER = r"\s*[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*"
+MOCK_BODY = re.compile(rf"([^\s(),;][^(),;]*?)\(({_NUMBER}(?:,{_NUMBER}){{6}})\)")
+
+
+def mock_bodies(where: str, value: Any) -> List[str]:
+    """The entries of the mock's ``rigid_bodies``, ``name(x,y,z,qw,qx,qy,qz)`` separated by ``;``, trimmed."""
+    entries = [entry.strip() for entry in str(value).split(";") if entry.strip()]
+    for i, entry in enumerate(entries):
+        if not MOCK_BODY.fullmatch(entry):
+            raise ConfigError(where, f"entry {i + 1} ({entry!r}) must be name(x,y,z,qw,qx,qy,qz): a name, then "
+                                     "7 numbers in brackets; entries are separated by ;")
+    if not entries:
+        raise ConfigError(where, "has no body: give name(x,y,z,qw,qx,qy,qz) entries separated by ;")
+    return entries
 
 
 def check_mock_frequency(where: str, value: Any) -> None:

@@ -17,7 +17,7 @@ SIM = {"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": T
 
 def mocap_config(bodies, robots=None):
     data = {"source": {"type": "motioncapture", "system": "mock", "bodies": bodies,
-                       "options": {"rigid_bodies": "kh0(0,0,0,1,0,0,0)"}},
+                       "options": {"rigid_bodies": ";".join(f"{name}(0,0,0,1,0,0,0)" for name in bodies)}},
             "network": NETWORK, "security": {"insecure": True}, "run": {"behaviour": "aggregate"}}
     if robots is not None:
         data["robots"] = robots
@@ -112,3 +112,31 @@ def test_an_empty_lab_file_is_refused_not_taken_as_defaults(tmp_path, content):
     assert info.value.field == "--config" and info.value.problem.startswith(f"{path} is empty")
     path.write_text(json.dumps(SIM))
     assert load_config(path).source.type == "sim"
+
+
+@pytest.mark.parametrize("rigid_bodies, problem", [
+    ("kh0(0,0,0)", "entry 1 ('kh0(0,0,0)') must be name(x,y,z,qw,qx,qy,qz)"),
+    ("kh0(0,0,0,1,0,0,0),kh1(1,0,0,1,0,0,0)", "entry 1 ("),
+    ("kh0(0,0,0,1,0,0,0);kh1(a,0,0,1,0,0,0)", "entry 2 ('kh1(a,0,0,1,0,0,0)')"),
+    (" ; ", "has no body"),
+])
+def test_a_mock_body_the_mock_would_skip_is_refused(rigid_bodies, problem):
+    """The mock skips an entry it cannot parse, and the robot was never placed, with no word of why."""
+    config = mocap_config({"kh0": 0})
+    config["source"]["options"]["rigid_bodies"] = rigid_bodies
+    with pytest.raises(ConfigError) as info:
+        parse_config(config)
+    assert info.value.field == "source.options.rigid_bodies" and problem in info.value.problem
+
+
+def test_a_body_the_mock_does_not_have_is_named_and_spaces_after_a_semicolon_do_not_count():
+    config = mocap_config({"kh0": 0, "kh1": 1})
+    config["source"]["options"]["rigid_bodies"] = "kh0(0,0,0,1,0,0,0)"
+    with pytest.raises(ConfigError) as info:
+        parse_config(config)
+    assert str(info.value) == "source.bodies.kh1: the mock has no body 'kh1' (its rigid_bodies: kh0)"
+    config["source"]["options"]["rigid_bodies"] = "kh0(0,0,0,1,0,0,0); kh1(0.5,0,0,1,0,0,0)"
+    with HubThread(parse_config(config)) as hub:       # the mock names the second body " kh1" if given as is
+        hub.request("start")
+        hub.wait_until(lambda s: [(r["id"], r["mode"]) for r in s["robots"]] == [(0, "run"), (1, "run")],
+                       timeout_s=5.0)

@@ -115,7 +115,7 @@ def test_a_bad_bind_option_names_the_option():
 # --- 2-4. config values the loader let through ---------------------------------------------------------------------
 def mocap_config(bodies, **extra):
     return {"source": {"type": "motioncapture", "system": "mock", "bodies": bodies,
-                       "options": {"rigid_bodies": "kh0(0,0,0,1,0,0,0)"}},
+                       "options": {"rigid_bodies": ";".join(f"{name}(0,0,0,1,0,0,0)" for name in bodies)}},
             "network": dict(NETWORK), "security": {"insecure": True}, "run": {"behaviour": "aggregate"}, **extra}
 
 

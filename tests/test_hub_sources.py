@@ -159,7 +159,7 @@ def test_a_y_up_body_is_placed_on_the_z_up_floor():
 
 
 def test_stale_bodies_lose_their_pose_and_are_held():
-    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0)"), log=lambda line: None)
+    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0);kh1(0.5,0,0,1,0,0,0)"), log=lambda line: None)
     try:
         hub.mode = "run"
         both = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
@@ -177,7 +177,7 @@ def test_stale_bodies_lose_their_pose_and_are_held():
 def test_robots_are_held_when_motion_capture_stops_sending_altogether():
     """No frame at all (the cameras stopped, a replay ended): the robots' poses still go stale and they are
     held. Presence used to be recomputed only when a frame arrived, so they ran on, on their last pose."""
-    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0)"), log=lambda line: None)
+    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0);kh1(0.5,0,0,1,0,0,0)"), log=lambda line: None)
     try:
         hub.mode = "run"
         now = time.monotonic()
@@ -193,7 +193,7 @@ def test_robots_are_held_when_motion_capture_stops_sending_altogether():
 
 
 def test_a_waiting_pose_frame_interrupts_uplink_reading():
-    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0)"), log=lambda line: None)
+    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0);kh1(0.5,0,0,1,0,0,0)"), log=lambda line: None)
     sock = zmq.Context.instance().socket(zmq.DEALER)
     try:
         hub.bind()
