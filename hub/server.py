@@ -344,8 +344,9 @@ def poses_record(frame: PoseFrame) -> Dict[str, Any]:
     """``/mocap/poses`` in the recorder's schema: robot id -> [x, y, z, qx, qy, qz, qw], world frame, z up."""
     bodies = {}
     for rid, (x, y, yaw) in zip(frame.ids, frame.poses.tolist()):
-        bodies[str(rid)] = [round(x, 5), round(y, 5), 0.0, 0.0, 0.0, round(math.sin(yaw / 2.0), 6),
-                            round(math.cos(yaw / 2.0), 6)]
+        # "+ 0.0": a value rounded to -0.0 is written as 0.0 (a log reader need not know of signed zeros).
+        bodies[str(rid)] = [round(x, 5) + 0.0, round(y, 5) + 0.0, 0.0, 0.0, 0.0,
+                            round(math.sin(yaw / 2.0), 6) + 0.0, round(math.cos(yaw / 2.0), 6) + 0.0]
     return {"bodies": bodies, "clock_s": frame.clock_s}
 
 

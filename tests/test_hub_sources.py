@@ -1,4 +1,5 @@
 """Pose sources: the motioncapture library (its mock backend stands in for the cameras) and replay of a log."""
+import json
 import math
 import time
 
@@ -307,3 +308,8 @@ def test_a_real_robots_agent_joining_a_sim_hub_is_told_about_once():
         assert robot.driver == "kh4"
     finally:
         hub.close()
+
+
+def test_a_recorded_pose_holds_no_negative_zero():
+    record = poses_record(PoseFrame(0.0, [4], np.array([[-1e-7, -2e-6, -1e-8]])))
+    assert json.dumps(record["bodies"]) == '{"4": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}'
