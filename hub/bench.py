@@ -7,7 +7,7 @@ hub's reader thread right after ``waitForNextFrame`` returns, before the bodies 
 this process takes it off an agent socket (stamped right after ``recv``, before anything is parsed); both
 read the same monotonic clock, as they run on one machine. Once the window is over, each frame is decoded and
 validated with ``onboard.protocol.decode``, as an agent would; a frame without a pose (whose ``hub_t`` is
-its send time) does not count. With ``downlink_hz`` 20 and
+its send time) does not count, nor a heartbeat that repeats a pose a robot already had. With ``downlink_hz`` 20 and
 120 mocap frames a second, each pose frame is due for about a sixth of the robots, so the p99 is that of
 the last robots of each burst. Hub CPU is the hub process's ``process_time`` (all its threads, ZeroMQ's
 included) over the window.
@@ -148,13 +148,13 @@ class _ReadySockets:
         self.selector.close()
 
 
-def _drain(sock: zmq.Socket, arrived: List[Tuple[bytes, float]]) -> None:
+def _drain(sock: zmq.Socket, arrived: List[Tuple[zmq.Socket, bytes, float]]) -> None:
     while True:
         try:
             data = sock.recv(zmq.NOBLOCK)
         except zmq.Again:
             return
-        arrived.append((data, time.monotonic()))      # stamped before anything is parsed
+        arrived.append((sock, data, time.monotonic()))      # stamped before anything is parsed
 
 
 def _collect(sockets: List[zmq.Socket], ready: _ReadySockets, seconds: float, telemetry_hz: float = 0.0,
@@ -168,7 +168,7 @@ def _collect(sockets: List[zmq.Socket], ready: _ReadySockets, seconds: float, te
     period = 1.0 / telemetry_hz if telemetry_hz > 0 else 1.0
     next_telemetry = [time.monotonic() + period * i / len(sockets) for i in range(len(sockets))]
     steps = [0] * len(sockets)
-    arrived: List[Tuple[bytes, float]] = []
+    arrived: List[Tuple[zmq.Socket, bytes, float]] = []
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         # Only receive and stamp here: decoding waits until the window is over, so that this thread stays as
@@ -192,15 +192,21 @@ def _collect(sockets: List[zmq.Socket], ready: _ReadySockets, seconds: float, te
     return latencies, last
 
 
-def _account(arrived: Iterable[Tuple[bytes, float]], since: float, latencies: List[float],
+def _account(arrived: Iterable[Tuple[zmq.Socket, bytes, float]], since: float, latencies: List[float],
              last: Dict[float, float]) -> None:
-    """Decode and validate what arrived (as an agent would) and add each pose frame's latency."""
-    for data, at in arrived:
+    """Decode and validate what arrived (as an agent would) and add each pose frame's latency: once per robot
+    and pose frame. With motion capture slower than the downlink (``--rate 5``), the hub sends a robot the
+    same pose again to keep its watchdog fed; such a frame's age since ``hub_t`` is not latency."""
+    seen = set()
+    for sock, data, at in arrived:
         try:
             message = decode(data, "hub", accept=DOWNLINK_TYPES)
         except ProtocolError as err:
             raise RuntimeError(f"the hub sent a bad message: {err}") from None
         if message["type"] == "frame" and message["pose"] is not None and message["hub_t"] >= since:
+            if (sock, message["hub_t"]) in seen:
+                continue
+            seen.add((sock, message["hub_t"]))
             latency = at - message["hub_t"]
             latencies.append(latency)
             last[message["hub_t"]] = max(latency, last.get(message["hub_t"], 0.0))

@@ -36,10 +36,18 @@ _SEND_LAST = int(zmq.NOBLOCK)
 class Downlink:
     def send_due(self, now: float, fresh: bool) -> None:
         """Frames to robots whose turn has come: right after a fresh pose frame, or as a heartbeat when
-        motion capture is late by half a period (so agents' watchdogs see a live hub either way)."""
-        period = 1.0 / self.config.network.downlink_hz
-        slack = 0.0 if fresh else period / 2.0
-        due = [r for r in self.robots.values() if r.routing is not None and now >= r.next_due + slack]
+        motion capture is late by half a period (so agents' watchdogs see a live hub either way). With motion
+        capture slower than the downlink, every robot's turn comes with every pose frame."""
+        downlink_hz = self.config.network.downlink_hz
+        period = 1.0 / downlink_hz
+        if fresh and self.mocap_rate.hz < downlink_hz:
+            # Motion capture slower than the downlink: each pose frame goes to every robot at once. Spread over
+            # the robots' turns (which keeps the bursts of a 120 Hz system small) its pose would reach some
+            # robots up to one and a half downlink periods late.
+            due = [r for r in self.robots.values() if r.routing is not None]
+        else:
+            slack = 0.0 if fresh else period / 2.0
+            due = [r for r in self.robots.values() if r.routing is not None and now >= r.next_due + slack]
         if not due:
             return
         self.send_frames(due, now)

@@ -313,3 +313,41 @@ def test_a_real_robots_agent_joining_a_sim_hub_is_told_about_once():
 def test_a_recorded_pose_holds_no_negative_zero():
     record = poses_record(PoseFrame(0.0, [4], np.array([[-1e-7, -2e-6, -1e-8]])))
     assert json.dumps(record["bodies"]) == '{"4": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}'
+
+
+@pytest.mark.parametrize("mocap_hz, served", [(5.0, [0, 1]), (120.0, [])])
+def test_motion_capture_slower_than_the_downlink_reaches_every_robot_with_each_frame(mocap_hz, served):
+    """At 5 Hz a pose frame waited for each robot's downlink turn, up to 75 ms; at 120 Hz the turns spread the
+    bursts, and the next frame is at most 8 ms away."""
+    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0);kh1(0.5,0,0,1,0,0,0)"), log=lambda line: None)
+    hub.source.running = False              # only the pose frame below
+    hub.source.thread.join()
+    sockets = []
+    try:
+        hub.bind()
+        for rid in (0, 1):
+            sock = zmq.Context.instance().socket(zmq.DEALER)
+            sock.linger = 0
+            sock.connect(hub.endpoints["robots"])
+            sock.send(encode({"type": "hello", "id": rid, "driver": "test"}))
+            sockets.append(sock)
+        deadline = time.monotonic() + 5.0
+        while any(r.routing is None for r in hub.robots.values()) and time.monotonic() < deadline:
+            if hub.robot_socket.poll(50):
+                hub.handle_uplink_events({hub.robot_socket: zmq.POLLIN})
+        for sock in sockets:                # the welcome frames the hellos brought
+            while sock.poll(200):
+                sock.recv()
+        now = time.monotonic()
+        for robot in hub.robots.values():
+            robot.next_due = now + 0.04     # each had its frame 10 ms ago
+        hub.mocap_rate.hz = mocap_hz
+        hub.on_pose_frame(PoseFrame(now, [0, 1], np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]])))
+        hub.send_due(now, fresh=True)
+        got = [rid for rid, sock in zip((0, 1), sockets)
+               if sock.poll(500) and decode(sock.recv(), "hub")["pose"] is not None]
+        assert got == served
+    finally:
+        for sock in sockets:
+            sock.close(0)
+        hub.close()
