@@ -264,6 +264,11 @@ class Scenario:
         check_range("time_limit_s", self.time_limit_s, 0.0, low_open=True)
         behaviour_cls = get_behaviour(self.behaviour, "behaviour")
         build_params(behaviour_cls, self.params, "params")
+        if "path" in self.params and takes_param(behaviour_cls, "path"):
+            # It would replace the mission the robots follow while the evaluator judges `path`, and skip its
+            # checks (inside the walls, an object to move).
+            raise ConfigError("params.path", "the path is the scenario's own key: move it to `path:` (the run "
+                                             "is judged against that one)")
         if self.path and not takes_param(behaviour_cls, "path"):
             raise ConfigError("path", f"the {self.behaviour} behaviour does not follow a path (its params have "
                                       f"no 'path'): the path would be ignored")

@@ -37,6 +37,27 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
     if scenario.object is not None and not scenario.object.static and scenario.object.friction == 0.0:
         found.append("object.friction: 0: nothing stops the object once it is pushed, so it slides past its "
                      "waypoints")
+    found += _faults(scenario)
+    for name in ("cruise_speed_m_s", "travel_speed_m_s"):
+        speed = getattr(params, name, None)
+        if speed is not None and speed > spec.max_wheel_speed_m_s:
+            found.append(f"params.{name}: {speed:g} m/s is above the robots' top wheel speed "
+                         f"({spec.max_wheel_speed_m_s:g} m/s): every command is scaled down to it")
+    return found
+
+
+def _faults(scenario: Any) -> List[str]:
+    """Faults that never happen within the run, and faults that leave too few robots to cage."""
+    found = []
+    happen = [fault for fault in scenario.faults if fault.at_s < scenario.time_limit_s]
+    for i, fault in enumerate(scenario.faults):
+        if fault.at_s >= scenario.time_limit_s:
+            found.append(f"faults[{i}].at_s: {fault.at_s:g} s is not before the time limit "
+                         f"({scenario.time_limit_s:g} s): robot {fault.robot} never fails")
+    survivors = scenario.robots.count - len(happen)
+    if happen and survivors < MIN_CAGE <= scenario.robots.count:
+        found.append(f"faults: {len(happen)} of {scenario.robots.count} robots fail, leaving {survivors}; a cage "
+                     f"needs {MIN_CAGE} robots to close and push")
     return found
 
 

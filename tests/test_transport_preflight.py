@@ -79,3 +79,25 @@ def test_the_cage_ring_is_measured_round_the_convex_hull(make_scenario):
     u_shape = {"shape": "polygon", "vertices": [[0, 0], [1, 0], [1, 1], [0.8, 1], [0.8, 0.2], [0.2, 0.2],
                                                 [0.2, 1], [0, 1]], "mass": 1.0, "position": [0, 0]}
     assert hull_perimeter(build_geometry(transport(make_scenario, object=u_shape).object)) == pytest.approx(4.0)
+
+
+def test_faults_that_never_happen_or_leave_too_few_robots_are_warned_about(make_scenario):
+    late = Simulation(transport(make_scenario, time_limit_s=600, faults=[{"robot": 1, "at_s": 1000}])).warnings
+    assert late == ["faults[0].at_s: 1000 s is not before the time limit (600 s): robot 1 never fails"]
+    most = [{"robot": r, "at_s": 0} for r in range(6)]
+    warnings = Simulation(transport(make_scenario, faults=most)).warnings
+    assert warnings == ["faults: 6 of 8 robots fail, leaving 2; a cage needs 3 robots to close and push"]
+    assert Simulation(transport(make_scenario, faults=most[:5])).warnings == []
+
+
+def test_a_speed_above_the_robots_top_speed_is_warned_about(make_scenario):
+    warnings = Simulation(transport(make_scenario, params={"cruise_speed_m_s": 100})).warnings
+    assert warnings == ["params.cruise_speed_m_s: 100 m/s is above the robots' top wheel speed (0.81 m/s): "
+                        "every command is scaled down to it"]
+
+
+def test_a_path_among_the_params_is_refused_naming_the_key_it_belongs_to(make_scenario):
+    """It replaced the path the robots follow while the run was judged against `path`."""
+    with pytest.raises(ConfigError) as info:
+        transport(make_scenario, params={"path": [[0.0, -0.9, 0]]})
+    assert info.value.field == "params.path" and "move it to `path:`" in info.value.problem
