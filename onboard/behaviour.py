@@ -30,6 +30,11 @@ from .config import ConfigError, from_mapping
 from .hal import Robot
 from .tracebacks import where_in_users_code
 
+# What a behaviour's code may raise that is its own failure, reported as a BehaviourError naming the robot
+# and the line: every Exception, and SystemExit, so that a stray sys.exit() in step() does not end a run
+# (or an agent) without a word. KeyboardInterrupt stays the operator's.
+USER_CODE_ERRORS = (Exception, SystemExit)
+
 
 @dataclasses.dataclass
 class NoParams:
@@ -68,12 +73,15 @@ def telemetry_of(behaviour: Behaviour, robot_id: int) -> Dict[str, Any]:
     """The behaviour's telemetry plus ``finished``: what a robot reports each step (sim runner and agent).
     BehaviourError names which of the two raised."""
     try:
-        data = dict(behaviour.telemetry())
-    except Exception as exc:
+        reported = behaviour.telemetry()
+        if not isinstance(reported, Mapping):
+            raise TypeError(f"telemetry() must return a dict (got {type(reported).__name__})")
+        data = dict(reported)
+    except USER_CODE_ERRORS as exc:
         raise BehaviourError(robot_id, "telemetry()", exc) from exc
     try:
         data["finished"] = bool(behaviour.finished)
-    except Exception as exc:
+    except USER_CODE_ERRORS as exc:
         raise BehaviourError(robot_id, "finished", exc) from exc
     return data
 
@@ -114,7 +122,7 @@ def make_behaviours(cls: Type[Behaviour], robots: List[Robot], params: Any) -> L
     for robot in robots:
         try:
             made.append(cls(robot, copy.deepcopy(params)))
-        except Exception as exc:                # the user's __init__: one line naming the robot and the line
+        except USER_CODE_ERRORS as exc:                # the user's __init__: one line naming the robot and the line
             raise BehaviourError(robot.id, f"{cls.__name__}.__init__", exc) from exc
     return made
 
@@ -127,6 +135,9 @@ def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
     another class is an error (the second would silently replace the first, or be replaced by it)."""
 
     def decorate(cls: Type[Behaviour]) -> Type[Behaviour]:
+        if getattr(cls, "step", None) is Behaviour.step:
+            raise ConfigError("register", f"{_qualified(cls)} has no step(self): define it (it is called once "
+                                          "per control period)")
         if inspect.isgeneratorfunction(getattr(cls, "step", None)):    # calling it would only make a generator
             raise ConfigError("register", f"{_qualified(cls)}.step contains `yield`: it would never run")
         if inspect.isfunction(inspect.getattr_static(cls, "finished", None)):   # a method is always truthy

@@ -13,6 +13,7 @@ from typing import Any, Callable, Dict, List, Optional
 import numpy as np
 
 from onboard.behaviour import (
+    USER_CODE_ERRORS,
     BehaviourError,
     build_params,
     get_behaviour,
@@ -191,7 +192,7 @@ class Simulation:
                     self.behaviours[i].step()
                     wheels = robots[i].wheels
                     commands.append((i, wheels.left, wheels.right))
-        except Exception as exc:     # the user's code: name the robot and the line (a try costs nothing here)
+        except USER_CODE_ERRORS as exc:     # the user's code: name the robot and the line (a try costs nothing here)
             raise BehaviourError(i, "step()", exc) from exc
         except (KeyboardInterrupt, WallClockLimitReached) as exc:   # stopped from outside: say in whose step
             exc.where = f"robot {i}'s step(){where_in_users_code(traceback.extract_tb(exc.__traceback__)[1:])}"
@@ -245,7 +246,7 @@ class Simulation:
             try:
                 if alive[i] and not behaviour.finished:
                     return False
-            except Exception as exc:
+            except USER_CODE_ERRORS as exc:
                 raise BehaviourError(i, "finished", exc) from exc
         return True
 
@@ -321,7 +322,7 @@ class Simulation:
         for i, behaviour in enumerate(self.behaviours):
             try:
                 behaviour.stop()
-            except Exception as exc:
+            except USER_CODE_ERRORS as exc:
                 problem = problem or str(BehaviourError(i, "stop()", exc))
         return problem
 

@@ -43,6 +43,8 @@ class Buggy(Behaviour):
         late = self.robot.clock.now() > 0.5
         if self.params.bug == "step" and self.robot.id == 2 and late:
             [1, 2][5]
+        if self.params.bug == "exit" and self.robot.id == 1 and late:
+            raise SystemExit(3)
         if self.params.bug == "nan" and late:
             self.robot.radio.broadcast({"a": math.nan})
         if self.params.bug == "nanwheels" and late:
@@ -61,6 +63,8 @@ class Buggy(Behaviour):
                 self.params.speed_m_s = 0.0
 
     def telemetry(self):
+        if self.params.bug == "telemetry_list":
+            return [1, 2]
         if self.params.bug == "set" and self.robot.clock.now() > 0.5:
             return {"state": "ok", "neighbours": {1, 2}}       # a set: fine in Python, not on the wire
         return {"state": "ok", "seen": len(self.params.seen), "numpy": np.float32(1.5), "x": math.nan}
@@ -224,6 +228,22 @@ def test_sil_reports_the_crashed_agent_and_stops(buggy, tmp_path, capsys):
     assert "[1, 2][5]" in log                                     # the traceback is in the agent's log
 
 
+def test_sys_exit_in_step_is_a_crash_named_like_any_other_in_sim_and_sil(buggy, tmp_path, capsys):
+    """It ended `sim run` silently with the exit's code and no result, and `sil` said the run went to its time
+    limit."""
+    assert run("sim", "run", buggy("exit"), "--no-plot", "--out", "out") == 1
+    assert "the run crashed: robot 1, step(): SystemExit: 3 at buggy_behaviour.py:" in capsys.readouterr().err
+    assert json.loads((tmp_path / "out" / "result.json").read_text())["stop_reason"] == "crashed"
+    assert run("sil", buggy("exit"), "--no-plot", "--no-record", "--out", "sil") == 1
+    assert "agent 1: behaviour crashed: robot 1, step(): SystemExit: 3" in capsys.readouterr().err
+    assert json.loads((tmp_path / "sil" / "result.json").read_text())["stop_reason"] == "crashed"
+
+
+def test_telemetry_that_is_not_a_dict_is_said_so(buggy, tmp_path, capsys):
+    assert run("sim", "run", buggy("telemetry_list"), "--no-plot", "--out", "tl") == 1
+    assert "robot 0, telemetry(): TypeError: telemetry() must return a dict (got list)" in capsys.readouterr().err
+
+
 def test_sil_agents_send_numpy_and_nan_telemetry_as_plain_json(buggy, tmp_path, capsys):
     assert run("sil", buggy("none"), "--no-plot", "--no-record", "--out", "sil-ok") == 0
     result = json.loads((tmp_path / "sil-ok" / "result.json").read_text())
@@ -251,6 +271,9 @@ def test_params_mistakes_and_name_clashes_are_config_errors():
     class Fussy(Behaviour):
         Params = Checked
 
+        def step(self):
+            pass
+
     with pytest.raises(ConfigError, match="params: too fast"):
         build_params(Fussy, {"speed": 2.0})
     with pytest.raises(ConfigError, match="the behaviour name 'transport' is taken by"):
@@ -262,6 +285,12 @@ def test_params_mistakes_and_name_clashes_are_config_errors():
 
     with pytest.raises(ConfigError, match=r"Lazy.step contains `yield`: it would never run"):
         register("lazy")(Lazy)
+
+    class Idle(Behaviour):
+        pass
+
+    with pytest.raises(ConfigError, match=r"Idle has no step\(self\): define it"):
+        register("idle")(Idle)
     assert math.isfinite(build_params(Fussy, {}).speed)
 
 

@@ -21,7 +21,15 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
-from onboard.behaviour import Behaviour, BehaviourError, build_params, get_behaviour, plain_json, telemetry_of
+from onboard.behaviour import (
+    USER_CODE_ERRORS,
+    Behaviour,
+    BehaviourError,
+    build_params,
+    get_behaviour,
+    plain_json,
+    telemetry_of,
+)
 from onboard.config import ConfigError
 from onboard.drivers import Driver, DriverError
 from onboard.hal import RobotSpec
@@ -227,7 +235,7 @@ class Agent:
         robot = make_robot(self.robot_id, self.state, self.clock, self.driver, self.link.send, spec)
         try:
             self.behaviour = cls(robot, params)
-        except Exception as exc:
+        except USER_CODE_ERRORS as exc:
             self.behaviour_failed(BehaviourError(self.robot_id, f"{cls.__name__}.__init__", exc))   # raises
         self.answered_seq = self.state.seq
         self.next_tick = time.monotonic()
@@ -243,7 +251,7 @@ class Agent:
         if self.behaviour is not None:
             try:
                 self.behaviour.stop()
-            except Exception as exc:
+            except USER_CODE_ERRORS as exc:
                 self.log(f"agent {self.robot_id}: {BehaviourError(self.robot_id, 'stop()', exc)}")
 
     def behaviour_failed(self, err: BehaviourError) -> None:
@@ -289,7 +297,7 @@ class Agent:
             self.step_watchdog.begin()
             try:
                 self.behaviour.step()
-            except Exception as exc:
+            except USER_CODE_ERRORS as exc:
                 self.behaviour_failed(BehaviourError(self.robot_id, "step()", exc))
             finally:
                 self.step_watchdog.end()
