@@ -60,9 +60,10 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
         if options.log_to_console:
             print(line, flush=True)
 
-    # The folder is this run's: an earlier run's log would pass for this one's (and the hub never writes
-    # over a log), so it goes, also with --no-record.
-    (out / "hub.mcap").unlink(missing_ok=True)
+    # The folder is this run's: an earlier run's log or results would pass for this one's should it end
+    # early (and the hub never writes over a log), so they go, also with --no-record.
+    for name in ("hub.mcap", "result.json", "trajectory.npz", "trajectory.png"):
+        (out / name).unlink(missing_ok=True)
     remove_stale_key_folders()
     with tempfile.TemporaryDirectory(prefix=f"{KEY_FOLDER_PREFIX}{os.getpid()}-") as key_dir:
         keys = Path(key_dir)
@@ -198,6 +199,9 @@ class SilSession:
             error = str(exc) if isinstance(exc, AgentError) else \
                 f"{type(exc).__name__}: {exc} (at t = {self.source.time_s:.1f} s)"
             self.stop_reason = "crashed"
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM: what was recorded is written, as `khepri sim run` does
+            error = f"interrupted (Ctrl-C) (at t = {self.source.time_s:.1f} s)"
+            self.stop_reason = "interrupted"
         wall = time.perf_counter() - started
         self.hub.control.execute("stop", "sil")
         return self._result(wall, lockstep, error)

@@ -282,6 +282,9 @@ def cmd_sil(args: argparse.Namespace) -> int:
           f"{sil.get('latency_ms', {}).get('p99')} ms, loop misses {sil.get('loop_misses')}, "
           f"dropped {sil.get('dropped')}")
     print(f"  results: {out}")
+    if result.get("stop_reason") == "interrupted":     # what was recorded is written, and where the run was
+        print(f"khepri: {result['error']}", file=sys.stderr)
+        return 130
     if "error" in result:
         print(f"khepri: error: {result['error']}", file=sys.stderr)
         return 1

@@ -45,17 +45,31 @@ def test_kill_ends_sil_as_ctrl_c_does_with_its_log_closed(tmp_path):
     """`kill` (SIGTERM) used to end sil at once: no message, and an MCAP log without its footer."""
     root = Path(__file__).resolve().parents[1]
     out = tmp_path / "sil"
+    out.mkdir()
+    (out / "result.json").write_text('{"stop_reason": "behaviour finished"}')     # an earlier run's
     sil = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "sil", "lab-6", "--realtime", "--time-limit",
                             "60", "--no-plot", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                            text=True, env=dict(os.environ, PYTHONPATH=str(root)))
     try:
         deadline = time.monotonic() + 30
-        while not (out / "hub.mcap").exists() and time.monotonic() < deadline:
+        while "started by sil" not in read_or_empty(out / "hub.log") and time.monotonic() < deadline:
             time.sleep(0.2)
         time.sleep(2.0)                                 # the run is under way
         sil.send_signal(signal.SIGTERM)
         _, err = sil.communicate(timeout=30)
     finally:
         sil.kill()
-    assert "khepri: interrupted" in err and "Traceback" not in err
+    assert sil.returncode == 130
+    assert "khepri: interrupted (Ctrl-C) (at t = " in err and "Traceback" not in err
     assert not summarise(out / "hub.mcap").truncated
+    # What was recorded is written, as `sim run` does, in place of the earlier run's result.
+    result = json.loads((out / "result.json").read_text())
+    assert result["stop_reason"] == "interrupted" and result["sim_time_s"] > 1.0
+    assert (out / "trajectory.npz").is_file()
+
+
+def read_or_empty(path: Path) -> str:
+    try:
+        return path.read_text()
+    except OSError:
+        return ""
