@@ -225,10 +225,11 @@ class SilSession:
         for rid in missing:
             robot = self.hub.robots[rid]
             if robot.unresponsive_steps >= UNRESPONSIVE_AFTER_STEPS and rid not in self.hub.killed:
-                said = agent_log_line(self.out, rid, f"agent {rid}: the behaviour's step() has run for ")
+                marker = "the behaviour's step() has run for "
+                said = agent_log_line(self.out, rid, f"agent {rid}: {marker}")
                 raise AgentError(f"agent {rid} stopped answering ({robot.unresponsive_steps} frames in a row, "
                                  f"{self.options.step_timeout_s:g} s each)"
-                                 + (f": {said}" if said else "") + f"; its log is in {self.out / 'agents'}")
+                                 + (f": {marker}{said}" if said else "") + f"; its log is in {self.out / 'agents'}")
 
     def _crash_line(self, index: int) -> str:
         """The agent's own account of its crash (``behaviour crashed: ...``) from its log, if it wrote one."""

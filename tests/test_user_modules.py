@@ -149,7 +149,8 @@ def test_sil_ends_as_crashed_when_an_agent_stops_answering(tmp_path, monkeypatch
     monkeypatch.chdir(tmp_path)
     assert main(["--import", "sil_hangs.py", "sil", "hangs.yaml", "--out", "out", "--no-plot", "--no-record"]) == 1
     err = capsys.readouterr().err
-    assert "khepri: error: agent 0 stopped answering (3 frames in a row, 2 s each): " in err
+    assert "khepri: error: agent 0 stopped answering (3 frames in a row, 2 s each): the behaviour's step() has run " \
+           "for " in err
     assert "s: wheels stopped" in err                 # the agent's own step watchdog, from its log
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 2.0
