@@ -93,6 +93,11 @@ class Uplink:
             self.send_command(robot, "stop", "the hub has no run")   # e.g. the hub restarted mid-run
 
     def _on_telemetry(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
+        error = message.get("error")
+        if error and error != (robot.telemetry or {}).get("error"):
+            # Said once per new error at the operator's console (a crash, a run it cannot start), not only in
+            # `ctl status`: the robot has stopped, and the operator should not have to poll to learn why.
+            self.log(f"hub: robot {robot.id}: {error}")
         robot.telemetry = message
         robot.step_answered = message["step"]
         robot.run_id = message.get("run_id", robot.run_id)

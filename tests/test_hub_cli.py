@@ -119,6 +119,9 @@ def test_ctl_start_names_the_robots_that_cannot_run_it(tmp_path):
         codes = stop_processes([p for p in (agent, hub) if p is not None])
         hub_log.close()
     assert codes == [0] * len(codes)
+    said = [line for line in (tmp_path / "hub.log").read_text().splitlines() if "cannot start the run" in line]
+    assert len(said) == 1, said          # said once at the hub's console too, not only in `ctl status`
+    assert said[0].startswith("hub: robot 1: cannot start the run: run.behaviour: unknown behaviour 'hub-only'")
 
 
 def test_keys_init_and_ctl_error_without_a_hub(tmp_path):
