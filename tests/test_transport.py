@@ -301,7 +301,17 @@ def test_a_robot_whose_estimate_disagrees_arrives_once_the_majority_has_waited_b
     transport.board.refresh_liveness(101.0 + stall)
     assert transport._waypoint_gate(101.0 + stall, False, False) is True
     assert me in transport.board.arrivals(1, "r")
-    assert (transport.waypoint, transport.phase) == (2, "p")              # and the barrier passed
+    assert (transport.waypoint, transport.phase) == (1, "c")   # passed: back onto the waypoint after the turn
+
+
+def test_only_a_waypoint_that_turns_the_object_has_a_return_phase():
+    """After turning at a waypoint the cage pushes the object back onto it (return_after_turning): u_r turns
+    a small cage's box about its estimated centroid, but the box also slid, 0.3 m at a 90-degree turn."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    path = [(0.5, 0.0, 0.0), (0.5, 0.0, 90.0), (0.5, 0.5, 90.0), (0.5, 0.5, 92.0)]   # lab-6 starts at yaw 0
+    assert [transport._final_phase(path, k) for k in range(4)] == ["r", "c", "r", "r"]   # 2 deg: within 4
+    transport.params.return_after_turning = False
+    assert [transport._final_phase(path, k) for k in range(4)] == ["r"] * 4
 
 
 @pytest.mark.parametrize("mode, path_turns, expected_deg", [
@@ -676,3 +686,16 @@ time_limit_s: 200
     assert result["caged"] and not result["completed"]
     stuck = [f for f in result["failures"] if "after the cage closed" in f]
     assert len(stuck) == 1 and "16.9 N" in stuck[0] and "reinforce_push: true" in stuck[0], result["failures"]
+
+
+def test_a_small_cage_turning_a_box_in_place_leaves_it_on_the_waypoint(make_scenario):
+    """A 5-member cage turned a 0.8 x 0.5 m box by 90 degrees at its first waypoint and left it 0.30 m off
+    (seed 1); its own estimate knew (0.03 m). Now it pushes the box back before the next leg."""
+    scenario = make_scenario(behaviour="transport", robots={"count": 12, "spawn": {"x": [-2.2, -1.0],
+                                                                                   "y": [-2.2, -1.0]}},
+                             object={"shape": "box", "size": [0.8, 0.5], "mass": 0.6},
+                             path=[[0.5, 0, 0], [0.5, 0, 90], [0.5, 0.6, 180]],
+                             arena={"walls": [-2.5, -2.5, 2.5, 2.5]}, time_limit_s=160)
+    result = Simulation(scenario, seed=1).run()
+    turned = result["waypoints"][1]
+    assert turned["position_error_m"] < 0.05 and turned["orientation_error_rad"] < math.radians(5.72)

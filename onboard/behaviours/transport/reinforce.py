@@ -52,9 +52,9 @@ class ReinforcePhase:
         self._drive(self._reinforce_input(centre, c.unit(to_target), ring))
 
     def _cage_leg(self, needed: int, path: List) -> Optional[int]:
-        """The first waypoint whose rotate barrier the cage has not passed (None once all are done)."""
+        """The first waypoint whose last barrier the cage has not passed (None once all are done)."""
         for k in range(len(path)):
-            if len(self.board.arrivals(k, "r")) < needed:
+            if len(self.board.arrivals(k, self._final_phase(path, k))) < needed:
                 return k
         return None
 

@@ -15,7 +15,7 @@ Keys (values are small JSON mappings):
   closed        {"pair": [a, b]}            the cage is closed (Proposition 1)
   grow          {"level": n}               out of robots: I_d grows by 2 % per level until closure
   path          [[x, y, yaw_deg], ...]      the agreed path
-  arrive/<k>/<phase>/<rid>  1               barrier flags per waypoint and phase ("p" push, "r" rotate)
+  arrive/<k>/<phase>/<rid>  1               barrier flags per waypoint and phase ("p" push, "r" rotate, "c" return)
   done          1                           the last waypoint is reached
 """
 from __future__ import annotations

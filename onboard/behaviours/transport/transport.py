@@ -223,7 +223,10 @@ class TransportPhases:
 
     def _leg(self) -> Vec:
         """The way from the previous waypoint (the start, for the first) to the current one: unlike the way
-        from the estimate, it does not swing round when the estimate is within centimetres of the target."""
+        from the estimate, it does not swing round when the estimate is within centimetres of the target.
+        None (zero) while returning to the waypoint after a turn."""
+        if self.phase == "c":
+            return c.ZERO
         start = self.reference_centre if self.waypoint == 0 else self.path[self.waypoint - 1]
         target = self.path[self.waypoint]
         return (target[0] - start[0], target[1] - start[1])
@@ -259,7 +262,10 @@ class TransportPhases:
         return max(0.25, math.cos(c.angle_between(x_o, to_target)))
 
     def _held_yaw(self) -> float:
-        """The yaw the object should keep while pushed toward waypoint k: the one reached at waypoint k-1."""
+        """The yaw the object should keep while pushed toward waypoint k: the one reached at waypoint k-1, or
+        waypoint k's own while returning to it after turning there."""
+        if self.phase == "c":
+            return math.radians(self.path[self.waypoint][2])
         if self.waypoint == 0:
             return self.initial_yaw
         return math.radians(self.path[self.waypoint - 1][2])
@@ -308,6 +314,8 @@ class TransportPhases:
             self._hold()
             if self.phase == "p":
                 self.phase, self.state = "r", "rotate"
+            elif self.phase == "r" and self._returns_after_turning(self.path, self.waypoint):
+                self.phase, self.state = "c", "push"
             else:
                 self._next_waypoint()
             return True
@@ -316,6 +324,18 @@ class TransportPhases:
             self._hold()
             return True
         return False
+
+    def _returns_after_turning(self, path: List, k: int) -> bool:
+        """Whether waypoint k has the "c" phase (return_after_turning): the path turns the object there."""
+        if not self.params.return_after_turning:
+            return False
+        before = self.initial_yaw if k == 0 else math.radians(path[k - 1][2])
+        turn = wrap_angle(math.radians(path[k][2]) - before)
+        return abs(turn) > math.radians(self.params.rotation_tolerance_deg)
+
+    def _final_phase(self, path: List, k: int) -> str:
+        """The phase whose barrier ends waypoint k."""
+        return "c" if self._returns_after_turning(path, k) else "r"
 
     def _held_up_for(self, now: float, majority_arrived: bool) -> Optional[float]:
         """How long at least half the live members have held still at this barrier while this robot has not
