@@ -150,7 +150,9 @@ def test_the_agent_survives_fuzzing_and_keeps_answering(tmp_path):
                 scripted.frame(mode="idle")       # real frames in between keep the watchdog quiet
         time.sleep(0.3)
         scripted.frame(mode="idle")
-        answer = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["frames_bad"] > 1000)
+        # How many of the 3000 reach the agent depends on the machine: its socket keeps 16 waiting frames and
+        # drops the rest while the agent is busy (on a loaded machine fewer than 1000 arrived).
+        answer = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["frames_bad"] > 100)
         assert agent.poll() is None
         assert answer["frames_bad"] <= 3000
         assert "dropped a bad message" in (tmp_path / "agent.log").read_text()
