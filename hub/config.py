@@ -65,10 +65,10 @@ class SourceConfig:
             check_mock_frequency(join(join(where, "options"), "frequency"), self.options["frequency"])
         if self.type == "motioncapture" and self.system == "mock" and "rigid_bodies" in self.options:
             # The mock skips an entry it cannot parse without a word: the robot would just never be placed.
-            entries = mock_bodies(join(join(where, "options"), "rigid_bodies"), self.options["rigid_bodies"])
+            bodies = mock_bodies(join(join(where, "options"), "rigid_bodies"), self.options["rigid_bodies"])
             # The mock would keep a space after ';' in the name, and "kh1" would match no body.
-            self.options["rigid_bodies"] = ";".join(entries)
-            names = [MOCK_BODY.fullmatch(entry).group(1) for entry in entries]
+            self.options["rigid_bodies"] = ";".join(entry for _, entry in bodies)
+            names = [name for name, _ in bodies]
             for name in self.bodies:
                 if name not in names:
                     raise ConfigError(join(join(where, "bodies"), name),
@@ -81,16 +81,20 @@ _NUMBER = r"\s*[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*"
 MOCK_BODY = re.compile(rf"([^\s(),;][^(),;]*?)\(({_NUMBER}(?:,{_NUMBER}){{6}})\)")
 
 
-def mock_bodies(where: str, value: Any) -> List[str]:
-    """The entries of the mock's ``rigid_bodies``, ``name(x,y,z,qw,qx,qy,qz)`` separated by ``;``, trimmed."""
+def mock_bodies(where: str, value: Any) -> List[Tuple[str, str]]:
+    """(name, entry) of each of the mock's ``rigid_bodies``: ``name(x,y,z,qw,qx,qy,qz)`` entries separated by
+    ``;``, trimmed."""
     entries = [entry.strip() for entry in str(value).split(";") if entry.strip()]
+    bodies = []
     for i, entry in enumerate(entries):
-        if not MOCK_BODY.fullmatch(entry):
+        match = MOCK_BODY.fullmatch(entry)
+        if not match:
             raise ConfigError(where, f"entry {i + 1} ({entry!r}) must be name(x,y,z,qw,qx,qy,qz): a name, then "
                                      "7 numbers in brackets; entries are separated by ;")
-    if not entries:
+        bodies.append((match.group(1), entry))
+    if not bodies:
         raise ConfigError(where, "has no body: give name(x,y,z,qw,qx,qy,qz) entries separated by ;")
-    return entries
+    return bodies
 
 
 def check_mock_frequency(where: str, value: Any) -> None:
