@@ -48,15 +48,13 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
 
 def _faults(scenario: Any) -> List[str]:
     """Faults that never happen within the run, and faults that leave too few robots to cage."""
-    found = []
-    happen = [fault for fault in scenario.faults if fault.at_s < scenario.time_limit_s]
-    for i, fault in enumerate(scenario.faults):
-        if fault.at_s >= scenario.time_limit_s:
-            found.append(f"faults[{i}].at_s: {fault.at_s:g} s is not before the time limit "
-                         f"({scenario.time_limit_s:g} s): robot {fault.robot} never fails")
-    survivors = scenario.robots.count - len(happen)
-    if happen and survivors < MIN_CAGE <= scenario.robots.count:
-        found.append(f"faults: {len(happen)} of {scenario.robots.count} robots fail, leaving {survivors}; a cage "
+    found = [f"faults[{i}].at_s: {fault.at_s:g} s is not before the time limit ({scenario.time_limit_s:g} s): "
+             f"robot {fault.robot} never fails"
+             for i, fault in enumerate(scenario.faults) if fault.at_s >= scenario.time_limit_s]
+    failing = len(scenario.faults) - len(found)      # every fault not said above happens within the run
+    survivors = scenario.robots.count - failing
+    if failing and survivors < MIN_CAGE <= scenario.robots.count:
+        found.append(f"faults: {failing} of {scenario.robots.count} robots fail, leaving {survivors}; a cage "
                      f"needs {MIN_CAGE} robots to close and push")
     return found
 

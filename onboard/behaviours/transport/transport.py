@@ -224,7 +224,7 @@ class TransportPhases:
     def _leg(self) -> Vec:
         """The way from the previous waypoint (the start, for the first) to the current one: unlike the way
         from the estimate, it does not swing round when the estimate is within centimetres of the target.
-        None (zero) while returning to the waypoint after a turn."""
+        Zero while returning to the waypoint after a turn (no leg: pacing stays off)."""
         if self.phase == "c":
             return c.ZERO
         start = self.reference_centre if self.waypoint == 0 else self.path[self.waypoint - 1]
