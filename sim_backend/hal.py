@@ -1,7 +1,8 @@
 """The simulator's implementation of the HAL: each device reads the per-step :class:`SensorFrame` that the
 runner computes for all robots at once (vectorised), and writes commands the runner forwards to physics.
 
-Nothing here gives a behaviour the world, the object or another robot's state.
+Nothing here gives a behaviour the world, the object or another robot's state: the frame holds every robot's
+readings, so each device keeps it (and its own index) in an underscored attribute.
 """
 from __future__ import annotations
 
@@ -123,21 +124,22 @@ def _record(cls: type, **fields: Any) -> Any:
 
 class SimProximity(hal.ProximitySensor):
     def __init__(self, frame: SensorFrame, index: int):
-        self.frame, self.index = frame, index
+        self._frame, self._index = frame, index
 
     def read(self) -> ProximityReading:
-        return _record(ProximityReading, values=self.frame.proximity_rows[self.index], angles_rad=PROXIMITY_ANGLES_RAD)
+        values = self._frame.proximity_rows[self._index]
+        return _record(ProximityReading, values=values, angles_rad=PROXIMITY_ANGLES_RAD)
 
 
 class SimRangeAndBearing(hal.RangeAndBearingSensor):
     def __init__(self, frame: SensorFrame, index: int):
-        self.frame, self.index = frame, index
+        self._frame, self._index = frame, index
 
     def neighbours(self) -> Neighbours:
         # Views into the step's columns, sliced when first read: no record is made, and no x/y computed,
         # unless the behaviour asks.
-        start, end = self.frame.neighbour_bounds[self.index:self.index + 2]
-        return _PairNeighbours(self.frame.pairs, self.index, start, end)
+        start, end = self._frame.neighbour_bounds[self._index:self._index + 2]
+        return _PairNeighbours(self._frame.pairs, self._index, start, end)
 
 
 _MISSING: Any = object()
@@ -198,7 +200,7 @@ class _PairNeighbours(Neighbours):
 
 class SimRadio(hal.Radio):
     def __init__(self, frame: SensorFrame, index: int):
-        self.frame, self.index = frame, index
+        self._frame, self._index = frame, index
         self.outbox: List[Dict[str, Any]] = []
         self.encode_seconds = 0.0        # time spent here, so the runner can count it as radio time
 
@@ -213,16 +215,16 @@ class SimRadio(hal.Radio):
         # Encode as the real radio would: refuses what could not cross the wire, and isolates the copy
         # the receivers get from later changes by the sender.
         if not isinstance(payload, Mapping):
-            raise TypeError(f"robot {self.index}: radio payload must be a mapping, got {type(payload).__name__}")
+            raise TypeError(f"robot {self._index}: radio payload must be a mapping, got {type(payload).__name__}")
         encoded, copy = encode_payload(payload)
         if len(encoded) > self.MAX_PAYLOAD_BYTES:
-            raise ValueError(f"robot {self.index}: radio payload of {len(encoded)} bytes exceeds "
+            raise ValueError(f"robot {self._index}: radio payload of {len(encoded)} bytes exceeds "
                              f"{self.MAX_PAYLOAD_BYTES}")
         self.outbox.append(copy)
 
     def receive(self) -> List[Message]:
-        inbox = self.frame.inboxes[self.index]
-        self.frame.inboxes[self.index] = []
+        inbox = self._frame.inboxes[self._index]
+        self._frame.inboxes[self._index] = []
         return inbox
 
 
@@ -273,31 +275,31 @@ class SimWheels(hal.DifferentialSteering):
 
 class SimOdometry(hal.Odometry):
     def __init__(self, frame: SensorFrame, index: int):
-        self.frame, self.index = frame, index
+        self._frame, self._index = frame, index
 
     def read(self) -> WheelOdometry:
-        left, right = self.frame.odometry_rows[self.index]
+        left, right = self._frame.odometry_rows[self._index]
         return _record(WheelOdometry, left_m=left, right_m=right)
 
 
 class SimPositioning(hal.Positioning):
     def __init__(self, frame: SensorFrame, index: int):
-        self.frame, self.index = frame, index
+        self._frame, self._index = frame, index
 
     def pose(self) -> Optional[Pose]:
-        row = self.frame.pose_rows[self.index]
+        row = self._frame.pose_rows[self._index]
         if row is None:
             return None
         x, y, yaw, stamp = row
-        return _record(Pose, x=x, y=y, yaw_rad=yaw, stamp_s=stamp, age_s=self.frame.time_s - stamp)
+        return _record(Pose, x=x, y=y, yaw_rad=yaw, stamp_s=stamp, age_s=self._frame.time_s - stamp)
 
 
 class SimClock(hal.Clock):
     def __init__(self, frame: SensorFrame):
-        self.frame = frame
+        self._frame = frame
 
     def now(self) -> float:
-        return self.frame.time_s
+        return self._frame.time_s
 
 
 def make_robot(frame: SensorFrame, index: int, spec: RobotSpec) -> hal.Robot:
