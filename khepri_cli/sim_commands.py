@@ -179,6 +179,8 @@ def print_summary(result: dict) -> None:
     print(summary_line(result))
     if result.get("failures"):      # "behaviour finished" is what the robots believe; this is the evaluator
         print(f"  not completed: {'; '.join(result['failures'])}")
+    if result.get("faults_fired"):  # the scenario's own faults: said apart, since a run may complete despite them
+        print(f"  faults: {'; '.join(result['faults_fired'])}")
 
 
 def summary_line(result: dict) -> str:

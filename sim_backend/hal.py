@@ -25,6 +25,7 @@ from onboard.hal import (
     WheelOdometry,
     clamp_wheel_speeds,
 )
+from onboard.hal.payload import plain_payload
 from onboard.stigmergy import Gossip
 
 
@@ -234,6 +235,7 @@ _compact_json = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode
 
 def encode_payload(payload: Mapping[str, Any]) -> Tuple[str, Dict[str, Any]]:
     """The payload's compact JSON and the decoded copy receivers get (one copy, shared by all of them).
+    RadioPayloadError names a field that JSON could not carry as sent (``onboard.hal.payload``).
 
     A tuple-space message (``Gossip``) already knows its JSON text, so it is neither encoded again nor
     re-checked; it is decoded from that text, and stays a Gossip so the receivers' replicas merge it fast.
@@ -245,16 +247,17 @@ def encode_payload(payload: Mapping[str, Any]) -> Tuple[str, Dict[str, Any]]:
             return f"{{{_compact_json(key)}:{text}}}", {key: value.decoded_copy(text) if value else Gossip()}
     if not any(type(value) is Gossip for value in payload.values()) or \
             not all(type(key) is str for key in payload):
-        encoded = _compact_json(payload)
-        return encoded, json.loads(encoded)
+        copy = plain_payload(payload)              # fresh, so it is also the copy receivers share
+        return _compact_json(copy), copy
+    plain = plain_payload({key: value for key, value in payload.items() if type(value) is not Gossip})
     parts, copy = [], {}
     for key, value in payload.items():
         if type(value) is Gossip:
             text = value.json_text()
             copy[key] = value.decoded_copy(text)
         else:
-            text = _compact_json(value)
-            copy[key] = json.loads(text)
+            text = _compact_json(plain[key])
+            copy[key] = plain[key]
         parts.append(f"{_compact_json(key)}:{text}")
     return "{" + ",".join(parts) + "}", copy
 

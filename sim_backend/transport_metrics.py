@@ -156,7 +156,24 @@ class TransportEvaluator(Evaluator):
             if caged and not done:
                 failures.append(f"reached {len(waypoints)} of {len(scenario.path)} waypoints")
                 failures.extend(self._stuck_hint(truth))
-            if done and not within:
-                failures.append("a waypoint was passed outside the position/orientation tolerance")
-        out["failures"] = failures + dead
+            failures.extend(self._outside_tolerance(waypoints, d_tol, yaw_tol if judge_yaw else math.inf))
+        out["failures"] = failures
+        out["faults_fired"] = dead          # not failures: a run that loses a robot may still complete
         return out
+
+    @staticmethod
+    def _outside_tolerance(waypoints: List[Dict[str, Any]], d_tol: float, yaw_tol: float) -> List[str]:
+        """One line per waypoint the swarm passed (by its own estimate) with the object outside tolerance."""
+        lines = []
+        for w in waypoints:
+            off = []
+            if w["position_error_m"] > d_tol:
+                off.append(f"{w['position_error_m']:.2f} m from it (tolerance {d_tol:.2f} m)")
+            if w["orientation_error_rad"] > yaw_tol:
+                off.append(f"{math.degrees(w['orientation_error_rad']):.1f}° off its yaw "
+                           f"(tolerance {math.degrees(yaw_tol):.2f}°)")
+            if off:
+                estimate = w.get("centroid_estimation_error_m")
+                known = "" if estimate is None else f"; the swarm's centroid estimate was {estimate:.2f} m off"
+                lines.append(f"waypoint {w['index'] + 1} was passed with the object {' and '.join(off)}{known}")
+        return lines

@@ -47,6 +47,13 @@ class Buggy(Behaviour):
             raise SystemExit(3)
         if self.params.bug == "nan" and late:
             self.robot.radio.broadcast({"a": math.nan})
+        if self.params.bug == "intkey" and late:
+            self.robot.radio.broadcast({"bids": {3: 0.5}})
+        if self.params.bug == "numpy" and 0.5 < self.robot.clock.now() < 0.65:
+            self.robot.radio.broadcast({"xy": np.array([0.25, 1.5]), "n": np.int64(7), "t": (1, 2)})
+        if self.params.bug == "numpy":
+            self.params.seen.extend(message.payload["n"] for message in self.robot.radio.receive()
+                                    if message.payload == {"xy": [0.25, 1.5], "n": 7, "t": [1, 2]})
         if self.params.bug == "nanwheels" and late:
             self.robot.wheels.set_speeds(math.nan, 0.1)
         if self.params.bug == "columns":
@@ -171,7 +178,7 @@ def test_a_study_records_a_hung_run_as_failed_and_runs_the_others(buggy, tmp_pat
 
 def test_nan_in_a_broadcast_is_refused_as_the_wire_would(buggy, capsys):
     assert run("sim", "run", buggy("nan"), "--no-plot", "--out", "nan") == 1
-    assert "step(): ValueError: Out of range float values are not JSON compliant" in capsys.readouterr().err
+    assert "step(): RadioPayloadError: radio payload['a'] is nan, which JSON cannot carry" in capsys.readouterr().err
     message = b'{"v": 2, "type": "broadcast", "id": 3, "sent_s": 1.0, "payload": {"a": [1, NaN]}}'
     with pytest.raises(ProtocolError, match="from robot 3: broadcast.payload: radio payload is not JSON: Out of range"):
         decode(message, "robot 3")
@@ -183,7 +190,39 @@ def test_an_error_raised_by_the_hal_points_at_the_behaviours_call(buggy, capsys)
     err = capsys.readouterr().err
     assert "step(): ValueError: wheel speeds must be finite (got nan, 0.1) at buggy_behaviour.py:" in err
     assert run("sim", "run", buggy("nan"), "--no-plot", "--out", "nan") == 1      # a broadcast the wire refuses
-    assert "not JSON compliant at buggy_behaviour.py:" in capsys.readouterr().err
+    assert "which JSON cannot carry; send None or leave it out at buggy_behaviour.py:" in capsys.readouterr().err
+
+
+def test_a_broadcast_names_the_field_json_would_change_and_takes_numpy(buggy, capsys):
+    """An int key arrived as a string (the receiver's payload[3] failed far away); numpy was refused in a
+    broadcast while telemetry took it."""
+    assert run("sim", "run", buggy("intkey"), "--no-plot", "--out", "intkey") == 1
+    assert "radio payload['bids'] has the key 3 (int); JSON keys are strings" in capsys.readouterr().err
+    from onboard.plugins import import_user_modules
+    from sim_backend.scenario import load_scenario
+
+    import_user_modules(["buggy_behaviour"])
+    sim = Simulation(load_scenario(buggy("numpy")))
+    sim.run(time_limit_s=1.0)
+    assert all(b.params.seen and set(b.params.seen) == {7} for b in sim.behaviours)   # arrived as plain JSON
+
+
+def test_the_agents_radio_checks_a_payload_as_the_simulators_does():
+    from onboard.agent.devices import HubRadio, HubState
+    from onboard.hal.payload import RadioPayloadError
+
+    sent = []
+    radio = HubRadio(HubState(), type("Clock", (), {"now": lambda self: 1.0})(), sent.append, robot_id=4)
+    radio.broadcast({"xy": np.array([0.25, 1.5]), "tags": ("a",), "nested": {"k": [np.float32(0.5)]}})
+    assert sent[0]["payload"] == {"xy": [0.25, 1.5], "tags": ["a"], "nested": {"k": [0.5]}}
+    for bad, words in [({"a": {1, 2}}, "radio payload['a'] is a set"),
+                       ({"a": [0.0, math.inf]}, "radio payload['a'][1] is inf"),
+                       ({"a": {2: 1}}, "has the key 2 (int)")]:
+        with pytest.raises(RadioPayloadError, match=words.replace("[", r"\[").replace("(", r"\(").replace(")", r"\)")):
+            radio.broadcast(bad)
+    with pytest.raises(TypeError, match="robot 4: radio payload must be a mapping, got list"):
+        radio.broadcast([1, 2])
+    assert len(sent) == 1
 
 
 def test_telemetry_the_wire_cannot_carry_fails_in_simulation_too(buggy, capsys):

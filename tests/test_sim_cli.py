@@ -1,6 +1,7 @@
 """`khepri sim run` and `khepri bench` from the command line: outputs land where --out says, and bad options
 are refused before any simulated second is spent."""
 import json
+import math
 import os
 import signal
 import time
@@ -20,6 +21,35 @@ def test_sim_run_writes_its_outputs_into_out(tmp_path, capsys):
     assert "lab-6 seed 1: 6 robots" in printed
     # 3 s is too short to cage: the robots stopped at the time limit, and the evaluator says what is missing
     assert "  not completed: cage did not close" in printed and result["failures"] == ["cage did not close"]
+
+
+
+def test_a_run_that_completes_despite_a_fault_is_not_called_not_completed(tmp_path, capsys):
+    """The scenario's own faults were listed among the failures, so a delivered box read 'not completed'."""
+    scenario = tmp_path / "fault.yaml"
+    scenario.write_text("behaviour: transport\nseed: 2\nrobots: {count: 6, spawn: {x: [-1.2, -0.6], y: [-1.2, -0.6]}}\n"
+                        "object: {shape: box, size: [0.285, 0.435], mass: 0.3}\n"
+                        "path: [[0, 0.3, 0], [0, 0.6, 0], [0, 0.9, 0]]\narena: {walls: [-2, -2, 2, 2]}\n"
+                        "time_limit_s: 300\nfaults: [{robot: 4, at_s: 40}]\n")
+    assert main(["sim", "run", str(scenario), "--no-plot", "--out", str(tmp_path / "run")]) == 0
+    result = json.loads((tmp_path / "run" / "result.json").read_text())
+    printed = capsys.readouterr().out
+    assert result["completed"] and result["failures"] == [], result["failures"]
+    assert result["faults_fired"] == ["robot 4 failed at 40 s"]
+    assert "not completed" not in printed and "  faults: robot 4 failed at 40 s" in printed
+
+
+def test_each_waypoint_passed_outside_tolerance_is_named_with_how_far_off():
+    from sim_backend.transport_metrics import TransportEvaluator
+
+    waypoints = [{"index": 0, "position_error_m": 0.05, "orientation_error_rad": 0.01,
+                  "centroid_estimation_error_m": 0.02},
+                 {"index": 1, "position_error_m": 0.30, "orientation_error_rad": 0.2,
+                  "centroid_estimation_error_m": 0.29}]
+    lines = TransportEvaluator._outside_tolerance(waypoints, 0.1, 0.1)
+    assert lines == ["waypoint 2 was passed with the object 0.30 m from it (tolerance 0.10 m) and 11.5° off its "
+                     "yaw (tolerance 5.73°); the swarm's centroid estimate was 0.29 m off"]
+    assert TransportEvaluator._outside_tolerance(waypoints, 0.1, math.inf)[0].endswith("0.29 m off")
 
 
 def test_an_out_folder_that_cannot_be_made_is_refused_before_the_run(tmp_path, capsys, monkeypatch):

@@ -13,6 +13,7 @@ from typing import Any, Callable, Deque, Dict, List, Mapping, Optional
 from onboard import hal
 from onboard.drivers import Driver
 from onboard.hal import Message, Neighbours, Pose, ProximityReading, RobotSpec, WheelOdometry, clamp_wheel_speeds
+from onboard.hal.payload import plain_payload
 
 INBOX_LIMIT = hal.Radio.INBOX_LIMIT    # relayed messages kept between two behaviour steps; the oldest go first
 
@@ -116,11 +117,11 @@ class HubRadio(hal.Radio):
         # The same checks as the simulator's radio, so a behaviour fails the same way in both.
         if not isinstance(payload, Mapping):
             raise TypeError(f"robot {self.robot_id}: radio payload must be a mapping, got {type(payload).__name__}")
-        encoded = json.dumps(payload, separators=(",", ":"))
-        if len(encoded) > self.MAX_PAYLOAD_BYTES:
-            raise ValueError(f"robot {self.robot_id}: radio payload of {len(encoded)} bytes exceeds "
-                             f"{self.MAX_PAYLOAD_BYTES}")
-        self.send({"type": "broadcast", "payload": json.loads(encoded), "sent_s": round(self.clock.now(), 6)})
+        plain = plain_payload(payload)            # names a field JSON cannot carry, as the simulator does
+        size = len(json.dumps(plain, separators=(",", ":")))
+        if size > self.MAX_PAYLOAD_BYTES:
+            raise ValueError(f"robot {self.robot_id}: radio payload of {size} bytes exceeds {self.MAX_PAYLOAD_BYTES}")
+        self.send({"type": "broadcast", "payload": plain, "sent_s": round(self.clock.now(), 6)})
 
     def receive(self) -> List[Message]:
         messages = list(self.state.inbox)
