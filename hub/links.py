@@ -8,6 +8,8 @@ from typing import Any, Callable, Dict, Optional
 
 import zmq
 
+REPEAT_QUIET_MAX_S = 60.0   # the longest a sender repeating one bad message goes unmentioned
+
 
 @dataclass
 class RobotLink:
@@ -63,12 +65,16 @@ class RobotLink:
 
 @dataclass
 class DropLog:
-    """Counts every dropped message by reason and sender; logs at most one line per sender per second."""
+    """Counts every dropped message by reason and sender, and says them without flooding the console: at most
+    one line per sender per second, and a sender that keeps sending the same bad message (an agent with an id
+    not in the lab says hello every second) is said at growing intervals, up to every REPEAT_QUIET_MAX_S."""
 
     log: Callable[[str], None]
     on_drop: Optional[Callable[[str, str], None]] = None
     counts: Dict[str, int] = field(default_factory=dict)
     _last_line: Dict[str, float] = field(default_factory=dict)
+    _last_detail: Dict[str, str] = field(default_factory=dict)
+    _quiet_s: Dict[str, float] = field(default_factory=dict)
     _suppressed: Dict[str, int] = field(default_factory=dict)
 
     def count(self, reason: str, sender: str) -> None:
@@ -80,26 +86,37 @@ class DropLog:
     def drop(self, reason: str, sender: str, detail: str) -> None:
         self.count(reason, sender)
         now = time.monotonic()
-        if now - self._last_line.get(sender, -math.inf) < 1.0:
+        since = now - self._last_line.get(sender, -math.inf)
+        if since < self._quiet_s.get(sender, 1.0):
             self._suppressed[sender] = self._suppressed.get(sender, 0) + 1
             return
-        self._last_line[sender] = now
         more = self._suppressed.pop(sender, 0)
-        suffix = f" (+{more} more from this sender in the last second)" if more else ""
+        suffix = f" (+{more} more from this sender in the last {_span(since)})" if more else ""
+        self._said(sender, now, detail)
         self.log(f"hub: dropped {reason}: {detail}{suffix}")
         if len(self._last_line) > 10_000:   # a flood of fake senders must not grow memory without bound
-            self._last_line.clear()
-            self._suppressed.clear()
+            for table in (self._last_line, self._last_detail, self._quiet_s, self._suppressed):
+                table.clear()
+
+    def _said(self, sender: str, now: float, detail: str) -> None:
+        """The same detail again doubles the sender's quiet time; a new one starts it over at a second."""
+        again = self._last_detail.get(sender) == detail
+        self._quiet_s[sender] = min(REPEAT_QUIET_MAX_S, 2 * self._quiet_s.get(sender, 1.0)) if again else 1.0
+        self._last_line[sender], self._last_detail[sender] = now, detail
 
     def flush(self, now: float) -> None:
-        """Say the drops a burst hid once its second is over, not only with that sender's next drop, which
+        """Say the drops a burst hid once its quiet time is over, not only with that sender's next drop, which
         may never come."""
         if not self._suppressed:
             return
-        for sender in [s for s in self._suppressed if now - self._last_line.get(s, -math.inf) >= 1.0]:
+        for sender in list(self._suppressed):
+            since = now - self._last_line.get(sender, -math.inf)
+            if since < self._quiet_s.get(sender, 1.0):
+                continue
             more = self._suppressed.pop(sender)
-            self.log(f"hub: dropped {more} more message{'s' if more > 1 else ''} from {sender} in the last second "
-                     f"(`khepri ctl status` counts drops by reason)")
+            self._said(sender, now, self._last_detail.get(sender, ""))
+            self.log(f"hub: dropped {more} more message{'s' if more > 1 else ''} from {sender} in the last "
+                     f"{_span(since)} (`khepri ctl status` counts drops by reason)")
 
     @property
     def total(self) -> int:
@@ -144,3 +161,7 @@ def frame_property(frame: zmq.Frame, name: str) -> Optional[str]:
         return frame.get(name)
     except zmq.ZMQError:      # no such property (e.g. no authentication: no User-Id)
         return None
+
+
+def _span(seconds: float) -> str:
+    return "second" if seconds < 2.0 else f"{seconds:.0f} s"

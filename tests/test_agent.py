@@ -342,3 +342,21 @@ def test_a_flooded_agent_keeps_the_newest_messages_and_counts_the_others():
     apply_frame(state, {"seq": 1, "pose": None, "neighbours": [], "messages": flood}, AgentClock(state), 0.0)
     assert len(state.inbox) == Radio.INBOX_LIMIT and state.inbox_dropped == 44
     assert state.inbox[0].payload == {"n": 44} and state.inbox[-1].payload == {"n": Radio.INBOX_LIMIT + 43}
+
+
+def test_a_run_the_agent_cannot_start_is_said_once_though_the_hub_repeats_it(scripted, agent_process, tmp_path):
+    """Without --import for the user's behaviour the agent said 'cannot start the run' twice a second."""
+    unknown = dict(RUN, run_id="r-unknown", behaviour="not-imported-here")
+    for _ in range(5):
+        start_run(scripted, unknown)
+        feed(scripted, 0.1)
+    telemetry = scripted.wait_for(lambda m: m["type"] == "telemetry" and m.get("error"))
+    assert "unknown behaviour 'not-imported-here'" in telemetry["error"]
+    start_run(scripted, dict(unknown, run_id="r-unknown-2"))       # a new run is tried, and said, again
+    feed(scripted, 0.2)
+    said = [line for line in (tmp_path / "agent.log").read_text().splitlines() if "cannot start the run" in line]
+    assert len(said) == 2, said
+    start_run(scripted)                                            # a run it can start still starts
+    t0 = time.monotonic()
+    feed(scripted, 0.6, neighbours=FAR_NEIGHBOUR)
+    scripted.wait_for(wheels_after(scripted, t0, moving=True))

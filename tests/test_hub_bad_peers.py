@@ -140,3 +140,28 @@ def test_a_body_the_mock_does_not_have_is_named_and_spaces_after_a_semicolon_do_
         hub.request("start")
         hub.wait_until(lambda s: [(r["id"], r["mode"]) for r in s["robots"]] == [(0, "run"), (1, "run")],
                        timeout_s=5.0)
+
+
+def test_a_sender_repeating_one_bad_message_is_said_less_and_less_often(monkeypatch):
+    """An agent started with an id not in the lab says hello every second: the hub said so every second."""
+    clock = [1000.0]
+    monkeypatch.setattr("hub.links.time.monotonic", lambda: clock[0])
+    lines = []
+    drops = DropLog(lines.append)
+    said_at = []
+    for second in range(130):
+        clock[0] = 1000.0 + second
+        before = len(lines)
+        drops.drop("unknown robot", "peer at 10.0.0.9", "peer at 10.0.0.9 claimed robot 9, which is not in this lab")
+        drops.flush(clock[0])
+        said_at += [second] * (len(lines) - before)
+    assert said_at == [0, 1, 3, 7, 15, 31, 63, 123], said_at
+    assert lines[-1].endswith("(+59 more from this sender in the last 60 s)")
+    assert drops.counts == {"unknown robot": 130}
+    drops.drop("bad message", "peer at 10.0.0.9", "something else")     # still quiet: the sender's turn is not due
+    clock[0] += 60
+    drops.drop("bad message", "peer at 10.0.0.9", "something new")
+    assert lines[-1] == "hub: dropped bad message: something new (+7 more from this sender in the last 66 s)"
+    clock[0] += 1
+    drops.drop("bad message", "peer at 10.0.0.9", "something else again")   # a new detail: a second again
+    assert lines[-1] == "hub: dropped bad message: something else again"

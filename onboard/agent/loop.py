@@ -88,6 +88,7 @@ class Agent:
         self.behaviour: Optional[Behaviour] = None
         self.run: Optional[Dict[str, Any]] = None
         self.error: Optional[str] = None
+        self.refused_run_id: Any = None        # the run this agent could not start: said once, not per frame
         self.period = 0.1
         self.stats = LoopStats()
         self.next_tick = time.monotonic()
@@ -214,6 +215,8 @@ class Agent:
     def start_run(self, run: Dict[str, Any]) -> None:
         if self.run is not None and run.get("run_id") == self.run.get("run_id"):
             return                 # a repeated start: we already have this run
+        if self.run is None and self.error and run.get("run_id") == self.refused_run_id:
+            return                 # the hub repeats a start until acked; the error is said and in telemetry
         self.end_run()
         try:
             cls = get_behaviour(str(run.get("behaviour")), "run.behaviour")
@@ -223,6 +226,7 @@ class Agent:
             self.period = 1.0 / float(run.get("control_hz", 10.0))
         except (ConfigError, TypeError, ValueError, ZeroDivisionError) as err:
             self.error = f"cannot start the run: {err}"
+            self.refused_run_id = run.get("run_id")
             self.log(f"agent {self.robot_id}: {self.error}")
             return
         self.error = None
