@@ -10,7 +10,7 @@ import importlib
 import os
 import sys
 from pathlib import Path
-from typing import Iterable, List, Optional
+from typing import Any, Callable, Iterable, List, Optional
 
 from .config import ConfigError
 from .tracebacks import describe
@@ -35,7 +35,7 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
     warnings = []
     for name in names:
         module = _module_name(name, base)
-        known = set(_REGISTRY)
+        known, fresh = set(_REGISTRY), module not in sys.modules
         try:
             loaded = importlib.import_module(module)
         except SyntaxError as err:
@@ -46,7 +46,11 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
             raise                  # e.g. @register refusing a name: it says what is wrong already
         except Exception as err:   # the module's own code raised while it was imported: where, in one line
             raise ConfigError("--import", f"importing {name!r} raised {describe(err)}") from None
+        _check_not_shadowed(name, loaded, base)
         registered = sorted(set(_REGISTRY) - known)
+        if fresh and not _defines_behaviours(loaded):
+            warnings.append(f"{name}: imported {getattr(loaded, '__file__', None) or 'a built-in module'}, which "
+                            "registers no behaviour (@register(\"name\") above a Behaviour class)")
         missing = imports_robots_lack(getattr(loaded, "__file__", None)) if registered else []
         if missing:
             warnings.append(f"{name}: registers the behaviour {', '.join(registered)} and imports "
@@ -86,6 +90,30 @@ def _check_name_is_free(path: Path) -> None:
                                           f"{where or 'a built-in module'}; rename the file")
     elif path.stem in getattr(sys, "stdlib_module_names", ()):
         raise ConfigError("--import", f"{path}: {path.stem!r} is a standard library module's name; rename the file")
+
+
+def _check_not_shadowed(name: str, loaded: Any, base: str) -> None:
+    """``--import random`` next to the user's random.py imports the standard library's random: say so."""
+    local = Path(base, *name.split(".")).with_suffix(".py")
+    where = getattr(loaded, "__file__", None)
+    if name.endswith(".py") or not local.is_file() or (where and Path(where).resolve() == local.resolve()):
+        return
+    stdlib = name.split(".")[0] in getattr(sys, "stdlib_module_names", ())
+    raise ConfigError("--import", f"{name!r} imports {where or 'a built-in module'}"
+                                  f"{' (the standard library)' if stdlib else ''}, not {local}; rename {local.name}")
+
+
+#: Other registries a user's module may add to (the simulator's evaluators add theirs when imported): each
+#: returns the classes registered so far.
+OTHER_REGISTRIES: List[Callable[[], Iterable[type]]] = []
+
+
+def _defines_behaviours(module: Any) -> bool:
+    """Whether ``module`` holds a registered behaviour (or evaluator) class."""
+    from .behaviour import _REGISTRY
+
+    registered = list(_REGISTRY.values()) + [cls for listed in OTHER_REGISTRIES for cls in listed()]
+    return any(getattr(cls, "__module__", None) == module.__name__ for cls in registered)
 
 
 def _module_name(name: str, base: str) -> str:

@@ -10,6 +10,8 @@ from typing import Any, Callable, Dict, List, Optional, Type
 
 import numpy as np
 
+from onboard.plugins import OTHER_REGISTRIES
+
 
 class Evaluator:
     """Watches a run. ``on_step`` is called once per control step after the behaviours stepped."""
@@ -41,6 +43,9 @@ def evaluator_for(name: str) -> Callable[..., Evaluator]:
     from . import transport_metrics  # noqa: F401  (registers the transport evaluator)
 
     return _EVALUATORS.get(name, Evaluator)
+
+
+OTHER_REGISTRIES.append(lambda: list(_EVALUATORS.values()))    # a user's module of evaluators registers something
 
 
 def register_evaluator(name: str):

@@ -189,6 +189,20 @@ def test_a_file_whose_name_is_taken_is_refused_not_swapped_for_the_other_module(
         import_user_modules([str(tmp_path / "b" / "twin_walk.py")])
 
 
+
+def test_a_module_name_that_imports_something_else_or_registers_nothing_is_said(tmp_path, monkeypatch):
+    """`--import random` next to the user's random.py imported the standard library's random, silently."""
+    (tmp_path / "random.py").write_text(DRIVE_BEHAVIOUR.format(name="not-random-either"))
+    with pytest.raises(ConfigError, match=r"--import: 'random' imports .*random\.py \(the standard library\), "
+                                          r"not .*/random\.py; rename random\.py"):
+        import_user_modules(["random"], str(tmp_path))
+    (tmp_path / "no_register.py").write_text("from onboard.behaviour import Behaviour\n\n\n"
+                                             "class Forgot(Behaviour):\n    def step(self):\n        pass\n")
+    warnings = import_user_modules(["no_register"], str(tmp_path))
+    assert warnings == [f"no_register: imported {tmp_path / 'no_register.py'}, which registers no behaviour "
+                        '(@register("name") above a Behaviour class)']
+    assert import_user_modules(["no_register"], str(tmp_path)) == []      # imported already: nothing new to say
+
 def test_a_bug_in_a_params_validate_is_one_line_with_its_place(tmp_path):
     module = tmp_path / "typo_params.py"
     module.write_text(DRIVE_BEHAVIOUR.replace("speed_m_s: float = 0.1", "speed_m_s: float = 0.1\n\n"
@@ -219,7 +233,9 @@ def test_a_behaviour_module_that_imports_the_simulator_is_warned_about(tmp_path,
     module (no behaviour in it) may import the simulator."""
     (tmp_path / "peeking.py").write_text(DRIVE_BEHAVIOUR.format(name="peeking") + "\n\ndef later():\n"
                                          "    from sim_backend.runner import Simulation\n    return Simulation\n")
-    (tmp_path / "my_eval.py").write_text("from sim_backend import metrics\n")
+    (tmp_path / "my_eval.py").write_text("from sim_backend.metrics import Evaluator, register_evaluator\n\n\n"
+                                         "@register_evaluator('peeking')\nclass PeekingEvaluator(Evaluator):\n"
+                                         "    pass\n")
     warnings = import_user_modules(["peeking", "my_eval"], str(tmp_path))
     assert warnings == ["peeking: registers the behaviour peeking and imports sim_backend: it runs in simulation "
                         "but will fail on a robot, which has only onboard/ (put an evaluator in a module of its own)"]

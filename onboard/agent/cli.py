@@ -55,7 +55,8 @@ def run_agent(args: argparse.Namespace) -> int:
     if not 0.0 < args.watchdog <= 0.3:
         raise ConfigError("--watchdog", f"must be in (0, 0.3] seconds (got {args.watchdog})")
     keys = load_robot_keys(args.keys, args.robot_id) if args.keys is not None else None
-    import_user_modules(args.agent_imports)
+    for warning in import_user_modules(args.agent_imports):
+        print(f"agent: warning: --import {warning}", file=sys.stderr, flush=True)
     behaviour_names()       # import the behaviours now, not when the hub says start (that takes a while)
     log = _logger(args.quiet)
     kh4_only = [f"--{name}" for name in ("library", "calibration") if getattr(args, name)]
