@@ -90,3 +90,33 @@ def _percentile_ms(values: List[float], q: float) -> Optional[float]:
 def _mean(values: List[Any]) -> Optional[float]:
     numbers = [v for v in values if isinstance(v, (int, float))]
     return round(sum(numbers) / len(numbers), 3) if numbers else None
+
+
+_DROP_WORDS = {
+    "downlink_queue_full": "frames the hub could not queue for an agent",
+    "frames_lost_at_agents": "frames lost on the way to the agents",
+    "bad_frames_at_agents": "bad frames at the agents",
+    "unsent_at_agents": "messages the agents could not send",
+    "inbox_overflow_at_agents": "radio messages pushed out of full inboxes",
+}
+_RELAY_WORDS = {
+    "dropped_random": "radio messages lost to relay.drop",
+    "dropped_overflow": "radio messages pushed out of full relay queues",
+    "refused": "broadcasts the relay refused (over relay.max_bytes, or sent outside a run)",
+}
+
+
+def sil_summary_lines(sil: Dict[str, Any]) -> List[str]:
+    """What ``khepri sil`` prints under the run's summary: the figures in words, and every drop by its kind."""
+    latency = (sil.get("latency_ms") or {}).get("p99")
+    timing = (f"frame-to-answer latency p99 {latency:g} ms" if latency is not None
+              else "frame-to-answer latency not measured (--realtime: the agents run on their own clocks)")
+    mode = "lockstep" if sil.get("lockstep") else "real time"
+    lines = [f"  {sil.get('agents')} agents, {mode}, {timing}, loop misses {sil.get('loop_misses', 0)}"]
+    dropped = sil.get("dropped") or {}
+    relay, rejected = dropped.get("relay") or {}, dropped.get("hub_rejected") or {}
+    said = [f"{dropped[key]} {words}" for key, words in _DROP_WORDS.items() if dropped.get(key)]
+    said += [f"{relay[key]} {words}" for key, words in _RELAY_WORDS.items() if relay.get(key)]
+    said += [f"{count} messages the hub refused: {reason}" for reason, count in rejected.items()]
+    lines.append(f"  dropped: {'; '.join(said)} (hub.log says more)" if said else "  dropped: nothing")
+    return lines

@@ -260,6 +260,7 @@ def _add_sil(groups) -> None:
 
 def cmd_sil(args: argparse.Namespace) -> int:
     from hub.sil import SilOptions, run_sil
+    from hub.sil_report import sil_summary_lines
     from khepri_cli.signals import sigterm_as_ctrl_c
     from khepri_cli.sim_commands import check_time_limit, print_summary, require_out_folder
     from sim_backend.scenario import load_scenario
@@ -277,10 +278,8 @@ def cmd_sil(args: argparse.Namespace) -> int:
     with sigterm_as_ctrl_c():      # `kill` stops the agents and the hub and closes the log, as Ctrl-C does
         result = run_sil(scenario, out, options)
     print_summary(result)
-    sil = result.get("sil", {})
-    print(f"  agents: {sil.get('agents')}, lockstep: {sil.get('lockstep')}, frame latency p99 "
-          f"{sil.get('latency_ms', {}).get('p99')} ms, loop misses {sil.get('loop_misses')}, "
-          f"dropped {sil.get('dropped')}")
+    for line in sil_summary_lines(result.get("sil", {})):
+        print(line)
     print(f"  results: {out}")
     if result.get("stop_reason") == "interrupted":     # what was recorded is written, and where the run was
         print(f"khepri: {result['error']}", file=sys.stderr)

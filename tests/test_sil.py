@@ -73,3 +73,22 @@ def read_or_empty(path: Path) -> str:
         return path.read_text()
     except OSError:
         return ""
+
+
+def test_the_sil_summary_says_its_figures_and_drops_in_words():
+    """It printed the raw dict of drops, and 'latency p99 None ms' with --realtime."""
+    from hub.sil_report import sil_summary_lines
+
+    realtime = {"agents": 6, "lockstep": False, "latency_ms": {"p99": None}, "loop_misses": 2,
+                "dropped": {"hub_rejected": {}, "frames_lost_at_agents": 0,
+                            "relay": {"sent": 50, "refused": 7, "dropped_random": 0}}}
+    assert sil_summary_lines(realtime) == [
+        "  6 agents, real time, frame-to-answer latency not measured (--realtime: the agents run on their own "
+        "clocks), loop misses 2",
+        "  dropped: 7 broadcasts the relay refused (over relay.max_bytes, or sent outside a run) (hub.log says more)"]
+    lockstep = {"agents": 3, "lockstep": True, "latency_ms": {"p99": 1.25}, "loop_misses": 0,
+                "dropped": {"hub_rejected": {"bad message": 2}, "relay": {}}}
+    assert sil_summary_lines(lockstep) == [
+        "  3 agents, lockstep, frame-to-answer latency p99 1.25 ms, loop misses 0",
+        "  dropped: 2 messages the hub refused: bad message (hub.log says more)"]
+    assert sil_summary_lines({"agents": 1, "lockstep": True, "dropped": {}})[1] == "  dropped: nothing"
