@@ -13,7 +13,8 @@ import numpy as np
 from onboard.geometry import wrap
 
 from .metrics import Evaluator, register_evaluator
-from .transport_preflight import transport_warnings
+from .transport_preflight import push_force_n, transport_warnings
+from .world import GRAVITY
 
 SPACING_SAMPLE_PERIOD_S = 1.0
 STUCK_BELOW_M = 0.05            # a closed cage that moved the object less than this got nowhere
@@ -116,11 +117,15 @@ class TransportEvaluator(Evaluator):
         moved = math.inf if start is None else math.hypot(truth[0] - start[0], truth[1] - start[1])
         if moved >= STUCK_BELOW_M:
             return []
-        spec = self.scenario.object
-        resisting = spec.friction * spec.mass * 9.81
-        hint = (f"the object moved {moved:.2f} m after the cage "
-                f"closed: {len(self.members)} members against {resisting:.1f} N of floor friction "
-                f"(object.friction x mass x g); more robots, less friction")
+        spec, robots = self.scenario.object, self.scenario.robots
+        resisting = spec.friction * spec.mass * GRAVITY
+        everyone = robots.count * push_force_n(robots)
+        hint = (f"the object moved {moved:.2f} m after the cage closed: {len(self.members)} members against "
+                f"{resisting:.1f} N of floor friction (object.friction x mass x g)")
+        if resisting > everyone:        # then the robots left out would not help either
+            return [hint + f"; all {robots.count} robots together push at most {everyone:.1f} N (robots.traction "
+                           "x robots.mass_kg x g each): more robots, a lighter object or less friction"]
+        hint += "; more robots, less friction"
         if not self.scenario.params.get("reinforce_push", False):
             hint += ", or params: {reinforce_push: true} (the robots left out push too)"
         return [hint]

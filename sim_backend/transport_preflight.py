@@ -12,6 +12,7 @@ from typing import Any, List
 import numpy as np
 
 from .shapes import Geometry, extent_at
+from .world import GRAVITY
 
 MIN_CAGE = 3                    # robots needed round an object to close a cage (Proposition 1)
 CAGE_GAP_M = 0.02               # caging robots hold about this far off the surface (keep_gap_while_caging)
@@ -38,12 +39,33 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
         found.append("object.friction: 0: nothing stops the object once it is pushed, so it slides past its "
                      "waypoints")
     found += _faults(scenario)
+    found += _too_heavy(scenario)
     for name in ("cruise_speed_m_s", "travel_speed_m_s"):
         speed = getattr(params, name, None)
         if speed is not None and speed > spec.max_wheel_speed_m_s:
             found.append(f"params.{name}: {speed:g} m/s is above the robots' top wheel speed "
                          f"({spec.max_wheel_speed_m_s:g} m/s): every command is scaled down to it")
     return found
+
+
+def push_force_n(robots: Any) -> float:
+    """The most one robot can push with: its tyres' traction limit, traction x mass x g."""
+    return robots.traction * robots.mass_kg * GRAVITY
+
+
+def _too_heavy(scenario: Any) -> List[str]:
+    """An object whose floor friction is more than every robot pushing together can overcome."""
+    obj = scenario.object
+    if obj is None or obj.static or not scenario.path:
+        return []
+    resisting = obj.friction * obj.mass * GRAVITY
+    everyone = scenario.robots.count * push_force_n(scenario.robots)
+    if resisting <= everyone:
+        return []
+    each = push_force_n(scenario.robots)
+    return [f"object.mass: sliding {obj.mass:g} kg takes {resisting:.1f} N (object.friction x mass x g), more than "
+            f"all {scenario.robots.count} robots push together ({everyone:.1f} N: {each:.1f} N each, "
+            f"robots.traction x robots.mass_kg x g): it will not move"]
 
 
 def _faults(scenario: Any) -> List[str]:

@@ -688,6 +688,19 @@ time_limit_s: 200
     assert len(stuck) == 1 and "16.9 N" in stuck[0] and "reinforce_push: true" in stuck[0], result["failures"]
 
 
+def test_the_stuck_hint_does_not_offer_reinforce_push_when_all_the_robots_are_too_weak(make_scenario):
+    from sim_backend.transport_metrics import TransportEvaluator
+
+    scenario = make_scenario(behaviour="transport", robots={"count": 6},
+                             object={"shape": "box", "size": [0.3, 0.4], "mass": 20.0, "friction": 0.3},
+                             path=[[0.5, 0, 0]])
+    evaluator = TransportEvaluator.__new__(TransportEvaluator)
+    evaluator.scenario, evaluator.pose_at_closure, evaluator.members = scenario, (0.0, 0.0, 0.0), [0, 1, 2, 3]
+    (hint,) = evaluator._stuck_hint((0.0, 0.0, 0.0))
+    assert "58.9 N" in hint and "all 6 robots together push at most 28.6 N" in hint
+    assert "reinforce_push" not in hint
+
+
 def test_a_small_cage_turning_a_box_in_place_leaves_it_on_the_waypoint(make_scenario):
     """A 5-member cage turned a 0.8 x 0.5 m box by 90 degrees at its first waypoint and left it 0.30 m off
     (seed 1); its own estimate knew (0.03 m). Now it pushes the box back before the next leg."""

@@ -96,6 +96,20 @@ def test_a_speed_above_the_robots_top_speed_is_warned_about(make_scenario):
                         "every command is scaled down to it"]
 
 
+def test_an_object_heavier_than_every_robot_can_push_is_warned_about(make_scenario):
+    """A 20 kg box and 6 robots: no warning, and the failure suggested reinforce_push, which cannot help."""
+    heavy = {"shape": "box", "size": [0.3, 0.4], "mass": 20.0, "friction": 0.3, "position": [0, 0]}
+    robots = {"count": 6, "spawn": {"x": [-1.5, -0.7], "y": [-1.5, -0.7]}}
+    warnings = Simulation(transport(make_scenario, object=heavy, robots=robots)).warnings
+    assert warnings == ["object.mass: sliding 20 kg takes 58.9 N (object.friction x mass x g), more than all 6 "
+                        "robots push together (28.6 N: 4.8 N each, robots.traction x robots.mass_kg x g): it will "
+                        "not move"]
+    payload = dict(heavy, mass=4.0)                   # the lab's 4 kg payload: 11.8 N, within reach
+    assert Simulation(transport(make_scenario, object=payload, robots=robots)).warnings == []
+    strong = dict(robots, traction=2.5)               # grippier tyres: 6 x 13.2 N is enough
+    assert Simulation(transport(make_scenario, object=heavy, robots=strong)).warnings == []
+
+
 def test_a_path_among_the_params_is_refused_naming_the_key_it_belongs_to(make_scenario):
     """It replaced the path the robots follow while the run was judged against `path`."""
     with pytest.raises(ConfigError) as info:
