@@ -34,6 +34,14 @@ def test_an_object_smaller_than_the_cage_spacing_is_warned_about_with_a_spacing_
     assert Simulation(fitted).warnings == []
 
 
+@pytest.mark.parametrize("radius, warned", [(0.10, True), (0.12, False)])
+def test_a_ring_just_short_of_three_spacings_is_not_a_false_alarm(make_scenario, radius, warned):
+    """A 0.12 m disc was said to be uncageable (its ring is 2 % short of 3 x I_d), and every seed caged it."""
+    disc = {"shape": "circle", "radius": radius, "mass": 0.3, "position": [0, 0]}
+    warnings = Simulation(transport(make_scenario, object=disc)).warnings
+    assert bool(warnings) == warned and all("only 2 robots fit" in w for w in warnings), warnings
+
+
 def test_an_object_near_a_wall_at_its_start_or_a_waypoint_is_warned_about(make_scenario):
     assert Simulation(transport(make_scenario)).warnings == []
     near = transport(make_scenario, path=[[0.5, 0.0, 0], [0.5, 2.2, 0]])      # 0.1 m from the top wall there
@@ -115,3 +123,11 @@ def test_a_path_among_the_params_is_refused_naming_the_key_it_belongs_to(make_sc
     with pytest.raises(ConfigError) as info:
         transport(make_scenario, params={"path": [[0.0, -0.9, 0]]})
     assert info.value.field == "params.path" and "move it to `path:`" in info.value.problem
+
+
+def test_the_disc_the_preflight_no_longer_warns_about_does_cage(make_scenario):
+    disc = make_scenario(behaviour="transport", robots={"count": 6, "spawn": {"x": [-1.2, -0.6], "y": [-1.2, -0.6]}},
+                         object={"shape": "circle", "radius": 0.12, "mass": 0.3}, path=[[0, 0.4, 0]],
+                         arena={"walls": [-2, -2, 2, 2]}, time_limit_s=150)
+    result = Simulation(disc, seed=2).run()
+    assert result["caged"] and result["completed"], result["failures"]
