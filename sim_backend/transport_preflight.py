@@ -18,6 +18,10 @@ MIN_CAGE = 3                    # robots needed round an object to close a cage 
 # A ring a little short of MIN_CAGE x I_d still closes: members settle within their slots' tolerance. Measured
 # on discs with 6 robots, I_d = 0.45 m: r = 0.12 m (ring 2 % short) closes on every seed, r = 0.10 m (11 %) never.
 RING_SLACK = 0.95
+# Robots rounding the object swing out a few cm past their caging gap. Measured with 8 robots and a 0.4 m box:
+# 0.30 m from a wall it was delivered 0.11-0.14 m off every waypoint (members squeezed, estimate biased),
+# 0.35 m and more as far from any wall. The warning asks for gap + body + IR reach + this margin (0.33 m).
+WALL_MARGIN_M = 0.05
 CAGE_GAP_M = 0.02               # caging robots hold about this far off the surface (keep_gap_while_caging)
 
 
@@ -37,7 +41,8 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
     if world.geometry is not None and spacing is not None:
         found += _cage_fits(world.geometry, spacing, spec.radius_m)
     if world.geometry is not None and scenario.arena.walls is not None:
-        found += _room_to_walls(scenario, world.geometry, 2.0 * spec.radius_m + spec.proximity_range_m)
+        needed = CAGE_GAP_M + 2.0 * spec.radius_m + spec.proximity_range_m + WALL_MARGIN_M
+        found += _room_to_walls(scenario, world.geometry, needed)
     if scenario.object is not None and not scenario.object.static and scenario.object.friction == 0.0:
         found.append("object.friction: 0: nothing stops the object once it is pushed, so it slides past its "
                      "waypoints")
@@ -111,8 +116,8 @@ def _room_to_walls(scenario: Any, geometry: Geometry, needed: float) -> List[str
         if room < needed:
             where = "starts" if field_name == "object.position" else "would be at this waypoint"
             found.append(f"{field_name}: the object {where} {room:.2f} m from an arena wall; robots need about "
-                         f"{needed:.2f} m (a body and the IR's reach) to get round it, and their IR cannot tell "
-                         "the wall from the object")
+                         f"{needed:.2f} m (their gap, a body, the IR's reach and a margin) to get round it, and "
+                         "their IR cannot tell the wall from the object")
     return found
 
 
