@@ -50,6 +50,12 @@ def test_an_object_near_a_wall_at_its_start_or_a_waypoint_is_warned_about(make_s
     start = transport(make_scenario, object={"shape": "box", "size": [0.3, 0.4], "mass": 0.3,
                                              "position": [-2.2, 0]}, path=[[0.0, 0.0, 0]])
     assert Simulation(start).warnings[0].startswith("object.position: the object starts 0.15 m from an arena wall")
+    # 0.30 m: robots get round, but squeezed; the box was delivered 0.11-0.14 m off every waypoint
+    squeezed = transport(make_scenario, object={"shape": "box", "size": [0.4, 0.4], "mass": 0.3, "position": [2.0, 0]},
+                         path=[[2.0, 0.5, 0]])
+    assert [w.split(";")[0] for w in Simulation(squeezed).warnings] == [
+        "object.position: the object starts 0.30 m from an arena wall",
+        "path[0]: the object would be at this waypoint 0.30 m from an arena wall"]
 
 
 def test_too_few_robots_a_short_radio_a_frictionless_floor_and_no_object_are_warned_about(make_scenario):
