@@ -211,12 +211,21 @@ class CagingPhases:
         self.settled_steps = 0
         if self.task.branch == "S":
             for branch in ("L", "R"):
-                self._spawn(branch, 1, now)
+                if not self._slot_held(branch, 1):
+                    self._spawn(branch, 1, now)
         elif not self._try_close():
             if self.spawned is None:
-                self._spawn(self.task.branch, self.task.index + 1, now)
+                if not self._slot_held(self.task.branch, self.task.index + 1):
+                    self._spawn(self.task.branch, self.task.index + 1, now)
             else:
                 self._reaim_successor()
+
+    def _slot_held(self, branch: str, index: int) -> bool:
+        """The slot's task is live and has an owner: this robot took a slot re-opened after its member died
+        (_replace_dead_member), and the slots after it are already held; opening them again would put a
+        second robot in each."""
+        task = self.board.task(task_id(branch, index))
+        return task is not None and not task.cancelled and self.board.owner(task) is not None
 
     def _tangent(self, branch: str) -> Vec:
         normal = c.unit(self.percept.object_vector) if self.percept.object_peak > 0 else \

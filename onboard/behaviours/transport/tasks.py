@@ -4,7 +4,8 @@ Keys (values are small JSON mappings):
   task/<tid>    {"x", "y", "branch": "S"|"L"|"R", "index", "pred", "epoch", "cancelled"}  the caging target
   bid/<tid>/<e> {"robot", "bid"}      lowest bid wins (ties: lower robot id) -- conflict rule on "bid/"
   owner/<tid>   {"robot", "bid", "epoch"}  the robot that took the task; same conflict rule on "owner/"
-  member/<rid>  {"tid", "branch", "index"}  a robot settled in the cage
+  member/<rid>  {"tid", "branch", "index"}  a robot settled in the cage; "dead": true once a member found it
+                                            dead before closure (it no longer counts, its slot is re-opened)
   pos/<rid>     [x, y, normal, [sx, sy]]    position heartbeat of members and travellers, with the world angle
                                             of the contact normal x_o (null when not touching) and the point
                                             of the object's surface the IR sees (null when unseen, and
@@ -206,7 +207,7 @@ class TaskBoard:
         return self._open
 
     def busy(self, robot: Any, except_tid: str = "") -> bool:
-        if self.is_member(robot):
+        if f"member/{robot}" in self.space:        # a member, or one that died in the cage: it bids no more
             return True
         self._index_owners()
         try:
@@ -250,8 +251,19 @@ class TaskBoard:
         self.space.put(f"member/{robot}", {"tid": task.tid, "branch": task.branch, "index": task.index})
 
     def is_member(self, robot: Any) -> bool:
-        """``robot`` has joined the cage (its ``member/<rid>`` entry is in this replica)."""
-        return f"member/{robot}" in self.space
+        """``robot`` has joined the cage (its ``member/<rid>`` entry is in this replica) and was not declared
+        dead since (``declare_dead``)."""
+        value = self.space.get(f"member/{robot}")
+        return value is not None and not _declared_dead(value)
+
+    def declare_dead(self, robot: int) -> None:
+        """Ours: ``robot``, a member, died before the cage closed. It no longer counts as a member (``members``,
+        the seed, the branch slots), so the ring, the closure test and the centre guess are made of live
+        members only, and its slot can be taken again; its heartbeat stays, so its successor still measures
+        from where it stopped."""
+        value = self.space.get(f"member/{robot}")
+        if isinstance(value, dict) and not _declared_dead(value):
+            self.space.put(f"member/{robot}", dict(value, dead=True))
 
     def members(self) -> Dict[int, dict]:
         return dict(self._current_members())
@@ -302,6 +314,8 @@ class TaskBoard:
             self._members_at = revision
             found = {}
             for key, value in self.space.items("member/"):
+                if _declared_dead(value):
+                    continue
                 try:
                     found[int(key[len("member/"):])] = value
                 except ValueError:
@@ -418,6 +432,10 @@ def _close_heartbeat(held: list, value: list, move_m: Optional[float] = HEARTBEA
         return abs(math.remainder(value[2] - held[2], math.tau)) < HEARTBEAT_TURN_RAD
     except (TypeError, IndexError):                # a malformed value in the space: write a good one
         return False
+
+
+def _declared_dead(value: Any) -> bool:
+    return isinstance(value, dict) and value.get("dead") is True
 
 
 def _parse_task(tid: str, value: Any) -> Optional[Dict[str, Any]]:

@@ -20,6 +20,7 @@ from .estimator import (
     ring_edges,
     surface_normals,
 )
+from .tasks import HEARTBEAT_RULES, Task
 
 GROW_PERIOD_S = 1.0           # out of robots: I_d grows one level (2 %) per second
 OUT_OF_ROBOTS_FACTOR = 3.0    # a target nobody took for 3 T_a means the swarm has no robot left for it
@@ -105,7 +106,9 @@ class TransportPhases:
         return slot("R", index + 1), slot("R", index - 1)
 
     def _reopen_orphans(self, now: float) -> None:
-        """A robot that died on its way to a target this robot opened: open the target again."""
+        """A robot that died on its way to a target this robot opened: open the target again. Ours, the same
+        for a robot that died after settling there, before the cage closed (_replace_dead_member); the seed's
+        task, which no member opened, is looked after by the seed's successors."""
         members = self.board.members()
         for task in self.board.tasks_opened_by(self.robot.id):
             self.spawned_times.setdefault((task.tid, task.epoch), now)
@@ -113,10 +116,40 @@ class TransportPhases:
             if owner is None:
                 continue
             rid = owner.get("robot")
-            if rid not in members and self.board.heard_of(rid) and not self.board.alive(rid, now):
+            if rid in members:
+                if self._member_dead(rid, now):
+                    self._replace_dead_member(rid, task, now)
+            elif self.board.heard_of(rid) and not self.board.alive(rid, now):
                 task.epoch += 1
                 self.board.put_task(task)
                 self.spawned_times[(task.tid, task.epoch)] = now
+        seed = self.board.seed_member()
+        if seed is not None and seed == self.task.pred and self._member_dead(seed, now):
+            task = self.board.task("S")
+            owner = self.board.owner(task) if task is not None else None
+            if owner is not None and owner.get("robot") == seed:
+                self._replace_dead_member(seed, task, now)
+
+    def _member_dead(self, rid: int, now: float) -> bool:
+        """A member (other than this robot) whose heartbeat has not changed for the liveness timeout plus the
+        period a still caged member beats at (tasks.HEARTBEAT_RULES): before closure a live member may be
+        silent for that long."""
+        window = HEARTBEAT_RULES["caged"].period_s + self.params.liveness_timeout_s
+        return rid != self.robot.id and self.board.heard_of(rid) and not self.board.alive(rid, now, window)
+
+    def _replace_dead_member(self, rid: int, task: Task, now: float) -> None:
+        """Ours: a member died before closure (the paper has no failures). It stays where it stopped, an
+        obstacle that cages but neither pushes nor tells where it is any more, so a ring closed through it
+        can be one whose live members all sit on one side of the object: in f-seed (lab-6 with robot 4 dead
+        at 40 s) seed 1 the dead seed was the only robot behind the box, the cage closed with the three live
+        members beside and ahead of it, their ring centroid 0.13 m off, and the box never moved while the
+        estimate slid along with the members. Declare it dead (it no longer counts as a member: the chain,
+        the closure test and the centre guess use live members) and open its task again as a new epoch, so
+        that a spare takes the slot; the cage closes once the live ring encloses C_o(0)."""
+        self.board.declare_dead(rid)
+        task.epoch += 1
+        self.board.put_task(task)
+        self.spawned_times[(task.tid, task.epoch)] = now
 
     def _grow_if_out_of_robots(self, now: float) -> None:
         """Nobody bids for the next target: grow I_d so the branches spread until the cage closes.
