@@ -712,3 +712,29 @@ def test_a_small_cage_turning_a_box_in_place_leaves_it_on_the_waypoint(make_scen
     result = Simulation(scenario, seed=1).run()
     turned = result["waypoints"][1]
     assert turned["position_error_m"] < 0.05 and turned["orientation_error_rad"] < math.radians(5.72)
+
+
+def test_a_seed_that_dies_before_closure_is_replaced_and_the_box_still_arrives(tmp_path):
+    """lab-6 with robot 4, the elected seed of seed 1 (behind the box), dead at 40 s, before the cage closed.
+    The cage used to close through the dead seed with its three live members beside and ahead of the box:
+    nobody pushed, their ring centroid slid along with them and the box never moved (final error 0.90 m).
+    Now the seed's successors declare it dead, task S is re-opened, a spare becomes the new seed behind the
+    box and the cage closes through it."""
+    scenario = tmp_path / "dead-seed.yaml"
+    scenario.write_text("""
+robots: {count: 6, spawn: {x: [-1.2, -0.6], y: [-1.2, -0.6]}}
+object: {shape: box, size: [0.285, 0.435], mass: 0.3, position: [0, 0]}
+path: [[0, 0.3, 0], [0, 0.6, 0], [0, 0.9, 0]]
+comm: {range_m: 3.0}
+arena: {walls: [-2.0, -2.0, 2.0, 2.0]}
+time_limit_s: 200
+faults: [{robot: 4, at_s: 40}]
+""")
+    sim = Simulation(load_scenario(str(scenario)), seed=1)
+    result = sim.run()
+    assert result["caged"] and result["completed"], result["failures"]
+    assert result["final_position_error_m"] <= 0.05
+    board = sim.behaviours[0].board
+    seed = board.seed_member()
+    assert seed is not None and seed != 4 and 4 not in board.members()    # the dead seed no longer counts
+    assert board.task("S").epoch == 1

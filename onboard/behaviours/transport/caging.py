@@ -222,7 +222,7 @@ class CagingPhases:
 
     def _slot_held(self, branch: str, index: int) -> bool:
         """The slot's task is live and has an owner: this robot took a slot re-opened after its member died
-        (_replace_dead_member), and the slots after it are already held; opening them again would put a
+        (_replace_dead_seed), and the slots after it are already held; opening them again would put a
         second robot in each."""
         task = self.board.task(task_id(branch, index))
         return task is not None and not task.cancelled and self.board.owner(task) is not None

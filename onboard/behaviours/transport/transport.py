@@ -48,6 +48,9 @@ class TransportPhases:
             self.closed_at = now
             self.state = "settle"
             return
+        if not self.board.is_member(self.robot.id):
+            self._drop_task()       # declared dead (_replace_dead_seed) while alive: idle, and bid again
+            return
         if self.task.branch != "S":
             self._try_close()
         self._reopen_orphans(now)
@@ -106,9 +109,8 @@ class TransportPhases:
         return slot("R", index + 1), slot("R", index - 1)
 
     def _reopen_orphans(self, now: float) -> None:
-        """A robot that died on its way to a target this robot opened: open the target again. Ours, the same
-        for a robot that died after settling there, before the cage closed (_replace_dead_member); the seed's
-        task, which no member opened, is looked after by the seed's successors."""
+        """A robot that died on its way to a target this robot opened: open the target again. Ours: the seed's
+        successors do the same for a seed that died after settling, before the cage closed (_replace_dead_seed)."""
         members = self.board.members()
         for task in self.board.tasks_opened_by(self.robot.id):
             self.spawned_times.setdefault((task.tid, task.epoch), now)
@@ -116,10 +118,7 @@ class TransportPhases:
             if owner is None:
                 continue
             rid = owner.get("robot")
-            if rid in members:
-                if self._member_dead(rid, now):
-                    self._replace_dead_member(rid, task, now)
-            elif self.board.heard_of(rid) and not self.board.alive(rid, now):
+            if rid not in members and self.board.heard_of(rid) and not self.board.alive(rid, now):
                 task.epoch += 1
                 self.board.put_task(task)
                 self.spawned_times[(task.tid, task.epoch)] = now
@@ -128,7 +127,7 @@ class TransportPhases:
             task = self.board.task("S")
             owner = self.board.owner(task) if task is not None else None
             if owner is not None and owner.get("robot") == seed:
-                self._replace_dead_member(seed, task, now)
+                self._replace_dead_seed(seed, task, now)
 
     def _member_dead(self, rid: int, now: float) -> bool:
         """A member (other than this robot) whose heartbeat has not changed for the liveness timeout plus the
@@ -137,19 +136,21 @@ class TransportPhases:
         window = HEARTBEAT_RULES["caged"].period_s + self.params.liveness_timeout_s
         return rid != self.robot.id and self.board.heard_of(rid) and not self.board.alive(rid, now, window)
 
-    def _replace_dead_member(self, rid: int, task: Task, now: float) -> None:
-        """Ours: a member died before closure (the paper has no failures). It stays where it stopped, an
-        obstacle that cages but neither pushes nor tells where it is any more, so a ring closed through it
-        can be one whose live members all sit on one side of the object: in f-seed (lab-6 with robot 4 dead
-        at 40 s) seed 1 the dead seed was the only robot behind the box, the cage closed with the three live
-        members beside and ahead of it, their ring centroid 0.13 m off, and the box never moved while the
-        estimate slid along with the members. Declare it dead (it no longer counts as a member: the chain,
-        the closure test and the centre guess use live members) and open its task again as a new epoch, so
-        that a spare takes the slot; the cage closes once the live ring encloses C_o(0)."""
-        self.board.declare_dead(rid)
+    def _replace_dead_seed(self, seed: int, task: Task, now: float) -> None:
+        """Ours (the paper has no failures): the seed died before closure. It stays where it stopped, an
+        obstacle that cages but neither pushes nor tells where it is any more, and it was the cage's pusher
+        behind the object (seed_from_rear). A ring closed through it can have all its live members beside and
+        ahead of the object: in f-seed (lab-6, robot 4 dead at 40 s) seed 1 the cage closed with the three
+        live members there, their ring centroid 0.13 m off; the box never moved while the estimate slid along
+        with the members. So declare it dead (it no longer counts as a member: the chain, the closure test
+        and the centre guess use live members only) and open task S again as a new epoch: a spare drives in
+        as the new seed (behind the dead one, which its IR takes for the object) and the ring closes through
+        it. A dead branch member is not replaced (docs/behaviour.md section 8): its successors measure from
+        where it stopped, and a replacement cannot take its place, so it settled outside the ring and threw
+        the ring centroid off."""
+        self.board.declare_dead(seed)
         task.epoch += 1
         self.board.put_task(task)
-        self.spawned_times[(task.tid, task.epoch)] = now
 
     def _grow_if_out_of_robots(self, now: float) -> None:
         """Nobody bids for the next target: grow I_d so the branches spread until the cage closes.
