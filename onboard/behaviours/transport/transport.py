@@ -127,7 +127,7 @@ class TransportPhases:
             task = self.board.task("S")
             owner = self.board.owner(task) if task is not None else None
             if owner is not None and owner.get("robot") == seed:
-                self._replace_dead_seed(seed, task, now)
+                self._replace_dead_seed(seed, task)
 
     def _member_dead(self, rid: int, now: float) -> bool:
         """A member (other than this robot) whose heartbeat has not changed for the liveness timeout plus the
@@ -136,7 +136,7 @@ class TransportPhases:
         window = HEARTBEAT_RULES["caged"].period_s + self.params.liveness_timeout_s
         return rid != self.robot.id and self.board.heard_of(rid) and not self.board.alive(rid, now, window)
 
-    def _replace_dead_seed(self, seed: int, task: Task, now: float) -> None:
+    def _replace_dead_seed(self, seed: int, task: Task) -> None:
         """Ours (the paper has no failures): the seed died before closure. It stays where it stopped, an
         obstacle that cages but neither pushes nor tells where it is any more, and it was the cage's pusher
         behind the object (seed_from_rear). A ring closed through it can have all its live members beside and
