@@ -13,8 +13,7 @@ import numpy as np
 from onboard.geometry import wrap
 
 from .metrics import Evaluator, register_evaluator
-from .transport_preflight import push_force_n, transport_warnings
-from .world import GRAVITY
+from .transport_preflight import floor_friction_n, push_force_n, transport_warnings
 
 SPACING_SAMPLE_PERIOD_S = 1.0
 STUCK_BELOW_M = 0.05            # a closed cage that moved the object less than this got nowhere
@@ -118,7 +117,7 @@ class TransportEvaluator(Evaluator):
         if moved >= STUCK_BELOW_M:
             return []
         spec, robots = self.scenario.object, self.scenario.robots
-        resisting = spec.friction * spec.mass * GRAVITY
+        resisting = floor_friction_n(spec)
         everyone = robots.count * push_force_n(robots)
         hint = (f"the object moved {moved:.2f} m after the cage closed: {len(self.members)} members against "
                 f"{resisting:.1f} N of floor friction (object.friction x mass x g)")

@@ -61,12 +61,17 @@ def push_force_n(robots: Any) -> float:
     return robots.traction * robots.mass_kg * GRAVITY
 
 
+def floor_friction_n(obj: Any) -> float:
+    """The force that slides the object over the floor: object.friction x mass x g, as the world ties it."""
+    return obj.friction * obj.mass * GRAVITY
+
+
 def _too_heavy(scenario: Any) -> List[str]:
     """An object whose floor friction is more than every robot pushing together can overcome."""
     obj = scenario.object
     if obj is None or obj.static or not scenario.path:
         return []
-    resisting = obj.friction * obj.mass * GRAVITY
+    resisting = floor_friction_n(obj)
     everyone = scenario.robots.count * push_force_n(scenario.robots)
     if resisting <= everyone:
         return []
