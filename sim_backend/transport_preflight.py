@@ -98,9 +98,9 @@ def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[
     """The ring the cage lies on (the object's convex hull grown by a robot's radius and its gap) must hold
     MIN_CAGE robots I_d apart; the behaviour only ever widens I_d (the `grow` levels), never narrows it."""
     ring = hull_perimeter(geometry) + 2.0 * math.pi * (robot_radius + CAGE_GAP_M)
-    fit = int(ring // spacing)
-    if fit >= MIN_CAGE or ring >= RING_SLACK * MIN_CAGE * spacing:
+    if ring >= RING_SLACK * MIN_CAGE * spacing:       # also whenever MIN_CAGE robots fit outright
         return []
+    fit = int(ring // spacing)
     robots = "robot fits" if fit == 1 else "robots fit"
     return [f"params.inter_robot_distance_m: only {fit} {robots} {spacing:g} m apart round this object (the "
             f"cage ring is {ring:.2f} m long), and a cage needs {MIN_CAGE}: it cannot close. Set "
