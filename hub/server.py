@@ -33,7 +33,10 @@ from .sources import PoseFrame, PoseSource
 from .uplink import Uplink
 
 DOWNLINK_HWM = 8          # frames queued per robot; older data is useless, a full queue drops (latest-only)
-UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting pose frame
+UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting pose frame and at the clock
+# The longest the hub reads one socket before it sends the frames due: a flood of messages (a fuzzer, a
+# misbehaving peer) must not hold back the frames the agents' 0.3 s watchdogs wait for.
+READ_SLICE_S = 0.02
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
 NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
 NO_POSE_YET_REPEAT_S = 30.0    # ...and again this often while none does
@@ -199,7 +202,10 @@ class Hub(Downlink, Uplink):
 
     def handle_control(self, events: Dict[Any, int], budget: int = 2000) -> None:
         if self.control_socket in events:
-            for _ in range(budget):
+            deadline = time.monotonic() + READ_SLICE_S
+            for count in range(budget):
+                if count % UPLINK_SLICE == UPLINK_SLICE - 1 and time.monotonic() > deadline:
+                    break         # the rest next time round, after the frames due
                 try:
                     parts = self.control_socket.recv_multipart(zmq.NOBLOCK, copy=False)
                 except zmq.Again:
@@ -210,10 +216,11 @@ class Hub(Downlink, Uplink):
         if self.robot_socket not in events:
             return
         wake = self.source.wake_socket
+        deadline = time.monotonic() + READ_SLICE_S
         for count in range(budget):
-            if wake is not None and count % UPLINK_SLICE == UPLINK_SLICE - 1 \
-                    and wake.getsockopt(zmq.EVENTS) & zmq.POLLIN:
-                break             # a pose frame waits: serve it first, the rest of the uplink next time round
+            if count % UPLINK_SLICE == UPLINK_SLICE - 1 and (time.monotonic() > deadline or (
+                    wake is not None and wake.getsockopt(zmq.EVENTS) & zmq.POLLIN)):
+                break             # frames are due or a pose frame waits: serve it first, the rest next time round
             try:
                 parts = self.robot_socket.recv_multipart(zmq.NOBLOCK, copy=False)
             except zmq.Again:
