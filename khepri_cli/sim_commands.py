@@ -214,9 +214,12 @@ def cmd_show(args: argparse.Namespace) -> int:
 
     from onboard.behaviour import build_params, get_behaviour
     from onboard.config import to_mapping
+    from sim_backend.runner import Simulation
     from sim_backend.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
+    for warning in Simulation(scenario).warnings:     # what `sim run` would warn about, on stderr
+        print(f"khepri: warning: {warning}", file=sys.stderr)
     shown = to_mapping(scenario)
     # Every parameter of the behaviour, the scenario's own values over the defaults. The mission (path, the
     # object's starting estimate) is left out unless the scenario sets it: the runner takes it from `path`

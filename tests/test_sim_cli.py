@@ -185,6 +185,23 @@ def test_sim_show_fills_in_the_behaviours_parameters_and_runs_as_the_scenario_do
     assert np.array_equal(*runs)
 
 
+def test_sim_show_warns_as_sim_run_does_before_a_doomed_run(tmp_path, capsys):
+    """A scenario could be checked with `sim show` and pass, then `sim run` warned that the box sat too close to
+    a wall for the robots to get round it."""
+    import yaml
+
+    assert main(["sim", "show", "lab-6"]) == 0
+    shown = yaml.safe_load(capsys.readouterr().out)
+    assert shown["arena"]["walls"] == [-2.0, -2.0, 2.0, 2.0]
+    shown["object"]["position"] = [0.0, -1.75]              # 0.25 m from the wall at y = -2
+    shown["path"] = [[0.0, 0.0, 0.0]]
+    (tmp_path / "near-wall.yaml").write_text(yaml.safe_dump(shown))
+    assert main(["sim", "show", str(tmp_path / "near-wall.yaml")]) == 0
+    captured = capsys.readouterr()
+    assert "khepri: warning: object.position: the object starts 0.03 m from an arena wall" in captured.err
+    assert yaml.safe_load(captured.out)["object"]["position"] == [0.0, -1.75]     # stdout stays pure YAML
+
+
 @pytest.mark.parametrize("seed, message", [("abc", "must be a whole number >= 0 (got 'abc')"),
                                            ("1.5", "must be a whole number >= 0 (got '1.5')"),
                                            ("-1", "must be >= 0 (got -1)")])
