@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple, Union
@@ -320,18 +321,27 @@ def builtin_names() -> List[str]:
 def resolve(name_or_path: str) -> Path:
     """A built-in scenario's file, or the given path; ConfigError when neither exists."""
     path = Path(name_or_path)
-    if path.is_file():
-        return path
     is_yaml = path.suffix in (".yaml", ".yml")
+    builtin = BUILTIN_DIR / f"{name_or_path}.yaml"
+    if path.is_file():
+        if _is_bare_name(name_or_path) and not is_yaml and builtin.is_file():
+            # `khepri sim show lab-6 > lab-6` makes such a file; either choice would surprise someone.
+            raise ConfigError("scenario", f"{name_or_path!r} is both a built-in scenario and a file in this "
+                              f"folder: write ./{name_or_path} for the file, or rename the file")
+        return path
     if is_yaml and path.is_dir():
         raise ConfigError("scenario", f"{name_or_path} is a folder, not a file")
-    builtin = BUILTIN_DIR / f"{name_or_path}.yaml"
     if not is_yaml and builtin.is_file():
         return builtin     # even when a folder of that name is here (a run's output, say)
     if is_yaml or path.exists():
         raise ConfigError("scenario", f"no such file: {name_or_path}")
     raise ConfigError("scenario", f"unknown scenario {name_or_path!r}: not a file and not built in "
                       f"(see `khepri sim list`)")
+
+
+def _is_bare_name(text: str) -> bool:
+    """No folder part: `lab-6`, not `./lab-6` (which Path would shorten to the same name)."""
+    return "/" not in text and os.sep not in text
 
 
 def load_scenario(name_or_path: str) -> Scenario:

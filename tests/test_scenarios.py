@@ -283,3 +283,15 @@ def test_builtin_name_wins_over_a_folder_of_that_name(tmp_path, monkeypatch):
     (tmp_path / "not-a-scenario").mkdir()
     with pytest.raises(ConfigError, match="no such file: not-a-scenario"):
         load_scenario("not-a-scenario")
+
+
+def test_a_file_named_like_a_builtin_is_neither_taken_nor_hidden_silently(tmp_path, monkeypatch):
+    """`khepri sim show lab-6 > lab-6` leaves a file called lab-6 here. It used to win over the built-in without
+    a word (an empty one: "the file is empty"); taking the built-in instead would ignore a user's edits."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lab-6").write_text((BUILTIN_DIR / "lab-6.yaml").read_text().replace("count: 6", "count: 7"))
+    with pytest.raises(ConfigError) as info:
+        load_scenario("lab-6")
+    assert str(info.value) == ("scenario: 'lab-6' is both a built-in scenario and a file in this folder: "
+                               "write ./lab-6 for the file, or rename the file")
+    assert load_scenario("./lab-6").robots.count == 7
