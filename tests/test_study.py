@@ -106,6 +106,16 @@ def test_overrides_make_a_cartesian_product_of_cells(tmp_path):
     assert runs[-1].run_dir == "lab-6@params.inter_robot_distance_m=0.65@comm.drop=0.1/seed-2"
 
 
+def test_a_whole_mapping_override_names_its_cell_with_its_keys():
+    """An override of a whole mapping (an object shape) used to name its folder after the dict's repr:
+    lab-6@object=__shape___box____size___0.3__0.4___mass___2.0_."""
+    box = {"shape": "box", "size": [0.3, 0.4], "mass": 2.0, "position": [0.0, 0.0]}
+    spec = parse_study({"name": "objects", "scenarios": ["lab-6"], "reps": 1, "overrides": {"object": [box]}})
+    run = expand(spec)[0]
+    assert run.cell == "lab-6@object=shape=box,size=0.3,0.4,mass=2,position=0,0"
+    assert run.scenario_data["object"]["mass"] == 2.0
+
+
 @pytest.mark.parametrize("text, message", [
     ("scenarios: lab-6\nreps: 2", "scenarios: must be a non-empty list"),
     ("scenarios: [no-such-scenario]\nreps: 2", "scenarios[0]: scenario: unknown scenario 'no-such-scenario'"),

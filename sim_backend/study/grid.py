@@ -302,6 +302,8 @@ def cell_name(scenario_name: str, chosen: Dict[str, Any]) -> str:
 
 
 def value_text(value: Any) -> str:
+    if isinstance(value, dict):         # an override of a whole mapping: key=value pairs, not a dict's repr
+        return ",".join(f"{key}={value_text(item)}" for key, item in value.items())
     if isinstance(value, (list, tuple)):
         return ",".join(value_text(v) for v in value)
     return format(value, "g") if isinstance(value, float) else str(value)
