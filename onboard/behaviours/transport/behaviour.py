@@ -60,7 +60,9 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
         self.closed_at: Optional[float] = None
         self.filter: Optional[ObjectFilter] = None
         self.reference_ring: Dict[int, Vec] = {}
-        self.reference_centre: Vec = (0.0, 0.0)
+        self.reference_centre: Vec = (0.0, 0.0)         # the object's, when transport began
+        self.reference_ring_centre: Vec = (0.0, 0.0)    # the live members' ring centroid then
+        self.ring_offset: Optional[Vec] = None          # from the latter to the former (_dead_members_offset)
         self.reference_normals: Dict[int, Vec] = {}
         self.reference_surface: Dict[int, Vec] = {}
         self.reference_yaw = 0.0

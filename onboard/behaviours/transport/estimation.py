@@ -14,13 +14,61 @@ import numpy as np
 from ...hal import wrap_angle
 from . import control as c
 from .control import Vec
-from .estimator import edge_rotation, normal_displacement, ring_centroid, ring_edges, ring_rotation
+from .estimator import (
+    ObjectFilter,
+    edge_rotation,
+    normal_displacement,
+    ring_centroid,
+    ring_edges,
+    ring_rotation,
+    surface_normals,
+)
 
 EDGE_FACTOR = 1.5             # edges between cage neighbours longer than 1.5 I_d are gaps, not faces
 T = TypeVar("T")
 
 
 class ObjectEstimation:
+    def _start_estimate(self, now: float) -> None:
+        """When transport begins: the reference ring, edges, contact normals and surface points the estimate
+        compares with from here on, and the filter, started at the ring's centroid and the mission's yaw."""
+        ring = self._member_positions(now)
+        self.reference_ring = ring
+        self.reference_ring_centre = ring_centroid(np.asarray(list(ring.values()))) if ring else self.hint
+        self.ring_offset = self._dead_members_offset(ring, now)
+        self.reference_centre = self._whole_ring_centre(self.reference_ring_centre, 0.0)
+        self.reference_yaw = self.initial_yaw
+        self.reference_edges = ring_edges(ring, self.reference_ring_centre, EDGE_FACTOR * self._spacing())
+        self.reference_contacts = self._contact_angles(ring)
+        self.reference_surface = self._member_surfaces(ring)
+        self.reference_normals = surface_normals(self.reference_surface, ring)
+        noise = 0.02
+        self.filter = ObjectFilter(self.reference_centre[0], self.reference_centre[1], self.reference_yaw, noise)
+
+    def _dead_members_offset(self, ring: Dict[int, Vec], now: float) -> Optional[Vec]:
+        """Ours (the paper has no failures): from the centroid of the live members' ring to that of the whole
+        ring, with the last heartbeat positions of members that died before transport began. Such a member
+        stays where it stopped, in its place round the object, but it neither pushes nor reports, so the ring
+        centroid of the live members alone is off to the other side: in lab-6 with the first robot of the
+        right branch dead before closure, 0.08-0.10 m, and the cage pushed that point, not the object, to the
+        waypoints (docs/behaviour.md section 8). The live ring moves with the object, so the whole ring's
+        centroid is the live one plus this offset, turned as the object turned. None when every member lives
+        (then nothing changes)."""
+        live = set(self._members_alive(now))
+        dead = [self._member_position(rid) for rid in self.board.members() if rid not in live]
+        dead = [where for where in dead if where is not None]
+        if not dead or len(ring) < 3:
+            return None
+        whole = ring_centroid(np.asarray(list(ring.values()) + dead))
+        return c.sub(whole, ring_centroid(np.asarray(list(ring.values()))))
+
+    def _whole_ring_centre(self, live_centre: Vec, turned: float) -> Vec:
+        """The centroid of the whole ring, dead members included, from that of the live ones
+        (_dead_members_offset); the live centroid itself when no member died before transport."""
+        if self.ring_offset is None:
+            return live_centre
+        return c.add(live_centre, c.rotate(self.ring_offset, turned))
+
     def _member_positions(self, now: float) -> Dict[int, Vec]:
         positions = {}
         for rid in self._members_alive(now):
@@ -46,7 +94,7 @@ class ObjectEstimation:
         turned = edge_rotation(edges, self.reference_edges)
         if turned is not None:
             return turned
-        return ring_rotation(ring, self.reference_ring, centre, self.reference_centre)
+        return ring_rotation(ring, self.reference_ring, centre, self.reference_ring_centre)
 
     def _yaw_from_contact_normals(self) -> bool:
         mode = self.params.small_cage_yaw
@@ -68,6 +116,7 @@ class ObjectEstimation:
         if len(ring) >= 3:
             centre = ring_centroid(np.asarray(list(ring.values())))
             turned = self._rotation_since_reference(ring, centre)
+            centre = self._whole_ring_centre(centre, turned or 0.0)
             yaw = None if turned is None else self.reference_yaw + turned
             surface = self._surface_centre(ring, turned)
             if surface is not None:

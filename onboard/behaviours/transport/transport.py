@@ -13,13 +13,6 @@ import numpy as np
 from ...hal import wrap_angle
 from . import control as c
 from .control import Vec
-from .estimation import EDGE_FACTOR
-from .estimator import (
-    ObjectFilter,
-    ring_centroid,
-    ring_edges,
-    surface_normals,
-)
 from .tasks import HEARTBEAT_RULES, Task
 
 GROW_PERIOD_S = 1.0           # out of robots: I_d grows one level (2 %) per second
@@ -183,16 +176,7 @@ class TransportPhases:
         self._hold_position(equalise=self.params.equalise_spacing)
 
     def _begin_transport(self, now: float) -> None:
-        ring = self._member_positions(now)
-        self.reference_ring = ring
-        self.reference_centre = ring_centroid(np.asarray(list(ring.values()))) if ring else self.hint
-        self.reference_yaw = self.initial_yaw
-        self.reference_edges = ring_edges(ring, self.reference_centre, EDGE_FACTOR * self._spacing())
-        self.reference_contacts = self._contact_angles(ring)
-        self.reference_surface = self._member_surfaces(ring)
-        self.reference_normals = surface_normals(self.reference_surface, ring)
-        noise = 0.02
-        self.filter = ObjectFilter(self.reference_centre[0], self.reference_centre[1], self.reference_yaw, noise)
+        self._start_estimate(now)
         self.formation = self._formation_now()
         self.path = [tuple(w) for w in (self.space.get("path") or self.params.path)]
         self.waypoint, self.phase, self.state = 0, "p", "push"
