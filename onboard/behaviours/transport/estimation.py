@@ -52,12 +52,13 @@ class ObjectEstimation:
         centroid of the live members alone is off to the other side: in lab-6 with the first robot of the
         right branch dead before closure, 0.08-0.10 m, and the cage pushed that point, not the object, to the
         waypoints (docs/behaviour.md section 8). The live ring moves with the object, so the whole ring's
-        centroid is the live one plus this offset, turned as the object turned. None when every member lives
-        (then nothing changes)."""
+        centroid is the live one plus this offset, turned as the object turned; with it two live members are
+        enough to follow the object (a 3-member lab-6 cage with one member dead in settle never moved). None
+        when every member lives (then nothing changes)."""
         live = set(self._members_alive(now))
         dead = [self._member_position(rid) for rid in self.board.members() if rid not in live]
         dead = [where for where in dead if where is not None]
-        if not dead or len(ring) < 3:
+        if not dead or len(ring) < 2:
             return None
         whole = ring_centroid(np.asarray(list(ring.values()) + dead))
         return c.sub(whole, ring_centroid(np.asarray(list(ring.values()))))
@@ -113,7 +114,7 @@ class ObjectEstimation:
         self.filter.predict(max(now - self.estimated_at, 1e-3))
         self.estimated_at = now
         ring = self._member_positions(now)
-        if len(ring) >= 3:
+        if len(ring) >= (2 if self.ring_offset is not None else 3):    # 2: plus the dead (_dead_members_offset)
             centre = ring_centroid(np.asarray(list(ring.values())))
             turned = self._rotation_since_reference(ring, centre)
             centre = self._whole_ring_centre(centre, turned or 0.0)
