@@ -140,7 +140,7 @@ class TransportPhases:
         as the new seed (behind the dead one, which its IR takes for the object) and the ring closes through
         it. A dead branch member is not replaced (docs/behaviour.md section 8): its successors measure from
         where it stopped, and a replacement cannot take its place, so it settled outside the ring and threw
-        the ring centroid off."""
+        the ring centroid off; the estimate counts it where it stopped instead (_dead_members_offset)."""
         self.board.declare_dead(seed)
         task.epoch += 1
         self.board.put_task(task)
