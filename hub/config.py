@@ -192,6 +192,9 @@ class LabConfig:
         if self.record is not None and not str(self.record).strip():
             raise ConfigError("record", "is empty: name the MCAP file (e.g. logs/run-{time}.mcap), or leave it out")
         if self.robots is not None:
+            if not self.robots:
+                raise ConfigError("robots", "is empty: list the robot ids of this lab, e.g. robots: [0, 1, 2] "
+                                            "(or leave it out: the bodies' ids, or the scenario's robots)")
             for i, rid in enumerate(self.robots):
                 check_robot_id(f"robots[{i}]", rid)
             if len(set(self.robots)) != len(self.robots):

@@ -166,6 +166,14 @@ def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
     build_hub(parse_config(sim_config(robots=[1, 3])), log=lambda line: None).close()    # a subset is fine
 
 
+def test_an_empty_robot_list_is_refused_rather_than_serving_nobody(tmp_path):
+    """`robots: []` started a hub with no robots at all, which then said `this lab's robots: ` every 30 s."""
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump(sim_config(robots=[])))
+    line = one_error_line(khepri("hub", "--config", str(config), timeout=20), "robots")
+    assert "is empty" in line
+
+
 # --- 5. a motion-capture system that never answers -----------------------------------------------------------------
 # OptiTrack's NatNet client with no server on loopback blocks in connect() while holding Python's GIL: the hang
 # the hub must turn into an error (a thread could not be timed out; the hub probes in a child process).
