@@ -64,6 +64,8 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     # early (and the hub never writes over a log), so they go, also with --no-record.
     for name in ("hub.mcap", "result.json", "trajectory.npz", "trajectory.png"):
         (out / name).unlink(missing_ok=True)
+    for old_log in (out / "agents").glob("agent-*.log"):   # a run with more robots left more of them
+        old_log.unlink(missing_ok=True)
     remove_stale_key_folders()
     with tempfile.TemporaryDirectory(prefix=f"{KEY_FOLDER_PREFIX}{os.getpid()}-") as key_dir:
         keys = Path(key_dir)

@@ -1,5 +1,6 @@
 """Software in the loop, end to end: the hub's sim source and one real agent process per robot over loopback
 CURVE sockets run lab-6 and lab-6-payload in lockstep; evaluated like `khepri sim run`, with the MCAP log beside it."""
+import dataclasses
 import json
 import os
 import signal
@@ -39,6 +40,19 @@ def test_sil_lab6_cages_and_reaches_every_waypoint(tmp_path, name):
     topics = {record.topic for record in read_log(tmp_path / "hub.mcap")}
     assert {"/mocap/poses", "/robot/0/frame", "/robot/5/telemetry", "/robot/3/broadcast", "/robot/1/command",
             "/control"} <= topics
+
+
+def test_an_earlier_runs_agent_logs_do_not_stay_beside_this_runs(tmp_path):
+    """A 6-robot run's agents/agent-4.log and agent-5.log stayed in the folder of a later 4-robot run."""
+    (tmp_path / "agents").mkdir()
+    for i in range(6):
+        (tmp_path / "agents" / f"agent-{i}.log").write_text("an earlier run's agent\n")
+    lab6 = load_scenario("lab-6")
+    scenario = lab6.with_overrides(robots=dataclasses.replace(lab6.robots, count=4))
+    run_sil(scenario, tmp_path, SilOptions(plot=False, record=False, time_limit_s=2.0))
+    logs = sorted(path.name for path in (tmp_path / "agents").iterdir())
+    assert logs == [f"agent-{i}.log" for i in range(4)]
+    assert all("an earlier run" not in (tmp_path / "agents" / name).read_text() for name in logs)
 
 
 def test_kill_ends_sil_as_ctrl_c_does_with_its_log_closed(tmp_path):
