@@ -588,6 +588,43 @@ def test_sigterm_stops_the_study_and_its_workers_and_keeps_it_resumable(tmp_path
     assert not list(out.glob("*/seed-*/result.json"))        # interrupted runs left no result: a resume reruns them
 
 
+def test_the_workers_of_a_killed_driver_do_not_stay_behind(tmp_path):
+    """SIGKILL of the driver (the out-of-memory killer, `kill -9`) left its pool's worker waiting for ever."""
+    import signal
+    import subprocess
+    import sys
+
+    study = tmp_path / "long.yaml"
+    study.write_text("name: long\nscenarios: [lab-6]\nseeds: [1, 2, 3, 4]\n")
+    driver = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "study", str(study), "--out",
+                               str(tmp_path / "out"), "--workers", "1", "--no-figures"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    workers = []
+    try:
+        deadline = time.monotonic() + 60
+        while not workers and time.monotonic() < deadline:
+            time.sleep(0.2)
+            children = Path(f"/proc/{driver.pid}/task/{driver.pid}/children").read_text().split()
+            workers = [int(pid) for pid in children if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()]
+        assert workers
+        driver.send_signal(signal.SIGKILL)
+        driver.wait(timeout=10)
+
+        def alive():
+            return [pid for pid in workers if Path(f"/proc/{pid}").exists()
+                    and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2]]
+        deadline = time.monotonic() + 10      # a run in flight is a second of lab-6; then 0.5 s to notice
+        while alive() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert alive() == []
+    finally:
+        for pid in workers:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass
+
+
 def test_a_dask_address_that_never_answers_as_dask_is_an_error_not_a_hang(tmp_path):
     """Something listens there (a web server, say), accepts the connection, and never speaks Dask."""
     import socket

@@ -10,6 +10,7 @@ import logging
 import multiprocessing
 import os
 import threading
+import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -137,8 +138,9 @@ class LocalExecutor:
             else:
                 stop_workers(pool)
 
-    def _new_pool(self) -> ProcessPoolExecutor:
-        return ProcessPoolExecutor(self.workers, mp_context=self.context)
+    def _new_pool(self, workers: Optional[int] = None) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(workers or self.workers, mp_context=self.context,
+                                   initializer=exit_with_parent, initargs=(os.getpid(),))
 
     def _replace(self, pool: ProcessPoolExecutor) -> ProcessPoolExecutor:
         pool.shutdown(wait=True, cancel_futures=True)
@@ -157,9 +159,22 @@ class LocalExecutor:
         """Run each suspect alone in its own one-worker pool: the one that kills its worker again is
         recorded as failed, the innocent ones that shared the broken pool simply complete."""
         for spec in suspects:
-            with ProcessPoolExecutor(1, mp_context=self.context) as solo:
+            with self._new_pool(1) as solo:
                 outcome = self._outcome(solo.submit(self.run_function, spec, out_root), spec)
             yield outcome if outcome is not None else failed_result(spec, WORKER_DIED)
+
+
+def exit_with_parent(parent_pid: int, period_s: float = 0.5) -> None:
+    """Pool worker initializer: the worker ends when the driver is gone. A driver killed outright (SIGKILL, the
+    out-of-memory killer) cannot stop its workers, and a pool's worker never sees its queue close (it holds
+    both ends of it): it finished its run and then waited, orphaned, for ever. Its run is run again on
+    resume, as after Ctrl-C."""
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(period_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
 def stop_workers(pool: ProcessPoolExecutor) -> None:
