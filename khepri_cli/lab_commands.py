@@ -128,11 +128,12 @@ def _add_ctl(groups) -> None:
 def cmd_ctl(args: argparse.Namespace) -> int:
     from hub.control import BadEndpoint, ControlError, refusals_after_start, request, status_table
     from hub.security import operator_client_keys
+    from onboard.agent.link import hub_endpoint
 
     check_port("--port", args.port)
     check_timeout("--timeout", args.timeout)
     keys = operator_client_keys(args.keys, args.operator) if args.keys is not None else None
-    endpoint = args.hub if "://" in args.hub else f"tcp://{args.hub}:{args.port}"
+    endpoint = hub_endpoint(args.hub, args.port)
     try:
         reply = request(endpoint, args.command, keys=keys, timeout_s=args.timeout)
     except BadEndpoint as err:

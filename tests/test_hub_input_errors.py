@@ -362,6 +362,13 @@ def test_agent_refuses_an_id_the_hub_would_never_accept(option, value, problem):
     assert problem in line
 
 
+@pytest.mark.parametrize("command", [("agent", "--id", "1", "--driver", "sim"), ("ctl", "status")])
+def test_a_hub_address_with_its_port_in_it_is_refused_not_waited_for(command):
+    """`--hub 10.0.0.1:5560` became tcp://10.0.0.1:5560:5560: the agent waited for ever, ctl said no hub ran."""
+    line = one_error_line(khepri(*command, "--hub", "127.0.0.1:5560", timeout=20), "--hub")
+    assert "give the host alone and the port with --port (--hub 127.0.0.1 --port 5560)" in line
+
+
 # --- 11. keys init -------------------------------------------------------------------------------------------------
 def limited_memory():
     import resource

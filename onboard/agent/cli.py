@@ -39,7 +39,7 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_agent(args: argparse.Namespace) -> int:
-    from .link import HubLink, load_robot_keys
+    from .link import HubLink, hub_endpoint, load_robot_keys
     from .loop import Agent
     from .parent import end_with_parent
 
@@ -62,7 +62,7 @@ def run_agent(args: argparse.Namespace) -> int:
     kh4_only = [f"--{name}" for name in ("library", "calibration") if getattr(args, name)]
     if args.driver == "sim" and kh4_only:
         log(f"agent {args.robot_id}: {' and '.join(kh4_only)}: only for the kh4 driver, ignored with --driver sim")
-    endpoint = args.hub if "://" in args.hub else f"tcp://{args.hub}:{args.port}"
+    endpoint = hub_endpoint(args.hub, args.port)
     try:
         link = HubLink(args.robot_id, endpoint, keys, log=log)
     except zmq.ZMQError as err:     # e.g. a space or a stray colon in --hub: ZeroMQ refuses the address

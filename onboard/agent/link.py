@@ -14,6 +14,23 @@ RECEIVE_HWM = 16      # downlink frames waiting; the agent drains every poll, so
 MAX_SOCKET_BYTES = 1 << 20   # larger frames cut the connection; up to here they are read and rejected as oversized
 
 
+def hub_endpoint(hub: str, port: int, option: str = "--hub") -> str:
+    """The ZeroMQ address for ``--hub`` and ``--port`` (the agent's and ``khepri ctl``'s): a whole address such as
+    ``tcp://10.0.0.1:5560`` as it is, else ``tcp://HOST:PORT``. A host with a port in it (``10.0.0.1:5560``) is
+    refused: it would make ``tcp://10.0.0.1:5560:5560``, which ZeroMQ takes and never reaches, so the agent
+    would wait for ever and ``ctl`` time out as if no hub were running."""
+    if "://" in hub:
+        return hub
+    if ":" in hub:
+        host, _, given_port = hub.rpartition(":")
+        if not host or ":" in host or not given_port.isdigit():
+            host, given_port = "HOST", str(port)
+        raise ConfigError(option, f"{hub!r} has a ':' in it: give the host alone and the port with --port "
+                                  f"(--hub {host} --port {given_port}), or a whole address "
+                                  f"(--hub tcp://{host}:{given_port})")
+    return f"tcp://{hub}:{port}"
+
+
 def load_robot_keys(folder: Path, robot_id: int) -> Dict[str, bytes]:
     """The robot's key pair and the hub's public key, from a folder laid out by ``khepri keys init``
     (``robots/robot-<id>.key_secret`` and ``hub.key``; copy just these two files onto the robot)."""
