@@ -12,7 +12,7 @@ from onboard.config import ConfigError
 from onboard.hal import RobotSpec
 
 from .config import LabConfig
-from .security import load_keyring
+from .security import KeyRing, load_keyring
 from .sensors import SensingModel
 from .server import Hub, RunTemplate
 from .sources import MotionCaptureSource, PoseSource, ReplaySource
@@ -47,6 +47,8 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         say_untracked_bodies(config, ids, log)
         run = run_template(config, scenario)
         keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
+        if keyring is not None:
+            say_missing_keys(ids, keyring, log)
         if recorder is None and config.record is not None:
             path = record_path(config)
             recorder = open_recorder(path, {"source": source.description, "behaviour": run.behaviour})
@@ -76,6 +78,22 @@ def say_untracked_bodies(config: LabConfig, ids: List[int], log: Callable[[str],
     others = [f"{name} (robot {rid})" for name, rid in config.source.bodies.items() if rid not in ids]
     if others:
         log(f"hub: source.bodies {', '.join(others)}: not in robots, so not served (their poses are ignored)")
+
+
+def say_missing_keys(ids: List[int], keyring: KeyRing, log: Callable[[str], None]) -> None:
+    """A lab robot whose key the hub does not hold can never connect, and the hub never hears from it (its
+    handshake is refused before any message): said once at start, not left to a robot that stays silent."""
+    keyed = set(keyring.robots.values())
+    missing = [rid for rid in ids if rid not in keyed]
+    if missing:
+        which = ", ".join(map(str, missing))
+        several = len(missing) > 1
+        log(f"hub: robot{'s' if several else ''} {which} of this lab ha{'ve' if several else 's'} no key in "
+            f"{keyring.folder / 'robots'}, so cannot connect (make the lab's keys with `khepri keys init "
+            f"{keyring.folder} --robots {','.join(map(str, ids))} --force`, or take {'them' if several else 'it'} "
+            f"off robots)")
+    if not keyring.operators:
+        log(f"hub: no operator key in {keyring.folder / 'operators'}: `khepri ctl` cannot reach this hub")
 
 
 def check_sim_robots(wanted: List[int], scenario_ids: List[int], description: str) -> None:

@@ -55,6 +55,17 @@ def test_the_hub_refuses_to_start_without_keys_unless_insecure(tmp_path, make_sc
         HubThread(config, scenario=make_scenario()).__enter__()
 
 
+def test_lab_robots_without_a_key_are_said_at_start(keys, make_scenario):
+    """Keys made for robots 0 and 1, a lab of three: robot 2 could never connect, and the hub said nothing."""
+    config = parse_config({"source": {"type": "sim"}, "security": {"keys": str(keys)},
+                           "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}})
+    scenario = make_scenario(robots={"count": 3}, arena={"walls": [-2.0, -2.0, 2.0, 2.0]})
+    with HubThread(config, scenario=scenario) as hub:
+        said = [line for line in hub.lines if "no key" in line]
+    assert said == [f"hub: robot 2 of this lab has no key in {keys / 'robots'}, so cannot connect (make the lab's "
+                    f"keys with `khepri keys init {keys} --robots 0,1,2 --force`, or take it off robots)"]
+
+
 def client(endpoint, keypair=None):
     sock = zmq.Context.instance().socket(zmq.DEALER)
     sock.linger = 0
