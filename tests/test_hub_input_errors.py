@@ -468,6 +468,8 @@ def test_two_agents_with_one_id_are_said_once_and_the_first_keeps_the_robot(tmp_
             assert claimed == ["hub: robot 0 is claimed by two connections: 127.0.0.1 (first, keeps the robot) and "
                                "127.0.0.1 (ignored while the first is alive); is a second agent running with --id 0?"]
             assert len(joined) == 1, joined       # no hand-over back and forth
+            # The second agent's own console names the likely cause too, not only the hub's log.
+            assert "is another agent already connected as robot 0" in (tmp_path / "second.log").read_text()
             assert hub.status()["drops"]["duplicate robot"] > 0
             stop_processes([first])               # the first goes: the second gets the robot
             # At least 2: the second agent reopens its socket after 2 s without frames, and when that falls just

@@ -156,8 +156,9 @@ class Agent:
         since = "yet" if self.state.received_at == -math.inf else f"for {now - self.state.received_at:.0f} s"
         key = ", does the hub list this robot's key" if self.link.keys is not None else ""
         self.log(f"agent {self.robot_id}: no frame from the hub at {self.link.endpoint} {since}; still trying "
-                 f"(is the hub running, are --hub and --port the host and robots port it printed when it started, "
-                 f"is robot {self.robot_id} in the hub's lab{key}?)")
+                 f"(is the hub running, is another agent already connected as robot {self.robot_id}, are --hub and "
+                 f"--port the host and robots port it printed when it started, is robot {self.robot_id} in the hub's "
+                 f"lab{key}?)")
 
     def _lockstep(self) -> bool:
         return bool(self.run and self.run.get("lockstep"))
