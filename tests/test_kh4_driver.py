@@ -415,6 +415,32 @@ def test_the_guard_leaves_the_wheels_alone_after_an_orderly_exit(stub_library, s
     assert speed_commands(stub_log) == [(295, 295), (0, 0)]
 
 
+def test_an_agent_given_another_robots_calibration_says_so(stub_library, stub_log, tmp_path):
+    """The file's `robot:` was only kept: robot 0 ran on robot 3's IR curves (one file copied everywhere) unsaid."""
+    calibration = write_yaml(tmp_path / "kh4-3.yaml", """
+        robot: 3
+        proximity: [{ambient: 60, touch: 980}, {ambient: 60, touch: 980}, {ambient: 60, touch: 980},
+                    {ambient: 60, touch: 980}, {ambient: 60, touch: 980}, {ambient: 60, touch: 980},
+                    {ambient: 60, touch: 980}, {ambient: 60, touch: 980}]
+        """)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), KH4_STUB_LOG=str(stub_log))
+    said = {}
+    stub_log.touch()
+    for opened, robot in enumerate(("3", "0"), start=1):
+        agent = subprocess.Popen([sys.executable, "-m", "onboard.agent", "--id", robot, "--driver", "kh4", "--library",
+                                  str(stub_library), "--calibration", str(calibration), "--hub", "tcp://127.0.0.1:9"],
+                                 env=env, cwd=tmp_path, stderr=subprocess.PIPE, text=True)
+        try:
+            wait_for_calls(stub_log, lambda c, n=opened: c.count(("kh4_SetMode", {"mode": "2", "dev": "ok"})) >= n)
+            time.sleep(0.5)
+        finally:
+            agent.send_signal(signal.SIGTERM)
+            said[robot] = agent.communicate(timeout=20)[1]
+    assert "measured on robot" not in said["3"], said["3"]
+    assert (f"agent 0: warning: the IR calibration {calibration} was measured on robot 3, not on this robot (0): "
+            "its readings follow robot 3's sensors") in said["0"], said["0"]
+
+
 def test_an_agent_whose_wheels_cannot_be_stopped_says_so_in_one_line_and_exits(stub_library, stub_log, tmp_path):
     """The bus refuses every speed command: the agent's first stop (its watchdog, no hub yet) fails; it leaves
     with one line per layer that tried (agent, driver at exit, wheel guard), no traceback, and exit code 1."""

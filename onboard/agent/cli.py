@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from pathlib import Path
 from typing import List, Optional
@@ -99,6 +100,12 @@ def open_driver(args: argparse.Namespace, agent) -> Driver:
     except (OSError, RuntimeError, ValueError) as err:
         raise ConfigError("--driver kh4", f"cannot open the KheperaIV: {err}") from None
     driver.start_guard()      # stops the wheels should this process die without closing the driver (SIGKILL)
+    measured_on = driver.calibration.robot
+    if measured_on is not None and measured_on != args.robot_id:   # e.g. one file copied onto every robot
+        given = args.calibration or os.environ.get(kh4.CALIBRATION_ENV)
+        print(f"agent {args.robot_id}: warning: the IR calibration {given} was measured on robot {measured_on}, "
+              f"not on this robot ({args.robot_id}): its readings follow robot {measured_on}'s sensors",
+              file=sys.stderr, flush=True)
     return driver
 
 
