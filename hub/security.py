@@ -28,6 +28,7 @@ from onboard.config import ConfigError
 ROBOT_DOMAIN = "robots"
 OPERATOR_DOMAIN = "operators"
 ROBOT_KEY = re.compile(r"^robot-(\d+)\.key$")
+HUB_KEYS_FIELD = "security.keys"   # what the hub's key errors name: the lab config's key
 REFUSAL_LOG_S = 60.0    # a refused key is logged at most this often per peer address and socket
 
 
@@ -75,16 +76,16 @@ def stale_keys(folder: Path, keep: List[Path]) -> List[Path]:
 
 
 def load_keyring(folder: Path) -> KeyRing:
-    public, secret = _load_pair(folder / "hub.key_secret", "hub")
+    public, secret = _load_pair(folder / "hub.key_secret", "hub", HUB_KEYS_FIELD)
     ring = KeyRing(folder, public, secret)
     for path in sorted((folder / "robots").glob("robot-*.key")):
         match = ROBOT_KEY.match(path.name)
         if match:
-            ring.robots[_load_public(path)] = int(match.group(1))
+            ring.robots[_load_public(path, HUB_KEYS_FIELD)] = int(match.group(1))
     for path in sorted((folder / "operators").glob("*.key")):
-        ring.operators[_load_public(path)] = path.stem
+        ring.operators[_load_public(path, HUB_KEYS_FIELD)] = path.stem
     if not ring.robots:
-        raise ConfigError("security.keys", f"no robot keys in {folder / 'robots'} (run `khepri keys init {folder}`)")
+        raise ConfigError(HUB_KEYS_FIELD, f"no robot keys in {folder / 'robots'} (run `khepri keys init {folder}`)")
     return ring
 
 
@@ -97,8 +98,8 @@ def operator_client_keys(folder: Path, name: Optional[str] = None) -> Dict[str, 
         raise ConfigError("--keys", f"no operator key{' ' + repr(name) if name else ''} in {folder / 'operators'}")
     if len(candidates) > 1:
         raise ConfigError("--operator", f"several operator keys in {folder / 'operators'}: name one")
-    public, secret = _load_pair(candidates[0], "operator")
-    return {"public": public, "secret": secret, "server": _load_public(folder / "hub.key")}
+    public, secret = _load_pair(candidates[0], "operator", "--keys")
+    return {"public": public, "secret": secret, "server": _load_public(folder / "hub.key", "--keys")}
 
 
 def apply_client_keys(socket: zmq.Socket, keys: Dict[str, bytes]) -> None:
@@ -165,24 +166,25 @@ class HubAuthenticator(ThreadAuthenticator):
         return f"operator:{self.ring.operators.get(z85, '?')}"
 
 
-def _load_pair(path: Path, who: str):
+def _load_pair(path: Path, who: str, where: str):
+    """``where``: what the error names, the hub config's ``security.keys`` or ``khepri ctl --keys``."""
     if not path.is_file():
-        raise ConfigError("keys", f"no {who} key {path} (run `khepri keys init {path.parent}`, or --insecure "
+        raise ConfigError(where, f"no {who} key {path} (run `khepri keys init {path.parent}`, or --insecure "
                           "on a trusted loopback only)")
     try:
         public, secret = zmq.auth.load_certificate(str(path))
     except (OSError, ValueError) as err:
-        raise ConfigError("keys", f"{path}: not a key file ({err})") from None
+        raise ConfigError(where, f"{path}: not a key file ({err})") from None
     if secret is None:
-        raise ConfigError("keys", f"{path}: holds no secret key")
+        raise ConfigError(where, f"{path}: holds no secret key")
     return public, secret
 
 
-def _load_public(path: Path) -> bytes:
+def _load_public(path: Path, where: str) -> bytes:
     if not path.is_file():
-        raise ConfigError("keys", f"no public key {path}")
+        raise ConfigError(where, f"no public key {path}")
     try:
         public, _ = zmq.auth.load_certificate(str(path))
     except (OSError, ValueError) as err:
-        raise ConfigError("keys", f"{path}: not a key file ({err})") from None
+        raise ConfigError(where, f"{path}: not a key file ({err})") from None
     return public

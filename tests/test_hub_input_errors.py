@@ -369,6 +369,23 @@ def test_a_hub_address_with_its_port_in_it_is_refused_not_waited_for(command):
     assert "give the host alone and the port with --port (--hub 127.0.0.1 --port 5560)" in line
 
 
+def test_key_errors_name_the_config_key_or_the_option_they_come_from(tmp_path):
+    """Both said `keys: ...`: the hub's config key is security.keys, and ctl's option is --keys."""
+    from hub.security import init_keys
+
+    keys = tmp_path / "keys"
+    init_keys(keys, [0], ["alice"])
+    (keys / "hub.key").unlink()                          # ctl needs the hub's public key
+    line = one_error_line(khepri("ctl", "status", "--keys", str(keys), timeout=20), "--keys")
+    assert line.endswith(f"no public key {keys / 'hub.key'}")
+    (keys / "hub.key_secret").unlink()                   # the hub needs its own pair
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump({"source": {"type": "sim"}, "network": dict(NETWORK),
+                                      "security": {"keys": str(keys)}}))
+    line = one_error_line(khepri("hub", "--config", str(config), timeout=20), "security.keys")
+    assert f"no hub key {keys / 'hub.key_secret'}" in line
+
+
 # --- 11. keys init -------------------------------------------------------------------------------------------------
 def limited_memory():
     import resource
