@@ -387,6 +387,26 @@ def test_summary_csv_has_the_medians_spreads_rates_and_paper_values(known_study)
     assert ("irregular-clover", "completed_rate", "") not in rows
 
 
+def test_a_cell_with_another_robot_count_or_path_gets_no_paper_numbers(tmp_path):
+    """paper-25-straight@robots.count=12 showed the paper's 25-robot times and errors as if they were its own."""
+    cells = {"paper-25-straight@robots.count=12": ({"robots.count": 12}, 12),
+             "paper-25-straight@path=0,1,0": ({"path": [[0, 1, 0]]}, 25),
+             "paper-25-straight@comm.drop=0.1": ({"comm.drop": 0.1}, 25)}
+    for cell, (overrides, robots) in cells.items():
+        result = dict(transport_result(1, 100.0, 90.0, [waypoint(0, 0.1, 0.2, 0.01, 10)]), robots=robots,
+                      study={"cell": cell, "overrides": overrides})
+        (tmp_path / cell / "seed-1").mkdir(parents=True)
+        write(tmp_path / cell / "seed-1" / "result.json", json.dumps(result))
+    write_study_outputs(tmp_path, figures=False)
+    rows = summary_rows(tmp_path)
+    for cell in cells:
+        cage, position = rows[(cell, "time_to_cage_s", "")], rows[(cell, "position_error_m", "0")]
+        same_case = cell.endswith("comm.drop=0.1")      # the paper's experiment, with more radio loss
+        assert (cage["paper_value"] == "247", position["paper_n"] == "30") == (same_case, same_case), cell
+    report = (tmp_path / "report.md").read_text()
+    assert "| paper-25-straight@robots.count=12 | 12 | 1 | 0 | 1/1 | 1/1 | 100% | 100 | – | 90 | – |" in report
+
+
 def test_report_md_puts_ours_next_to_the_paper(known_study):
     write_study_outputs(known_study, figures=False)
     report = (known_study / "report.md").read_text()

@@ -123,10 +123,22 @@ def load_results(out_dir: Path) -> StudyResults:
         if name not in cells:
             study = result.get("study") or {}
             scenario = str(result.get("scenario", name.split("@")[0]))
-            cells[name] = Cell(name, scenario, result.get("robots"), dict(study.get("overrides") or {}),
-                               paper.paper_case(scenario))
+            overrides = dict(study.get("overrides") or {})
+            cells[name] = Cell(name, scenario, result.get("robots"), overrides,
+                               paper_case_of(scenario, result.get("robots"), overrides))
         cells[name].results[int(seed_text)] = result
     return StudyResults(out_dir, sorted(cells.values(), key=cell_order), unreadable)
+
+
+def paper_case_of(scenario: str, robots: Any, overrides: Dict[str, Any]) -> PaperCase:
+    """The paper's experiment a cell reproduces, by its scenario's name, unless the cell changed what identifies
+    that experiment: another robot count (``robots.count``, or a file named like a paper scenario) or another
+    path. The paper's numbers for 25 robots are not those of 12 robots pushing the 25-robot box."""
+    case = paper.paper_case(scenario)
+    if case.robots is None:
+        return case
+    other_path = any(key == "path" or key.startswith("path.") for key in overrides)
+    return PaperCase() if robots != case.robots or other_path else case
 
 
 def cell_order(cell: Cell) -> tuple:
