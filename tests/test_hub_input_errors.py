@@ -174,6 +174,22 @@ def test_an_empty_robot_list_is_refused_rather_than_serving_nobody(tmp_path):
     assert "is empty" in line
 
 
+def test_the_shipped_example_config_starts_again_and_keeps_an_agents_worth_of_messages(tmp_path, monkeypatch):
+    """hub/examples/lab.yaml recorded to logs/lab.mcap, so its second start stopped at `record: ... exists`; and
+    its relay.queue of 64 dropped messages the agent's inbox and the simulator's radio keep (256)."""
+    from hub.config import load_config
+    from hub.factory import record_path
+    from onboard.hal.devices import Radio
+
+    config = load_config(ROOT / "hub" / "examples" / "lab.yaml")
+    monkeypatch.chdir(tmp_path)
+    first = record_path(config, now=1_790_000_000.0)
+    first.parent.mkdir(parents=True)
+    first.write_bytes(b"")                                 # the first start's log
+    assert record_path(config, now=1_790_000_060.0) != first  # a start a minute later gets its own
+    assert config.relay.queue >= Radio.INBOX_LIMIT
+
+
 # --- 5. a motion-capture system that never answers -----------------------------------------------------------------
 # OptiTrack's NatNet client with no server on loopback blocks in connect() while holding Python's GIL: the hang
 # the hub must turn into an error (a thread could not be timed out; the hub probes in a child process).
