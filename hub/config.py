@@ -103,6 +103,12 @@ def check_mock_frequency(where: str, value: Any) -> None:
         raise ConfigError(where, f"must be a whole number of frames per second, 1 to 1000 (got {value!r})")
 
 
+# The hub's frames are the agents' heartbeat: they come at most 1.5 downlink periods apart (a late motion-capture
+# frame waits half a period), and an agent's watchdog stops the wheels after 0.25 s (--watchdog, at most 0.3 s)
+# without one. 10 Hz keeps the longest gap (0.15 s) well inside it; at 2 Hz the robots stopped between frames.
+MIN_DOWNLINK_HZ = 10.0
+
+
 @dataclass
 class NetworkConfig:
     bind: str = "*"                 # interface to listen on ("*" = all, "127.0.0.1" = this PC only)
@@ -116,6 +122,10 @@ class NetworkConfig:
         if self.robot_port == self.control_port != 0:
             raise ConfigError(join(where, "control_port"), "must differ from robot_port")
         check_range(join(where, "downlink_hz"), self.downlink_hz, 1.0, 1000.0)
+        if self.downlink_hz < MIN_DOWNLINK_HZ:
+            raise ConfigError(join(where, "downlink_hz"), f"must be >= {MIN_DOWNLINK_HZ:g} (got {self.downlink_hz:g}): "
+                              "frames can come 1.5 periods apart, and an agent stops its wheels after 0.25 s "
+                              "without one, so slower frames stop the robots between every two")
 
 
 @dataclass

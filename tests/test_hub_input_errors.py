@@ -190,6 +190,16 @@ def test_the_shipped_example_config_starts_again_and_keeps_an_agents_worth_of_me
     assert config.relay.queue >= Radio.INBOX_LIMIT
 
 
+def test_a_downlink_slower_than_the_agents_watchdog_is_refused():
+    """downlink_hz: 2 was accepted, and every agent stopped its wheels between two frames (`no frame from the hub
+    for 0.25 s: wheels stopped`, then `hub frames are back`, four times a second)."""
+    with pytest.raises(ConfigError) as info:
+        parse_config(sim_config(network={**NETWORK, "downlink_hz": 2}))
+    assert info.value.field == "network.downlink_hz"
+    assert info.value.problem.startswith("must be >= 10 (got 2): ")
+    assert parse_config(sim_config(network={**NETWORK, "downlink_hz": 10})).network.downlink_hz == 10
+
+
 # --- 5. a motion-capture system that never answers -----------------------------------------------------------------
 # OptiTrack's NatNet client with no server on loopback blocks in connect() while holding Python's GIL: the hang
 # the hub must turn into an error (a thread could not be timed out; the hub probes in a child process).
