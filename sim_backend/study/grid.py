@@ -218,11 +218,19 @@ def restrict(spec: StudySpec, names: Sequence[str]) -> StudySpec:
     for ref in spec.scenarios:
         if ref.endswith((".yaml", ".yml")):
             known.setdefault(str(scenario_mapping(ref, "scenarios").get("name")), ref)
-    missing = [n for n in names if n not in known and n not in spec.scenarios]
+            known.setdefault(ref, ref)
+
+    def scenario_of(name: str) -> Optional[str]:
+        # A file's path as typed on the command line (relative to the current folder), or as resolved.
+        if name.endswith((".yaml", ".yml")):
+            return known.get(name) or known.get(str(Path(name).resolve()))
+        return known.get(name)
+
+    missing = [n for n in names if scenario_of(n) is None]
     if missing:
         raise ConfigError("--scenarios", f"not in the study: {', '.join(missing)} "
-                          f"(the study has: {', '.join(known)})")
-    wanted = {known.get(n, n) for n in names}
+                          f"(the study has: {', '.join(k for k in known if not Path(k).is_absolute())})")
+    wanted = {scenario_of(n) for n in names}
     return StudySpec(spec.name, [s for s in spec.scenarios if s in wanted], spec.seeds, spec.overrides,
                      spec.time_limit_s)
 
