@@ -7,7 +7,8 @@ See docs/behaviour.md for the diagram and the equations' code locations.
 from __future__ import annotations
 
 import math
-from typing import Any, Dict, Optional, Tuple
+from collections import deque
+from typing import Any, Deque, Dict, FrozenSet, Optional, Tuple
 
 import numpy as np
 
@@ -63,6 +64,8 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
         self.reference_centre: Vec = (0.0, 0.0)         # the object's, when transport began
         self.reference_ring_centre: Vec = (0.0, 0.0)    # the live members' ring centroid then
         self.ring_offset: Optional[Vec] = None          # from the latter to the former (_dead_members_offset)
+        self.offset_members: FrozenSet[int] = frozenset()   # the live members ring_offset is for
+        self.yaw_history: Deque[Tuple[float, float]] = deque()   # (time, yaw measured) for _hold_yaw_of_two
         self.reference_normals: Dict[int, Vec] = {}
         self.reference_surface: Dict[int, Vec] = {}
         self.reference_yaw = 0.0

@@ -7,6 +7,7 @@ by it. Nothing here senses anything the robots do not: every input is a member's
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import Callable, Dict, Iterable, Optional, Tuple, TypeVar
 
 import numpy as np
@@ -36,6 +37,8 @@ class ObjectEstimation:
         self.reference_ring = ring
         self.reference_ring_centre = ring_centroid(np.asarray(list(ring.values()))) if ring else self.hint
         self.ring_offset = self._dead_members_offset(ring, now)
+        self.offset_members = frozenset(ring)
+        self.yaw_history = deque()
         self.reference_centre = self._whole_ring_centre(self.reference_ring_centre, 0.0)
         self.reference_yaw = self.initial_yaw
         self.reference_edges = ring_edges(ring, self.reference_ring_centre, EDGE_FACTOR * self._spacing())
@@ -63,9 +66,57 @@ class ObjectEstimation:
         whole = ring_centroid(np.asarray(list(ring.values()) + dead))
         return c.sub(whole, ring_centroid(np.asarray(list(ring.values()))))
 
+    def _live_members_offset(self, ring: Dict[int, Vec]) -> None:
+        """Ours (the paper has no failures): when the live members are no longer those ``ring_offset`` is for
+        (one died during transport, or one thought dead beats again), the offset from the centroid these
+        members had when transport began to the object's centroid then (reference_centre), in the frame of
+        the reference yaw like _dead_members_offset's. A member's body stays where it died and the object
+        moves away from it, so the live ring's centroid falls to the other side (by up to a third of the
+        box in a 3-member cage), and two live members were too few to estimate at all: a 3-member lab-6 cage
+        stopped for good, its estimate running on at the filter's last velocity. Taken from when transport
+        began, with the cage at rest round the object, not from when the death was seen: the filtered
+        estimate then lags a moving object by centimetres, and had followed the dead member's stale
+        heartbeat for the liveness timeout. None (three live members needed) when fewer than two live."""
+        self.offset_members = frozenset(ring)
+        if len(ring) < 2 or any(rid not in self.reference_ring for rid in ring):
+            self.ring_offset = None
+            return
+        then = ring_centroid(np.asarray([self.reference_ring[rid] for rid in ring]))
+        self.ring_offset = c.sub(self.reference_centre, then)
+
+    def _lost_a_member(self) -> bool:
+        """Some member that was alive when transport began no longer counts (_live_members_offset)."""
+        return not self.offset_members >= set(self.reference_ring)
+
+    def _yaw_before(self, when: float) -> float:
+        """The yaw measured last at or before ``when`` (yaw_history), else the filter's now."""
+        found = self.filter.pose[2]
+        for at, yaw in self.yaw_history:
+            if at > when:
+                break
+            found = yaw
+        return found
+
+    def _remember_yaw(self, now: float, yaw: Optional[float]) -> None:
+        """Keep the yaws measured over the last liveness timeout plus a second: as far back as a dead member's
+        stale heartbeat can reach (_hold_yaw_of_two)."""
+        if yaw is not None:
+            self.yaw_history.append((now, yaw))
+        while self.yaw_history and self.yaw_history[0][0] < now - self.board.timeout - 1.0:
+            self.yaw_history.popleft()
+
+    def _hold_yaw_of_two(self, since: Optional[float]) -> None:
+        """Ours: with two live members left by a death during transport, the yaw stays where it was measured
+        when the first dead member last beat (``since``; the current estimate while None). Two members do
+        not measure it: a side member slides along its face, and the line to the other member turned by up
+        to 0.15 rad while the box did not (lab-6 seed 2, R1 dead at 76.7 s); the cage then turned the box
+        0.23 rad to match. The stale heartbeat had already thrown the estimate 0.1 rad off before it timed
+        out, hence the measured yaw from before it."""
+        self.filter.hold_yaw(self.filter.pose[2] if since is None else self._yaw_before(since))
+
     def _whole_ring_centre(self, live_centre: Vec, turned: float) -> Vec:
-        """The centroid of the whole ring, dead members included, from that of the live ones
-        (_dead_members_offset); the live centroid itself when no member died before transport."""
+        """The object's centroid from the live members' ring centroid (_dead_members_offset,
+        _member_died_offset); the live centroid itself when every member lives."""
         if self.ring_offset is None:
             return live_centre
         return c.add(live_centre, c.rotate(self.ring_offset, turned))
@@ -87,6 +138,8 @@ class ObjectEstimation:
         """How far the object turned since transport began: in a small cage whose path turns, from how the
         members' contact normals turned (params.small_cage_yaw); else from the edges between neighbouring
         members (estimator.edge_rotation), else from how the ring turned about the centroid."""
+        if len(ring) < 3 and self._lost_a_member():
+            return None         # _hold_yaw_of_two
         if self.yaw_from_normals and self._small_cage():
             turned = edge_rotation(self._contact_angles(ring), self.reference_contacts)
             if turned is not None:
@@ -95,7 +148,15 @@ class ObjectEstimation:
         turned = edge_rotation(edges, self.reference_edges)
         if turned is not None:
             return turned
-        return ring_rotation(ring, self.reference_ring, centre, self.reference_ring_centre)
+        return ring_rotation(ring, self.reference_ring, centre, self._reference_centre_of(ring))
+
+    def _reference_centre_of(self, ring: Dict[int, Vec]) -> Vec:
+        """The centroid, when transport began, of the members in ``ring``: the angles about it compare with
+        those about ``ring``'s centroid now only if both are taken over the same members (one died since)."""
+        if set(ring) == set(self.reference_ring):
+            return self.reference_ring_centre
+        common = [self.reference_ring[rid] for rid in ring if rid in self.reference_ring]
+        return ring_centroid(np.asarray(common)) if common else self.reference_ring_centre
 
     def _yaw_from_contact_normals(self) -> bool:
         mode = self.params.small_cage_yaw
@@ -114,6 +175,10 @@ class ObjectEstimation:
         self.filter.predict(max(now - self.estimated_at, 1e-3))
         self.estimated_at = now
         ring = self._member_positions(now)
+        departed = self.offset_members - set(ring)
+        changed = set(ring) != self.offset_members
+        if changed:
+            self._live_members_offset(ring)
         if len(ring) >= (2 if self.ring_offset is not None else 3):    # 2: plus the dead (_dead_members_offset)
             centre = ring_centroid(np.asarray(list(ring.values())))
             turned = self._rotation_since_reference(ring, centre)
@@ -122,8 +187,18 @@ class ObjectEstimation:
             surface = self._surface_centre(ring, turned)
             if surface is not None:
                 centre = surface
+            elif changed:   # the last seconds followed a dead member's stale heartbeat: start from here
+                self.filter.move_to(centre[0], centre[1])
             self.filter.update(centre[0], centre[1], yaw, len(ring))
+            if len(ring) < 3 and self._lost_a_member():
+                self._hold_yaw_of_two(self._first_heard(departed) if changed else None)
+            self._remember_yaw(now, yaw)
         return self.filter.pose
+
+    def _first_heard(self, members: Iterable[int]) -> Optional[float]:
+        """The earliest time any of ``members`` last beat (None: none of them beat)."""
+        heard = [self.board.last_heard(rid) for rid in members]
+        return min((t for t in heard if t is not None), default=None)
 
     def _surface_centre(self, ring: Dict[int, Vec], turned: Optional[float]) -> Optional[Vec]:
         """Improvement: the centroid moved as far as the object's IR-seen surface points moved along its

@@ -191,6 +191,14 @@ class ObjectFilter:
             r[2, 2] = 1e6
         kf.update(np.array([x, y, measured_yaw]), R=r)
 
+    def move_to(self, x: float, y: float) -> None:
+        """Put the position at (x, y), keeping the yaw, the velocities and the covariance."""
+        self.kf.x[0], self.kf.x[1] = x, y
+
+    def hold_yaw(self, yaw: float) -> None:
+        """Put the yaw at ``yaw`` and stop it turning: with no yaw measured it would run on at its last rate."""
+        self.kf.x[2], self.kf.x[5] = yaw, 0.0
+
     def reset(self, x: float, y: float, yaw: float) -> None:
         self.kf.x = np.array([x, y, yaw, 0.0, 0.0, 0.0])
 

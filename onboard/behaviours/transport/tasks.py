@@ -361,6 +361,11 @@ class TaskBoard:
         seen = self._heartbeats.get(robot)
         return seen is not None and now - seen[1] <= (self.timeout if within is None else within)
 
+    def last_heard(self, robot: int) -> Optional[float]:
+        """The local time ``robot``'s heartbeat last changed (None: never heard of it)."""
+        seen = self._heartbeats.get(robot)
+        return None if seen is None else seen[1]
+
     def heard_of(self, robot: int) -> bool:
         return robot in self._heartbeats
 
