@@ -84,6 +84,7 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
         self.attach_since = 0.0                  # when this robot last went from travel to attach
         self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
+        self.reinforce_reference: Dict[int, Vec] = {}   # the live members when first reinforcing (_cage_centre)
         self.quiet_since: Tuple[int, float] = (-1, 0.0)   # idle: (count of mission news, since when)
         self.left_behind = False
         self.cut_off: Tuple[float, bool] = (-math.inf, False)   # idle: (when last checked, cut off from the mission)

@@ -15,7 +15,7 @@ A mixin of :class:`~.behaviour.Transport`, like :class:`~.transport.TransportPha
 from __future__ import annotations
 
 import math
-from typing import List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -33,12 +33,13 @@ NEAR_OBJECT_READING = 0.3  # an object IR reading this strong (~8 cm): no more l
 class ReinforcePhase:
     def _reinforce(self, now: float) -> None:
         """One step of an idle robot helping the cage push (called from idle once the cage has closed)."""
-        ring = list(self._member_positions(now).values())    # every live member has a heartbeat
+        members = self._member_positions(now)                # every live member has a heartbeat
+        ring = list(members.values())
         path = self.space.get("path") or self.params.path
         if len(ring) < 3 or not path:
             self._keep_clear()
             return
-        centre = ring_centroid(np.asarray(ring))
+        centre = self._cage_centre(members)
         needed = self._barrier_needed(len(ring))
         leg = self._cage_leg(needed, path)
         if leg is None:
@@ -50,6 +51,23 @@ class ReinforcePhase:
             self._hold()
             return
         self._drive(self._reinforce_input(centre, c.unit(to_target), ring))
+
+    def _cage_centre(self, members: Dict[int, Vec]) -> Vec:
+        """Ours: the live members' ring centroid, plus (once a member died) the offset from their centroid to
+        the whole ring's when this robot first saw the closed cage, at rest round the object. A dead member's
+        body stays behind, and the live ring's centroid falls to the other side of the object: the members
+        correct for it (estimation.py:_live_members_offset), and a spare pushing along the line through the
+        uncorrected centroid pushed the box beside its centre (lab-6-payload seed 1, L1 dead at 83 s: the
+        box slid 0.2 m sideways and stuck)."""
+        if not self.reinforce_reference:
+            self.reinforce_reference = dict(members)
+        centre = ring_centroid(np.asarray(list(members.values())))
+        reference = self.reinforce_reference
+        if set(members) == set(reference) or not all(rid in reference for rid in members):
+            return centre
+        then = ring_centroid(np.asarray([reference[rid] for rid in members]))
+        whole = ring_centroid(np.asarray(list(reference.values())))
+        return c.add(centre, c.sub(whole, then))
 
     def _cage_leg(self, needed: int, path: List) -> Optional[int]:
         """The first waypoint whose last barrier the cage has not passed (None once all are done)."""
