@@ -765,10 +765,10 @@ faults: [{robot: 2, at_s: 45}]
 
 
 def test_a_member_that_dies_while_pushing_leaves_a_cage_that_still_delivers_the_box(tmp_path):
-    """lab-6 seed 2 caged the box with three members (robots 0, 1 and 3, the seed behind it); robot 3 dies at
+    """lab-6 seed 2 cages the box with three members (robots 0 and 1 beside it, 3 behind); robot 1 dies at
     76.7 s, after the first waypoint. Two live members were too few for the estimate: it ran on at the
-    filter's last velocity, the cage followed it and the box ended 0.43 m off. Now the estimate takes the
-    offset from the two live members' centroid to the object where it stood when robot 3 last beat."""
+    filter's last velocity, the cage followed it and the box ended 0.74 m off. Now the estimate adds to the
+    two live members' centroid its offset to the object's when transport began, and holds the yaw."""
     scenario = tmp_path / "dead-while-pushing.yaml"
     scenario.write_text("""
 robots: {count: 6, spawn: {x: [-1.2, -0.6], y: [-1.2, -0.6]}}
@@ -777,10 +777,10 @@ path: [[0, 0.3, 0], [0, 0.6, 0], [0, 0.9, 0]]
 comm: {range_m: 3.0}
 arena: {walls: [-2.0, -2.0, 2.0, 2.0]}
 time_limit_s: 160
-faults: [{robot: 3, at_s: 76.7}]
+faults: [{robot: 1, at_s: 76.7}]
 """)
     sim = Simulation(load_scenario(str(scenario)), seed=2)
     result = sim.run()
     assert result["completed"], result["failures"]
     assert result["final_position_error_m"] <= 0.05
-    assert sim.behaviours[0].offset_members == {0, 1}      # the estimate no longer counts robot 3
+    assert sim.behaviours[0].offset_members == {0, 3}      # the estimate no longer counts robot 1
