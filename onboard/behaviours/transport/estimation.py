@@ -116,7 +116,7 @@ class ObjectEstimation:
 
     def _whole_ring_centre(self, live_centre: Vec, turned: float) -> Vec:
         """The object's centroid from the live members' ring centroid (_dead_members_offset,
-        _member_died_offset); the live centroid itself when every member lives."""
+        _live_members_offset); the live centroid itself when every member lives."""
         if self.ring_offset is None:
             return live_centre
         return c.add(live_centre, c.rotate(self.ring_offset, turned))
