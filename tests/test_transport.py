@@ -714,23 +714,28 @@ def test_a_small_cage_turning_a_box_in_place_leaves_it_on_the_waypoint(make_scen
     assert turned["position_error_m"] < 0.05 and turned["orientation_error_rad"] < math.radians(5.72)
 
 
+LAB_BOX = """
+robots: {count: 6, spawn: {x: [-1.2, -0.6], y: [-1.2, -0.6]}}
+object: {shape: box, size: [0.285, 0.435], mass: 0.3, position: [0, 0]}
+path: [[0, 0.3, 0], [0, 0.6, 0], [0, 0.9, 0]]
+comm: {range_m: 3.0}
+arena: {walls: [-2.0, -2.0, 2.0, 2.0]}
+"""
+
+
+def lab_box_with_a_death(path, robot: int, at_s: float, time_limit_s: float, seed: int) -> Simulation:
+    """The lab-6 setup (6 robots, the paper's foam box, three waypoints to (0, 0.9)) with one robot dead."""
+    path.write_text(LAB_BOX + f"time_limit_s: {time_limit_s}\nfaults: [{{robot: {robot}, at_s: {at_s}}}]\n")
+    return Simulation(load_scenario(str(path)), seed=seed)
+
+
 def test_a_seed_that_dies_before_closure_is_replaced_and_the_box_still_arrives(tmp_path):
     """lab-6 with robot 4, the elected seed of seed 1 (behind the box), dead at 40 s, before the cage closed.
     The cage used to close through the dead seed with its three live members beside and ahead of the box:
     nobody pushed, their ring centroid slid along with them and the box never moved (final error 0.90 m).
     Now the seed's successors declare it dead, task S is re-opened, a spare becomes the new seed behind the
     box and the cage closes through it."""
-    scenario = tmp_path / "dead-seed.yaml"
-    scenario.write_text("""
-robots: {count: 6, spawn: {x: [-1.2, -0.6], y: [-1.2, -0.6]}}
-object: {shape: box, size: [0.285, 0.435], mass: 0.3, position: [0, 0]}
-path: [[0, 0.3, 0], [0, 0.6, 0], [0, 0.9, 0]]
-comm: {range_m: 3.0}
-arena: {walls: [-2.0, -2.0, 2.0, 2.0]}
-time_limit_s: 200
-faults: [{robot: 4, at_s: 40}]
-""")
-    sim = Simulation(load_scenario(str(scenario)), seed=1)
+    sim = lab_box_with_a_death(tmp_path / "dead-seed.yaml", robot=4, at_s=40, time_limit_s=200, seed=1)
     result = sim.run()
     assert result["caged"] and result["completed"], result["failures"]
     assert result["final_position_error_m"] <= 0.05
@@ -745,17 +750,7 @@ def test_a_branch_member_that_dies_before_closure_still_cages_and_the_box_still_
     cage closed. It stays in its place and cages, but neither pushes nor reports: the ring centroid of the
     three live members alone was 0.09 m off, and the cage pushed that point to the waypoints (final error
     0.16 m, the box 10 degrees off). The estimate now counts the dead member where it stopped."""
-    scenario = tmp_path / "dead-branch-member.yaml"
-    scenario.write_text("""
-robots: {count: 6, spawn: {x: [-1.2, -0.6], y: [-1.2, -0.6]}}
-object: {shape: box, size: [0.285, 0.435], mass: 0.3, position: [0, 0]}
-path: [[0, 0.3, 0], [0, 0.6, 0], [0, 0.9, 0]]
-comm: {range_m: 3.0}
-arena: {walls: [-2.0, -2.0, 2.0, 2.0]}
-time_limit_s: 200
-faults: [{robot: 2, at_s: 45}]
-""")
-    sim = Simulation(load_scenario(str(scenario)), seed=1)
+    sim = lab_box_with_a_death(tmp_path / "dead-branch-member.yaml", robot=2, at_s=45, time_limit_s=200, seed=1)
     result = sim.run()
     assert result["caged"] and result["completed"], result["failures"]
     assert result["final_position_error_m"] <= 0.05
@@ -769,17 +764,7 @@ def test_a_member_that_dies_while_pushing_leaves_a_cage_that_still_delivers_the_
     76.7 s, after the first waypoint. Two live members were too few for the estimate: it ran on at the
     filter's last velocity, the cage followed it and the box ended 0.74 m off. Now the estimate adds to the
     two live members' centroid its offset to the object's when transport began, and holds the yaw."""
-    scenario = tmp_path / "dead-while-pushing.yaml"
-    scenario.write_text("""
-robots: {count: 6, spawn: {x: [-1.2, -0.6], y: [-1.2, -0.6]}}
-object: {shape: box, size: [0.285, 0.435], mass: 0.3, position: [0, 0]}
-path: [[0, 0.3, 0], [0, 0.6, 0], [0, 0.9, 0]]
-comm: {range_m: 3.0}
-arena: {walls: [-2.0, -2.0, 2.0, 2.0]}
-time_limit_s: 160
-faults: [{robot: 1, at_s: 76.7}]
-""")
-    sim = Simulation(load_scenario(str(scenario)), seed=2)
+    sim = lab_box_with_a_death(tmp_path / "dead-while-pushing.yaml", robot=1, at_s=76.7, time_limit_s=160, seed=2)
     result = sim.run()
     assert result["completed"], result["failures"]
     assert result["final_position_error_m"] <= 0.05
