@@ -19,6 +19,7 @@ from .estimator import (
     ObjectFilter,
     edge_rotation,
     normal_displacement,
+    offset_of_survivors,
     ring_centroid,
     ring_edges,
     ring_rotation,
@@ -36,7 +37,7 @@ class ObjectEstimation:
         ring = self._member_positions(now)
         self.reference_ring = ring
         self.reference_ring_centre = ring_centroid(np.asarray(list(ring.values()))) if ring else self.hint
-        self.ring_offset = self._dead_members_offset(ring, now)
+        self.ring_offset = self._dead_members_offset(ring, self.reference_ring_centre, now)
         self.offset_members = frozenset(ring)
         self.yaw_history = deque()
         self.reference_centre = self._whole_ring_centre(self.reference_ring_centre, 0.0)
@@ -48,7 +49,7 @@ class ObjectEstimation:
         noise = 0.02
         self.filter = ObjectFilter(self.reference_centre[0], self.reference_centre[1], self.reference_yaw, noise)
 
-    def _dead_members_offset(self, ring: Dict[int, Vec], now: float) -> Optional[Vec]:
+    def _dead_members_offset(self, ring: Dict[int, Vec], ring_centre: Vec, now: float) -> Optional[Vec]:
         """Ours (the paper has no failures): from the centroid of the live members' ring to that of the whole
         ring, with the last heartbeat positions of members that died before transport began. Such a member
         stays where it stopped, in its place round the object, but it neither pushes nor reports, so the ring
@@ -64,7 +65,7 @@ class ObjectEstimation:
         if not dead or len(ring) < 2:
             return None
         whole = ring_centroid(np.asarray(list(ring.values()) + dead))
-        return c.sub(whole, ring_centroid(np.asarray(list(ring.values()))))
+        return c.sub(whole, ring_centre)
 
     def _live_members_offset(self, ring: Dict[int, Vec]) -> None:
         """Ours (the paper has no failures): when the live members are no longer those ``ring_offset`` is for
@@ -81,8 +82,7 @@ class ObjectEstimation:
         if len(ring) < 2 or any(rid not in self.reference_ring for rid in ring):
             self.ring_offset = None
             return
-        then = ring_centroid(np.asarray([self.reference_ring[rid] for rid in ring]))
-        self.ring_offset = c.sub(self.reference_centre, then)
+        self.ring_offset = offset_of_survivors(self.reference_ring, ring, self.reference_centre)
 
     def _lost_a_member(self) -> bool:
         """Some member that was alive when transport began no longer counts (_live_members_offset)."""
@@ -175,8 +175,8 @@ class ObjectEstimation:
         self.filter.predict(max(now - self.estimated_at, 1e-3))
         self.estimated_at = now
         ring = self._member_positions(now)
-        departed = self.offset_members - set(ring)
-        changed = set(ring) != self.offset_members
+        changed = ring.keys() != self.offset_members
+        departed = self.offset_members - ring.keys() if changed else frozenset()
         if changed:
             self._live_members_offset(ring)
         if len(ring) >= (2 if self.ring_offset is not None else 3):    # 2: plus the dead (_dead_members_offset)

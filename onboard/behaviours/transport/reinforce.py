@@ -21,7 +21,7 @@ import numpy as np
 
 from . import control as c
 from .control import Vec
-from .estimator import ring_centroid
+from .estimator import offset_of_survivors, ring_centroid
 
 BEHIND_MARGIN_M = 0.2      # queue this far behind the cage ring before moving in
 LATERAL_GAIN = 10.0        # pull toward the line of travel through the centroid (per metre of offset)
@@ -65,9 +65,8 @@ class ReinforcePhase:
         reference = self.reinforce_reference
         if set(members) == set(reference) or not all(rid in reference for rid in members):
             return centre
-        then = ring_centroid(np.asarray([reference[rid] for rid in members]))
         whole = ring_centroid(np.asarray(list(reference.values())))
-        return c.add(centre, c.sub(whole, then))
+        return c.add(centre, offset_of_survivors(reference, members, whole))
 
     def _cage_leg(self, needed: int, path: List) -> Optional[int]:
         """The first waypoint whose last barrier the cage has not passed (None once all are done)."""
