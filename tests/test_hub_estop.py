@@ -24,13 +24,16 @@ def test_estop_reaches_25_agents_within_50_ms(make_scenario, tmp_path):
             sent = time.monotonic()
             reply = hub.request("estop")
             request_round_trip_ms = (time.monotonic() - sent) * 1000.0
+            # The hub thread shares this process's monotonic clock: the request's transit is measured, not guessed.
+            transit_ms = (hub.hub.estop_at - sent) * 1000.0
             status = hub.wait_until(lambda s: all(r["estop_ack_ms"] is not None for r in s["robots"]), timeout_s=5.0)
             acks = sorted(r["estop_ack_ms"] for r in status["robots"])
-            # The hub latches the e-stop on arrival; an acknowledgement leaves an agent after it stopped its wheels.
-            # Worst case from the operator's request: its transit (< the round trip) plus the slowest ack.
-            worst_ms = request_round_trip_ms + acks[-1]
-            print(f"e-stop: request round trip {request_round_trip_ms:.1f} ms, acks p50 {acks[len(acks) // 2]:.1f} "
-                  f"ms, max {acks[-1]:.1f} ms")
+            # The hub latches the e-stop on arrival; an acknowledgement leaves an agent after it stopped its wheels
+            # and is timed on its arrival back at the hub, so the request's transit plus the slowest acknowledgement
+            # bounds the operator-to-wheels time from above.
+            worst_ms = transit_ms + acks[-1]
+            print(f"e-stop: request transit {transit_ms:.1f} ms (round trip {request_round_trip_ms:.1f} ms), "
+                  f"acks p50 {acks[len(acks) // 2]:.1f} ms, max {acks[-1]:.1f} ms")
             assert worst_ms < 50.0, f"slowest agent stopped {worst_ms:.1f} ms after the request"
             hub.wait_until(lambda s: all(r["agent_mode"] == "estop" for r in s["robots"]), timeout_s=2.0)
             assert reply["note"].startswith(f"{ROBOTS} of {ROBOTS} robots connected and told to stop")
