@@ -16,9 +16,28 @@ from __future__ import annotations
 import json
 import math
 import struct
-from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple
+from typing import Any, Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
+
+from .protocol_schema import (  # noqa: F401  (re-exported: the protocol's names live here for its users)
+    COMMANDS,
+    CONTROL_COMMANDS,
+    DOWNLINK_TYPES,
+    MAX_PAYLOAD_BYTES,
+    MAX_ROBOT_ID,
+    MODES,
+    SCHEMAS,
+    UPLINK_TYPES,
+    ProtocolError,
+    check_payload_size,
+    check_schema,
+    fail,
+    non_negative,
+    number,
+    numbers,
+    short,
+)
 
 PROTOCOL_VERSION = 2
 #: Largest encoded message on any socket. Downlink frames pack relayed messages only up to this size.
@@ -26,11 +45,6 @@ MAX_MESSAGE_BYTES = 65536
 # The hub's replies to `khepri ctl` (the status of every robot, ~300 bytes each) may be larger: an operator's
 # PC, not a robot, reads them, and a lab of a few hundred robots would not fit in MAX_MESSAGE_BYTES.
 MAX_REPLY_BYTES = 4 * 1024 * 1024
-#: Largest radio payload (compact JSON), the same limit as ``onboard.hal.Radio.MAX_PAYLOAD_BYTES``.
-MAX_PAYLOAD_BYTES = 8192
-MODES = ("idle", "run", "hold", "estop")
-COMMANDS = ("start", "stop", "estop", "clear")
-CONTROL_COMMANDS = ("status", "start", "stop", "estop", "clear")
 
 # --- the binary frame (docs/protocol.md, "Binary frame layout") ----------------------------------------------
 FRAME_MAGIC = b"KF"
@@ -45,172 +59,6 @@ _KNOWN_FLAGS = FLAG_POSE | FLAG_CLOCK
 #: Frame fields carried by the header and the neighbour block; the JSON tail must not repeat them.
 FRAME_BINARY_FIELDS = ("v", "type", "seq", "mode", "hub_t", "pose", "pose_age_s", "clock_s", "neighbours")
 MODE_CODES = {mode: code for code, mode in enumerate(MODES)}
-MAX_ROBOT_ID = 999_999
-
-
-class ProtocolError(ValueError):
-    """A message broke the protocol. ``str(err)`` names the sender and the field, e.g.
-    ``from robot 3: frame.pose: must be a list of 3 finite numbers``."""
-
-    def __init__(self, problem: str, field: str = "", sender: str = "?"):
-        self.problem, self.field, self.sender = problem, field, sender
-        where = f"{field}: " if field else ""
-        super().__init__(f"from {sender}: {where}{problem}")
-
-
-Check = Callable[[Any, str], None]
-
-
-def _fail(field: str, problem: str) -> None:
-    raise ProtocolError(problem, field)
-
-
-# --- field checks: each takes (value, field path) and raises ProtocolError -------------------------------
-def number(value: Any, field: str) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        _fail(field, f"must be a finite number (got {_short(value)})")
-
-
-def non_negative(value: Any, field: str) -> None:
-    number(value, field)
-    if value < 0:
-        _fail(field, f"must be >= 0 (got {value})")
-
-
-def integer(value: Any, field: str) -> None:
-    if isinstance(value, bool) or not isinstance(value, int):
-        _fail(field, f"must be an integer (got {_short(value)})")
-
-
-def robot_id(value: Any, field: str) -> None:
-    integer(value, field)
-    if not 0 <= value < 1_000_000:
-        _fail(field, f"must be a robot id 0..999999 (got {value})")
-
-
-def text(value: Any, field: str) -> None:
-    if not isinstance(value, str) or len(value) > 200:
-        _fail(field, f"must be a string of at most 200 characters (got {_short(value)})")
-
-
-def mapping(value: Any, field: str) -> None:
-    if not isinstance(value, dict):
-        _fail(field, f"must be a JSON object (got {_short(value)})")
-
-
-def boolean(value: Any, field: str) -> None:
-    if not isinstance(value, bool):
-        _fail(field, f"must be true or false (got {_short(value)})")
-
-
-def one_of(options: Iterable[str]) -> Check:
-    allowed = tuple(options)
-
-    def check(value: Any, field: str) -> None:
-        if value not in allowed:
-            _fail(field, f"must be one of {', '.join(allowed)} (got {_short(value)})")
-    return check
-
-
-def numbers(count: int) -> Check:
-    def check(value: Any, field: str) -> None:
-        if not isinstance(value, list) or len(value) != count:
-            _fail(field, f"must be a list of {count} finite numbers (got {_short(value)})")
-        for i, item in enumerate(value):
-            number(item, f"{field}[{i}]")
-    return check
-
-
-def optional(check: Check) -> Check:
-    def check_optional(value: Any, field: str) -> None:
-        if value is not None:
-            check(value, field)
-    return check_optional
-
-
-def list_of(check: Check, limit: int = 100_000) -> Check:
-    def check_list(value: Any, field: str) -> None:
-        if not isinstance(value, list) or len(value) > limit:
-            _fail(field, f"must be a list of at most {limit} items (got {_short(value)})")
-        for i, item in enumerate(value):
-            check(item, f"{field}[{i}]")
-    return check_list
-
-
-def neighbour(value: Any, field: str) -> None:
-    """``[id, range_m, bearing_rad]``."""
-    if not isinstance(value, list) or len(value) != 3:
-        _fail(field, f"must be [id, range_m, bearing_rad] (got {_short(value)})")
-    robot_id(value[0], f"{field}[0]")
-    non_negative(value[1], f"{field}[1]")
-    number(value[2], f"{field}[2]")
-
-
-def relayed(value: Any, field: str) -> None:
-    """``[sender, sent_s, payload]``."""
-    if not isinstance(value, list) or len(value) != 3:
-        _fail(field, f"must be [sender, sent_s, payload] (got {_short(value)})")
-    robot_id(value[0], f"{field}[0]")
-    number(value[1], f"{field}[1]")
-    mapping(value[2], f"{field}[2]")
-
-
-def sim_sensors(value: Any, field: str) -> None:
-    mapping(value, field)
-    numbers(8)(value.get("ir"), f"{field}.ir")
-    numbers(2)(value.get("odo"), f"{field}.odo")
-
-
-# --- schemas: per type, required and optional fields. Unknown fields are ignored (additions within a version).
-Schema = Dict[str, Check]
-SCHEMAS: Dict[str, Dict[str, Schema]] = {
-    # hub -> agent
-    "frame": {
-        "required": {"seq": integer, "mode": one_of(MODES), "hub_t": number,
-                     "neighbours": list_of(neighbour), "messages": list_of(relayed)},
-        "optional": {"pose": optional(numbers(3)), "pose_age_s": non_negative, "reason": text,
-                     "clock_s": number, "sim": sim_sensors},
-    },
-    "command": {
-        "required": {"cmd": one_of(COMMANDS)},
-        "optional": {"run": mapping, "reason": text},
-    },
-    # agent -> hub
-    "hello": {
-        "required": {"id": robot_id, "driver": text},
-        "optional": {"run_id": optional(text)},
-    },
-    "telemetry": {
-        "required": {"id": robot_id, "step": integer, "mode": text},
-        "optional": {"behaviour": optional(mapping), "loop": mapping, "battery_v": optional(number),
-                     "clock_s": optional(number), "frames_lost": integer, "frames_bad": integer,
-                     "unsent": integer, "inbox_dropped": integer, "run_id": optional(text),
-                     "error": optional(text), "driver": text},
-    },
-    "broadcast": {
-        "required": {"id": robot_id, "payload": mapping, "sent_s": number},
-        "optional": {},
-    },
-    "wheels": {
-        "required": {"id": robot_id, "left": number, "right": number},
-        "optional": {},
-    },
-    "ack": {
-        "required": {"id": robot_id, "cmd": one_of(COMMANDS)},
-        "optional": {"seq": integer},
-    },
-    # operator <-> hub (control socket)
-    "request": {
-        "required": {"cmd": one_of(CONTROL_COMMANDS)},
-        "optional": {"nonce": integer},
-    },
-    "reply": {
-        "required": {"ok": boolean},
-        "optional": {"error": text, "status": mapping, "nonce": integer},
-    },
-}
-DOWNLINK_TYPES = ("frame", "command")
-UPLINK_TYPES = ("hello", "telemetry", "broadcast", "wheels", "ack")
 
 
 def encode(message: Dict[str, Any], max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
@@ -271,9 +119,9 @@ def frame_tail(fields: Dict[str, Any]) -> bytes:
 
 def _encode_frame_message(message: Dict[str, Any]) -> bytes:
     try:
-        _check_schema(message, "frame")
+        check_schema(message, "frame")
         if "v" in message and message["v"] != PROTOCOL_VERSION:
-            _fail("frame.v", f"must be {PROTOCOL_VERSION} (got {_short(message['v'])})")
+            fail("frame.v", f"must be {PROTOCOL_VERSION} (got {short(message['v'])})")
     except ProtocolError as err:
         raise ProtocolError(err.problem, err.field, "self") from None
     neighbours = message["neighbours"]
@@ -293,22 +141,22 @@ def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = Non
     ``[id, range_m, bearing_rad]``; same checks, same values, no Python object per neighbour (the agent's path)."""
     try:
         if len(data) > max_bytes:
-            _fail("", f"message of {len(data)} bytes exceeds {max_bytes}")
+            fail("", f"message of {len(data)} bytes exceeds {max_bytes}")
         allowed = tuple(accept) if accept is not None else tuple(SCHEMAS)
         if data[:2] == FRAME_MAGIC:
             if "frame" not in allowed:
-                _fail("type", f"must be one of {', '.join(allowed)} (got a binary frame)")
+                fail("type", f"must be one of {', '.join(allowed)} (got a binary frame)")
             return _decode_frame(data, neighbour_columns)
         message, non_finite = _json_object(data, "", "not a JSON message or a binary frame")
         version = message.get("v")
         if version != PROTOCOL_VERSION:
-            _fail("v", f"unsupported protocol version {_short(version)} (this side speaks {PROTOCOL_VERSION})")
+            fail("v", f"unsupported protocol version {short(version)} (this side speaks {PROTOCOL_VERSION})")
         kind = message.get("type")
         if kind not in allowed:
-            _fail("type", f"must be one of {', '.join(allowed)} (got {_short(kind)})")
+            fail("type", f"must be one of {', '.join(allowed)} (got {short(kind)})")
         if kind == "frame":
-            _fail("type", "a frame must come in the binary frame encoding, not as JSON")
-        _check_schema(message, kind)
+            fail("type", "a frame must come in the binary frame encoding, not as JSON")
+        check_schema(message, kind)
         if non_finite:
             _refuse_non_finite(message, str(kind))
         return message
@@ -319,19 +167,19 @@ def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = Non
 def _decode_frame(data: bytes, neighbour_columns: bool = False) -> Dict[str, Any]:
     size, header = len(data), FRAME_HEADER.size
     if size < header:
-        _fail("frame", f"binary frame of {size} bytes is shorter than its {header}-byte header")
+        fail("frame", f"binary frame of {size} bytes is shorter than its {header}-byte header")
     _, version, mode_code, flags, seq, hub_t, pose_age_s, x, y, yaw, clock_s, count, tail_len = \
         FRAME_HEADER.unpack_from(data)
     if version != PROTOCOL_VERSION:
-        _fail("v", f"unsupported protocol version {version} (this side speaks {PROTOCOL_VERSION})")
+        fail("v", f"unsupported protocol version {version} (this side speaks {PROTOCOL_VERSION})")
     expected = header + count * NEIGHBOUR_DTYPE.itemsize + tail_len
     if size != expected:
-        _fail("frame", f"{size} bytes, but its header announces {count} neighbours and a {tail_len}-byte tail "
+        fail("frame", f"{size} bytes, but its header announces {count} neighbours and a {tail_len}-byte tail "
                        f"({expected} bytes)")
     if mode_code >= len(MODES):
-        _fail("frame.mode", f"must be one of {', '.join(MODES)} (got code {mode_code})")
+        fail("frame.mode", f"must be one of {', '.join(MODES)} (got code {mode_code})")
     if flags & ~_KNOWN_FLAGS:
-        _fail("frame.flags", f"unknown flag bits {flags & ~_KNOWN_FLAGS:#x}")
+        fail("frame.flags", f"unknown flag bits {flags & ~_KNOWN_FLAGS:#x}")
     number(hub_t, "frame.hub_t")
     non_negative(pose_age_s, "frame.pose_age_s")
     pose = None
@@ -362,7 +210,7 @@ def _checked_block(data: bytes, count: int) -> np.ndarray:
                                  (2, ~np.isfinite(bearings), "must be a finite number")):
         if bad.any():
             i = int(np.argmax(bad))
-            _fail(f"frame.neighbours[{i}][{column}]", f"{problem} (got {block[i][column]})")
+            fail(f"frame.neighbours[{i}][{column}]", f"{problem} (got {block[i][column]})")
     return block
 
 
@@ -389,9 +237,9 @@ def _json_object(data: bytes, field: str, unreadable: str) -> Tuple[Dict[str, An
     try:
         value = json.loads(data, parse_constant=constant)
     except (UnicodeDecodeError, ValueError, RecursionError):
-        _fail(field, f"{unreadable} ({_short(bytes(data[:40]))})")
+        fail(field, f"{unreadable} ({short(bytes(data[:40]))})")
     if not isinstance(value, dict):
-        _fail(field, f"must be a JSON object (got {_short(value)})")
+        fail(field, f"must be a JSON object (got {short(value)})")
     return value, bool(constants)
 
 
@@ -400,7 +248,7 @@ def _refuse_non_finite(value: Any, where: str) -> None:
     among them) do not, so a message holding one is refused, naming where (after the schema's own checks,
     which name a typed field more precisely)."""
     if isinstance(value, float) and not math.isfinite(value):
-        _fail(where, f"{value} is not a JSON number")
+        fail(where, f"{value} is not a JSON number")
     if isinstance(value, dict):
         for key, item in value.items():
             _refuse_non_finite(item, f"{where}.{key}")
@@ -414,39 +262,10 @@ def _decode_tail(data: bytes) -> Dict[str, Any]:
     checks = {**SCHEMAS["frame"]["required"], **SCHEMAS["frame"]["optional"]}
     for name, value in tail.items():
         if name in FRAME_BINARY_FIELDS:
-            _fail(f"frame.{name}", "belongs in the binary header, not in the JSON tail")
+            fail(f"frame.{name}", "belongs in the binary header, not in the JSON tail")
         check = checks.get(name)
         if check is not None:
             check(value, f"frame.{name}")
     if non_finite:
         _refuse_non_finite(tail, "frame")
     return tail
-
-
-def _check_schema(message: Dict[str, Any], kind: str) -> None:
-    schema = SCHEMAS[kind]
-    for name, check in schema["required"].items():
-        if name not in message:
-            _fail(f"{kind}.{name}", "is required")
-        check(message[name], f"{kind}.{name}")
-    for name, check in schema["optional"].items():
-        if name in message:
-            check(message[name], f"{kind}.{name}")
-    if kind == "broadcast":
-        check_payload_size(message["payload"], f"{kind}.payload")
-
-
-def check_payload_size(payload: Dict[str, Any], field: str = "payload") -> int:
-    """Bytes of the payload as compact JSON; ProtocolError above MAX_PAYLOAD_BYTES."""
-    try:
-        size = len(json.dumps(payload, separators=(",", ":"), allow_nan=False))
-    except ValueError as err:                  # NaN or infinity: not JSON, refused as the hub would
-        _fail(field, f"radio payload is not JSON: {err}")
-    if size > MAX_PAYLOAD_BYTES:
-        _fail(field, f"radio payload of {size} bytes exceeds {MAX_PAYLOAD_BYTES}")
-    return size
-
-
-def _short(value: Any) -> str:
-    shown = repr(value)
-    return shown if len(shown) <= 40 else shown[:37] + "..."

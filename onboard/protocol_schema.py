@@ -1,0 +1,214 @@
+"""What each message type of the wire protocol holds, and the checks of its fields.
+
+:mod:`onboard.protocol` encodes and decodes; this module says what is valid. Each field check takes
+``(value, field path)`` and raises :class:`ProtocolError` naming the field; the sender is filled in by
+``decode``. docs/protocol.md lists every type and field.
+"""
+from __future__ import annotations
+
+import json
+import math
+from typing import Any, Callable, Dict, Iterable
+
+#: Largest radio payload (compact JSON), the same limit as ``onboard.hal.Radio.MAX_PAYLOAD_BYTES``.
+MAX_PAYLOAD_BYTES = 8192
+MODES = ("idle", "run", "hold", "estop")
+COMMANDS = ("start", "stop", "estop", "clear")
+CONTROL_COMMANDS = ("status", "start", "stop", "estop", "clear")
+MAX_ROBOT_ID = 999_999
+
+
+class ProtocolError(ValueError):
+    """A message broke the protocol. ``str(err)`` names the sender and the field, e.g.
+    ``from robot 3: frame.pose: must be a list of 3 finite numbers``."""
+
+    def __init__(self, problem: str, field: str = "", sender: str = "?"):
+        self.problem, self.field, self.sender = problem, field, sender
+        where = f"{field}: " if field else ""
+        super().__init__(f"from {sender}: {where}{problem}")
+
+
+Check = Callable[[Any, str], None]
+
+
+def fail(field: str, problem: str) -> None:
+    raise ProtocolError(problem, field)
+
+
+# --- field checks: each takes (value, field path) and raises ProtocolError -------------------------------
+def number(value: Any, field: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        fail(field, f"must be a finite number (got {short(value)})")
+
+
+def non_negative(value: Any, field: str) -> None:
+    number(value, field)
+    if value < 0:
+        fail(field, f"must be >= 0 (got {value})")
+
+
+def integer(value: Any, field: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, int):
+        fail(field, f"must be an integer (got {short(value)})")
+
+
+def robot_id(value: Any, field: str) -> None:
+    integer(value, field)
+    if not 0 <= value < 1_000_000:
+        fail(field, f"must be a robot id 0..999999 (got {value})")
+
+
+def text(value: Any, field: str) -> None:
+    if not isinstance(value, str) or len(value) > 200:
+        fail(field, f"must be a string of at most 200 characters (got {short(value)})")
+
+
+def mapping(value: Any, field: str) -> None:
+    if not isinstance(value, dict):
+        fail(field, f"must be a JSON object (got {short(value)})")
+
+
+def boolean(value: Any, field: str) -> None:
+    if not isinstance(value, bool):
+        fail(field, f"must be true or false (got {short(value)})")
+
+
+def one_of(options: Iterable[str]) -> Check:
+    allowed = tuple(options)
+
+    def check(value: Any, field: str) -> None:
+        if value not in allowed:
+            fail(field, f"must be one of {', '.join(allowed)} (got {short(value)})")
+    return check
+
+
+def numbers(count: int) -> Check:
+    def check(value: Any, field: str) -> None:
+        if not isinstance(value, list) or len(value) != count:
+            fail(field, f"must be a list of {count} finite numbers (got {short(value)})")
+        for i, item in enumerate(value):
+            number(item, f"{field}[{i}]")
+    return check
+
+
+def optional(check: Check) -> Check:
+    def check_optional(value: Any, field: str) -> None:
+        if value is not None:
+            check(value, field)
+    return check_optional
+
+
+def list_of(check: Check, limit: int = 100_000) -> Check:
+    def check_list(value: Any, field: str) -> None:
+        if not isinstance(value, list) or len(value) > limit:
+            fail(field, f"must be a list of at most {limit} items (got {short(value)})")
+        for i, item in enumerate(value):
+            check(item, f"{field}[{i}]")
+    return check_list
+
+
+def neighbour(value: Any, field: str) -> None:
+    """``[id, range_m, bearing_rad]``."""
+    if not isinstance(value, list) or len(value) != 3:
+        fail(field, f"must be [id, range_m, bearing_rad] (got {short(value)})")
+    robot_id(value[0], f"{field}[0]")
+    non_negative(value[1], f"{field}[1]")
+    number(value[2], f"{field}[2]")
+
+
+def relayed(value: Any, field: str) -> None:
+    """``[sender, sent_s, payload]``."""
+    if not isinstance(value, list) or len(value) != 3:
+        fail(field, f"must be [sender, sent_s, payload] (got {short(value)})")
+    robot_id(value[0], f"{field}[0]")
+    number(value[1], f"{field}[1]")
+    mapping(value[2], f"{field}[2]")
+
+
+def sim_sensors(value: Any, field: str) -> None:
+    mapping(value, field)
+    numbers(8)(value.get("ir"), f"{field}.ir")
+    numbers(2)(value.get("odo"), f"{field}.odo")
+
+
+# --- schemas: per type, required and optional fields. Unknown fields are ignored (additions within a version).
+Schema = Dict[str, Check]
+SCHEMAS: Dict[str, Dict[str, Schema]] = {
+    # hub -> agent
+    "frame": {
+        "required": {"seq": integer, "mode": one_of(MODES), "hub_t": number,
+                     "neighbours": list_of(neighbour), "messages": list_of(relayed)},
+        "optional": {"pose": optional(numbers(3)), "pose_age_s": non_negative, "reason": text,
+                     "clock_s": number, "sim": sim_sensors},
+    },
+    "command": {
+        "required": {"cmd": one_of(COMMANDS)},
+        "optional": {"run": mapping, "reason": text},
+    },
+    # agent -> hub
+    "hello": {
+        "required": {"id": robot_id, "driver": text},
+        "optional": {"run_id": optional(text)},
+    },
+    "telemetry": {
+        "required": {"id": robot_id, "step": integer, "mode": text},
+        "optional": {"behaviour": optional(mapping), "loop": mapping, "battery_v": optional(number),
+                     "clock_s": optional(number), "frames_lost": integer, "frames_bad": integer,
+                     "unsent": integer, "inbox_dropped": integer, "run_id": optional(text),
+                     "error": optional(text), "driver": text},
+    },
+    "broadcast": {
+        "required": {"id": robot_id, "payload": mapping, "sent_s": number},
+        "optional": {},
+    },
+    "wheels": {
+        "required": {"id": robot_id, "left": number, "right": number},
+        "optional": {},
+    },
+    "ack": {
+        "required": {"id": robot_id, "cmd": one_of(COMMANDS)},
+        "optional": {"seq": integer},
+    },
+    # operator <-> hub (control socket)
+    "request": {
+        "required": {"cmd": one_of(CONTROL_COMMANDS)},
+        "optional": {"nonce": integer},
+    },
+    "reply": {
+        "required": {"ok": boolean},
+        "optional": {"error": text, "status": mapping, "nonce": integer},
+    },
+}
+DOWNLINK_TYPES = ("frame", "command")
+UPLINK_TYPES = ("hello", "telemetry", "broadcast", "wheels", "ack")
+
+
+def check_schema(message: Dict[str, Any], kind: str) -> None:
+    """Raise ProtocolError naming the first field of ``message`` that its type's schema does not allow."""
+    schema = SCHEMAS[kind]
+    for name, check in schema["required"].items():
+        if name not in message:
+            fail(f"{kind}.{name}", "is required")
+        check(message[name], f"{kind}.{name}")
+    for name, check in schema["optional"].items():
+        if name in message:
+            check(message[name], f"{kind}.{name}")
+    if kind == "broadcast":
+        check_payload_size(message["payload"], f"{kind}.payload")
+
+
+def check_payload_size(payload: Dict[str, Any], field: str = "payload") -> int:
+    """Bytes of the payload as compact JSON; ProtocolError above MAX_PAYLOAD_BYTES."""
+    try:
+        size = len(json.dumps(payload, separators=(",", ":"), allow_nan=False))
+    except ValueError as err:                  # NaN or infinity: not JSON, refused as the hub would
+        fail(field, f"radio payload is not JSON: {err}")
+    if size > MAX_PAYLOAD_BYTES:
+        fail(field, f"radio payload of {size} bytes exceeds {MAX_PAYLOAD_BYTES}")
+    return size
+
+
+def short(value: Any) -> str:
+    """``value`` as shown in an error: its repr, cut to 40 characters (a bad field may be megabytes)."""
+    shown = repr(value)
+    return shown if len(shown) <= 40 else shown[:37] + "..."
