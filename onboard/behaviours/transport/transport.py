@@ -13,7 +13,8 @@ import numpy as np
 from ...hal import wrap_angle
 from . import control as c
 from .control import Vec
-from .tasks import HEARTBEAT_RULES, Task
+from .heartbeat import HEARTBEAT_RULES
+from .tasks import Task
 
 GROW_PERIOD_S = 1.0           # out of robots: I_d grows one level (2 %) per second
 OUT_OF_ROBOTS_FACTOR = 3.0    # a target nobody took for 3 T_a means the swarm has no robot left for it
@@ -124,7 +125,7 @@ class TransportPhases:
 
     def _member_dead(self, rid: int, now: float) -> bool:
         """A member (other than this robot) whose heartbeat has not changed for the liveness timeout plus the
-        period a still caged member beats at (tasks.HEARTBEAT_RULES): before closure a live member may be
+        period a still caged member beats at (heartbeat.HEARTBEAT_RULES): before closure a live member may be
         silent for that long."""
         window = HEARTBEAT_RULES["caged"].period_s + self.params.liveness_timeout_s
         return rid != self.robot.id and self.board.heard_of(rid) and not self.board.alive(rid, now, window)
