@@ -14,6 +14,12 @@ from onboard.protocol import MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
 
 SOURCE_TYPES = ("sim", "motioncapture", "replay")
+# The source fields each type reads (``type``, ``seed`` and ``stale_s`` are every type's: the seed also seeds the
+# agents' ``random``): a field of another type would be ignored without a word, e.g. a Vicon hostname under a
+# sim source, which then runs the simulation.
+SOURCE_FIELDS = {"sim": ("scenario", "lockstep", "frame_hz"),
+                 "motioncapture": ("system", "options", "bodies", "up_axis", "connect_timeout_s"),
+                 "replay": ("file", "rate")}
 UP_AXES = ("z", "y")
 
 
@@ -235,7 +241,19 @@ def parse_config(data: Any) -> LabConfig:
         data = {}
     if not isinstance(data, dict):
         raise ConfigError("", f"a lab config must be a mapping of keys (got {type(data).__name__})")
-    return from_mapping(LabConfig, data, "")
+    config = from_mapping(LabConfig, data, "")
+    check_source_fields(data.get("source") or {}, config.source.type)
+    return config
+
+
+def check_source_fields(source: Dict[str, Any], kind: str) -> None:
+    """Refuse a ``source`` field that ``kind`` does not read (the loader has refused unknown keys already)."""
+    for name in source:
+        owners = [other for other, names in SOURCE_FIELDS.items() if name in names]
+        if owners and kind not in owners:
+            raise ConfigError(join("source", name), f"is for a {' or '.join(owners)} source, and this one is "
+                              f"type {kind}, which would ignore it; a {kind} source takes type, seed, stale_s, "
+                              f"{', '.join(SOURCE_FIELDS[kind])} (remove it, or change source.type)")
 
 
 def load_config(path: Path) -> LabConfig:

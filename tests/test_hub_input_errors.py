@@ -148,6 +148,30 @@ def test_a_numeric_body_name_matches_the_sdks_string_name():
     assert parse_config(mocap_config({7: 0})).source.bodies == {"7": 0}
 
 
+@pytest.mark.parametrize("source, field, kind", [
+    ({"type": "sim", "options": {"hostname": "192.168.10.2"}}, "options", "motioncapture"),
+    ({"type": "sim", "bodies": {"kh0": 0}}, "bodies", "motioncapture"),
+    ({"options": {"hostname": "192.168.10.2"}}, "options", "motioncapture"),     # type: sim by default
+    ({"type": "replay", "file": "run.mcap", "scenario": "lab-6"}, "scenario", "sim"),
+    ({"type": "motioncapture", "bodies": {"kh0": 0}, "rate": 2.0}, "rate", "replay"),
+])
+def test_a_source_field_of_another_source_type_is_refused(source, field, kind):
+    """A Vicon hostname under a sim source was ignored: the hub ran the simulation as if nothing were wrong."""
+    with pytest.raises(ConfigError) as info:
+        parse_config({"source": source})
+    assert info.value.field == f"source.{field}"
+    own = source.get("type", "sim")
+    accepted = {"sim": "scenario, lockstep, frame_hz", "replay": "file, rate",
+                "motioncapture": "system, options, bodies, up_axis, connect_timeout_s"}[own]
+    assert f"is for a {kind} source" in str(info.value)
+    assert f"a {own} source takes type, seed, stale_s, {accepted}" in str(info.value)
+
+
+def test_the_fields_every_source_type_reads_are_taken_by_each():
+    assert parse_config({"source": {"type": "replay", "file": "run.mcap", "seed": 3, "stale_s": 0.5}})
+    assert parse_config({"source": {"type": "sim", "seed": 3, "stale_s": 0.5, "frame_hz": 20}})
+
+
 def test_a_negative_seed_is_refused_in_the_config_and_on_the_command_line():
     with pytest.raises(ConfigError) as info:
         parse_config({"source": {"type": "sim", "seed": -1}})
