@@ -179,7 +179,8 @@ def _add_keys(groups) -> None:
     init = commands.add_parser("init", help="create hub, robot and operator key pairs",
                                description="Create DIR/hub.key(_secret), DIR/robots/robot-<id>.key(_secret) and "
                                            "DIR/operators/<name>.key(_secret).")
-    init.add_argument("folder", nargs="?", type=Path, default=Path("keys"), help="key folder (default ./keys)")
+    init.add_argument("folder", nargs="?", type=Path, default=Path("keys"), metavar="FOLDER",
+                      help="key folder (default ./keys)")
     init.add_argument("--robots", default="6", help="robot count N (ids 0..N-1) or a list like 0,1,5 (default 6)")
     init.add_argument("--operator", action="append", help="operator name (repeatable; default: operator)")
     init.add_argument("--force", action="store_true",
@@ -189,8 +190,12 @@ def _add_keys(groups) -> None:
 
 def cmd_keys_init(args: argparse.Namespace) -> int:
     from hub.security import init_keys, stale_keys
+    from khepri_cli.sim_commands import out_folder_problem
 
     ids = parse_robot_ids(args.robots)
+    problem = out_folder_problem(args.folder)     # an unwritable place: said with the argument, not the OS error
+    if problem:
+        raise ConfigError("FOLDER", problem)
     operators = list(dict.fromkeys(args.operator or ["operator"]))     # --operator alice twice: one key pair
     wanted = [args.folder / "robots" / f"robot-{i}.key" for i in ids] \
         + [args.folder / "operators" / f"{name}.key" for name in operators]
@@ -263,7 +268,7 @@ def cmd_sil(args: argparse.Namespace) -> int:
     from hub.sil import SilOptions, run_sil
     from hub.sil_report import sil_summary_lines
     from khepri_cli.signals import sigterm_as_ctrl_c
-    from khepri_cli.sim_commands import check_time_limit, print_summary, require_out_folder
+    from khepri_cli.sim_commands import check_time_limit, out_folder_problem, print_summary, require_out_folder
     from sim_backend.scenario import load_scenario
 
     if args.seed is not None and args.seed < 0:
@@ -274,6 +279,9 @@ def cmd_sil(args: argparse.Namespace) -> int:
     out = args.out or Path("out") / f"sil-{scenario.name}-seed{seed}"
 
     require_out_folder(out)
+    problem = out_folder_problem(out / "agents")     # else a file of that name stops sil once the hub is up
+    if problem:
+        raise ConfigError("--out", f"{problem} (sil writes the agents' logs into it)")
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
                          record=not args.no_record, plot=not args.no_plot, imports=list(args.imports))
     with sigterm_as_ctrl_c():      # `kill` stops the agents and the hub and closes the log, as Ctrl-C does

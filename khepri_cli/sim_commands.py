@@ -140,6 +140,8 @@ def require_out_folder(out: Path) -> None:
 
 def out_folder_problem(out: Path) -> Optional[str]:
     """Create the output folder now; what is wrong with it, or None."""
+    if out.exists() and not out.is_dir():      # mkdir would only say "File exists"
+        return f"{out} is a file, not a folder"
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:

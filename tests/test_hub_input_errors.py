@@ -479,7 +479,7 @@ def test_keys_init_makes_one_pair_per_operator_and_counts_what_it_made(tmp_path)
 
 def test_keys_init_into_a_file_says_so(tmp_path):
     (tmp_path / "afile").write_text("")
-    line = one_error_line(keys_init(tmp_path / "afile"), "keys")
+    line = one_error_line(keys_init(tmp_path / "afile"), "FOLDER")
     assert line.endswith(f"{tmp_path / 'afile'} is a file, not a folder")
 
 

@@ -88,26 +88,47 @@ def test_study_and_sil_refuse_an_out_folder_they_cannot_make(tmp_path, capsys, c
     assert f"--out: cannot create the folder {blocker / 'out'}" in capsys.readouterr().err
 
 
-def test_a_path_that_cannot_be_written_is_one_line_naming_it(tmp_path, capsys, monkeypatch):
-    """keys init, hub --record and the like: the file system's refusal, without a traceback."""
-    blocker = tmp_path / "a-file"
-    blocker.write_text("not a folder")
-    assert main(["keys", "init", str(blocker / "keys")]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("khepri: error: ") and str(blocker) in err and "Traceback" not in err
-    monkeypatch.setenv("KHEPRI_DEBUG", "1")           # developers get the traceback back
-    with pytest.raises(OSError):
-        main(["keys", "init", str(blocker / "keys")])
+def test_sil_refuses_an_out_folder_whose_agents_is_a_file_before_it_starts(tmp_path, capsys):
+    """It said `khepri: error: File exists: OUT/agents`, without --out, once the hub had started."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "agents").write_text("not a folder")
+    assert main(["sil", "lab-6", "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (f"khepri: error: --out: {out / 'agents'} is a file, not a folder "
+                                       "(sil writes the agents' logs into it)\n")
+    assert not (out / "hub.log").exists()              # refused before the hub began
+
+
+@pytest.mark.parametrize("folder, problem", [
+    ("/proc/khepri-keys", "cannot create the folder /proc/khepri-keys: No such file or directory"),
+    ("{tmp}/a-file/keys", "cannot create the folder {tmp}/a-file/keys: Not a directory"),
+    ("{tmp}/a-file", "{tmp}/a-file is a file, not a folder"),
+])
+def test_keys_init_names_the_folder_it_cannot_write(tmp_path, capsys, folder, problem):
+    """`khepri keys init /proc/x` said `No such file or directory: /proc/x`, naming no argument."""
+    (tmp_path / "a-file").write_text("not a folder")
+    assert main(["keys", "init", folder.format(tmp=tmp_path)]) == 2
+    assert capsys.readouterr().err == f"khepri: error: FOLDER: {problem.format(tmp=tmp_path)}\n"
 
 
 def test_any_os_error_on_a_path_is_one_line_but_one_without_a_path_keeps_its_traceback(tmp_path, capsys,
                                                                                         monkeypatch):
-    too_long = tmp_path / ("k" * 300)                 # ENAMETOOLONG: a plain OSError, not one of its subclasses
-    assert main(["keys", "init", str(too_long)]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("khepri: error: File name too long: ") and "Traceback" not in err
-
+    """hub --record, a keys folder's subfolder and the like: the file system's refusal, without a traceback."""
     import khepri_cli.lab_commands as lab
+
+    too_long = str(tmp_path / ("k" * 300))
+
+    def fail_on_a_path(args):
+        raise OSError(36, "File name too long", too_long)   # a plain OSError, not one of its subclasses
+
+    monkeypatch.setattr(lab, "cmd_keys_init", fail_on_a_path)
+    assert main(["keys", "init", str(tmp_path / "keys")]) == 2
+    err = capsys.readouterr().err
+    assert err == f"khepri: error: File name too long: {too_long}\n"
+    monkeypatch.setenv("KHEPRI_DEBUG", "1")           # developers get the traceback back
+    with pytest.raises(OSError):
+        main(["keys", "init", str(tmp_path / "keys")])
+    monkeypatch.delenv("KHEPRI_DEBUG")
 
     def fail(args):
         raise OSError(5, "Input/output error")        # no path to blame: a bug to report, with its traceback
