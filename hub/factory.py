@@ -90,10 +90,15 @@ def say_missing_keys(ids: List[int], keyring: KeyRing, log: Callable[[str], None
         several = len(missing) > 1
         log(f"hub: robot{'s' if several else ''} {which} of this lab ha{'ve' if several else 's'} no key in "
             f"{keyring.folder / 'robots'}, so cannot connect (make the lab's keys with `khepri keys init "
-            f"{keyring.folder} --robots {','.join(map(str, ids))} --force`, or take {'them' if several else 'it'} "
+            f"{keyring.folder} --robots {robots_option(ids)} --force`, or take {'them' if several else 'it'} "
             f"off robots)")
     if not keyring.operators:
         log(f"hub: no operator key in {keyring.folder / 'operators'}: `khepri ctl` cannot reach this hub")
+
+
+def robots_option(ids: List[int]) -> str:
+    """``keys init --robots`` for exactly these ids: one number alone would be a count (3: robots 0, 1, 2)."""
+    return ",".join(map(str, ids)) + ("," if len(ids) == 1 else "")
 
 
 def check_sim_robots(wanted: List[int], scenario_ids: List[int], description: str) -> None:

@@ -181,7 +181,8 @@ def _add_keys(groups) -> None:
                                            "DIR/operators/<name>.key(_secret).")
     init.add_argument("folder", nargs="?", type=Path, default=Path("keys"), metavar="FOLDER",
                       help="key folder (default ./keys)")
-    init.add_argument("--robots", default="6", help="robot count N (ids 0..N-1) or a list like 0,1,5 (default 6)")
+    init.add_argument("--robots", default="6", help="robot count N (ids 0..N-1), or ids with commas: 0,1,5 "
+                                                     "(one id: 5,) (default 6)")
     init.add_argument("--operator", action="append", help="operator name (repeatable; default: operator)")
     init.add_argument("--force", action="store_true",
                       help="replace existing keys; robot and operator keys not named again are removed")
@@ -213,7 +214,7 @@ def cmd_keys_init(args: argparse.Namespace) -> int:
 
 def describe_ids(ids: List[int]) -> str:
     """``0..5`` for a run of ids, else the ids (the first ten)."""
-    if ids == list(range(ids[0], ids[-1] + 1)):
+    if len(ids) > 1 and ids == list(range(ids[0], ids[-1] + 1)):
         return f"{ids[0]}..{ids[-1]}"
     return ", ".join(map(str, ids[:10])) + (", ..." if len(ids) > 10 else "")
 
@@ -228,6 +229,9 @@ def parse_robot_ids(text: str) -> List[int]:
     except ValueError:
         raise ConfigError("--robots", f"give a count like 6 or ids like 0,1,5 (got {text!r})") from None
     if "," not in text and numbers:
+        if numbers[0] == 0:     # a count of none: most likely robot 0 was meant
+            raise ConfigError("--robots", "0 is a count of no robots (a single number is a count N: ids 0..N-1); "
+                                          "for robot id 0 alone, give --robots 0, (a list of one id)")
         return list(range(check_robot_count(numbers[0])))
     ids = sorted(set(numbers))
     if not ids:

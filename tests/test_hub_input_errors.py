@@ -452,13 +452,38 @@ def keys_init(*args):
     ("1000000000", "at most 10000 robots (got 1000000000)"),
     ("10001", "at most 10000 robots (got 10001)"),
     ("0,99999999", "robot ids must be 0..999999 (got 99999999)"),
-    ("0", "the robot count must be >= 1 (got 0)"),
+    ("0", "for robot id 0 alone, give --robots 0, (a list of one id)"),
+    ("-2", "the robot count must be >= 1 (got -2)"),
     (",", "give at least one robot id (got ',')"),
 ])
 def test_keys_init_refuses_robots_no_hub_would_take(tmp_path, robots, problem):
     line = one_error_line(keys_init(tmp_path / "keys", "--robots", robots), "--robots")
     assert line.endswith(problem)
     assert not (tmp_path / "keys").exists()
+
+
+def test_keys_init_robots_0_is_not_a_count_of_none(tmp_path):
+    """`--robots 0` is a count (ids 0..N-1) of no robots: refused, saying how to key robot 0 alone."""
+    line = one_error_line(keys_init(tmp_path / "keys", "--robots", "0"), "--robots")
+    assert line == ("khepri: error: --robots: 0 is a count of no robots (a single number is a count N: ids "
+                    "0..N-1); for robot id 0 alone, give --robots 0, (a list of one id)")
+    run = keys_init(tmp_path / "keys", "--robots", "0,")
+    assert run.returncode == 0, run.stderr
+    assert sorted(p.name for p in (tmp_path / "keys" / "robots").iterdir()) == ["robot-0.key", "robot-0.key_secret"]
+    assert run.stdout.startswith(f"created 6 key files in {tmp_path / 'keys'}: hub, robots 0 (1), operators ")
+
+
+def test_the_hubs_missing_key_hint_keys_exactly_the_labs_robots():
+    """For a lab of robot 3 alone, the hub said `keys init ... --robots 3`: a count, which keys robots 0, 1, 2."""
+    from hub.factory import say_missing_keys
+    from hub.security import KeyRing
+    from khepri_cli.lab_commands import parse_robot_ids
+
+    for ids in ([3], [0], [0, 1, 2], [2, 5]):
+        lines = []
+        say_missing_keys(ids, KeyRing(Path("keys"), b"", b"", operators={b"k": "alice"}), lines.append)
+        option = re.search(r"--robots (\S+) --force", lines[0]).group(1)
+        assert parse_robot_ids(option) == ids, lines[0]
 
 
 def test_keys_init_force_says_which_old_keys_it_removed(tmp_path):
