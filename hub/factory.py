@@ -45,6 +45,8 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     try:
         ids = robot_ids(config, source)
         say_untracked_bodies(config, ids, log)
+        if isinstance(source, ReplaySource):
+            say_unplaced_replay_robots(source, ids, log)
         run = run_template(config, scenario)
         keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
         if keyring is not None:
@@ -78,6 +80,16 @@ def say_untracked_bodies(config: LabConfig, ids: List[int], log: Callable[[str],
     others = [f"{name} (robot {rid})" for name, rid in config.source.bodies.items() if rid not in ids]
     if others:
         log(f"hub: source.bodies {', '.join(others)}: not in robots, so not served (their poses are ignored)")
+
+
+def say_unplaced_replay_robots(source: ReplaySource, ids: List[int], log: Callable[[str], None]) -> None:
+    """A lab robot the log never places would be held for the whole replay, with nothing said at start."""
+    missing = source.never_placed(ids)
+    if missing:
+        several = len(missing) > 1
+        log(f"hub: warning: robot{'s' if several else ''} {', '.join(map(str, missing))} of this lab (robots) "
+            f"ha{'ve' if several else 's'} no pose in {source.path} (source.file): the replay never places "
+            f"{'them' if several else 'it'}, so {'they stay' if several else 'it stays'} held")
 
 
 def say_missing_keys(ids: List[int], keyring: KeyRing, log: Callable[[str], None]) -> None:

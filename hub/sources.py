@@ -297,6 +297,26 @@ class ReplaySource(PoseSource):
         if self.pending is None:
             raise ConfigError("source.file", f"{path} holds no /mocap/poses records (not a khepri hub recording?)")
 
+    def never_placed(self, ids: List[int]) -> List[int]:
+        """Those of ``ids`` that no readable ``/mocap/poses`` record of the log places: the replay would hold
+        them all along. Reads the log (a second reader) only until every one of ``ids`` has been seen."""
+        from hub.log_summary import LogReader
+        from hub.recording import MOCAP_POSES, LogError
+
+        missing = set(ids)
+        try:
+            for topic, message in LogReader(self.path).messages():
+                if not missing:
+                    break
+                if topic == MOCAP_POSES:
+                    try:
+                        missing.difference_update(poses_from_record(message.data)[0])
+                    except (KeyError, TypeError, ValueError, AttributeError):
+                        continue     # the replay skips it too, and says so when it gets there
+        except LogError:             # damaged beyond what the reader walks past: what was read is the log
+            pass
+        return sorted(missing)
+
     def _pose_messages(self):
         from hub.recording import MOCAP_POSES
 

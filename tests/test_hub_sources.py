@@ -245,6 +245,31 @@ def test_replay_serves_recorded_poses(tmp_path):
         assert frame["neighbours"][0][:2] == [1, pytest.approx(1.0, abs=0.05)]
 
 
+def test_replay_warns_at_start_of_lab_robots_the_log_never_places(tmp_path):
+    """robots: [0, 1, 2, 5] with a log of robots 0 and 1 (robot 1 only late): robots 2 and 5 were held all
+    along, and nothing said why."""
+    log = tmp_path / "run.mcap"
+    with Recorder(log) as recorder:
+        for k in range(20):
+            ids = [0, 1] if k >= 15 else [0]
+            poses = np.array([[0.1 * k, float(i), 0.0] for i in ids])
+            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, ids, poses)), stamp_s=1.7e9 + 0.05 * k)
+    lines = []
+
+    def started(robots):
+        lines.clear()
+        config = parse_config({"source": {"type": "replay", "file": str(log)}, "robots": robots, "network": NETWORK,
+                               "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+        build_hub(config, log=lines.append).close()
+        return [line for line in lines if "no pose" in line]
+
+    assert started([0, 1, 2, 5]) == [f"hub: warning: robots 2, 5 of this lab (robots) have no pose in {log} "
+                                      "(source.file): the replay never places them, so they stay held"]
+    assert started([1, 3]) == [f"hub: warning: robot 3 of this lab (robots) has no pose in {log} (source.file): "
+                               "the replay never places it, so it stays held"]
+    assert started([0, 1]) == []
+
+
 def test_a_slowed_replay_keeps_the_robots_tracked_between_its_frames(tmp_path):
     """At rate 0.1 a 20 Hz log gives a frame every 0.5 s, five times source.stale_s: every robot was held as
     'not tracked by motion capture' between two frames."""
