@@ -407,6 +407,30 @@ def test_a_cell_with_another_robot_count_or_path_gets_no_paper_numbers(tmp_path)
     assert "| paper-25-straight@robots.count=12 | 12 | 1 | 0 | 1/1 | 1/1 | 100% | 100 | – | 90 | – |" in report
 
 
+def test_an_irregular_cell_with_another_robot_count_or_object_gets_no_paper_numbers(tmp_path):
+    """irregular-clover@robots.count=12 showed the paper's 30-robot caging time (300 s) as its reference."""
+    cells = {"irregular-clover@robots.count=12": ({"robots.count": 12}, 12),
+             "irregular-clover@object.shape=cloud": ({"object.shape": "cloud"}, 30),
+             "irregular-clover@object.scale=2": ({"object.scale": 2}, 30),
+             "irregular-clover@object.position=1,0": ({"object.position": [1, 0]}, 30),
+             "irregular-clover@comm.drop=0.1": ({"comm.drop": 0.1}, 30)}
+    for cell, (overrides, robots) in cells.items():
+        result = {"scenario": "irregular-clover", "seed": 1, "robots": robots, "failed": False,
+                  "stop_reason": "behaviour finished", "caged": True, "time_to_cage_s": 280.0, "cage_size": 22,
+                  "study": {"cell": cell, "overrides": overrides}}
+        (tmp_path / cell / "seed-1").mkdir(parents=True)
+        write(tmp_path / cell / "seed-1" / "result.json", json.dumps(result))
+    write_study_outputs(tmp_path, figures=False)
+    rows = summary_rows(tmp_path)
+    for cell in cells:
+        same_case = cell.endswith(("comm.drop=0.1", "object.position=1,0"))    # the paper's object and 30 robots
+        assert (rows[(cell, "time_to_cage_s", "")]["paper_value"] == "300") == same_case, cell
+    from sim_backend.scenario import load_scenario
+    from sim_backend.study.paper_reference import IRREGULAR_ROBOTS, IRREGULAR_SCENARIOS
+
+    assert {load_scenario(name).robots.count for name in IRREGULAR_SCENARIOS} == {IRREGULAR_ROBOTS}
+
+
 def test_report_md_puts_ours_next_to_the_paper(known_study):
     write_study_outputs(known_study, figures=False)
     report = (known_study / "report.md").read_text()

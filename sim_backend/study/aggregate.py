@@ -130,11 +130,20 @@ def load_results(out_dir: Path) -> StudyResults:
     return StudyResults(out_dir, sorted(cells.values(), key=cell_order), unreadable)
 
 
+# Object fields that make another object (not where it starts, how heavy or how slippery it is).
+OBJECT_IDENTITY = ("shape", "size", "radius", "vertices", "parts", "scale", "static")
+
+
 def paper_case_of(scenario: str, robots: Any, overrides: Dict[str, Any]) -> PaperCase:
     """The paper's experiment a cell reproduces, by its scenario's name, unless the cell changed what identifies
     that experiment: another robot count (``robots.count``, or a file named like a paper scenario) or another
-    path. The paper's numbers for 25 robots are not those of 12 robots pushing the 25-robot box."""
+    path; for an irregular object, another robot count than the paper's 30 or another object. The paper's
+    numbers for 25 robots are not those of 12 robots pushing the 25-robot box."""
     case = paper.paper_case(scenario)
+    if case.irregular:
+        other_object = any(key == "object" or key in {f"object.{name}" for name in OBJECT_IDENTITY}
+                           for key in overrides)
+        return PaperCase() if robots != paper.IRREGULAR_ROBOTS or other_object else case
     if case.robots is None:
         return case
     other_path = any(key == "path" or key.startswith("path.") for key in overrides)

@@ -21,6 +21,7 @@ TIMES_YAML = DATA_DIR / "paper-times.yaml"
 PAPER_ROBOTS = (25, 50, 100)
 PAPER_PATHS = ("straight", "zigzag", "straight_rot")
 IRREGULAR_SCENARIOS = ("irregular-cloud", "irregular-box_rotation", "irregular-clover")
+IRREGULAR_ROBOTS = 30      # "The 3 irregular shapes took around 300 s to cage when using 30 robots"
 # The CSV's metric codes in column c/p/r, named as in our result.json waypoints.
 ERROR_METRICS = {0: "centroid_estimation_error_m", 1: "position_error_m", 2: "orientation_error_rad"}
 CSV_PATH_NAMES = {"zigzac": "zigzag"}
