@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from onboard.config import ConfigError, check_range, from_mapping, join
-from onboard.protocol import MAX_ROBOT_ID
+from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
 
 SOURCE_TYPES = ("sim", "motioncapture", "replay")
@@ -205,6 +205,8 @@ class LabConfig:
             if xmax <= xmin or ymax <= ymin:
                 raise ConfigError("geofence", "must be [xmin, ymin, xmax, ymax] with min < max")
         check_range("watchdog_s", self.watchdog_s, 0.0, 10.0, low_open=True)
+        if self.source.type != "sim":          # the sim source's agents run at the scenario's rate: build_hub
+            check_watchdog(self.watchdog_s, self.run.control_hz, "run.control_hz")
         if self.record is not None and not str(self.record).strip():
             raise ConfigError("record", "is empty: name the MCAP file (e.g. logs/run-{time}.mcap), or leave it out")
         if self.robots is not None:
@@ -217,6 +219,27 @@ class LabConfig:
                 raise ConfigError("robots", "lists a robot id twice")
             if self.source.type == "motioncapture":
                 check_every_robot_has_a_body(self.robots, self.source.bodies)
+
+
+# The hub counts a robot connected while it heard from it within watchdog_s, and agents speak once per loop
+# step (telemetry). Within one or two periods, one late step turns the robot "not connected" and back: at
+# watchdog_s 0.05 and 10 Hz telemetry, the flag flapped all the time (and with the sim source, the wheels).
+WATCHDOG_TELEMETRY_PERIODS = 3
+
+
+def min_watchdog_s(control_hz: float) -> float:
+    """The shortest ``watchdog_s`` for agents looping at ``control_hz`` (and at IDLE_TELEMETRY_HZ without a run)."""
+    return WATCHDOG_TELEMETRY_PERIODS / min(control_hz, IDLE_TELEMETRY_HZ)
+
+
+def check_watchdog(watchdog_s: float, control_hz: float, rate_field: str) -> None:
+    least = min_watchdog_s(control_hz)
+    if watchdog_s < least - 1e-9:
+        raise ConfigError("watchdog_s", f"must be at least {least:g} s (got {watchdog_s:g}): agents send telemetry "
+                          f"at {min(control_hz, IDLE_TELEMETRY_HZ):g} Hz ({rate_field} {control_hz:g}, and "
+                          f"{IDLE_TELEMETRY_HZ:g} Hz without a run), so a shorter watchdog_s shows robots as "
+                          f"connected and not connected in turn; give at least {WATCHDOG_TELEMETRY_PERIODS} "
+                          "telemetry periods")
 
 
 def check_every_robot_has_a_body(robots: List[int], bodies: Dict[str, int]) -> None:

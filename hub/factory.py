@@ -11,7 +11,7 @@ from onboard.behaviour import build_params, get_behaviour
 from onboard.config import ConfigError
 from onboard.hal import RobotSpec
 
-from .config import LabConfig
+from .config import LabConfig, check_watchdog
 from .security import KeyRing, load_keyring
 from .sensors import SensingModel
 from .server import Hub, RunTemplate
@@ -138,6 +138,8 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     build_params(cls, params, "run.params")     # reject bad parameters here, not on every robot
     spec = RobotSpec() if scenario is None else RobotSpec(max_wheel_speed_m_s=scenario.robots.max_wheel_speed_m_s)
     control_hz = scenario.physics.control_hz if scenario is not None else run.control_hz
+    if scenario is not None:       # the config checked watchdog_s against run.control_hz, which sim replaces
+        check_watchdog(config.watchdog_s, control_hz, f"{config.source.scenario}: physics.control_hz")
     seed = config.source.seed if config.source.seed is not None else getattr(scenario, "seed", None)
     return RunTemplate(name, params, control_hz, lockstep=config.source.type == "sim" and config.source.lockstep,
                        spec=dict(spec.__dict__), seed=seed)

@@ -59,6 +59,8 @@ _KNOWN_FLAGS = FLAG_POSE | FLAG_CLOCK
 #: Frame fields carried by the header and the neighbour block; the JSON tail must not repeat them.
 FRAME_BINARY_FIELDS = ("v", "type", "seq", "mode", "hub_t", "pose", "pose_age_s", "clock_s", "neighbours")
 MODE_CODES = {mode: code for code, mode in enumerate(MODES)}
+# An agent sends telemetry once per loop step: at the run's control_hz, and at this rate while it has no run.
+IDLE_TELEMETRY_HZ = 10.0
 
 
 def encode(message: Dict[str, Any], max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:

@@ -224,6 +224,35 @@ def test_a_downlink_slower_than_the_agents_watchdog_is_refused():
     assert parse_config(sim_config(network={**NETWORK, "downlink_hz": 10})).network.downlink_hz == 10
 
 
+def test_a_watchdog_shorter_than_the_agents_telemetry_period_is_refused():
+    """watchdog_s: 0.05 was accepted, and with agents speaking at 10 Hz every robot flapped between connected
+    and not connected. The minimum is 3 telemetry periods, from run.control_hz (10 Hz idle at the slowest)."""
+    with pytest.raises(ConfigError) as info:
+        parse_config(mocap_config({"kh0": 0}, watchdog_s=0.05))
+    assert info.value.field == "watchdog_s"
+    assert info.value.problem.startswith("must be at least 0.3 s (got 0.05): agents send telemetry at 10 Hz")
+    with pytest.raises(ConfigError) as info:         # a slower loop sends telemetry less often
+        parse_config(mocap_config({"kh0": 0}, watchdog_s=0.5, run={"behaviour": "aggregate", "control_hz": 5}))
+    assert info.value.field == "watchdog_s" and "at least 0.6 s (got 0.5)" in info.value.problem
+    assert parse_config(mocap_config({"kh0": 0}, watchdog_s=0.3)).watchdog_s == 0.3
+    assert parse_config(mocap_config({"kh0": 0}, run={"behaviour": "aggregate", "control_hz": 50})).watchdog_s == 0.3
+
+
+def test_a_watchdog_too_short_for_the_sim_scenario_stops_the_hub(tmp_path):
+    """The sim source's agents loop at the scenario's physics.control_hz, so the hub checks it there."""
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump(sim_config(watchdog_s=0.1)))
+    line = one_error_line(khepri("hub", "--config", str(config)), "watchdog_s")
+    assert "must be at least 0.3 s (got 0.1)" in line and "physics.control_hz 10" in line
+
+
+def test_the_example_config_and_the_demo_pass_the_watchdog_check():
+    from hub.config import demo_config, load_config
+
+    assert load_config(ROOT / "hub" / "examples" / "lab.yaml").watchdog_s >= 0.3
+    assert demo_config().watchdog_s == 0.3
+
+
 # --- 5. a motion-capture system that never answers -----------------------------------------------------------------
 # OptiTrack's NatNet client with no server on loopback blocks in connect() while holding Python's GIL: the hang
 # the hub must turn into an error (a thread could not be timed out; the hub probes in a child process).

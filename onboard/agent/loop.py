@@ -33,7 +33,7 @@ from onboard.behaviour import (
 from onboard.config import ConfigError
 from onboard.drivers import Driver, DriverError
 from onboard.hal import RobotSpec
-from onboard.protocol import ProtocolError
+from onboard.protocol import IDLE_TELEMETRY_HZ, ProtocolError
 
 from .devices import AgentClock, HubState, apply_frame, make_robot
 from .link import HubLink
@@ -89,7 +89,7 @@ class Agent:
         self.run: Optional[Dict[str, Any]] = None
         self.error: Optional[str] = None
         self.refused_run_id: Any = None        # the run this agent could not start: said once, not per frame
-        self.period = 0.1
+        self.period = 1.0 / IDLE_TELEMETRY_HZ     # the loop's (and telemetry's) rate until a run sets it
         self.stats = LoopStats()
         self.next_tick = time.monotonic()
         self.answered_seq = 0
