@@ -224,6 +224,36 @@ def test_the_link_hands_frames_over_with_neighbour_columns(scripted):
     assert bearings.tolist() == [n[2] for n in NEIGHBOURS]
 
 
+def test_sends_before_the_hub_answered_are_not_counted_as_unsent_but_later_ones_are(scripted):
+    """Every clean SIL run reported a few messages the agents could not send: the first hello (and idle
+    telemetry) leave before the connection is up, which loses nothing. A send refused after the hub has spoken
+    (here: the hub gone) is a loss, and still counted."""
+    link = HubLink(0, "tcp://127.0.0.1:9")             # nothing listens: nothing can leave, nothing is lost
+    try:
+        assert [link.send({"type": "hello", "driver": "test"}) for _ in range(3)] == [False] * 3
+        assert link.unsent == 0
+    finally:
+        link.close()
+    link = HubLink(0, scripted.endpoint)
+    try:
+        link.send({"type": "hello", "driver": "test"})      # at once, as the agent does: usually not up yet
+        deadline = time.monotonic() + 10.0
+        while scripted.routing is None and time.monotonic() < deadline:
+            link.send({"type": "hello", "driver": "test"})
+            scripted.pump(0.1)
+        scripted.frame()
+        while not link.receive(0.1) and time.monotonic() < deadline:
+            pass
+        assert link.unsent == 0
+        scripted.close()                                     # the hub goes away mid-run
+        deadline = time.monotonic() + 5.0
+        while link.send({"type": "hello", "driver": "test"}) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert link.unsent >= 1
+    finally:
+        link.close()
+
+
 def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
     """Nothing listens on the port: the agent keeps trying and says what to check, instead of sitting quiet.
     An address ZeroMQ refuses is a one-line error naming --hub."""

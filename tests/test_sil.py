@@ -42,6 +42,17 @@ def test_sil_lab6_cages_and_reaches_every_waypoint(tmp_path, name):
             "/control"} <= topics
 
 
+def test_a_clean_short_run_reports_no_drop(tmp_path):
+    """Every clean run reported a few messages the agents could not send: the hellos an agent says at once,
+    before its connection is up. Those lose nothing, so a clean run now says `dropped: nothing`."""
+    from hub.sil_report import sil_summary_lines
+
+    result = run_sil(load_scenario("lab-6"), tmp_path, SilOptions(plot=False, record=False, time_limit_s=2.0))
+    dropped = result["sil"]["dropped"]
+    assert dropped["unsent_at_agents"] == 0 and dropped["hub_rejected"] == {}
+    assert sil_summary_lines(result["sil"])[1] == "  dropped: nothing"
+
+
 def test_an_earlier_runs_agent_logs_do_not_stay_beside_this_runs(tmp_path):
     """A 6-robot run's agents/agent-4.log and agent-5.log stayed in the folder of a later 4-robot run."""
     (tmp_path / "agents").mkdir()
