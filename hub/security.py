@@ -12,8 +12,12 @@ cannot claim another robot's id.
 """
 from __future__ import annotations
 
+import itertools
 import math
+import os
 import re
+import socket as sockets
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +34,7 @@ OPERATOR_DOMAIN = "operators"
 ROBOT_KEY = re.compile(r"^robot-(\d+)\.key$")
 HUB_KEYS_FIELD = "security.keys"   # what the hub's key errors name: the lab config's key
 REFUSAL_LOG_S = 60.0    # a refused key is logged at most this often per peer address and socket
+HANDSHAKE_LOG_S = 10.0  # a failed CURVE handshake is logged at most this often per peer address and socket
 
 
 @dataclass
@@ -164,6 +169,104 @@ class HubAuthenticator(ThreadAuthenticator):
         if z85 in self.ring.robots:
             return f"robot:{self.ring.robots[z85]}"
         return f"operator:{self.ring.operators.get(z85, '?')}"
+
+
+_WATCHES = itertools.count()
+
+
+class HandshakeWatch:
+    """Logs peers dropped during the CURVE handshake, before any ZAP request or message: an agent started without
+    ``--keys`` (an unencrypted peer), or with a hub key that is not this hub's (its hello cannot be decrypted).
+    ZeroMQ drops them without a word to either side, so without this the hub's log stayed empty while a robot
+    never connected. Nothing is sent to such a peer.
+
+    A thread reads the socket's monitor: an accepted connection gives its file descriptor, whose peer address is
+    read at once; a failed handshake is followed by that connection's disconnection, which names it. A peer
+    can fail faster than the address is read (on loopback, without keys): it is then said without one. One line per
+    peer address, socket and reason every HANDSHAKE_LOG_S at most (a peer retrying, or a flood, cannot fill the log),
+    with how many were dropped meanwhile."""
+
+    EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_DISCONNECTED
+
+    def __init__(self, context: zmq.Context, sock: zmq.Socket, domain: str, ring: KeyRing,
+                 log: Callable[[str], None] = print):
+        self.domain, self.ring, self.log = domain, ring, log
+        self.sock = sock
+        self.address = f"inproc://handshakes-{domain}-{next(_WATCHES)}"   # id(self) is reused: an address too
+        sock.monitor(self.address, self.EVENTS)
+        self._stop = threading.Event()
+        self._said: Dict[Tuple[str, int], Tuple[float, int]] = {}   # (address, error) -> (last said, drops since)
+        self._thread = threading.Thread(target=self._run, args=(context,), name=f"handshakes-{domain}", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        """In the thread that owns the socket, before closing it."""
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        try:
+            self.sock.disable_monitor()
+        except zmq.ZMQError:
+            pass
+
+    def _run(self, context: zmq.Context) -> None:
+        from zmq.utils.monitor import recv_monitor_message
+
+        pair = context.socket(zmq.PAIR)
+        pair.linger = 0
+        pair.connect(self.address)
+        peers: Dict[int, str] = {}          # file descriptor -> peer address, while connected
+        failed: Optional[int] = None        # the ZMTP error of a handshake that failed, until its disconnection
+        try:
+            while not self._stop.is_set():
+                if not pair.poll(100):
+                    continue
+                event = recv_monitor_message(pair)
+                kind, value = event["event"], event["value"]
+                if kind == zmq.EVENT_ACCEPTED:
+                    peers[value] = peer_address(value)
+                    if len(peers) > 10_000:     # descriptors are reused: this only guards against a leak
+                        peers.clear()
+                elif kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL:
+                    failed = value
+                elif kind == zmq.EVENT_DISCONNECTED:
+                    address = peers.pop(value, "?")
+                    if failed is not None:
+                        self.dropped(address, failed, time.monotonic())
+                    failed = None
+        finally:
+            pair.close(0)
+
+    def dropped(self, address: str, error: int, now: float) -> None:
+        last, unsaid = self._said.get((address, error), (-math.inf, 0))
+        if now - last < HANDSHAKE_LOG_S:
+            self._said[(address, error)] = (last, unsaid + 1)
+            return
+        if len(self._said) > 10_000:         # a flood of addresses must not grow memory without bound
+            self._said.clear()
+        self._said[(address, error)] = (now, 0)
+        robots = self.domain == ROBOT_DOMAIN
+        who, option = ("a robot's agent", "the agent's --keys") if robots else ("an operator", "khepri ctl --keys")
+        if error == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:
+            why = f"it is not encrypted: {who} started without --keys?"
+        elif error == zmq.PROTOCOL_ERROR_ZMTP_CRYPTOGRAPHIC:
+            why = (f"its hello cannot be decrypted with this hub's key: {option} holds a hub.key that is not "
+                   f"{self.ring.folder / 'hub.key'} (keys of another hub or an older `keys init`?)")
+        else:
+            why = f"ZMTP error {error:#x}"
+        more = f"; {unsaid} more dropped from there since the last line" if unsaid else ""
+        where = "robot" if robots else "control"
+        source = f"from {address}" if address != "?" else "from a peer gone before its address was read"
+        self.log(f"hub: dropped a connection {source} to the {where} socket in the CURVE handshake: {why}; "
+                 f"nothing was answered (said at most every {HANDSHAKE_LOG_S:g} s per address{more})")
+
+
+def peer_address(fd: int) -> str:
+    """The remote IP address of a connected TCP socket's file descriptor, "?" when it is gone already."""
+    try:
+        with sockets.socket(fileno=os.dup(fd)) as sock:
+            return str(sock.getpeername()[0])
+    except (OSError, IndexError):
+        return "?"
 
 
 def _load_pair(path: Path, who: str, where: str):

@@ -27,7 +27,7 @@ from .control_service import ControlService
 from .downlink import Downlink
 from .links import DropLog, RateMeter, RobotLink
 from .relay import RadioRelay
-from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HubAuthenticator, KeyRing, make_curve_server
+from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HandshakeWatch, HubAuthenticator, KeyRing, make_curve_server
 from .sensors import SensingModel, VirtualSensors
 from .sources import PoseFrame, PoseSource
 from .uplink import Uplink
@@ -103,6 +103,7 @@ class Hub(Downlink, Uplink):
         self._next_no_pose_warning = self.started_at + NO_POSE_YET_WARNING_S
         self.control = ControlService(self)
         self.authenticator: Optional[HubAuthenticator] = None
+        self.handshake_watches: List[HandshakeWatch] = []
         self.robot_socket: Optional[zmq.Socket] = None
         self.control_socket: Optional[zmq.Socket] = None
         self.endpoints: Dict[str, str] = {}
@@ -120,6 +121,10 @@ class Hub(Downlink, Uplink):
         self.robot_socket = self._router(ROBOT_DOMAIN, net.robot_port, "robot_port")
         self.robot_socket.sndhwm = DOWNLINK_HWM
         self.control_socket = self._router(OPERATOR_DOMAIN, net.control_port, "control_port")
+        if self.keyring is not None:      # peers dropped before ZAP (no keys, another hub's key): said, not silent
+            self.handshake_watches = [HandshakeWatch(self.context, sock, domain, self.keyring, self.log)
+                                      for sock, domain in ((self.robot_socket, ROBOT_DOMAIN),
+                                                           (self.control_socket, OPERATOR_DOMAIN))]
         for role, sock in (("robots", self.robot_socket), ("control", self.control_socket)):
             self.endpoints[role] = sock.getsockopt_string(zmq.LAST_ENDPOINT)
             self.log(f"listening {role} {self.endpoints[role]}")
@@ -145,6 +150,8 @@ class Hub(Downlink, Uplink):
         if self.robot_socket is not None:
             self.send_command_to_all("stop", reason="hub shutting down")
             self._wait_for_acknowledgements(time.monotonic() + SHUTDOWN_ACK_WAIT_S)
+        for watch in self.handshake_watches:
+            watch.close()
         for sock in (self.robot_socket, self.control_socket):
             if sock is not None:
                 sock.close(0)

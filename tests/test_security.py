@@ -1,4 +1,5 @@
 """CURVE on by default: only listed robot and operator keys get in, and a robot key cannot claim another id."""
+import socket
 import stat
 import time
 
@@ -164,3 +165,71 @@ def test_a_refused_key_is_logged_once_with_the_peers_address(secure_hub, keys):
                        "another hub or lab, or for the other socket?)"], secure_hub.lines
     for sock in strangers:
         sock.close(0)
+
+
+
+HANDSHAKE = "to the robot socket in the CURVE handshake: "
+UNENCRYPTED = ("it is not encrypted: a robot's agent started without --keys?; nothing was answered (said at most "
+               "every 10 s per address)")
+
+
+def handshake_lines(hub, reason):
+    return [line for line in hub.lines if HANDSHAKE in line and reason in line]
+
+
+def wait_for_line(hub, reason, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while not handshake_lines(hub, reason) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return handshake_lines(hub, reason)
+
+
+def test_an_agent_without_keys_is_logged_by_the_hub(secure_hub, tmp_path):
+    """ZeroMQ drops it in the CURVE handshake, before any key check or message: the hub's log said nothing, and
+    the operator could not tell why the robot never connected. Said once per address and reason."""
+    agent = spawn_agent(secure_hub.endpoints["robots"], 0, tmp_path / "agent.log")       # no --keys
+    try:
+        said = wait_for_line(secure_hub, "not encrypted")
+        time.sleep(2.5)                          # the agent reopens its socket after 2 s without a frame, and retries
+        assert not secure_hub.status()["robots"][0]["connected"]
+    finally:
+        stop_processes([agent])
+    said = handshake_lines(secure_hub, "not encrypted")
+    # From its address (or, on loopback, from a peer that failed before its address was read), then quiet.
+    assert 1 <= len(said) <= 2 and all(line.endswith(UNENCRYPTED) for line in said), secure_hub.lines
+
+
+def test_an_unencrypted_peer_is_named_by_its_address_and_gets_no_message(secure_hub):
+    """A ZMTP peer offering the NULL mechanism (what an agent without --keys speaks), its greeting sent a moment
+    after connecting: the hub names its address, and sends it nothing but its own greeting."""
+    host, port = secure_hub.endpoints["robots"].rsplit("/", 1)[1].rsplit(":", 1)
+    greeting = b"\xff" + bytes(8) + b"\x7f" + bytes([3, 0]) + b"NULL".ljust(20, b"\0") + bytes(32)
+    with socket.create_connection((host, int(port))) as peer:
+        time.sleep(0.3)
+        peer.sendall(greeting)
+        peer.settimeout(5.0)
+        got = b""
+        while chunk := peer.recv(4096):
+            got += chunk
+    assert len(got) <= 64 and got[:1] == b"\xff"        # the hub's greeting, then it closed: no message
+    assert wait_for_line(secure_hub, "not encrypted") == [
+        f"hub: dropped a connection from 127.0.0.1 {HANDSHAKE}{UNENCRYPTED}"], secure_hub.lines
+
+
+def test_another_hubs_key_is_logged_once_however_often_the_agent_retries(secure_hub, keys):
+    """Robot 0's own key pair with a hub.key from another `keys init`: its hello cannot be decrypted."""
+    robot0 = load_robot_keys(keys, 0)
+    other_hub = zmq.curve_keypair()[0]
+    socks = [client(secure_hub.endpoints["robots"], (robot0["public"], robot0["secret"], other_hub))
+             for _ in range(5)]
+    try:
+        for sock in socks:
+            assert hammer(sock, [HELLO_1] * 3, listen_s=0.5) == []      # ZeroMQ retries the handshake meanwhile
+    finally:
+        for sock in socks:
+            sock.close(0)
+    said = wait_for_line(secure_hub, "cannot be decrypted")
+    assert 1 <= len(said) <= 2, secure_hub.lines      # dozens of failed handshakes: one line (two on a race)
+    assert f"its hello cannot be decrypted with this hub's key: the agent's --keys holds a hub.key that is not " \
+           f"{keys / 'hub.key'}" in said[0]
+    assert not secure_hub.status()["robots"][0]["connected"]
