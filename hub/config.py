@@ -14,6 +14,7 @@ from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
 
 SOURCE_TYPES = ("sim", "motioncapture", "replay")
+DEFAULT_WATCHDOG_S = 0.3
 # The source fields each type reads (``type``, ``seed`` and ``stale_s`` are every type's: the seed also seeds the
 # agents' ``random``): a field of another type would be ignored without a word, e.g. a Vicon hostname under a
 # sim source, which then runs the simulation.
@@ -196,7 +197,7 @@ class LabConfig:
     relay: RelayConfig = field(default_factory=RelayConfig)
     run: RunConfig = field(default_factory=RunConfig)
     geofence: Optional[Tuple[float, float, float, float]] = None   # [xmin, ymin, xmax, ymax], metres
-    watchdog_s: float = 0.3         # hub side: an agent silent this long is "not connected"
+    watchdog_s: float = DEFAULT_WATCHDOG_S   # hub side: an agent silent this long is "not connected"
     record: Optional[str] = None    # MCAP file for everything in and out
 
     def validate(self, where: str) -> None:

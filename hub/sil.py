@@ -23,7 +23,7 @@ from sim_backend.metrics import evaluator_for
 from sim_backend.runner import mission_params
 from sim_backend.scenario import Scenario
 
-from .config import parse_config
+from .config import DEFAULT_WATCHDOG_S, min_watchdog_s, parse_config
 from .factory import build_hub
 from .harness import spawn_agent, stop_processes
 from .lockstep import UNRESPONSIVE_AFTER_STEPS, Lockstep
@@ -75,6 +75,8 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
             "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0},
             "security": {"keys": str(keys)},
             "record": str(out / "hub.mcap") if options.record else None,
+            # The agents' telemetry comes once per control step: a slow scenario needs a longer watchdog.
+            "watchdog_s": max(DEFAULT_WATCHDOG_S, min_watchdog_s(scenario.physics.control_hz)),
         })
         hub = build_hub(config, log=log, scenario=scenario)
         agents: List[subprocess.Popen] = []

@@ -53,6 +53,16 @@ def test_a_clean_short_run_reports_no_drop(tmp_path):
     assert sil_summary_lines(result["sil"])[1] == "  dropped: nothing"
 
 
+def test_a_slow_scenario_gets_a_hub_watchdog_its_telemetry_can_feed(tmp_path):
+    """At 5 Hz an agent speaks every 0.2 s, and the default watchdog_s (0.3 s) is refused for that: sil, whose
+    config the user does not write, stopped with that error before it sets the watchdog from the scenario."""
+    lab6 = load_scenario("lab-6")
+    scenario = lab6.with_overrides(physics=dataclasses.replace(lab6.physics, control_hz=5.0))
+    result = run_sil(scenario, tmp_path, SilOptions(plot=False, record=False, time_limit_s=2.0))
+    assert "error" not in result and result["sil"]["agent_exit_codes"] == [0] * 6
+    assert result["sil"]["step_timeouts"] == 0 and result["sil"]["missing_answers"] == 0
+
+
 def test_an_earlier_runs_agent_logs_do_not_stay_beside_this_runs(tmp_path):
     """A 6-robot run's agents/agent-4.log and agent-5.log stayed in the folder of a later 4-robot run."""
     (tmp_path / "agents").mkdir()
