@@ -10,6 +10,7 @@ from typing import Any, Dict, List, Optional
 
 import numpy as np
 
+from onboard.behaviours.transport.params import TransportParams
 from onboard.geometry import wrap
 
 from .metrics import Evaluator, register_evaluator
@@ -125,9 +126,13 @@ class TransportEvaluator(Evaluator):
             return [hint + f"; all {robots.count} robots together push at most {everyone:.1f} N (robots.traction "
                            "x robots.mass_kg x g each): more robots, a lighter object or less friction"]
         hint += "; more robots, less friction"
-        if not self.scenario.params.get("reinforce_push", False):
-            hint += ", or params: {reinforce_push: true} (the robots left out push too)"
-        return [hint]
+        params = self.scenario.params
+        stall_s = float(params.get("reinforce_when_stalled_s", TransportParams.reinforce_when_stalled_s))
+        if params.get("reinforce_push", False):
+            return [hint]
+        if params.get("profile") != "faithful" and stall_s > 0:
+            return [hint + f" (the robots left out pushed too once the push stalled for {stall_s:g} s)"]
+        return [hint + ", or params: {reinforce_push: true} (the robots left out push too)"]
 
     def result(self) -> Dict[str, Any]:
         scenario = self.scenario

@@ -246,7 +246,9 @@ def test_a_robot_beside_the_object_slows_down_as_it_gets_ahead_of_its_formation(
     assert pace_when_ahead_by(-0.05) == 1.0                        # behind: catch up at full speed
     assert pace_when_ahead_by(0.02) == pytest.approx(0.6)
     assert pace_when_ahead_by(0.04) == pytest.approx(0.2)
-    assert pace_when_ahead_by(0.10) == pytest.approx(0.2)          # never stops: it still has to keep up
+    assert pace_when_ahead_by(0.06) == pytest.approx(0.1)          # farther ahead it slows on ...
+    assert pace_when_ahead_by(0.08) == 0.0                         # ... and stops: the object is not coming
+    assert pace_when_ahead_by(0.10) == 0.0
     assert pace_when_ahead_by(0.04, rotation=0.3) < 0.3            # the formation turned with the object
     transport.percept = SimpleNamespace(neighbours={})
     assert transport._pace(way, 0.0, 0.0) == 1.0                   # nobody to pace against
@@ -672,20 +674,56 @@ time_limit_s: 600
     assert max(w["orientation_error_rad"] for w in result["waypoints"]) > math.radians(5.72)   # spun: reported
 
 
-def test_a_cage_that_cannot_move_its_object_says_why(tmp_path):
-    """A 4.3 kg box with friction 0.4 (16.9 N) and eight robots, four of them in the cage and none of the others
-    pushing: the box stays put, and the failures say so, with the force and what to change."""
-    scenario = tmp_path / "heavy.yaml"
-    scenario.write_text("""
+HEAVY_BOX = """
 robots: {count: 8, spawn: {x: [-1.4, -0.6], y: [-1.4, -0.6]}}
 object: {shape: box, size: [0.4, 0.4], mass: 4.3, friction: 0.4, position: [0, 0]}
 path: [[0.3, 0, 0], [0.6, 0, 0]]
 time_limit_s: 200
-""")
+"""
+
+
+def test_a_cage_that_cannot_move_its_object_says_why(tmp_path):
+    """A 4.3 kg box with friction 0.4 (16.9 N) and eight robots, four of them in the cage and none of the others
+    pushing (reinforce_when_stalled_s: 0): the box stays put, and the failures say so, with the force and what
+    to change."""
+    scenario = tmp_path / "heavy.yaml"
+    scenario.write_text(HEAVY_BOX + "params: {reinforce_when_stalled_s: 0}\n")
     result = Simulation(load_scenario(str(scenario)), seed=1).run()
     assert result["caged"] and not result["completed"]
     stuck = [f for f in result["failures"] if "after the cage closed" in f]
     assert len(stuck) == 1 and "16.9 N" in stuck[0] and "reinforce_push: true" in stuck[0], result["failures"]
+
+
+def test_the_robots_left_out_push_a_box_too_heavy_for_the_cage_once_it_stalls(tmp_path):
+    """The same box with the default parameters: the cage's pushers cannot move it, the four spares see the
+    cage stall (reinforce_when_stalled_s) and push from behind, and it reaches both waypoints. The swarm does
+    not know the object's mass; a light object never stalls, so lab-6 runs as before."""
+    scenario = tmp_path / "heavy.yaml"
+    scenario.write_text(HEAVY_BOX)
+    sim = Simulation(load_scenario(str(scenario)), seed=1)
+    result = sim.run()
+    assert result["caged"] and result["completed"], result["failures"]
+    assert result["final_position_error_m"] <= 0.1
+    spares = [b for b in sim.behaviours if not b.board.is_member(b.robot.id)]
+    assert spares and all(b.push_stalled for b in spares)
+
+
+def test_the_stuck_hint_offers_reinforce_push_only_when_the_spares_did_not_push(make_scenario):
+    from sim_backend.transport_metrics import TransportEvaluator
+
+    def hint_with(params):
+        scenario = make_scenario(behaviour="transport", robots={"count": 8}, params=params,
+                                 object={"shape": "box", "size": [0.4, 0.4], "mass": 4.3, "friction": 0.4},
+                                 path=[[0.5, 0, 0]])
+        evaluator = TransportEvaluator.__new__(TransportEvaluator)
+        evaluator.scenario, evaluator.pose_at_closure, evaluator.members = scenario, (0.0, 0.0, 0.0), [0, 1, 2, 3]
+        (hint,) = evaluator._stuck_hint((0.0, 0.0, 0.0))
+        return hint
+
+    assert "pushed too once the push stalled for 15 s" in hint_with({})
+    assert "reinforce_push: true" in hint_with({"reinforce_when_stalled_s": 0})
+    assert "reinforce_push: true" in hint_with({"profile": "faithful"})
+    assert "reinforce_push" not in hint_with({"reinforce_push": True})
 
 
 def test_the_stuck_hint_does_not_offer_reinforce_push_when_all_the_robots_are_too_weak(make_scenario):
@@ -738,7 +776,9 @@ def test_a_seed_that_dies_before_closure_is_replaced_and_the_box_still_arrives(t
     sim = lab_box_with_a_death(tmp_path / "dead-seed.yaml", robot=4, at_s=40, time_limit_s=200, seed=1)
     result = sim.run()
     assert result["caged"] and result["completed"], result["failures"]
-    assert result["final_position_error_m"] <= 0.05
+    # 0.045 m until side robots far ahead of their formation stopped (PACE_STOP_M, 2026-11-22): 0.058 m since;
+    # this new seed settles behind the dead one, so the sides look ahead of it (docs/behaviour.md section 8).
+    assert result["final_position_error_m"] <= 0.06
     board = sim.behaviours[0].board
     seed = board.seed_member()
     assert seed is not None and seed != 4 and 4 not in board.members()    # the dead seed no longer counts

@@ -85,6 +85,10 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
         self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
         self.reinforce_reference: Dict[int, Vec] = {}   # the live members when first reinforcing (_cage_centre)
+        self.closed_seen_at: Optional[float] = None     # idle: when this spare first saw the cage closed
+        self.stall_watch: Optional[Tuple[int, float, float]] = None   # (leg, since, distance) (_push_stalled)
+        self.next_stall_check = 0.0
+        self.push_stalled = False                # the cage stalled pushing: this spare reinforces from now on
         self.quiet_since: Tuple[int, float] = (-1, 0.0)   # idle: (count of mission news, since when)
         self.left_behind = False
         self.cut_off: Tuple[float, bool] = (-math.inf, False)   # idle: (when last checked, cut off from the mission)
@@ -190,7 +194,7 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
             return
         regroup = False
         if "closed" in self.space:
-            if not self._caging_only_done() and self.params.reinforce_push:
+            if not self._caging_only_done() and (self.params.reinforce_push or self._push_stalled(now)):
                 self._reinforce(now)
                 return
         elif not self._take_won_task(now):

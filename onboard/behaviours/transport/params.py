@@ -87,6 +87,10 @@ class TransportParams:
     return_after_turning: bool = True
     keep_contact: bool = True                # while pushing, a robot that lost the object returns to it first
     reinforce_push: bool = False             # robots left out of the cage push from behind (reinforce.py)
+    # Ours: ... and without reinforce_push, they do once the cage has pushed this long toward its waypoint
+    # without coming 3 cm nearer (an object too heavy for the members behind it; the swarm does not know its
+    # mass). 0: never. A light object never stalls, so its runs are unchanged (reinforce.py:_push_stalled).
+    reinforce_when_stalled_s: float = 15.0
     soft_side_contact: bool = True           # scale u_cp by cos(angle(x_o, tau_p)) (min 0.25) while pushing
     seed_from_rear: bool = True              # the seed meets the object from behind its first leg (approach.py)
     seed_approach_radius_m: float = 0.8      # ... circling the estimated centroid at this distance to get there
@@ -119,6 +123,7 @@ class TransportParams:
             self.slow_down_radius_m = 0.0
             self.attach_timeout_s = math.inf      # the paper's robots attach for as long as it takes
             self.travel_speed_m_s = self.cruise_speed_m_s
+            self.reinforce_when_stalled_s = 0.0
         self._check(where)
 
     def _check(self, where: str) -> None:
@@ -134,5 +139,6 @@ class TransportParams:
             check_range(f"{where}.{name}", getattr(self, name), 0.0, 180.0, low_open=True)
         check_range(f"{where}.barrier_fraction", self.barrier_fraction, 0.0, 1.0, low_open=True)
         check_range(f"{where}.settle_time_s", self.settle_time_s, 0.0)
+        check_range(f"{where}.reinforce_when_stalled_s", self.reinforce_when_stalled_s, 0.0)
         check_range(f"{where}.slow_down_radius_m", self.slow_down_radius_m, 0.0)
         check_range(f"{where}.surface_estimate_min_points", self.surface_estimate_min_points, 3)

@@ -1,4 +1,4 @@
-"""Robots left out of the cage push from behind (option ``reinforce_push``, off by default; not in the paper).
+"""Robots left out of the cage push from behind (``reinforce_push``, or once the push stalls; not in the paper).
 
 The paper's robots that are not needed for the cage stay out of the way. On the lab's loaded box (4.3 kg)
 the one or two cage members behind the object cannot overcome its friction, while two robots wait idle
@@ -7,8 +7,12 @@ centroid from the members' shared positions (as the members do), works out which
 heading for from the members' arrival flags, gets behind the cage on the line through the centroid and
 pushes along the direction of travel. They hold still while the cage rotates and never count in a barrier.
 
-Off by default: on a light object the extra pushers move it faster than the cage ring follows, and the
-centroid estimate (the ring's centroid) falls behind the object (lab-6: up to 0.28 m instead of 0.06 m).
+``reinforce_push`` is off by default: on a light object the extra pushers move it faster than the cage ring
+follows, and the centroid estimate (the ring's centroid) falls behind the object (lab-6: up to 0.28 m instead
+of 0.06 m). What the default does instead (``reinforce_when_stalled_s``): the spares watch the cage, and
+once it has pushed toward its waypoint for that long without coming STALL_PROGRESS_M nearer, the object is
+too heavy for the members behind it (its mass is unknown to the swarm), and they reinforce the push from
+then on: a light object never stalls, so its runs are the same as without.
 
 A mixin of :class:`~.behaviour.Transport`, like :class:`~.transport.TransportPhases`.
 """
@@ -28,9 +32,42 @@ LATERAL_GAIN = 10.0        # pull toward the line of travel through the centroid
 LINE_UP_M = 0.1           # push forward only this close to the line (full speed on it)
 ARRIVED_M = 0.05           # closer than this to the waypoint, the cage is arriving: stop pushing
 NEAR_OBJECT_READING = 0.3  # an object IR reading this strong (~8 cm): no more lining up sideways, push on
+STALL_PROGRESS_M = 0.03    # a cage pushing that came less than this nearer its waypoint ... is stalled
+STALL_CHECK_S = 1.0        # how often a spare looks at the cage's progress (member positions beat ~1 s)
 
 
 class ReinforcePhase:
+    def _push_stalled(self, now: float) -> bool:
+        """Ours (``reinforce_when_stalled_s``): whether the cage has stalled while pushing, seen by a spare.
+        The watch starts when the members' settling time after closure is over, restarts whenever the cage
+        comes STALL_PROGRESS_M nearer its waypoint, a new leg begins or the cage is not pushing (rotating,
+        or at the barrier), and is not kept within ``push_tolerance_m`` of the waypoint, where a cage that
+        waits at a barrier is arriving, not stalled. Once stalled, the object is heavy: it stays so."""
+        stall_s = self.params.reinforce_when_stalled_s
+        if self.push_stalled or stall_s <= 0.0:
+            return self.push_stalled
+        if self.closed_seen_at is None:
+            self.closed_seen_at = now
+        if now < self.next_stall_check or now < self.closed_seen_at + self.params.settle_time_s:
+            return False
+        self.next_stall_check = now + STALL_CHECK_S
+        members = self._member_positions(now)
+        path = self.space.get("path") or self.params.path
+        needed = self._barrier_needed(len(members))
+        leg = self._cage_leg(needed, path) if len(members) >= 3 and path else None
+        if leg is None or not self._cage_pushing(leg, needed):
+            self.stall_watch = None
+            return False
+        centre = self._cage_centre(members)
+        distance = math.hypot(float(path[leg][0]) - centre[0], float(path[leg][1]) - centre[1])
+        watch = self.stall_watch
+        if distance < self.params.push_tolerance_m or watch is None or watch[0] != leg \
+                or distance < watch[2] - STALL_PROGRESS_M:
+            self.stall_watch = (leg, now, distance)
+        elif now - watch[1] >= stall_s:
+            self.push_stalled = True
+        return self.push_stalled
+
     def _reinforce(self, now: float) -> None:
         """One step of an idle robot helping the cage push (called from idle once the cage has closed)."""
         members = self._member_positions(now)                # every live member has a heartbeat

@@ -27,6 +27,7 @@ GAP_READING = 0.85
 GAP_GAIN = 3.0
 PACE_AHEAD_M = 0.04   # pace_formation: this far ahead of its formation a non-pushing robot is down to PACE_MIN
 PACE_MIN = 0.2
+PACE_STOP_M = 0.08    # ... and this far ahead, stopped (it slows from PACE_MIN to 0 in between)
 PACE_ANGLE = math.radians(45.0)   # ... a robot whose object lies more than this off its way (not behind it)
 
 
@@ -272,6 +273,12 @@ class TransportPhases:
         if not leads:
             return 1.0
         ahead = sum(leads) / len(leads)
+        if ahead > PACE_AHEAD_M:
+            # Ours: farther ahead it stops altogether, at PACE_STOP_M: crawling on at PACE_MIN beside an object
+            # that does not move (too heavy for its pushers) slid the side robots 0.27 m along its faces, and
+            # the ring centroid ran 0.12 m ahead of it.
+            beyond = (ahead - PACE_AHEAD_M) / (PACE_STOP_M - PACE_AHEAD_M)
+            return float(max(0.0, PACE_MIN * (1.0 - beyond)))
         return float(np.clip(1.0 - (1.0 - PACE_MIN) * ahead / PACE_AHEAD_M, PACE_MIN, 1.0))
 
     @staticmethod
