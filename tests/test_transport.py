@@ -809,3 +809,41 @@ def test_a_member_that_dies_while_pushing_leaves_a_cage_that_still_delivers_the_
     assert result["completed"], result["failures"]
     assert result["final_position_error_m"] <= 0.05
     assert sim.behaviours[0].offset_members == {0, 3}      # the estimate no longer counts robot 1
+
+
+def light_triangle(make_scenario, time_limit_s: float):
+    """A 0.5 kg triangle whose first waypoint lies 0.5 m from it (a user's scenario, docs/behaviour.md section 8)."""
+    return make_scenario(behaviour="transport",
+                         robots={"count": 8, "spawn": {"x": [-2.0, -0.8], "y": [-2.0, -0.8]}},
+                         object={"shape": "polygon", "vertices": [[0, 0], [0.3, 0.6], [0.6, 0]],
+                                 "mass": 0.5, "position": [0.3, 0.2]},
+                         path=[[0.3, 0.7, 0], [-0.3, 0.7, 0]],
+                         arena={"walls": [-2.5, -2.5, 2.5, 2.5]}, time_limit_s=time_limit_s)
+
+
+def test_a_robot_attaching_on_a_corner_its_ir_barely_sees_does_not_shove_the_object(make_scenario):
+    """The robot attaching at R1 meets a 60-degree corner of the triangle between two of its IR rays, reads
+    0.1-0.6 (below the 0.7 of contact) and drove on into it: it shoved the object 0.47 m before the cage had
+    formed, and the ring went on forming round where the object had been. Now, having driven 0.12 m toward
+    the object (the IR's range) without touching it, it knows it pushes it, and slides instead."""
+    sim = Simulation(light_triangle(make_scenario, time_limit_s=100), seed=1)
+    sim.run()
+    x, y, _ = sim.world.object_pose()
+    assert math.hypot(x - 0.3, y - 0.2) < 0.15
+
+
+def test_a_cage_with_nobody_behind_its_object_does_not_chase_it_away_from_the_waypoint(make_scenario,
+                                                                                         monkeypatch):
+    """Without the corner check above, the triangle drifts 0.5 m while it is caged and the ring closes with
+    every member on the waypoint's side of it. Those members lose the object as u_t draws them toward the
+    waypoint; keep_contact sends them back into it, which pushed it away from the waypoint: 1.2 m from the
+    last one at 330 s, on its way 2.1 m into the wall. The spares now see the cage make no progress toward
+    its waypoint (reinforce_when_stalled_s) and push from behind: 0.13 m (section 8)."""
+    from onboard.behaviours.transport.caging import CagingPhases
+
+    monkeypatch.setattr(CagingPhases, "_shoving", lambda self, now, contact: False)
+    sim = Simulation(light_triangle(make_scenario, time_limit_s=330), seed=1)
+    sim.run()
+    x, y, _ = sim.world.object_pose()
+    assert math.hypot(x + 0.3, y - 0.7) < 0.3
+    assert any(b.push_stalled for b in sim.behaviours)

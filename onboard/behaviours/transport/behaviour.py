@@ -82,6 +82,10 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
         self.progress: Tuple[float, float] = (math.inf, 0.0)   # travel: (best distance to target, when)
         self.seed_still: Tuple[Optional[Vec], float] = (None, 0.0)   # seed: (where it last moved 2 cm, when)
         self.attach_since = 0.0                  # when this robot last went from travel to attach
+        self.approach_from: Optional[Vec] = None   # attach: where this robot was at the last step (_shoving)
+        self.shove_advance = 0.0                 # attach: how far it drove toward the object without touching it
+        self.shoving_object = False              # attach: pressed on the object below the contact reading
+        self.object_seen_at = -math.inf          # attach: when the IR last saw the object
         self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
         self.reinforce_reference: Dict[int, Vec] = {}   # the live members when first reinforcing (_cage_centre)

@@ -33,6 +33,11 @@ WRONG_SIDE_COS = 0.5
 # next metre, so a robot reaches the cage's crowded rim and its target at the cruise speed.
 TRAVEL_FAST_BEYOND_M = 3.0
 TRAVEL_EASE_M = 1.0
+# An attaching robot that drove SHOVE_ADVANCE_M toward the object while its IR saw it, without touching it
+# (reading >= proximity_threshold, about 5 cm off), is shoving it (_shoving); SHOVE_LOST_S without seeing the
+# object ends that.
+SHOVE_ADVANCE_M = 0.12
+SHOVE_LOST_S = 1.0
 
 
 class CagingPhases:
@@ -85,6 +90,7 @@ class CagingPhases:
         if remaining < ATTACH_RADIUS_M or touching or stalled:
             self.state = "attach"
             self.attach_since = now
+            self.approach_from, self.shove_advance, self.shoving_object = None, 0.0, False
             self._maybe_pipeline(now)
             return
         members = set(self.board.members())
@@ -122,7 +128,9 @@ class CagingPhases:
             return
         p, percept = self.params, self.percept
         error = self._predecessor_error()
-        if percept.in_contact(p.proximity_threshold):
+        contact = percept.in_contact(p.proximity_threshold)
+        shoving = self._shoving(now, contact)
+        if contact or shoving:
             # u = perp(x_o): slide along the object until the predecessor is I_d away. No push inward: the
             # object must not move while the cage forms.
             # (The branch's direction, as the paper has it, even beyond the predecessor: a robot there slides
@@ -130,7 +138,7 @@ class CagingPhases:
             # in the notches of irregular-box_rotation, whose predecessor is across the notch, never settle.)
             direction = BRANCH_DIRECTION[self.task.branch]
             u = c.u_distance_correction(percept.object_vector, error * direction, 4.0)
-            if p.keep_gap_while_caging:
+            if p.keep_gap_while_caging and (contact or percept.object_peak > GAP_READING):
                 u = c.add(u, c.u_keep_gap(percept.object_vector, percept.object_peak, GAP_READING, GAP_GAIN))
             settled = abs(error) < p.caging_tolerance_m
         else:
@@ -146,6 +154,28 @@ class CagingPhases:
             self._hold()
         else:
             self._drive(u, speed_scale=0.6)
+
+    def _shoving(self, now: float, contact: bool) -> bool:
+        """Ours: whether this attaching robot touches the object although its reading stays below
+        proximity_threshold. The IR rays pass on either side of a sharp corner (the KheperaIV's 8 sensors are
+        45 degrees apart), so a robot pressed on a 60-degree corner of a triangle read 0-0.7 and drove on
+        toward it, shoving the light object 0.45 m while the cage formed (docs/behaviour.md section 8). The IR
+        sees no farther than about 0.12 m: a robot that drove SHOVE_ADVANCE_M toward the object since it
+        last touched it or first saw it, without touching it, must be pushing it. Once told, it holds until
+        the robot has not seen the object for SHOVE_LOST_S (or leaves attach)."""
+        percept = self.percept
+        if percept.object_peak > 0.0:
+            self.object_seen_at = now
+        elif now - self.object_seen_at > SHOVE_LOST_S:
+            self.shove_advance, self.shoving_object = 0.0, False
+        last, self.approach_from = self.approach_from, percept.position
+        if contact:
+            self.shove_advance = 0.0
+        elif last is not None and percept.object_peak > 0.0 and not self.shoving_object:
+            step, toward = c.sub(percept.position, last), c.unit(percept.object_vector)
+            self.shove_advance += step[0] * toward[0] + step[1] * toward[1]
+            self.shoving_object = self.shove_advance >= SHOVE_ADVANCE_M
+        return self.shoving_object
 
     def _slide_sign(self, x_o: Vec) -> float:
         """For a cage member holding its place: which way along perp(x_o) brings it nearer its predecessor.
