@@ -58,9 +58,7 @@ def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: b
     existing = [p for p in targets if p.exists()]
     if existing and not force:
         raise ConfigError("keys", f"{existing[0]} already exists (use --force to replace keys)")
-    for name in operators:
-        if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
-            raise ConfigError("--operator", f"use letters, digits, '.', '_' or '-' only (got {name!r})")
+    check_operator_names(operators)
     for path in stale_keys(folder, targets) if force else []:   # rotating keys must not leave an old robot
         path.unlink()                                             # or operator key that the hub still accepts
     created = []
@@ -70,6 +68,13 @@ def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: b
         Path(secret).chmod(0o600)
         created += [Path(public), Path(secret)]
     return created
+
+
+def check_operator_names(operators: List[str]) -> None:
+    """An operator name becomes a file name: refuse one that would not be a plain one."""
+    for name in operators:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
+            raise ConfigError("--operator", f"use letters, digits, '.', '_' or '-' only (got {name!r})")
 
 
 def stale_keys(folder: Path, keep: List[Path]) -> List[Path]:

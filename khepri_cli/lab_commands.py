@@ -190,14 +190,15 @@ def _add_keys(groups) -> None:
 
 
 def cmd_keys_init(args: argparse.Namespace) -> int:
-    from hub.security import init_keys, stale_keys
+    from hub.security import check_operator_names, init_keys, stale_keys
     from khepri_cli.sim_commands import out_folder_problem
 
     ids = parse_robot_ids(args.robots)
+    operators = list(dict.fromkeys(args.operator or ["operator"]))     # --operator alice twice: one key pair
+    check_operator_names(operators)           # before the folder is made: a refused name leaves nothing behind
     problem = out_folder_problem(args.folder)     # an unwritable place: said with the argument, not the OS error
     if problem:
         raise ConfigError("FOLDER", problem)
-    operators = list(dict.fromkeys(args.operator or ["operator"]))     # --operator alice twice: one key pair
     wanted = [args.folder / "robots" / f"robot-{i}.key" for i in ids] \
         + [args.folder / "operators" / f"{name}.key" for name in operators]
     stale = stale_keys(args.folder, wanted) if args.force and args.folder.is_dir() else []

@@ -134,6 +134,12 @@ def test_keys_init_and_ctl_error_without_a_hub(tmp_path):
     assert lonely.returncode == 1 and "no answer from the hub" in lonely.stderr
 
 
+def test_keys_init_with_a_refused_operator_name_leaves_nothing_behind(tmp_path):
+    refused = khepri("keys", "init", str(tmp_path / "keys"), "--operator", "ann/../bob")
+    assert refused.returncode == 2 and "--operator: use letters" in refused.stderr
+    assert not (tmp_path / "keys").exists()     # no empty folder for the next `keys init` to trip over
+
+
 def test_bench_hub_prints_the_three_figures():
     run = khepri("bench", "hub", "--robots", "10", "--rate", "60", "--seconds", "1", "--json")
     assert run.returncode == 0, run.stderr
