@@ -273,7 +273,13 @@ def cmd_sil(args: argparse.Namespace) -> int:
     from hub.sil import SilOptions, run_sil
     from hub.sil_report import sil_summary_lines
     from khepri_cli.signals import sigterm_as_ctrl_c
-    from khepri_cli.sim_commands import check_time_limit, out_folder_problem, print_summary, require_out_folder
+    from khepri_cli.sim_commands import (
+        RUN_FILES,
+        check_time_limit,
+        out_folder_problem,
+        print_summary,
+        require_out_folder,
+    )
     from sim_backend.scenario import load_scenario
 
     if args.seed is not None and args.seed < 0:
@@ -283,7 +289,7 @@ def cmd_sil(args: argparse.Namespace) -> int:
     seed = scenario.seed if args.seed is None else args.seed
     out = args.out or Path("out") / f"sil-{scenario.name}-seed{seed}"
 
-    require_out_folder(out)
+    require_out_folder(out, RUN_FILES + ("hub.log", "hub.mcap"))     # what sil writes there
     problem = out_folder_problem(out / "agents")     # else a file of that name stops sil once the hub is up
     if problem:
         raise ConfigError("--out", f"{problem} (sil writes the agents' logs into it)")

@@ -7,7 +7,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 from .signals import sigterm_as_ctrl_c
 
@@ -97,7 +97,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
     sim = Simulation(scenario, seed=args.seed)
     out = args.out or Path("out") / f"{scenario.name}-seed{sim.seed}"
-    problem = out_folder_problem(out)
+    problem = out_folder_problem(out, RUN_FILES)
     if problem:                 # said now, not after a long run whose results could not be written
         print(f"khepri: error: --out: {problem}", file=sys.stderr)
         return 2
@@ -129,17 +129,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def require_out_folder(out: Path) -> None:
+def require_out_folder(out: Path, files: Sequence[str] = ()) -> None:
     """Create the output folder before a long job; ConfigError naming --out when that cannot be done."""
     from onboard.config import ConfigError
 
-    problem = out_folder_problem(out)
+    problem = out_folder_problem(out, files)
     if problem:
         raise ConfigError("--out", problem)
 
 
-def out_folder_problem(out: Path) -> Optional[str]:
-    """Create the output folder now; what is wrong with it, or None."""
+RUN_FILES = ("result.json", "trajectory.npz", "trajectory.png")    # what `sim run` writes into --out
+
+
+def out_folder_problem(out: Path, files: Sequence[str] = ()) -> Optional[str]:
+    """Create the output folder now; what is wrong with it, or None. ``files``: names the command will write
+    there, so that a folder of that name is said now rather than as "Is a directory" after the run."""
     if out.exists() and not out.is_dir():      # mkdir would only say "File exists"
         return f"{out} is a file, not a folder"
     try:
@@ -148,6 +152,9 @@ def out_folder_problem(out: Path) -> Optional[str]:
         return f"cannot create the folder {out}: {err.strerror or err}"
     if not os.access(out, os.W_OK | os.X_OK):
         return f"cannot write into {out}"
+    for name in files:
+        if (out / name).is_dir():
+            return f"{out / name} is a folder, where the run writes its {name} (move it or choose another --out)"
     return None
 
 

@@ -99,6 +99,17 @@ def test_sil_refuses_an_out_folder_whose_agents_is_a_file_before_it_starts(tmp_p
     assert not (out / "hub.log").exists()              # refused before the hub began
 
 
+@pytest.mark.parametrize("command,blocked", [(["sil", "lab-6"], "hub.log"), (["sil", "lab-6"], "hub.mcap"),
+                                             (["sim", "run", "lab-6"], "result.json")])
+def test_a_folder_where_a_run_writes_a_file_is_refused_before_it_starts(tmp_path, capsys, command, blocked):
+    """It said `khepri: error: Is a directory: OUT/hub.log`, without --out (and `sim run` only after the run)."""
+    out = tmp_path / "out"
+    (out / blocked).mkdir(parents=True)
+    assert main([*command, "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (f"khepri: error: --out: {out / blocked} is a folder, where the run writes "
+                                       f"its {blocked} (move it or choose another --out)\n")
+
+
 @pytest.mark.parametrize("folder, problem", [
     ("/proc/khepri-keys", "cannot create the folder /proc/khepri-keys: No such file or directory"),
     ("{tmp}/a-file/keys", "cannot create the folder {tmp}/a-file/keys: Not a directory"),
