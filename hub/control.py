@@ -52,17 +52,20 @@ def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, ti
 
 
 def refusals_after_start(endpoint: str, keys: Optional[Dict[str, bytes]] = None, timeout_s: float = 2.0,
-                         wait_s: float = 1.5) -> List[Tuple[int, str]]:
+                         wait_s: float = 5.0) -> List[Tuple[int, str]]:
     """After ``start``: the connected robots that say they cannot run it (an unknown behaviour, bad params, an
     ``__init__`` that raised), as (id, error). An agent says so in its telemetry, after the hub's reply, so
-    this asks the status until every connected robot reports the new run or ``wait_s`` has passed."""
+    this asks the status until every connected robot has answered the new run (it holds it, or it refused
+    it: ``refused_run_id``) or ``wait_s`` has passed. The wait is that long only for a robot that does not
+    answer: on a loaded lab PC or a slow radio an answer can take over a second."""
     deadline = time.monotonic() + wait_s
     while True:
         status = request(endpoint, "status", keys=keys, timeout_s=timeout_s)["status"]
         connected = [row for row in status["robots"] if row.get("connected")]
+        run_id = status.get("run_id")
         # A robot that reports the new run has also dropped any older error (a fresh one: its __init__ raised)
-        started = all(row.get("run_id") == status.get("run_id") for row in connected)
-        if started or time.monotonic() >= deadline:
+        answered = all(run_id in (row.get("run_id"), row.get("refused_run_id")) for row in connected)
+        if answered or time.monotonic() >= deadline:
             return [(row["id"], str(row["error"])) for row in connected if row.get("error")]
         time.sleep(0.1)
 

@@ -60,6 +60,7 @@ class RobotLink:
             "frames_dropped": self.frames_dropped,
             "estop_ack_ms": None if self.estop_ack_s is None else round(self.estop_ack_s * 1000.0, 2),
             "error": telemetry.get("error"),
+            "refused_run_id": telemetry.get("refused_run_id"),     # the run it said it cannot start
         }
 
 

@@ -155,7 +155,7 @@ SCHEMAS: Dict[str, Dict[str, Schema]] = {
         "optional": {"behaviour": optional(mapping), "loop": mapping, "battery_v": optional(number),
                      "clock_s": optional(number), "frames_lost": integer, "frames_bad": integer,
                      "unsent": integer, "inbox_dropped": integer, "run_id": optional(text),
-                     "error": optional(text), "driver": text},
+                     "error": optional(text), "refused_run_id": optional(text), "driver": text},
     },
     "broadcast": {
         "required": {"id": robot_id, "payload": mapping, "sent_s": number},

@@ -115,6 +115,9 @@ def test_ctl_start_names_the_robots_that_cannot_run_it(tmp_path):
         assert start.stdout.startswith("start: ok (1 of 3 robots connected and sent it")
         assert "khepri: error: robot 1: cannot start the run: run.behaviour: unknown behaviour 'hub-only'" \
             in start.stderr
+        status = json.loads(khepri("ctl", "status", "--json", "--port", ports["control"]).stdout)
+        row = next(row for row in status["robots"] if row["id"] == 1)
+        assert row["refused_run_id"] == status["run_id"]     # its answer, which `ctl start` waits for
     finally:
         codes = stop_processes([p for p in (agent, hub) if p is not None])
         hub_log.close()

@@ -342,6 +342,8 @@ class Agent:
         }
         if self.error:
             message["error"] = self.error[:200]
+        if self.run is None and self.error and self.refused_run_id is not None:
+            message["refused_run_id"] = self.refused_run_id     # `ctl start` waits for this answer
         try:
             data = self.link.encode(message)
         except ProtocolError as err:       # too large, or not JSON even after plain_json: say so instead
