@@ -17,7 +17,7 @@ from ...hal.ir_curve import ir_distance_m
 from ...localisation import PoseTracker
 from ...motion import vector_to_wheels
 from . import control as c
-from .caging import CagingPhases
+from .caging import AVERAGE_SETTLE_STEPS, CagingPhases
 from .control import Vec
 from .estimation import ObjectEstimation
 from .estimator import ObjectFilter, ring_centroid, surrounds
@@ -52,6 +52,7 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
         self.bid_seen: Dict[str, float] = {}     # "tid/epoch" -> local time a bid was first seen
         self.last_bid: Dict[str, float] = {}
         self.settled_steps = 0
+        self.settle_window: Deque[Tuple[float, Vec]] = deque(maxlen=AVERAGE_SETTLE_STEPS)   # _settled_on_average
         self.spawned: Optional[str] = None       # the task this robot opened for its successor
         self.spawned_times: Dict[Tuple[str, int], float] = {}   # (tid, epoch) -> when this robot opened it
         self.path: list = []
