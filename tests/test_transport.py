@@ -853,8 +853,8 @@ def test_a_cage_with_nobody_behind_its_object_does_not_chase_it_away_from_the_wa
 def test_attaching_robots_settle_with_a_range_and_bearing_five_times_noisier_than_the_default(tmp_path, seed):
     """The lab-6 box with comm.range_noise_m 0.05 and bearing_noise_rad 0.1 (the defaults are 0.01 and 0.02):
     a robot in its place read its predecessor d_tol or more off every few steps, so SETTLE_STEPS readings in a
-    row within d_tol took minutes (seed 3 caged at 230 s, 6 robots moving a 0.3 kg box) and the cage that
-    formed at last left the box off (seed 2: 0.14 rad at the end). Now a robot whose mean error over
+    row within d_tol took minutes (seed 3 caged at 230 s); seed 2 caged at 58 s, with members settled late, and
+    left the box 0.14 rad off its yaw. Now a robot whose mean error over
     AVERAGE_SETTLE_STEPS is within d_tol / 2 settles too: they cage within a minute and complete."""
     scenario = tmp_path / "noisy-rab.yaml"
     scenario.write_text(LAB_BOX.replace("comm: {range_m: 3.0}", "comm: {range_m: 3.0, range_noise_m: 0.05, "
