@@ -107,22 +107,18 @@ def list_of(check: Check, limit: int = 100_000) -> Check:
     return check_list
 
 
-def neighbour(value: Any, field: str) -> None:
-    """``[id, range_m, bearing_rad]``."""
-    if not isinstance(value, list) or len(value) != 3:
-        fail(field, f"must be [id, range_m, bearing_rad] (got {short(value)})")
-    robot_id(value[0], f"{field}[0]")
-    non_negative(value[1], f"{field}[1]")
-    number(value[2], f"{field}[2]")
+def fields_of(shape: str, *checks: Check) -> Check:
+    """A list of exactly ``len(checks)`` items, item i passing ``checks[i]``; ``shape`` names them in errors."""
+    def check_fields(value: Any, field: str) -> None:
+        if not isinstance(value, list) or len(value) != len(checks):
+            fail(field, f"must be {shape} (got {short(value)})")
+        for i, (check, item) in enumerate(zip(checks, value)):
+            check(item, f"{field}[{i}]")
+    return check_fields
 
 
-def relayed(value: Any, field: str) -> None:
-    """``[sender, sent_s, payload]``."""
-    if not isinstance(value, list) or len(value) != 3:
-        fail(field, f"must be [sender, sent_s, payload] (got {short(value)})")
-    robot_id(value[0], f"{field}[0]")
-    number(value[1], f"{field}[1]")
-    mapping(value[2], f"{field}[2]")
+neighbour = fields_of("[id, range_m, bearing_rad]", robot_id, non_negative, number)
+relayed = fields_of("[sender, sent_s, payload]", robot_id, number, mapping)
 
 
 def sim_sensors(value: Any, field: str) -> None:

@@ -206,3 +206,17 @@ def test_deeply_nested_json_is_rejected_not_crashing():
 def test_unknown_fields_are_ignored_for_forward_compatibility():
     decoded = decode(encode({**EXAMPLES["wheels"], "future": 1}), "robot 3")
     assert decoded["left"] == 0.1
+
+
+@pytest.mark.parametrize("check, value, said", [
+    ("neighbour", [1, 2.0], "frame.neighbours[0]: must be [id, range_m, bearing_rad] (got [1, 2.0])"),
+    ("neighbour", [1, -0.1, 0.0], "frame.neighbours[0][1]: must be >= 0 (got -0.1)"),
+    ("relayed", "x", "frame.neighbours[0]: must be [sender, sent_s, payload] (got 'x')"),
+    ("relayed", [1, 0.0, []], "frame.neighbours[0][2]: must be a JSON object (got [])"),
+])
+def test_a_bad_neighbour_record_or_relayed_message_names_its_field(check, value, said):
+    from onboard import protocol_schema
+
+    with pytest.raises(ProtocolError) as caught:
+        getattr(protocol_schema, check)(value, "frame.neighbours[0]")
+    assert said in str(caught.value)
