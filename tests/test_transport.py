@@ -7,7 +7,7 @@ import pytest
 
 from onboard.behaviour import build_params, get_behaviour
 from onboard.behaviours.transport import control as c
-from onboard.behaviours.transport.approach import seed_heading
+from onboard.behaviours.transport.approach import first_travel, seed_heading
 from onboard.behaviours.transport.estimator import (
     encloses,
     normal_displacement,
@@ -368,22 +368,47 @@ def test_a_reinforcer_at_the_object_pushes_straight_on_instead_of_sliding_into_t
     assert transport._reinforce_input((0.0, 0.0), (0.0, 1.0), ring) == (0.0, 1.0)
 
 
-@pytest.mark.parametrize("start_deg", [0, 45, 90, 135, 180, 225, 300])
-def test_the_seed_meets_the_object_behind_its_first_leg(start_deg):
-    """seed_from_rear: from any side, the seed circles round and touches a 0.2 m disc on the line of travel
-    through the centroid, on the side away from the first waypoint; a robot already behind drives straight in."""
-    centre, waypoint = (1.0, 2.0), (1.0, 3.0)             # travel +y: the rear is -y
+def _seed_contact_angle(start_deg: float, centre, travel) -> float:
+    """Where (the world angle seen from ``centre``, degrees) a seed starting 1.2 m out at ``start_deg``
+    touches a 0.2 m disc, driving by seed_heading."""
     start = math.radians(start_deg)
     x, y = centre[0] + 1.2 * math.cos(start), centre[1] + 1.2 * math.sin(start)
     travelled = 0.0
     while math.hypot(x - centre[0], y - centre[1]) > 0.2:
-        step = c.scale(c.unit(seed_heading((x, y), centre, waypoint, 0.8)), 0.01)
+        step = c.scale(c.unit(seed_heading((x, y), centre, travel, 0.8)), 0.01)
         x, y, travelled = x + step[0], y + step[1], travelled + 0.01
         assert travelled < 6.0, "the seed never reached the object"
-    contact = math.degrees(math.atan2(y - centre[1], x - centre[0]))
-    assert contact == pytest.approx(-90.0, abs=6.0)
-    # No direction of travel (the first waypoint is a turn on the spot): straight at the centroid.
-    assert c.unit(seed_heading((2.0, 2.0), centre, centre, 0.8)) == pytest.approx((-1.0, 0.0))
+    return math.degrees(math.atan2(y - centre[1], x - centre[0]))
+
+
+@pytest.mark.parametrize("start_deg", [0, 45, 90, 135, 180, 225, 300])
+def test_the_seed_meets_the_object_behind_its_first_leg(start_deg):
+    """seed_from_rear: from any side, the seed circles round and touches a 0.2 m disc on the line of travel
+    through the centroid, on the side away from the first waypoint; a robot already behind drives straight in."""
+    centre = (1.0, 2.0)
+    travel = first_travel(centre, [(1.0, 3.0, 0.0)], 0.0)      # travel +y: the rear is -y
+    assert _seed_contact_angle(start_deg, centre, travel) == pytest.approx(-90.0, abs=6.0)
+    # No direction of travel (the only waypoint is a turn on the spot): straight at the centroid.
+    assert first_travel(centre, [(1.0, 2.0, 90.0)], 0.0) is None
+    assert c.unit(seed_heading((2.0, 2.0), centre, None, 0.8)) == pytest.approx((-1.0, 0.0))
+
+
+@pytest.mark.parametrize("path", [
+    [(1.0, 2.0, 0.0), (1.0, 2.9, 0.0)],                        # the path starts where the object lies
+    [(1.02, 2.0, 0.0), (1.0, 2.0, 3.0), (1.0, 2.9, 0.0)],      # two waypoints 2 cm off, a 3 degree turn
+])
+def test_the_seed_meets_the_object_behind_the_first_leg_that_moves_it(path):
+    """Waypoints on the object's start only turn it: the seed goes behind the first leg that moves the
+    object. (A path starting where the lab box lay let the seed arrive from anywhere: the box spun 10-45
+    degrees under a pusher at its corner in 6 of 10 seeds.) A path that first turns the object further
+    than ON_LINE_RAD leaves the seed the paper's way, straight at the centroid."""
+    centre = (1.0, 2.0)
+    travel = first_travel(centre, path, 0.0)
+    assert travel == pytest.approx((0.0, 1.0), abs=1e-9)
+    assert _seed_contact_angle(200.0, centre, travel) == pytest.approx(-90.0, abs=6.0)
+    assert first_travel(centre, [(1.0, 2.0, 90.0), (1.6, 2.0, 90.0)], 0.0) is None
+    assert first_travel(centre, [(1.0, 2.0, 0.0), (1.6, 2.0, 0.0)], math.radians(90.0)) is None
+    assert first_travel(centre, [(1.0, 2.0, 360.0), (1.6, 2.0, 0.0)], 0.0) == pytest.approx((1.0, 0.0))
 
 
 def test_a_seed_wedged_on_a_corner_of_the_object_settles_there():
@@ -862,3 +887,18 @@ def test_attaching_robots_settle_with_a_range_and_bearing_five_times_noisier_tha
     result = Simulation(load_scenario(str(scenario)), seed=seed).run()
     assert result["caged"] and result["time_to_cage_s"] < 90.0
     assert result["completed"], result["failures"]
+
+
+@pytest.mark.parametrize("seed", [1, 8])
+def test_a_path_that_starts_where_the_object_lies_is_pushed_straight(tmp_path, seed):
+    """A user's path [[0, 0, 0], [0, 0.9, 0]]: its first waypoint is the object's start. The seed took it
+    for "no direction of travel" and drove straight in from wherever it was, so a pusher ended at a corner
+    of the rear face and the box spun as it went: seed 1 passed the last waypoint 21 degrees off its yaw,
+    seed 8 0.24 m off and 27 degrees. Now the seed goes behind the first leg that moves the object."""
+    scenario = tmp_path / "from-start.yaml"
+    scenario.write_text(LAB_BOX.replace("[[0, 0.3, 0], [0, 0.6, 0], [0, 0.9, 0]]", "[[0, 0, 0], [0, 0.9, 0]]")
+                        + "time_limit_s: 200\n")
+    result = Simulation(load_scenario(str(scenario)), seed=seed).run()
+    assert result["completed"], result["failures"]
+    assert result["final_position_error_m"] < 0.05
+    assert result["final_orientation_error_rad"] < math.radians(5.72)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import List, Optional
 
 from . import control as c
-from .approach import seed_heading
+from .approach import first_travel, seed_heading
 from .control import Vec
 from .estimator import encloses
 from .perception import nearest
@@ -54,8 +54,8 @@ class CagingPhases:
             return
         path = self.space.get("path") or p.path
         if p.seed_from_rear and path:
-            toward = seed_heading(percept.position, self.task.position, (path[0][0], path[0][1]),
-                                  p.seed_approach_radius_m)
+            travel = first_travel(self.task.position, path, self.initial_yaw)
+            toward = seed_heading(percept.position, self.task.position, travel, p.seed_approach_radius_m)
         else:
             toward = c.sub(self.task.position, percept.position)
         self._drive(c.add(c.unit(toward), self._avoid()))
