@@ -101,9 +101,9 @@ def say_missing_keys(ids: List[int], keyring: KeyRing, log: Callable[[str], None
         which = ", ".join(map(str, missing))
         several = len(missing) > 1
         log(f"hub: robot{'s' if several else ''} {which} of this lab ha{'ve' if several else 's'} no key in "
-            f"{keyring.folder / 'robots'}, so cannot connect (make the lab's keys with `khepri keys init "
-            f"{keyring.folder} --robots {robots_option(ids)} --force`, or take {'them' if several else 'it'} "
-            f"off robots)")
+            f"{keyring.folder / 'robots'}, so cannot connect (add {'their keys' if several else 'its key'} with "
+            f"`khepri keys add {keyring.folder} --robots {robots_option(missing)}`, which leaves the other keys "
+            f"as they are, or take {'them' if several else 'it'} off robots)")
     if not keyring.operators:
         log(f"hub: no operator key in {keyring.folder / 'operators'}: `khepri ctl` cannot reach this hub")
 

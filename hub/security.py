@@ -61,6 +61,29 @@ def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: b
     check_operator_names(operators)
     for path in stale_keys(folder, targets) if force else []:   # rotating keys must not leave an old robot
         path.unlink()                                             # or operator key that the hub still accepts
+    return _create_pairs(targets)
+
+
+def add_keys(folder: Path, robot_ids: List[int], operators: List[str]) -> List[Path]:
+    """Add robot and operator key pairs to an existing key folder, leaving every key in it as it is (the hub's
+    and the other robots' and operators'), so nothing already given out has to be copied again. Refuses a
+    robot or operator that already has a key: replacing one is deleting it first, or ``init --force``."""
+    if not (folder / "hub.key").is_file():
+        raise ConfigError("FOLDER", f"no hub key {folder / 'hub.key'}: make the lab's keys with "
+                                    f"`khepri keys init {folder}` first")
+    check_operator_names(operators)
+    targets = [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
+        + [folder / "operators" / f"{name}.key" for name in operators]
+    for path in targets:
+        if path.exists() or path.with_suffix(".key_secret").exists():
+            who = f"robot {path.stem[len('robot-'):]}" if path.parent.name == "robots" else f"operator {path.stem}"
+            option = "--robots" if path.parent.name == "robots" else "--operator"
+            raise ConfigError(option, f"{who} already has a key ({path}); to replace it, delete "
+                                      f"{path.name} and {path.stem}.key_secret first")
+    return _create_pairs(targets)
+
+
+def _create_pairs(targets: List[Path]) -> List[Path]:
     created = []
     for path in targets:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -88,12 +111,13 @@ def stale_keys(folder: Path, keep: List[Path]) -> List[Path]:
 def load_keyring(folder: Path) -> KeyRing:
     public, secret = _load_pair(folder / "hub.key_secret", "hub", HUB_KEYS_FIELD)
     ring = KeyRing(folder, public, secret)
+    holders: Dict[bytes, Path] = {public: folder / "hub.key"}
     for path in sorted((folder / "robots").glob("robot-*.key")):
         match = ROBOT_KEY.match(path.name)
         if match:
-            ring.robots[_load_public(path, HUB_KEYS_FIELD)] = int(match.group(1))
+            ring.robots[_unique_public(path, holders)] = int(match.group(1))
     for path in sorted((folder / "operators").glob("*.key")):
-        ring.operators[_load_public(path, HUB_KEYS_FIELD)] = path.stem
+        ring.operators[_unique_public(path, holders)] = path.stem
     if not ring.robots:
         raise ConfigError(HUB_KEYS_FIELD, f"no robot keys in {folder / 'robots'} (run `khepri keys init {folder}`)")
     return ring
@@ -286,6 +310,17 @@ def _load_pair(path: Path, who: str, where: str):
     if secret is None:
         raise ConfigError(where, f"{path}: holds no secret key")
     return public, secret
+
+
+def _unique_public(path: Path, holders: Dict[bytes, Path]) -> bytes:
+    """A public key of the hub's folder that no other file of it holds: a copied key file would make one
+    peer two (robot-1.key copied to robot-9.key: the later file won, and robot 1 was refused as robot 9)."""
+    public = _load_public(path, HUB_KEYS_FIELD)
+    if public in holders:
+        raise ConfigError(HUB_KEYS_FIELD, f"{holders[public]} and {path} hold the same key: each robot and "
+                                          f"operator needs its own pair (delete the copy)")
+    holders[public] = path
+    return public
 
 
 def _load_public(path: Path, where: str) -> bytes:

@@ -187,6 +187,15 @@ def _add_keys(groups) -> None:
     init.add_argument("--force", action="store_true",
                       help="replace existing keys; robot and operator keys not named again are removed")
     init.set_defaults(func=cmd_keys_init)
+    add = commands.add_parser("add", help="add robot or operator key pairs to an existing key folder",
+                              description="Add DIR/robots/robot-<id>.key(_secret) and DIR/operators/<name>.key"
+                                          "(_secret) for new robots or operators. Every key already in DIR stays "
+                                          "as it is; restart the hub to accept the new ones.")
+    add.add_argument("folder", nargs="?", type=Path, default=Path("keys"), metavar="FOLDER",
+                     help="key folder (default ./keys)")
+    add.add_argument("--robots", help="ids with commas: 6,7 (one id: 6,), or a count N (ids 0..N-1)")
+    add.add_argument("--operator", action="append", help="operator name (repeatable)")
+    add.set_defaults(func=cmd_keys_add)
 
 
 def cmd_keys_init(args: argparse.Namespace) -> int:
@@ -210,6 +219,23 @@ def cmd_keys_init(args: argparse.Namespace) -> int:
           f"({len(ids)}), operators {', '.join(operators)}")
     print(f"  give robot N: {args.folder}/robots/robot-N.key_secret and {args.folder}/hub.key")
     print(f"  keep secret:  {args.folder}/hub.key_secret, {args.folder}/operators/*.key_secret")
+    return 0
+
+
+def cmd_keys_add(args: argparse.Namespace) -> int:
+    from hub.security import add_keys
+
+    if args.robots is None and not args.operator:
+        raise ConfigError("--robots", "name the robots (--robots 6,7) or operators (--operator NAME) to add")
+    ids = parse_robot_ids(args.robots) if args.robots is not None else []
+    operators = list(dict.fromkeys(args.operator or []))
+    created = add_keys(args.folder, ids, operators)
+    what = ([f"robots {describe_ids(ids)} ({len(ids)})"] if ids else []) \
+        + ([f"operators {', '.join(operators)}"] if operators else [])
+    print(f"added {len(created)} key files in {args.folder}: {'; '.join(what)}; every other key is unchanged")
+    if ids:
+        print(f"  give robot N: {args.folder}/robots/robot-N.key_secret and {args.folder}/hub.key")
+    print("  restart the hub to accept them")
     return 0
 
 

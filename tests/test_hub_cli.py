@@ -137,6 +137,21 @@ def test_keys_init_and_ctl_error_without_a_hub(tmp_path):
     assert lonely.returncode == 1 and "no answer from the hub" in lonely.stderr
 
 
+def test_keys_add_adds_robots_and_operators_to_a_key_folder(tmp_path):
+    keys = tmp_path / "keys"
+    assert khepri("keys", "init", str(keys), "--robots", "2").returncode == 0
+    hub_key = (keys / "hub.key_secret").read_bytes()
+    added = khepri("keys", "add", str(keys), "--robots", "2,3", "--operator", "bob")
+    assert added.returncode == 0, added.stderr
+    assert "added 6 key files" in added.stdout and "every other key is unchanged" in added.stdout
+    assert (keys / "robots" / "robot-3.key_secret").is_file() and (keys / "operators" / "bob.key").is_file()
+    assert (keys / "operators" / "operator.key").is_file() and (keys / "hub.key_secret").read_bytes() == hub_key
+    again = khepri("keys", "add", str(keys), "--robots", "3,")
+    assert again.returncode == 2 and "--robots: robot 3 already has a key" in again.stderr
+    nothing = khepri("keys", "add", str(keys))
+    assert nothing.returncode == 2 and "name the robots" in nothing.stderr
+
+
 def test_keys_init_with_a_refused_operator_name_leaves_nothing_behind(tmp_path):
     refused = khepri("keys", "init", str(tmp_path / "keys"), "--operator", "ann/../bob")
     assert refused.returncode == 2 and "--operator: use letters" in refused.stderr

@@ -9,7 +9,7 @@ import zmq
 from hub.config import parse_config
 from hub.control import ControlError, request
 from hub.harness import HubThread, spawn_agent, stop_processes
-from hub.security import init_keys, load_keyring, operator_client_keys
+from hub.security import add_keys, init_keys, load_keyring, operator_client_keys
 from onboard.agent.link import load_robot_keys
 from onboard.config import ConfigError
 from onboard.protocol import encode
@@ -63,8 +63,33 @@ def test_lab_robots_without_a_key_are_said_at_start(keys, make_scenario):
     scenario = make_scenario(robots={"count": 3}, arena={"walls": [-2.0, -2.0, 2.0, 2.0]})
     with HubThread(config, scenario=scenario) as hub:
         said = [line for line in hub.lines if "no key" in line]
-    assert said == [f"hub: robot 2 of this lab has no key in {keys / 'robots'}, so cannot connect (make the lab's "
-                    f"keys with `khepri keys init {keys} --robots 0,1,2 --force`, or take it off robots)"]
+    assert said == [f"hub: robot 2 of this lab has no key in {keys / 'robots'}, so cannot connect (add its key "
+                    f"with `khepri keys add {keys} --robots 2,`, which leaves the other keys as they are, or take "
+                    f"it off robots)"]
+
+
+def test_keys_add_gives_new_robots_keys_and_leaves_every_other_key_as_it_was(keys):
+    """What the hub's hint for robots without keys says to run. It used to say `keys init --force`, which
+    made a new hub key, new keys for the robots that had them, and removed the operators not named again."""
+    before = {path: path.read_bytes() for path in keys.rglob("*.key*")}
+    add_keys(keys, [2, 3], ["bob"])
+    assert all(path.read_bytes() == data for path, data in before.items())
+    ring = load_keyring(keys)
+    assert sorted(ring.robots.values()) == [0, 1, 2, 3] and sorted(ring.operators.values()) == ["alice", "bob"]
+    assert stat.S_IMODE((keys / "robots" / "robot-3.key_secret").stat().st_mode) == 0o600
+    with pytest.raises(ConfigError, match=r"robot 1 already has a key .*robot-1\.key"):
+        add_keys(keys, [1, 4], [])
+    assert not (keys / "robots" / "robot-4.key").exists()       # refused before anything was made
+    with pytest.raises(ConfigError, match="keys init"):
+        add_keys(keys.parent / "elsewhere", [5], [])
+
+
+def test_two_key_files_with_the_same_key_are_refused_naming_both(keys):
+    """robot-1.key copied to robot-9.key: the later file silently won, so robot 1 was refused as robot 9 and
+    the hub said that robot 1 had no key."""
+    (keys / "robots" / "robot-9.key").write_bytes((keys / "robots" / "robot-1.key").read_bytes())
+    with pytest.raises(ConfigError, match=r"robot-1\.key and .*robot-9\.key hold the same key"):
+        load_keyring(keys)
 
 
 def client(endpoint, keypair=None):
