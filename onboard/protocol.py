@@ -155,7 +155,7 @@ def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = Non
             fail("v", f"unsupported protocol version {short(version)} (this side speaks {PROTOCOL_VERSION})")
         kind = message.get("type")
         if kind not in allowed:
-            fail("type", f"must be one of {', '.join(allowed)} (got {short(kind)})")
+            fail("type", f"must be one of {', '.join(allowed)} (got {short(kind)}){wrong_port_hint(kind, allowed)}")
         if kind == "frame":
             fail("type", "a frame must come in the binary frame encoding, not as JSON")
         check_schema(message, kind)
@@ -164,6 +164,18 @@ def decode(data: bytes, sender: str = "?", accept: Optional[Iterable[str]] = Non
         return message
     except ProtocolError as err:
         raise ProtocolError(err.problem, err.field, sender) from None
+
+
+def wrong_port_hint(kind: Any, allowed: Tuple[str, ...]) -> str:
+    """A message that belongs on the hub's other socket says which port was mixed up: an agent given the
+    control port, or ``khepri ctl`` the robots port, otherwise only hears of "a bad message"."""
+    if kind == "request" and "hello" in allowed:
+        return ": a `khepri ctl` request on the robots port; ctl talks to the hub's control port"
+    if kind in UPLINK_TYPES and "request" in allowed:
+        return ": an agent on the control port; agents connect to the hub's robots port"
+    if kind == "reply" and "frame" in allowed:
+        return ": the hub's control port answered; agents connect to its robots port"
+    return ""
 
 
 def _decode_frame(data: bytes, neighbour_columns: bool = False) -> Dict[str, Any]:

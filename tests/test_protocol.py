@@ -1,6 +1,7 @@
 """The wire protocol: every message type round-trips, and bad messages are rejected naming sender and field."""
 import json
 import math
+import re
 import struct
 
 import pytest
@@ -178,6 +179,23 @@ def test_a_socket_accepts_only_its_direction():
     assert "type" in reject(frame, accept=UPLINK_TYPES)
     assert decode(frame, "hub", accept=DOWNLINK_TYPES)["seq"] == 7
     assert "type" in reject(encode(EXAMPLES["wheels"]), accept=DOWNLINK_TYPES)
+
+
+@pytest.mark.parametrize("kind, accept, said", [
+    ("request", UPLINK_TYPES, "a `khepri ctl` request on the robots port"),
+    ("hello", ("request",), "an agent on the control port"),
+    ("reply", DOWNLINK_TYPES, "the hub's control port answered"),
+])
+def test_a_message_for_the_other_port_says_which_port_was_mixed_up(kind, accept, said):
+    """An agent given the hub's control port, or `khepri ctl` its robots port, only heard of a bad message."""
+    messages = {"request": {"type": "request", "cmd": "status", "nonce": 1}, "hello": {"type": "hello", "id": 0},
+                "reply": {"type": "reply", "ok": True, "nonce": 1}}
+    with pytest.raises(ProtocolError, match=re.escape(said)) as refused:
+        decode(encode(messages[kind]), "peer", accept=accept)
+    assert refused.value.field == "type"
+    with pytest.raises(ProtocolError) as plain:          # a type of no socket's: no hint
+        decode(encode({"type": "telemetry", "id": 0, "step": 1, "mode": "idle"}), "hub", accept=DOWNLINK_TYPES)
+    assert "port" not in str(plain.value)
 
 
 def test_oversized_messages_are_refused_both_ways():
