@@ -23,17 +23,22 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     """``scenario`` (sim source only) replaces loading ``source.scenario``, e.g. with overrides applied."""
     context = context or zmq.Context.instance()
     seed = None
-    if config.source.type == "sim":
+    if config.source.type == "sim" and scenario is None:
         from sim_backend.scenario import load_scenario
 
-        from .sim_source import SimSource
-
         try:
-            scenario = scenario or load_scenario(config.source.scenario)
+            scenario = load_scenario(config.source.scenario)
         except ConfigError as err:
             # The lab config's field, and for a field inside the scenario file, which file and field.
             problem = err.problem if err.field == "scenario" else f"{config.source.scenario}: {err}"
             raise ConfigError("source.scenario", problem) from None
+    # Checked before the source connects: with a motion-capture system that does not answer, a missing
+    # run.behaviour or key folder was said only after the connection timed out.
+    run = run_template(config, scenario)
+    keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
+    if config.source.type == "sim":
+        from .sim_source import SimSource
+
         source: PoseSource = SimSource(scenario, config.source.seed, config.source.frame_hz)
         seed = source.hub_seed
     elif config.source.type == "motioncapture":
@@ -47,8 +52,6 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         say_untracked_bodies(config, ids, log)
         if isinstance(source, ReplaySource):
             say_unplaced_replay_robots(source, ids, log)
-        run = run_template(config, scenario)
-        keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
         if keyring is not None:
             say_missing_keys(ids, keyring, log)
         if recorder is None and config.record is not None:

@@ -503,7 +503,8 @@ def test_keys_init_robots_0_is_not_a_count_of_none(tmp_path):
 
 
 def test_the_hubs_missing_key_hint_keys_exactly_the_labs_robots():
-    """For a lab of robot 3 alone, the hub said `keys init ... --robots 3`: a count, which keys robots 0, 1, 2."""
+    """For a lab of robot 3 alone, the hub said `keys init ... --robots 3`: a count, which keys robots 0, 1, 2.
+    (The hint is `keys add` now, for the robots without a key; the same option.)"""
     from hub.factory import say_missing_keys
     from hub.security import KeyRing
     from khepri_cli.lab_commands import parse_robot_ids
@@ -511,7 +512,7 @@ def test_the_hubs_missing_key_hint_keys_exactly_the_labs_robots():
     for ids in ([3], [0], [0, 1, 2], [2, 5]):
         lines = []
         say_missing_keys(ids, KeyRing(Path("keys"), b"", b"", operators={b"k": "alice"}), lines.append)
-        option = re.search(r"--robots (\S+) --force", lines[0]).group(1)
+        option = re.search(r"`khepri keys add keys --robots (\S+)`", lines[0]).group(1)
         assert parse_robot_ids(option) == ids, lines[0]
 
 
@@ -675,3 +676,22 @@ def test_the_hub_says_once_when_every_robot_reports_its_job_finished():
         assert all(row["finished"] for row in status["robots"]) and "  finished" in status_table(status)
     finally:
         hub.close()
+
+
+@pytest.mark.parametrize("settings, field", [
+    ({"security": {"insecure": True}}, "run.behaviour"),
+    ({"run": {"behaviour": "aggregate"}, "security": {"keys": "no-such-folder"}}, "security.keys"),
+])
+def test_config_mistakes_are_said_before_the_motion_capture_system_is_dialled(settings, field):
+    """A Vicon that does not answer (nothing listens on 127.0.0.1:1) is waited for up to connect_timeout_s;
+    a missing run.behaviour or key folder was said only after that, as "no answer from vicon"."""
+    from hub.factory import build_hub
+
+    config = parse_config({"source": {"type": "motioncapture", "system": "vicon",
+                                      "options": {"hostname": "127.0.0.1:1"}, "bodies": {"kh0": 0},
+                                      "connect_timeout_s": 30}, **settings})
+    said = []
+    with pytest.raises(ConfigError) as refused:
+        build_hub(config, log=said.append)
+    assert refused.value.field == field
+    assert not any("connecting" in line for line in said)
