@@ -208,6 +208,8 @@ class LabConfig:
         check_range("watchdog_s", self.watchdog_s, 0.0, 10.0, low_open=True)
         if self.source.type != "sim":          # the sim source's agents run at the scenario's rate: build_hub
             check_watchdog(self.watchdog_s, self.run.control_hz, "run.control_hz")
+        if not self.security.insecure and not str(self.security.keys).strip():
+            raise ConfigError("security.keys", "is empty: name the key folder `khepri keys init` made (default keys)")
         if self.record is not None and not str(self.record).strip():
             raise ConfigError("record", "is empty: name the MCAP file (e.g. logs/run-{time}.mcap), or leave it out")
         if self.robots is not None:

@@ -66,6 +66,9 @@ class ControlService:
         if cmd == "clear":
             if hub.mode == "estop":
                 hub.mode = "hold" if hub.run_id is not None else "idle"
+                hub.estop_at = None         # cleared: its acknowledgement times are history (status showed them)
+                for robot in hub.robots.values():
+                    robot.estop_ack_s = None
                 hub.log(f"hub: e-stop cleared by {sender}; robots stay stopped until `khepri ctl start`")
                 hub.send_command_to_all("clear")
             return True, {}

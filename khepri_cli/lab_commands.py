@@ -111,13 +111,16 @@ def cmd_agent(args: argparse.Namespace) -> int:
     return run_agent(args)
 
 
+DEFAULT_CONTROL_PORT = 5561
+
+
 # --- ctl ------------------------------------------------------------------------------------------------------
 def _add_ctl(groups) -> None:
     ctl = groups.add_parser("ctl", help="operator control: status, start, stop, estop, clear",
                             description="Talk to a running hub's control socket.")
     ctl.add_argument("command", choices=("status", "start", "stop", "estop", "clear"))
     ctl.add_argument("--hub", default="127.0.0.1", help="hub host (default 127.0.0.1)")
-    ctl.add_argument("--port", type=int, default=5561, help="hub control port (default 5561)")
+    ctl.add_argument("--port", type=int, default=None, help=f"hub control port (default {DEFAULT_CONTROL_PORT})")
     ctl.add_argument("--keys", type=Path, metavar="DIR", help="key folder with operators/<name>.key_secret, hub.key")
     ctl.add_argument("--operator", help="operator key name when the folder holds several")
     ctl.add_argument("--timeout", type=float, default=2.0, metavar="S", help="wait this long for the hub")
@@ -130,10 +133,11 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     from hub.security import operator_client_keys
     from onboard.agent.link import hub_endpoint
 
-    check_port("--port", args.port)
+    port = DEFAULT_CONTROL_PORT if args.port is None else args.port
+    check_port("--port", port)
     check_timeout("--timeout", args.timeout)
     keys = operator_client_keys(args.keys, args.operator) if args.keys is not None else None
-    endpoint = hub_endpoint(args.hub, args.port)
+    endpoint = hub_endpoint(args.hub, port, port_given=args.port is not None)
     try:
         reply = request(endpoint, args.command, keys=keys, timeout_s=args.timeout)
     except BadEndpoint as err:

@@ -1,6 +1,8 @@
 """The onboard agent, as a real process (or the real Agent class in a thread) against a scripted hub socket."""
 import argparse
 import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -390,3 +392,17 @@ def test_a_run_the_agent_cannot_start_is_said_once_though_the_hub_repeats_it(scr
     t0 = time.monotonic()
     feed(scripted, 0.6, neighbours=FAR_NEIGHBOUR)
     scripted.wait_for(wheels_after(scripted, t0, moving=True))
+
+
+def test_a_whole_hub_address_and_a_port_are_refused_together():
+    """`--hub tcp://10.0.0.1:5561 --port 5560`: the address's own port won, silently."""
+    from onboard.agent.link import hub_endpoint
+    from onboard.config import ConfigError
+
+    assert hub_endpoint("tcp://10.0.0.1:5561", 5560) == "tcp://10.0.0.1:5561"
+    assert hub_endpoint("10.0.0.1", 5560, port_given=True) == "tcp://10.0.0.1:5560"
+    with pytest.raises(ConfigError, match="--port: 'tcp://10.0.0.1:5561' is a whole address with its own port"):
+        hub_endpoint("tcp://10.0.0.1:5561", 5560, port_given=True)
+    ctl = subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "status", "--hub", "tcp://127.0.0.1:1",
+                          "--port", "5561"], capture_output=True, text=True, timeout=60)
+    assert ctl.returncode == 2 and "--port: 'tcp://127.0.0.1:1' is a whole address" in ctl.stderr

@@ -695,3 +695,10 @@ def test_config_mistakes_are_said_before_the_motion_capture_system_is_dialled(se
         build_hub(config, log=said.append)
     assert refused.value.field == field
     assert not any("connecting" in line for line in said)
+
+
+def test_an_empty_key_folder_is_refused_like_an_empty_record():
+    """`security: {keys: ''}` was read as the current folder ("no hub key hub.key_secret (run keys init .)")."""
+    with pytest.raises(ConfigError, match="security.keys: is empty"):
+        parse_config({"source": {"type": "sim"}, "security": {"keys": " "}})
+    assert parse_config({"source": {"type": "sim"}, "security": {"keys": "", "insecure": True}}).security.insecure

@@ -23,7 +23,7 @@ DEFAULT_ROBOT_PORT = 5560
 def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", dest="robot_id", type=int, required=True, help="this robot's id")
     parser.add_argument("--hub", default="127.0.0.1", help="the hub's host name or address (default 127.0.0.1)")
-    parser.add_argument("--port", type=int, default=DEFAULT_ROBOT_PORT,
+    parser.add_argument("--port", type=int, default=None,
                         help=f"the hub's robot port (default {DEFAULT_ROBOT_PORT})")
     parser.add_argument("--driver", choices=("kh4", "sim"), required=True,
                         help="kh4: this KheperaIV's hardware; sim: a robot simulated by the hub's sim source")
@@ -48,8 +48,9 @@ def run_agent(args: argparse.Namespace) -> int:
 
     if not 0 <= args.robot_id <= MAX_ROBOT_ID:     # the hub would drop every message of any other id
         raise ConfigError("--id", f"must be a robot id 0..{MAX_ROBOT_ID} (got {args.robot_id})")
-    if not 1 <= args.port <= 65535:
-        raise ConfigError("--port", f"must be a port 1..65535 (got {args.port})")
+    port = DEFAULT_ROBOT_PORT if args.port is None else args.port
+    if not 1 <= port <= 65535:
+        raise ConfigError("--port", f"must be a port 1..65535 (got {port})")
     for option in ("library", "calibration"):     # "" (an unset shell variable) must not mean the default
         if getattr(args, option) is not None and not getattr(args, option).strip():
             raise ConfigError(f"--{option}", "an empty path; leave the option out for the default")
@@ -63,7 +64,7 @@ def run_agent(args: argparse.Namespace) -> int:
     kh4_only = [f"--{name}" for name in ("library", "calibration") if getattr(args, name)]
     if args.driver == "sim" and kh4_only:
         log(f"agent {args.robot_id}: {' and '.join(kh4_only)}: only for the kh4 driver, ignored with --driver sim")
-    endpoint = hub_endpoint(args.hub, args.port)
+    endpoint = hub_endpoint(args.hub, port, port_given=args.port is not None)
     try:
         link = HubLink(args.robot_id, endpoint, keys, log=log)
     except zmq.ZMQError as err:     # e.g. a space or a stray colon in --hub: ZeroMQ refuses the address

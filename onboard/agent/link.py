@@ -14,12 +14,16 @@ RECEIVE_HWM = 16      # downlink frames waiting; the agent drains every poll, so
 MAX_SOCKET_BYTES = 1 << 20   # larger frames cut the connection; up to here they are read and rejected as oversized
 
 
-def hub_endpoint(hub: str, port: int, option: str = "--hub") -> str:
+def hub_endpoint(hub: str, port: int, option: str = "--hub", port_given: bool = False) -> str:
     """The ZeroMQ address for ``--hub`` and ``--port`` (the agent's and ``khepri ctl``'s): a whole address such as
     ``tcp://10.0.0.1:5560`` as it is, else ``tcp://HOST:PORT``. A host with a port in it (``10.0.0.1:5560``) is
     refused: it would make ``tcp://10.0.0.1:5560:5560``, which ZeroMQ takes and never reaches, so the agent
-    would wait for ever and ``ctl`` time out as if no hub were running."""
+    would wait for ever and ``ctl`` time out as if no hub were running. A whole address with ``--port`` too
+    (``port_given``) is refused: the address's own port would win, silently."""
     if "://" in hub:
+        if port_given:
+            raise ConfigError("--port", f"{hub!r} is a whole address with its own port: leave --port out, or "
+                                        f"give --hub the host alone")
         return hub
     if ":" in hub:
         host, _, given_port = hub.rpartition(":")
