@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -95,6 +96,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if problem:
         print(f"khepri: error: --video: {problem}", file=sys.stderr)
         return 2
+    if args.time_limit is not None:     # before the Simulation: its warnings (faults that never fire) use it
+        scenario = dataclasses.replace(scenario, time_limit_s=args.time_limit)
     sim = Simulation(scenario, seed=args.seed)
     out = args.out or Path("out") / f"{scenario.name}-seed{sim.seed}"
     problem = out_folder_problem(out, RUN_FILES)

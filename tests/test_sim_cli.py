@@ -242,3 +242,16 @@ def test_a_bad_seed_is_named_in_plain_words(capsys, seed, message):
         main(["sim", "run", "lab-6", "--seed", seed])
     assert exit_info.value.code == 2
     assert f"argument --seed: {message}" in capsys.readouterr().err
+
+
+def test_time_limit_on_the_command_line_is_what_the_fault_warning_goes_by(tmp_path, capsys):
+    """The scenario says 60 s, --time-limit 75: the fault at 70 s fires, yet `sim run` warned that robot 1
+    "never fails", and with --time-limit 50 it said nothing though the fault then never fires."""
+    scenario = tmp_path / "late-fault.yaml"
+    scenario.write_text("robots: {count: 4}\nobject: {shape: box, size: [0.4, 0.4]}\npath: [[1.0, 0, 0]]\n"
+                        "time_limit_s: 60\nfaults: [{robot: 1, at_s: 70}]\n")
+    assert main(["sim", "run", str(scenario), "--time-limit", "75", "--no-plot", "--out", str(tmp_path / "a")]) == 0
+    said = capsys.readouterr()
+    assert "never fails" not in said.err and "robot 1 failed at 70 s" in said.out
+    assert main(["sim", "run", str(scenario), "--time-limit", "50", "--no-plot", "--out", str(tmp_path / "b")]) == 0
+    assert "70 s is not before the time limit (50 s): robot 1 never fails" in capsys.readouterr().err

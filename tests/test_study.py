@@ -11,6 +11,7 @@ import pytest
 from PIL import Image
 
 from khepri_cli.main import main
+from onboard.config import ConfigError
 from sim_backend.scenario import load_scenario
 from sim_backend.study import paper_reference as paper
 from sim_backend.study.aggregate import load_results
@@ -799,3 +800,18 @@ def test_reps_on_the_command_line_gives_a_study_file_its_seeds(tmp_path, capsys)
     assert "2 runs, 2 to run" in capsys.readouterr().out
     assert main(["study", str(study), "--dry-run", "--out", str(tmp_path / "out")]) == 2   # neither: say so
     assert "seeds: give either seeds" in capsys.readouterr().err
+
+
+def test_the_study_time_limit_is_what_fault_warnings_and_overrides_go_by(tmp_path):
+    """A fault at 70 s of a scenario limited to 60 s, in a study that gives every run 200 s: it fires, and the
+    warning that it "never fails" was wrong. A time_limit_s override beside the study's own made cells that
+    differed in name only (every run got the study's limit)."""
+    scenario = tmp_path / "late-fault.yaml"
+    scenario.write_text("robots: {count: 4}\nobject: {shape: box, size: [0.4, 0.4]}\npath: [[1.0, 0, 0]]\n"
+                        "time_limit_s: 60\nfaults: [{robot: 1, at_s: 70}]\n")
+    runs = expand(parse_study({"scenarios": [str(scenario)], "reps": 1, "time_limit_s": 200}))
+    assert not any("never fails" in warning for warning in runs[0].warnings)
+    runs = expand(parse_study({"scenarios": [str(scenario)], "reps": 1, "time_limit_s": 65}))
+    assert any("70 s is not before the time limit (65 s)" in warning for warning in runs[0].warnings)
+    with pytest.raises(ConfigError, match="overrides.time_limit_s: the study's time_limit_s replaces it"):
+        parse_study({"scenarios": ["lab-6"], "reps": 1, "time_limit_s": 30, "overrides": {"time_limit_s": [50]}})

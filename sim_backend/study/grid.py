@@ -7,6 +7,7 @@ a worker on another machine needs neither the study file nor the scenario file.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import hashlib
 import inspect
@@ -139,6 +140,10 @@ def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "stud
     spec = StudySpec(name=name, scenarios=parse_scenario_list(data.get("scenarios"), base_dir),
                      seeds=parse_seeds(data), overrides=parse_overrides(data.get("overrides")),
                      time_limit_s=parse_time_limit("time_limit_s", data.get("time_limit_s")))
+    if spec.time_limit_s is not None and "time_limit_s" in spec.overrides:
+        # The study's limit replaces every run's, so the cells would differ in name only.
+        raise ConfigError("overrides.time_limit_s", "the study's time_limit_s replaces it in every run: give "
+                                                    "one or the other")
     expand(spec)   # builds and validates every cell's scenario now, before anything runs
     return spec
 
@@ -251,7 +256,7 @@ def expand(spec: StudySpec) -> List[RunSpec]:
                                   f"the same folder name {cell!r}: their runs would share it (give values that "
                                   f"differ in their first 6 digits and in letters or digits)")
             named[cell] = chosen
-            warnings = check_cell(data, cell, chosen, spec.seeds[0])
+            warnings = check_cell(data, cell, chosen, spec.seeds[0], spec.time_limit_s)
             runs.extend(RunSpec(cell, scenario_ref, data, seed, chosen, spec.time_limit_s, warnings=list(warnings))
                         for seed in spec.seeds)
     runs_per_cell = Counter(r.cell for r in runs)
@@ -286,14 +291,18 @@ def apply_overrides(base: Dict[str, Any], chosen: Dict[str, Any]) -> Dict[str, A
     return data
 
 
-def check_cell(data: Dict[str, Any], cell: str, chosen: Dict[str, Any], seed: int) -> List[str]:
+def check_cell(data: Dict[str, Any], cell: str, chosen: Dict[str, Any], seed: int,
+               time_limit_s: Optional[float] = None) -> List[str]:
     """Build the cell's simulation once, as its first run would, so that what only the world can find (a spawn
     area too small for the robots, an object across the walls) fails now, not in every run; and return the
     simulator's warnings for the cell."""
     from sim_backend.runner import Simulation
 
     try:
-        return Simulation(parse_scenario(data), seed=seed).warnings
+        scenario = parse_scenario(data)
+        if time_limit_s is not None:        # the study's limit, which the runs get (faults that never fire)
+            scenario = dataclasses.replace(scenario, time_limit_s=time_limit_s)
+        return Simulation(scenario, seed=seed).warnings
     except ConfigError as err:
         where = f"overrides ({cell})" if chosen else "scenarios"
         raise ConfigError(where, str(err)) from None
