@@ -815,3 +815,19 @@ def test_the_study_time_limit_is_what_fault_warnings_and_overrides_go_by(tmp_pat
     assert any("70 s is not before the time limit (65 s)" in warning for warning in runs[0].warnings)
     with pytest.raises(ConfigError, match="overrides.time_limit_s: the study's time_limit_s replaces it"):
         parse_study({"scenarios": ["lab-6"], "reps": 1, "time_limit_s": 30, "overrides": {"time_limit_s": [50]}})
+
+
+def test_a_scenario_file_named_without_yaml_is_found_beside_the_study_wherever_it_runs_from(tmp_path, monkeypatch):
+    """`scenarios: [mydisc]` with the file mydisc beside the study: found from the study's folder, but from
+    its parent "unknown scenario 'mydisc'"; and a file `lab-6` beside it was an ambiguity error from one
+    folder and silently the built-in lab-6 from another."""
+    folder = tmp_path / "study"
+    folder.mkdir()
+    (folder / "mydisc").write_text("robots: {count: 4}\nobject: {shape: circle, radius: 0.2}\npath: [[1, 0, 0]]\n")
+    (folder / "s.yaml").write_text("scenarios: [mydisc]\nreps: 1\n")
+    monkeypatch.chdir(tmp_path)
+    assert [run.scenario for run in expand(load_study_file(folder / "s.yaml"))] == [str((folder / "mydisc").resolve())]
+    (folder / "lab-6").write_text((folder / "mydisc").read_text())
+    (folder / "t.yaml").write_text("scenarios: [lab-6]\nreps: 1\n")
+    with pytest.raises(ConfigError, match=r"scenarios\[0\]: 'lab-6' is both a built-in scenario and a file"):
+        load_study_file(folder / "t.yaml")

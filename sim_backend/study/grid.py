@@ -23,7 +23,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 from onboard.behaviour import get_behaviour
 from onboard.config import ConfigError, to_mapping
 from onboard.yamlfile import read_yaml
-from sim_backend.scenario import load_scenario, parse_scenario
+from sim_backend.scenario import builtin_names, load_scenario, parse_scenario
 
 from .paper_reference import paper_scenarios
 
@@ -155,9 +155,15 @@ def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
     for i, item in enumerate(value):
         if not isinstance(item, str) or not item.strip():
             raise ConfigError(f"scenarios[{i}]", f"must be a scenario name or file (got {item!r})")
-        # Files are relative to the study file, so a study folder can be moved as a whole.
-        is_file = item.endswith((".yaml", ".yml"))
-        names.append(str((base_dir / item).resolve()) if is_file else item)
+        # Files are relative to the study file, so a study folder can be moved as a whole; so is a file named
+        # without .yaml (it used to be looked up in the current folder, so the study meant something else
+        # depending on where it was run from).
+        beside = base_dir / item
+        is_file = item.endswith((".yaml", ".yml")) or beside.is_file()
+        if is_file and not item.endswith((".yaml", ".yml")) and "/" not in item and item in builtin_names():
+            raise ConfigError(f"scenarios[{i}]", f"{item!r} is both a built-in scenario and a file beside the "
+                                                 f"study: write ./{item} for the file, or rename the file")
+        names.append(str(beside.resolve()) if is_file else item)
     if len(set(names)) != len(names):
         raise ConfigError("scenarios", "lists a scenario twice")
     return names
