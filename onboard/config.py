@@ -118,6 +118,10 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     raise ConfigError(where, f"unsupported type {_type_name(tp)}")
 
 
+def _takes_none(hint: Any) -> bool:
+    return typing.get_origin(hint) is typing.Union and type(None) in typing.get_args(hint)
+
+
 def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
     """Build dataclass ``cls`` from a mapping; reject unknown keys and missing required ones.
 
@@ -135,6 +139,9 @@ def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
         raise ConfigError(join(where, unknown[0]), f"unknown key (known: {known})")
     kwargs: Dict[str, Any] = {}
     for name, f in fields.items():
+        if name in data and data[name] is None and f.default_factory is not dataclasses.MISSING \
+                and not _takes_none(hints[name]):
+            continue    # `params:` with every line under it commented out: empty, as `comm:` already was
         if name in data:
             kwargs[name] = coerce(data[name], hints[name], join(where, name))
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:

@@ -295,3 +295,13 @@ def test_a_file_named_like_a_builtin_is_neither_taken_nor_hidden_silently(tmp_pa
     assert str(info.value) == ("scenario: 'lab-6' is both a built-in scenario and a file in this folder: "
                                "write ./lab-6 for the file, or rename the file")
     assert load_scenario("./lab-6").robots.count == 7
+
+
+def test_a_section_with_every_line_commented_out_is_empty_whatever_section_it_is():
+    """`comm:` with nothing under it was taken as the defaults, but `params:` or `faults:` was "must be a
+    mapping (got None)": commenting out the lines under one section broke the file, under another not."""
+    text = "robots: {count: 6}\nobject: {shape: box, size: [0.4, 0.4]}\npath: [[1.0, 0, 0]]\n"
+    plain = parse_scenario(yaml.safe_load(text))
+    emptied = parse_scenario(yaml.safe_load(text + "params:\nfaults:\ncomm:\n"))
+    assert emptied.params == plain.params == {} and emptied.faults == plain.faults == []
+    assert emptied.comm == plain.comm
