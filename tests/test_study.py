@@ -831,3 +831,11 @@ def test_a_scenario_file_named_without_yaml_is_found_beside_the_study_wherever_i
     (folder / "t.yaml").write_text("scenarios: [lab-6]\nreps: 1\n")
     with pytest.raises(ConfigError, match=r"scenarios\[0\]: 'lab-6' is both a built-in scenario and a file"):
         load_study_file(folder / "t.yaml")
+
+
+def test_a_study_takes_whole_numbers_written_as_floats_as_scenario_files_do():
+    spec = parse_study({"scenarios": ["lab-6"], "reps": 2.0})
+    assert spec.seeds == [1, 2] and all(type(seed) is int for seed in spec.seeds)
+    assert parse_study({"scenarios": ["lab-6"], "seeds": [1.0, 3]}).seeds == [1, 3]
+    with pytest.raises(ConfigError, match=r"seeds\[0\]: must be an integer >= 0 \(got 1.5\)"):
+        parse_study({"scenarios": ["lab-6"], "seeds": [1.5]})

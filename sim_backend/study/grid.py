@@ -108,7 +108,15 @@ def paper_study(reps: int) -> StudySpec:
     return StudySpec(name="paper", scenarios=paper_scenarios(), seeds=list(range(1, reps + 1)))
 
 
+def whole_number(value: Any) -> Any:
+    """3.0 as 3, as scenario files take it (an integer accepts 3 or 3.0); anything else as it is."""
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
 def check_reps(where: str, reps: Any) -> int:
+    reps = whole_number(reps)
     if isinstance(reps, bool) or not isinstance(reps, int) or reps < 1:
         raise ConfigError(where, f"must be an integer >= 1 (got {reps!r})")
     if reps > MAX_SEEDS:
@@ -184,6 +192,7 @@ def parse_seeds(data: Dict[str, Any]) -> List[int]:
         return list(range(int(match.group(1)), int(match.group(2)) + 1))
     if not isinstance(value, list) or not value:
         raise ConfigError("seeds", f"must be a non-empty list of integers or 'first..last' (got {value!r})")
+    value = [whole_number(seed) for seed in value]
     for i, seed in enumerate(value):
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise ConfigError(f"seeds[{i}]", f"must be an integer >= 0 (got {seed!r})")
