@@ -33,9 +33,14 @@ def spawn(*args, log):
 def test_the_demo_hub_and_the_clients_agree_on_the_default_ports():
     network = demo_config().network
     assert (network.bind, network.robot_port, network.control_port) == ("127.0.0.1", 5560, 5561)
+    from khepri_cli.lab_commands import DEFAULT_CONTROL_PORT
+    from onboard.agent.cli import DEFAULT_ROBOT_PORT
+
     parser = build_parser()
-    assert parser.parse_args(["agent", "--id", "2", "--driver", "sim"]).port == network.robot_port
-    assert parser.parse_args(["ctl", "status"]).port == network.control_port
+    # No --port given: None, which stands for these defaults (a whole --hub address may then carry its own).
+    assert parser.parse_args(["agent", "--id", "2", "--driver", "sim"]).port is None
+    assert parser.parse_args(["ctl", "status"]).port is None
+    assert (DEFAULT_ROBOT_PORT, DEFAULT_CONTROL_PORT) == (network.robot_port, network.control_port)
 
 
 @pytest.mark.parametrize("bind", ["0.0.0.0", "192.168.1.20", "*"])
