@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import os
@@ -96,9 +95,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if problem:
         print(f"khepri: error: --video: {problem}", file=sys.stderr)
         return 2
-    if args.time_limit is not None:     # before the Simulation: its warnings (faults that never fire) use it
-        scenario = dataclasses.replace(scenario, time_limit_s=args.time_limit)
-    sim = Simulation(scenario, seed=args.seed)
+    sim = Simulation(scenario.with_time_limit(args.time_limit), seed=args.seed)
     out = args.out or Path("out") / f"{scenario.name}-seed{sim.seed}"
     problem = out_folder_problem(out, RUN_FILES)
     if problem:                 # said now, not after a long run whose results could not be written

@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import typing
-from typing import Any, Dict, Mapping, Type, TypeVar
+from typing import Any, Dict, Mapping, Optional, Type, TypeVar
 
 from .tracebacks import describe
 
@@ -55,6 +55,17 @@ def _is_sequence_type(tp: Any) -> bool:
     return typing.get_origin(tp) in (list, tuple) or tp in (list, tuple)
 
 
+def as_integer(value: Any) -> Optional[int]:
+    """An integer as it is, a float without a fraction (3.0) as the integer, anything else (booleans too) None."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return None
+
+
 def coerce(value: Any, tp: Any, where: str) -> Any:
     """Convert ``value`` to the annotated type ``tp`` or raise ConfigError naming ``where``."""
     origin = typing.get_origin(tp)
@@ -84,11 +95,10 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
             return value
         raise ConfigError(where, f"must be true or false (got {value!r})")
     if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            if isinstance(value, float) and value.is_integer():
-                return int(value)
+        number = as_integer(value)
+        if number is None:
             raise ConfigError(where, f"must be an integer (got {value!r})")
-        return value
+        return number
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(where, f"must be a number (got {value!r})")

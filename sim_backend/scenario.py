@@ -256,6 +256,12 @@ class Scenario:
     arena: ArenaSpec = field(default_factory=ArenaSpec)
     faults: List[Fault] = field(default_factory=list)
 
+    def with_time_limit(self, seconds: Optional[float]) -> Scenario:
+        """This scenario with the time limit a run actually gets (``--time-limit``, a study's ``time_limit_s``;
+        None: its own). Given before the Simulation is built, so that its warnings (a fault that never fires)
+        go by it."""
+        return self if seconds is None else dataclasses.replace(self, time_limit_s=seconds)
+
     def validate(self, where: str) -> None:
         if not self.name.strip():
             raise ConfigError("name", "must not be empty")

@@ -7,7 +7,6 @@ a worker on another machine needs neither the study file nor the scenario file.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import functools
 import hashlib
 import inspect
@@ -21,7 +20,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from onboard.behaviour import get_behaviour
-from onboard.config import ConfigError, to_mapping
+from onboard.config import ConfigError, as_integer, to_mapping
 from onboard.yamlfile import read_yaml
 from sim_backend.scenario import builtin_names, load_scenario, parse_scenario
 
@@ -108,17 +107,10 @@ def paper_study(reps: int) -> StudySpec:
     return StudySpec(name="paper", scenarios=paper_scenarios(), seeds=list(range(1, reps + 1)))
 
 
-def whole_number(value: Any) -> Any:
-    """3.0 as 3, as scenario files take it (an integer accepts 3 or 3.0); anything else as it is."""
-    if isinstance(value, float) and value.is_integer():
-        return int(value)
-    return value
-
-
-def check_reps(where: str, reps: Any) -> int:
-    reps = whole_number(reps)
-    if isinstance(reps, bool) or not isinstance(reps, int) or reps < 1:
-        raise ConfigError(where, f"must be an integer >= 1 (got {reps!r})")
+def check_reps(where: str, value: Any) -> int:
+    reps = as_integer(value)        # 2.0 as 2, as scenario files take it
+    if reps is None or reps < 1:
+        raise ConfigError(where, f"must be an integer >= 1 (got {value!r})")
     if reps > MAX_SEEDS:
         raise ConfigError(where, f"must be at most {MAX_SEEDS} (got {reps})")
     return reps
@@ -166,9 +158,9 @@ def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
         # Files are relative to the study file, so a study folder can be moved as a whole; so is a file named
         # without .yaml (it used to be looked up in the current folder, so the study meant something else
         # depending on where it was run from).
-        beside = base_dir / item
-        is_file = item.endswith((".yaml", ".yml")) or beside.is_file()
-        if is_file and not item.endswith((".yaml", ".yml")) and "/" not in item and item in builtin_names():
+        beside, is_yaml = base_dir / item, item.endswith((".yaml", ".yml"))
+        is_file = is_yaml or beside.is_file()
+        if is_file and not is_yaml and "/" not in item and item in builtin_names():
             raise ConfigError(f"scenarios[{i}]", f"{item!r} is both a built-in scenario and a file beside the "
                                                  f"study: write ./{item} for the file, or rename the file")
         names.append(str(beside.resolve()) if is_file else item)
@@ -192,13 +184,13 @@ def parse_seeds(data: Dict[str, Any]) -> List[int]:
         return list(range(int(match.group(1)), int(match.group(2)) + 1))
     if not isinstance(value, list) or not value:
         raise ConfigError("seeds", f"must be a non-empty list of integers or 'first..last' (got {value!r})")
-    value = [whole_number(seed) for seed in value]
-    for i, seed in enumerate(value):
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ConfigError(f"seeds[{i}]", f"must be an integer >= 0 (got {seed!r})")
-    if len(set(value)) != len(value):
+    seeds = [as_integer(seed) for seed in value]
+    for i, seed in enumerate(seeds):
+        if seed is None or seed < 0:
+            raise ConfigError(f"seeds[{i}]", f"must be an integer >= 0 (got {value[i]!r})")
+    if len(set(seeds)) != len(seeds):
         raise ConfigError("seeds", "lists a seed twice")
-    return list(value)
+    return seeds
 
 
 def parse_overrides(value: Any) -> Dict[str, List[Any]]:
@@ -314,10 +306,7 @@ def check_cell(data: Dict[str, Any], cell: str, chosen: Dict[str, Any], seed: in
     from sim_backend.runner import Simulation
 
     try:
-        scenario = parse_scenario(data)
-        if time_limit_s is not None:        # the study's limit, which the runs get (faults that never fire)
-            scenario = dataclasses.replace(scenario, time_limit_s=time_limit_s)
-        return Simulation(scenario, seed=seed).warnings
+        return Simulation(parse_scenario(data).with_time_limit(time_limit_s), seed=seed).warnings
     except ConfigError as err:
         where = f"overrides ({cell})" if chosen else "scenarios"
         raise ConfigError(where, str(err)) from None

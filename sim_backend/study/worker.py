@@ -6,7 +6,6 @@ A run never raises: whatever goes wrong becomes a result with ``failed: true`` a
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shutil
@@ -30,10 +29,7 @@ def execute_run(spec: RunSpec, out_root: str) -> Dict[str, Any]:
         from sim_backend.scenario import parse_scenario
 
         import_user_modules(spec.imports, spec.import_dir)
-        scenario = parse_scenario(spec.scenario_data)
-        if spec.time_limit_s is not None:     # before the Simulation: its warnings (faults that never fire) use it
-            scenario = dataclasses.replace(scenario, time_limit_s=spec.time_limit_s)
-        sim = Simulation(scenario, seed=spec.seed)
+        sim = Simulation(parse_scenario(spec.scenario_data).with_time_limit(spec.time_limit_s), seed=spec.seed)
         result = sim.run(time_limit_s=spec.time_limit_s, wall_limit_s=spec.wall_limit_s)
     except Exception as exc:  # a run that cannot start is recorded as failed with its reason, not lost
         result = failed_result(spec, f"{type(exc).__name__}: {exc}", traceback.format_exc())
