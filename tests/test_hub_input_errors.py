@@ -574,7 +574,10 @@ def test_the_status_of_hundreds_of_robots_is_answered_and_a_reply_too_large_is_r
 def test_two_agents_with_one_id_are_said_once_and_the_first_keeps_the_robot(tmp_path):
     from hub.harness import spawn_agent, stop_processes
 
-    with HubThread(parse_config(sim_config())) as hub:
+    # The hub hands the robot over once the first agent is silent for watchdog_s. At the default 0.3 s a loaded CI
+    # machine stalled the first agent (or the hub's thread) that long and the robot changed hands (a failed CI run);
+    # 2 s keeps this test about two live agents, not about scheduling.
+    with HubThread(parse_config(sim_config(watchdog_s=2.0))) as hub:
         first = spawn_agent(hub.endpoints["robots"], 0, tmp_path / "first.log")
         second = None
         try:
