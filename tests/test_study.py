@@ -126,6 +126,12 @@ def test_a_whole_mapping_override_names_its_cell_with_its_keys():
     ("scenarios: [lab-6]\nseeds: [1, -3]", "seeds[1]: must be an integer >= 0"),
     ("scenarios: [lab-6]\nreps: 1\noverrides: {params.no_such_param: [1]}", "params.no_such_param: unknown key"),
     ("scenarios: [lab-6]\nreps: 1\noverrides: {robots.count: [0]}", "robots.count: must be >= 1"),
+    # An override of one field that leaves a sibling unfit says how to change both together.
+    ("scenarios: [lab-6]\nreps: 1\noverrides: {object.shape: [circle]}",
+     "object.size is the scenario's own, kept beside the override of object.shape: to change them together, "
+     "override object as a whole, e.g. object: [{shape: ..., size: ...}]"),
+    ("scenarios: [lab-6]\nreps: 1\noverrides: {object.shape: [circle], object.size: [[0.3, 0.3]]}",
+     "object.size is overridden too, and every value of one is paired with every value of the other"),
     ("scenarios: [lab-6]\nreps: 1\ntime_limit_s: -5", "time_limit_s: must be a number of seconds > 0"),
     ("scenarios: [lab-6]\nreps: 1\ntime_limit_s: .inf", "time_limit_s: must be a number of seconds > 0"),
     ("scenarios: [lab-6]\nseeds: 1..100000000000", "seeds: a range may hold at most 100000 seeds"),

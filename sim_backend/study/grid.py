@@ -309,7 +309,24 @@ def check_cell(data: Dict[str, Any], cell: str, chosen: Dict[str, Any], seed: in
         return Simulation(parse_scenario(data).with_time_limit(time_limit_s), seed=seed).warnings
     except ConfigError as err:
         where = f"overrides ({cell})" if chosen else "scenarios"
-        raise ConfigError(where, str(err)) from None
+        raise ConfigError(where, str(err) + whole_mapping_hint(str(err), chosen)) from None
+
+
+def whole_mapping_hint(error: str, chosen: Dict[str, Any]) -> str:
+    """An override of one field can leave its siblings unfit (``object.shape: circle`` keeps the box's two-number
+    ``size``); the cartesian product cannot pair them, but overriding the whole mapping can: say how."""
+    field_name = error.split(":", 1)[0]
+    overridden = [key for key in chosen if field_name == key or field_name.startswith(key + ".")]
+    for key in chosen:
+        parent = key.rpartition(".")[0]
+        if not parent or key in overridden or not field_name.startswith(parent + "."):
+            continue
+        pair = f"{{{key.rpartition('.')[2]}: ..., {field_name[len(parent) + 1:].split('.')[0]}: ...}}"
+        kept = ("is overridden too, and every value of one is paired with every value of the other" if overridden
+                else "is the scenario's own, kept beside the override of " + key)
+        return (f"; {field_name} {kept}: to change them together, override {parent} as a whole, e.g. "
+                f"{parent}: [{pair}] (see docs/study.md)")
+    return ""
 
 
 def overrides_text(chosen: Dict[str, Any]) -> str:
