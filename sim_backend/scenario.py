@@ -33,8 +33,28 @@ class SpawnArea:
     def validate(self, where: str) -> None:
         for axis in ("x", "y"):
             low, high = getattr(self, axis)
+            for i, value in enumerate((low, high)):
+                check_extent(join(join(where, axis), i), value)
             if high < low:
                 raise ConfigError(join(where, axis), f"must be [min, max] with min <= max (got [{low}, {high}])")
+
+
+# Every length and floor coordinate of a scenario lies within this many metres of the origin: a lab floor is
+# tens of metres, the paper's largest box 12 m. The bound turns a typo (1e200, an exponent too many) into an
+# error naming the field, instead of an overflow deep in the geometry or a run that only ends at its time limit.
+MAX_EXTENT_M = 1000.0
+
+
+def check_extent(where: str, value: float, length: bool = False) -> float:
+    """A coordinate within +-MAX_EXTENT_M, or (``length``) a size in (0, MAX_EXTENT_M]."""
+    if length:
+        return check_range(where, value, 0.0, MAX_EXTENT_M, low_open=True)
+    return check_range(where, value, -MAX_EXTENT_M, MAX_EXTENT_M)
+
+
+def check_point(where: str, point: Tuple[float, float]) -> None:
+    for axis, value in zip("xy", point):
+        check_extent(f"{where}.{axis}", value)
 
 
 # Sensing is all pairs (N x N every step) and every robot hears every broadcast in range: 5000 robots would
@@ -73,6 +93,7 @@ class ObjectPart:
     def validate(self, where: str) -> None:
         if self.shape not in PART_SHAPES:
             raise ConfigError(join(where, "shape"), f"must be one of {', '.join(PART_SHAPES)} (got {self.shape!r})")
+        check_point(join(where, "offset"), self.offset)
         validate_dimensions(self, where)
 
 
@@ -99,7 +120,8 @@ class ObjectSpec:
             raise ConfigError(join(where, "shape"), f"must be one of {', '.join(SHAPES)} (got {self.shape!r})")
         check_range(join(where, "mass"), self.mass, 0.0, low_open=True)
         check_range(join(where, "friction"), self.friction, 0.0, 5.0)
-        check_range(join(where, "scale"), self.scale, 0.0, low_open=True)
+        check_range(join(where, "scale"), self.scale, 0.0, 100.0, low_open=True)
+        check_point(join(where, "position"), self.position)
         if self.scale != 1.0 and self.shape not in IRREGULAR_SHAPES:
             raise ConfigError(join(where, "scale"), f"only for shapes {', '.join(IRREGULAR_SHAPES)} "
                               f"(shape is {self.shape})")
@@ -121,7 +143,7 @@ def validate_dimensions(spec: Any, where: str) -> None:
         if not isinstance(spec.size, tuple):
             raise ConfigError(join(where, "size"), "a box needs size: [width, height] in metres")
         for i, v in enumerate(spec.size):
-            check_range(join(join(where, "size"), i), v, 0.0, low_open=True)
+            check_extent(join(join(where, "size"), i), v, length=True)
     elif shape == "circle":
         if spec.radius is not None and spec.size is not None:
             raise ConfigError(join(where, "size"), "a circle takes radius or size (its radius), not both")
@@ -131,10 +153,12 @@ def validate_dimensions(spec: Any, where: str) -> None:
                                                    f"(got {list(spec.size)}); or give radius: <metres>")
         if not isinstance(radius, float):
             raise ConfigError(join(where, "radius"), "a circle needs radius: <metres>")
-        check_range(join(where, "radius"), radius, 0.0, low_open=True)
+        check_extent(join(where, "radius" if spec.radius is not None else "size"), radius, length=True)
     elif shape == "polygon":
         if not spec.vertices or len(spec.vertices) < 3:
             raise ConfigError(join(where, "vertices"), "a polygon needs at least 3 vertices [[x, y], ...]")
+        for i, vertex in enumerate(spec.vertices):
+            check_point(join(join(where, "vertices"), i), vertex)
         crossing = first_self_intersection(spec.vertices)   # first: a bow-tie's area is 0 too, but this says why
         if crossing is not None:
             raise ConfigError(join(where, "vertices"), f"edges {crossing[0]} and {crossing[1]} cross: the outline "
@@ -225,6 +249,8 @@ class ArenaSpec:
     def validate(self, where: str) -> None:
         if self.walls is not None:
             xmin, ymin, xmax, ymax = self.walls
+            for i, value in enumerate(self.walls):
+                check_extent(join(join(where, "walls"), i), value)
             if xmax <= xmin or ymax <= ymin:
                 raise ConfigError(join(where, "walls"), "must be [xmin, ymin, xmax, ymax] with min < max")
 
@@ -288,7 +314,8 @@ class Scenario:
                 raise ConfigError(f"faults[{i}].robot", f"robot {fault.robot} already fails in "
                                                         f"faults[{failing[fault.robot]}]")
             failing[fault.robot] = i
-        for i, (_x, _y, yaw) in enumerate(self.path):
+        for i, (x, y, yaw) in enumerate(self.path):
+            check_point(f"path[{i}]", (x, y))
             if not math.isfinite(yaw):
                 raise ConfigError(f"path[{i}]", "yaw must be finite")
         if self.path and self.object is None:
