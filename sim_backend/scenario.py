@@ -159,30 +159,65 @@ def validate_dimensions(spec: Any, where: str) -> None:
             raise ConfigError(join(where, "vertices"), "a polygon needs at least 3 vertices [[x, y], ...]")
         for i, vertex in enumerate(spec.vertices):
             check_point(join(join(where, "vertices"), i), vertex)
-        crossing = first_self_intersection(spec.vertices)   # first: a bow-tie's area is 0 too, but this says why
-        if crossing is not None:
-            raise ConfigError(join(where, "vertices"), f"edges {crossing[0]} and {crossing[1]} cross: the outline "
-                              "must not intersect itself (split it into compound parts)")
-        if abs(polygon_area(spec.vertices)) < 1e-6:
+        fault = outline_fault(spec.vertices)
+        crossing = fault is not None and fault.startswith("edges")   # a bow-tie's area is 0 too: this says why
+        if abs(polygon_area(spec.vertices)) < 1e-6 and not crossing:
             raise ConfigError(join(where, "vertices"), "the polygon has no area (collinear or repeated points)")
+        if fault is not None:
+            raise ConfigError(join(where, "vertices"), f"{fault}: the outline must be a simple polygon, not meeting "
+                              "itself (split such a shape into compound parts)")
 
 
-def first_self_intersection(vertices: List[Tuple[float, float]]) -> Optional[Tuple[int, int]]:
-    """The first pair of non-adjacent edges that cross, or None for a simple polygon."""
+# Closer than this (m), two edges of an outline that are not neighbours count as touching: a micron, far below
+# any robot's sensing, far above float noise for coordinates within MAX_EXTENT_M.
+TOUCH_M = 1e-6
+
+
+def outline_fault(vertices: List[Tuple[float, float]]) -> Optional[str]:
+    """Why a polygon's outline is not simple (a vertex repeated, an edge folding back on the one before, two
+    edges that cross or touch), or None. Each of these made an object of several pieces, or a zero-width
+    spike, that the simulator built without a word."""
     n = len(vertices)
     edges = [(vertices[i], vertices[(i + 1) % n]) for i in range(n)]
-
-    def orient(a, b, c) -> float:
-        return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
-
+    for i, (a, b) in enumerate(edges):
+        if math.dist(a, b) < TOUCH_M:
+            if i == n - 1:
+                return "the last vertex repeats the first (leave it out: the outline closes by itself)"
+            return f"vertices {i} and {i + 1} are the same point"
+    for i in range(n):
+        (a, b), (_, c) = edges[i - 1], edges[i]
+        if abs(_orient(a, b, c)) < TOUCH_M * math.dist(a, b) and (b[0] - a[0]) * (c[0] - b[0]) + \
+                (b[1] - a[1]) * (c[1] - b[1]) < 0:
+            return f"the outline turns back on itself at vertex {i} (a spike of no width)"
     for i in range(n):
         for j in range(i + 2, n):
             if i == 0 and j == n - 1:
                 continue   # adjacent through the closing vertex
-            (p1, p2), (q1, q2) = edges[i], edges[j]
-            if (orient(p1, p2, q1) * orient(p1, p2, q2) < 0) and (orient(q1, q2, p1) * orient(q1, q2, p2) < 0):
-                return i, j
+            if _crosses(*edges[i], *edges[j]):
+                return f"edges {i} and {j} cross"
+            if _segment_distance(*edges[i], *edges[j]) < TOUCH_M:
+                return f"edges {i} and {j} touch"
     return None
+
+
+def _orient(a, b, c) -> float:
+    return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+
+
+def _crosses(p1, p2, q1, q2) -> bool:
+    return _orient(p1, p2, q1) * _orient(p1, p2, q2) < 0 and _orient(q1, q2, p1) * _orient(q1, q2, p2) < 0
+
+
+def _point_segment_distance(p, a, b) -> float:
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    t = max(0.0, min(1.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / (dx * dx + dy * dy)))
+    return math.hypot(p[0] - a[0] - t * dx, p[1] - a[1] - t * dy)
+
+
+def _segment_distance(p1, p2, q1, q2) -> float:
+    """Between two segments that do not cross: the least of the end-to-segment distances."""
+    return min(_point_segment_distance(p1, q1, q2), _point_segment_distance(p2, q1, q2),
+               _point_segment_distance(q1, p1, p2), _point_segment_distance(q2, p1, p2))
 
 
 def polygon_area(vertices: List[Tuple[float, float]]) -> float:

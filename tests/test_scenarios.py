@@ -146,6 +146,9 @@ def test_docs_list_every_builtin():
 
 # --- validation errors ------------------------------------------------------------------------------
 
+SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such a shape into compound parts)"
+
+
 @pytest.mark.parametrize(("data", "field", "message"), [
     ({"robots": {"count": 0}}, "robots.count", "robots.count: must be >= 1 (got 0)"),
     ({"robots": {"count": 2.5}}, "robots.count", "robots.count: must be an integer (got 2.5)"),
@@ -170,7 +173,17 @@ def test_docs_list_every_builtin():
     ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [2, 0]]}}, "object.vertices",
      "object.vertices: the polygon has no area (collinear or repeated points)"),
     ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 1], [1, 0], [0, 1]]}}, "object.vertices",
-     "object.vertices: edges 0 and 2 cross: the outline must not intersect itself (split it into compound parts)"),
+     "object.vertices: edges 0 and 2 cross: the outline must be a simple polygon, not meeting itself (split such "
+     "a shape into compound parts)"),
+    # Outlines that meet themselves without crossing: they used to build an object of two pieces, or a spike.
+    ({"object": {"shape": "polygon", "vertices": [[0, 0], [2, 0], [2, 2], [1, 0], [0, 2]]}}, "object.vertices",
+     "object.vertices: edges 0 and 2 touch" + SIMPLE),
+    ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [1, 1], [1, 3], [1, 1], [0, 1]]}},
+     "object.vertices", "object.vertices: the outline turns back on itself at vertex 3 (a spike of no width)" + SIMPLE),
+    ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [1, 0], [1, 1]]}}, "object.vertices",
+     "object.vertices: vertices 1 and 2 are the same point" + SIMPLE),
+    ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [1, 1], [0, 0]]}}, "object.vertices",
+     "object.vertices: the last vertex repeats the first (leave it out: the outline closes by itself)" + SIMPLE),
     ({"object": {"shape": "cloud", "size": [3, 3]}}, "object.size", "object.size: not used by shape: cloud"),
     ({"object": {**BOX, "scale": 2}}, "object.scale",
      "object.scale: only for shapes cloud, box_rotation, clover (shape is box)"),
