@@ -117,6 +117,17 @@ def test_a_whole_mapping_override_names_its_cell_with_its_keys():
     assert run.scenario_data["object"]["mass"] == 2.0
 
 
+def test_the_summarys_overrides_column_writes_lists_and_mappings_as_json_without_spaces():
+    """A whole-mapping override used to appear as a dict's repr, whose spaces broke the column's
+    space-separated key=value pairs."""
+    from sim_backend.study.aggregate import overrides_text
+
+    text = overrides_text({"object": {"shape": "circle", "size": 0.2}, "robots.spawn.x": [-1, 0], "comm.drop": 0.1})
+    pairs = dict(pair.split("=", 1) for pair in text.split(" "))
+    assert pairs == {"object": '{"shape":"circle","size":0.2}', "robots.spawn.x": "[-1,0]", "comm.drop": "0.1"}
+    assert json.loads(pairs["object"]) == {"shape": "circle", "size": 0.2}
+
+
 @pytest.mark.parametrize("text, message", [
     ("scenarios: lab-6\nreps: 2", "scenarios: must be a non-empty list"),
     ("scenarios: [no-such-scenario]\nreps: 2", "scenarios[0]: scenario: unknown scenario 'no-such-scenario'"),

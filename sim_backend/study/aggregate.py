@@ -7,6 +7,7 @@ min/max. Rates are fractions of the runs that did not fail.
 from __future__ import annotations
 
 import csv
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -219,7 +220,15 @@ def number_text(value: Any) -> str:
 
 
 def overrides_text(overrides: Dict[str, Any]) -> str:
-    return " ".join(f"{key}={value}" for key, value in overrides.items())
+    """``key=value`` pairs separated by spaces; a list or mapping value as compact JSON, so that it has no
+    spaces (a dict's repr did) and reads back with ``json.loads``."""
+    return " ".join(f"{key}={override_value_text(value)}" for key, value in overrides.items())
+
+
+def override_value_text(value: Any) -> str:
+    if isinstance(value, (dict, list, tuple)):
+        return json.dumps(value, separators=(",", ":"))
+    return str(value)
 
 
 def write_summary_csv(results: StudyResults, path: Path) -> Path:
