@@ -12,7 +12,7 @@ from onboard.config import ConfigError
 from onboard.hal import RobotSpec
 
 from .config import LabConfig, check_watchdog
-from .security import KeyRing, load_keyring
+from .security import KeyRing, exposed_secret, load_keyring
 from .sensors import SensingModel
 from .server import Hub, RunTemplate
 from .sources import MotionCaptureSource, PoseSource, ReplaySource
@@ -36,6 +36,9 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     # run.behaviour or key folder was said only after the connection timed out.
     run = run_template(config, scenario)
     keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
+    exposed = exposed_secret(Path(config.security.keys) / "hub.key_secret") if keyring else None
+    if exposed:
+        log(f"hub: warning: {exposed}")
     if config.source.type == "sim":
         from .sim_source import SimSource
 

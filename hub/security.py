@@ -17,6 +17,7 @@ import math
 import os
 import re
 import socket as sockets
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
+from onboard.agent.link import exposed_secret
 from onboard.config import ConfigError
 
 ROBOT_DOMAIN = "robots"
@@ -133,6 +135,9 @@ def operator_client_keys(folder: Path, name: Optional[str] = None) -> Dict[str, 
     if len(candidates) > 1:
         raise ConfigError("--operator", f"several operator keys in {folder / 'operators'}: name one")
     public, secret = _load_pair(candidates[0], "operator", "--keys")
+    exposed = exposed_secret(candidates[0])
+    if exposed:
+        print(f"khepri ctl: warning: {exposed}", file=sys.stderr, flush=True)
     return {"public": public, "secret": secret, "server": _load_public(folder / "hub.key", "--keys")}
 
 

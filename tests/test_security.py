@@ -120,6 +120,37 @@ HELLO_1 = {"type": "hello", "id": 1, "driver": "SimDriver"}
 ESTOP = {"type": "request", "cmd": "estop", "nonce": 1}
 
 
+def test_secret_keys_readable_by_others_are_warned_about_by_hub_agent_and_ctl(keys, make_scenario, tmp_path, capsys):
+    """A secret key copied with the wrong mode (a world-readable hub key on a shared lab PC) let anyone pose
+    as the hub, and nothing said so; ssh refuses such keys. Private keys (keys init's 0600) get no warning."""
+    config = parse_config({"source": {"type": "sim"}, "security": {"keys": str(keys)},
+                           "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}})
+    scenario = make_scenario(robots={"count": 2}, arena={"walls": [-2.0, -2.0, 2.0, 2.0]})
+    operator = operator_client_keys(keys)
+    assert "warning" not in capsys.readouterr().err
+    with HubThread(config, scenario=scenario) as hub:
+        assert not [line for line in hub.lines if "can be read by other users" in line]
+
+    for name in ("hub.key_secret", "robots/robot-0.key_secret", "operators/alice.key_secret"):
+        (keys / name).chmod(0o644)
+    with HubThread(config, scenario=scenario, operator_keys=operator) as hub:
+        agent = spawn_agent(hub.endpoints["robots"], 0, tmp_path / "agent.log", keys=keys)
+        try:
+            hub.wait_until(lambda s: s["robots"][0]["connected"])      # a warning, not a refusal
+        finally:
+            stop_processes([agent])
+        warned = [line for line in hub.lines if "can be read by other users" in line]
+    secret = keys / "hub.key_secret"
+    assert warned == [f"hub: warning: the secret key {secret} can be read by other users (mode 0644): anyone who "
+                      f"reads it can pose as its owner; run `chmod 600 {secret}`"]
+    robot_secret = keys / "robots" / "robot-0.key_secret"
+    assert (f"agent 0: warning: the secret key {robot_secret} can be read by other users (mode 0644)"
+            in (tmp_path / "agent.log").read_text())
+    operator_client_keys(keys)
+    assert "khepri ctl: warning: the secret key " + str(keys / "operators" / "alice.key_secret") in \
+        capsys.readouterr().err
+
+
 def test_a_listed_robot_key_connects_and_runs(secure_hub, keys, tmp_path):
     agent = spawn_agent(secure_hub.endpoints["robots"], 0, tmp_path / "agent.log", keys=keys)
     try:

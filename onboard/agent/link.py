@@ -1,6 +1,7 @@
 """The agent's connection to the hub: one DEALER socket, CURVE when keys are given, protocol checks both ways."""
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
@@ -33,6 +34,20 @@ def hub_endpoint(hub: str, port: int, option: str = "--hub", port_given: bool = 
                                   f"(--hub {host} --port {given_port}), or a whole address "
                                   f"(--hub tcp://{host}:{given_port})")
     return f"tcp://{hub}:{port}"
+
+
+def exposed_secret(path: Path) -> Optional[str]:
+    """A warning when a secret key file can be read by other users than its owner (as ssh refuses such a
+    key): whoever reads it can pose as that robot, operator or hub. None when it is private (or on a system
+    without POSIX modes)."""
+    try:
+        mode = path.stat().st_mode & 0o777
+    except OSError:
+        return None
+    if os.name != "posix" or not mode & 0o077:
+        return None
+    return (f"the secret key {path} can be read by other users (mode {mode:04o}): anyone who reads it can pose "
+            f"as its owner; run `chmod 600 {path}`")
 
 
 def load_robot_keys(folder: Path, robot_id: int) -> Dict[str, bytes]:
