@@ -29,6 +29,7 @@ import numpy as np
 import yaml
 import zmq
 
+from onboard.agent.link import use_ipv6
 from onboard.protocol import DOWNLINK_TYPES, ProtocolError, decode, encode
 
 from .control import request
@@ -115,6 +116,7 @@ def _connect_agents(endpoint: str, robots: int) -> List[zmq.Socket]:
         sock = context.socket(zmq.DEALER)
         sock.linger = 0
         sock.rcvhwm = 16
+        use_ipv6(sock, endpoint)
         sock.connect(endpoint)
         sockets.append(sock)
     time.sleep(0.2)

@@ -7,6 +7,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import zmq
 
+from onboard.agent.link import use_ipv6
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
 from .security import apply_client_keys
@@ -32,6 +33,7 @@ def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, ti
         apply_client_keys(sock, keys)
     try:
         try:
+            use_ipv6(sock, endpoint)
             sock.connect(endpoint)
         except zmq.ZMQError as err:
             raise BadEndpoint(f"cannot connect to {endpoint!r}: {(err.strerror or str(err)).split(' (addr=')[0]}") \

@@ -18,6 +18,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import numpy as np
 import zmq
 
+from onboard.agent.link import tcp_host, use_ipv6
 from onboard.config import ConfigError
 from onboard.protocol import MAX_MESSAGE_BYTES
 
@@ -139,8 +140,10 @@ class Hub(Downlink, Uplink):
         if self.keyring is not None:
             make_curve_server(sock, self.keyring, domain)
         bind = self.config.network.bind
+        endpoint = f"tcp://{tcp_host(bind)}:{port if port else '*'}"
+        use_ipv6(sock, endpoint)
         try:
-            sock.bind(f"tcp://{bind}:{port if port else '*'}")
+            sock.bind(endpoint)
         except zmq.ZMQError as err:
             sock.close(0)          # nothing half-open: the caller closes the sockets bound before this one
             raise bind_error(err, bind, port, port_field) from None
@@ -375,4 +378,4 @@ def bind_error(err: zmq.ZMQError, bind: str, port: int, port_field: str) -> Conf
         return ConfigError(f"network.{port_field}", f"port {port} on {bind} is already in use")
     reason = (err.strerror or str(err)).split(" (addr=")[0]     # pyzmq appends the endpoint; we name it ourselves
     return ConfigError("network.bind", f"cannot listen on {bind!r}: {reason} (give an address of this PC, "
-                       "e.g. 127.0.0.1, or * for all interfaces)")
+                       "e.g. 127.0.0.1 or ::1, or * for all IPv4 interfaces, :: for all IPv6 and IPv4 ones)")

@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+import zmq
 
 from hub.harness import ScriptedHub, spawn_agent, stop_processes
 from onboard.agent.devices import AgentClock, HubState, apply_frame
@@ -406,3 +407,52 @@ def test_a_whole_hub_address_and_a_port_are_refused_together():
     ctl = subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "status", "--hub", "tcp://127.0.0.1:1",
                           "--port", "5561"], capture_output=True, text=True, timeout=60)
     assert ctl.returncode == 2 and "--port: 'tcp://127.0.0.1:1' is a whole address" in ctl.stderr
+
+
+def ipv6_loopback_available() -> bool:
+    probe = zmq.Context.instance().socket(zmq.ROUTER)
+    probe.ipv6 = True
+    try:
+        probe.bind("tcp://[::1]:*")
+        return True
+    except zmq.ZMQError:
+        return False
+    finally:
+        probe.close(0)
+
+
+def test_an_ipv6_address_is_written_in_brackets_and_a_port_beside_it_refused():
+    from onboard.agent.link import hub_endpoint
+    from onboard.config import ConfigError
+
+    assert hub_endpoint("::1", 5560) == hub_endpoint("[::1]", 5560) == "tcp://[::1]:5560"
+    assert hub_endpoint("fd00::0:7", 5560) == "tcp://[fd00::7]:5560"
+    with pytest.raises(ConfigError, match=r"--hub \[::1\] --port 5000\), or a whole address \(--hub tcp://\[::1\]:5000"):
+        hub_endpoint("[::1]:5000", 5560)
+
+
+@pytest.mark.skipif(not ipv6_loopback_available(), reason="this machine has no IPv6 loopback")
+def test_a_hub_on_an_ipv6_address_serves_a_real_agent_and_ctl(tmp_path, make_scenario):
+    """A lab on IPv6: ZeroMQ needs its IPV6 option on both ends, and without it the hub could not bind ::1
+    ("No such device") and an agent given --hub ::1 made tcp://::1:5560, which never connects."""
+    from hub.config import parse_config
+    from hub.control import request
+    from hub.harness import HubThread, spawn_agent, stop_processes
+
+    config = parse_config({"source": {"type": "sim"}, "security": {"insecure": True},
+                           "network": {"bind": "::1", "robot_port": 0, "control_port": 0}})
+    scenario = make_scenario(robots={"count": 2}, arena={"walls": [-2.0, -2.0, 2.0, 2.0]})
+    with HubThread(config, scenario=scenario) as hub:
+        assert hub.endpoints["robots"].startswith("tcp://[::1]:")
+        port = hub.endpoints["robots"].rsplit(":", 1)[1]
+        agent = spawn_agent(hub.endpoints["robots"], 0, tmp_path / "agent.log")
+        host_agent = spawn_agent("::1", 1, tmp_path / "agent1.log", extra=["--port", port])   # --hub ::1
+        try:
+            hub.wait_until(lambda s: s["robots"][0]["connected"] and s["robots"][1]["connected"])
+        finally:
+            stop_processes([agent, host_agent])
+        control_port = hub.endpoints["control"].rsplit(":", 1)[1]
+        ctl = subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "status", "--hub", "::1",
+                              "--port", control_port], capture_output=True, text=True, timeout=60)
+        assert ctl.returncode == 0 and "robot  connected" in ctl.stdout, ctl.stderr
+        assert request(hub.endpoints["control"], "status")["ok"]

@@ -1,6 +1,7 @@
 """The agent's connection to the hub: one DEALER socket, CURVE when keys are given, protocol checks both ways."""
 from __future__ import annotations
 
+import ipaddress
 import os
 import time
 from pathlib import Path
@@ -26,14 +27,40 @@ def hub_endpoint(hub: str, port: int, option: str = "--hub", port_given: bool = 
             raise ConfigError("--port", f"{hub!r} is a whole address with its own port: leave --port out, or "
                                         f"give --hub the host alone")
         return hub
+    literal = ipv6_literal(hub)
+    if literal is not None:
+        return f"tcp://[{literal}]:{port}"
     if ":" in hub:
         host, _, given_port = hub.rpartition(":")
-        if not host or ":" in host or not given_port.isdigit():
+        if not host or (":" in host and ipv6_literal(host) is None) or not given_port.isdigit():
             host, given_port = "HOST", str(port)
         raise ConfigError(option, f"{hub!r} has a ':' in it: give the host alone and the port with --port "
                                   f"(--hub {host} --port {given_port}), or a whole address "
                                   f"(--hub tcp://{host}:{given_port})")
     return f"tcp://{hub}:{port}"
+
+
+def ipv6_literal(host: str) -> Optional[str]:
+    """``host`` as a bare IPv6 address (``::1`` or ``[::1]`` give ``::1``), or None if it is not one."""
+    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    try:
+        return str(ipaddress.IPv6Address(bare)) if ":" in bare else None
+    except ValueError:
+        return None
+
+
+def tcp_host(host: str) -> str:
+    """``host`` as it goes between ``tcp://`` and ``:port``: an IPv6 address in brackets."""
+    literal = ipv6_literal(host)
+    return host if literal is None else f"[{literal}]"
+
+
+def use_ipv6(socket: zmq.Socket, endpoint: str) -> None:
+    """ZeroMQ reaches an IPv6 address only with its IPV6 option on; it is off by default, and an address such as
+    tcp://[::1]:5560 then fails with "No such device". Turned on for such addresses only, so the IPv4 setups
+    are as they were."""
+    if "://[" in endpoint:
+        socket.ipv6 = True
 
 
 def exposed_secret(path: Path) -> Optional[str]:
@@ -106,6 +133,7 @@ class HubLink:
             self.socket.curve_publickey = self.keys["public"]
             self.socket.curve_secretkey = self.keys["secret"]
             self.socket.curve_serverkey = self.keys["server"]
+        use_ipv6(self.socket, self.endpoint)
         self.socket.connect(self.endpoint)
         self.heard = False                 # the hub has spoken on this socket (see unsent)
         self.poller = zmq.Poller()
