@@ -490,7 +490,7 @@ def test_a_robot_attaching_past_the_timeout_keeps_its_slot_when_the_branch_grew_
 @pytest.mark.parametrize("profile", ["improved", "faithful"])
 def test_a_robot_far_from_its_branch_target_travels_fast_and_arrives_at_cruise_speed(profile):
     """travel_speed_m_s (0.2 m/s in the paper-50 and paper-100 scenarios): a long trip to a branch target
-    (the 100-robot ring's are 5-25 m) goes at the travel speed; the last metres, and any stretch where the
+    (the 100-robot ring's are 5-25 m) goes at the travel speed; the last 0.6 m, and any stretch where the
     IR sees the object, go at the cruise speed. The faithful profile travels at the cruise speed throughout."""
     transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
     transport.params = build_params(get_behaviour("transport"), {"profile": profile, "travel_speed_m_s": 0.2})
@@ -509,10 +509,39 @@ def test_a_robot_far_from_its_branch_target_travels_fast_and_arrives_at_cruise_s
 
     fast = p.travel_speed_m_s if profile == "improved" else p.cruise_speed_m_s
     assert forward_speed_at(0.0) == pytest.approx(fast)                   # 10 m to go
-    assert forward_speed_at(9.0) == pytest.approx(p.cruise_speed_m_s)     # 1 m to go
+    assert forward_speed_at(9.4) == pytest.approx(p.cruise_speed_m_s)     # 0.6 m to go
     # The object in the way (it slides along it, turning): no faster than cruise, even 10 m out.
     assert 0.0 < forward_speed_at(0.0, object_peak=0.3) <= p.cruise_speed_m_s
     assert p.travel_speed_m_s == (0.2 if profile == "improved" else p.cruise_speed_m_s)
+
+
+@pytest.mark.parametrize("profile", ["improved", "faithful"])
+def test_the_lowest_bidder_for_a_branch_target_sets_off_during_t_a_and_stops_short_of_it(profile):
+    """head_start (ours): while T_a runs, the robot whose bid is the lowest stored for a branch target drives
+    toward it instead of standing still for the whole bidding window, and stops HEAD_START_STOP_M short
+    until it owns it (on in the paper scenarios). A robot outbid, and every robot in the faithful profile (the
+    paper's), stays put."""
+    from onboard.behaviours.transport.caging import HEAD_START_STOP_M
+
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    transport.params = build_params(get_behaviour("transport"), {"profile": profile, "head_start": True})
+    board, me, wheels = transport.board, transport.robot.id, transport.robot.wheels
+    task = Task("L3", 3.0, 0.0, "L", 3, 11, 0)
+    board.put_task(task)
+
+    def speed_at(x: float, now: float) -> float:
+        # Heading straight at the target, nobody around, nothing in sight.
+        transport.percept = Percept(x, 0.0, 0.0, {}, (0.0, 1.0), 0.0, (0.0, 0.0))
+        transport._on_idle(now)
+        assert transport.state == "idle"                                   # bidding, not yet the owner
+        return (wheels.left + wheels.right) / 2.0
+
+    moving = speed_at(0.0, 0.0)                                            # its bid is the only one
+    assert board.best_bid(task)["robot"] == me
+    assert moving == (pytest.approx(transport.params.cruise_speed_m_s) if profile == "improved" else 0.0)
+    assert speed_at(3.0 - HEAD_START_STOP_M + 0.05, 1.0) == 0.0            # short of the target: waits there
+    board.bid(task, me + 1, 0.01)                                          # outbid by a robot nearer it
+    assert speed_at(0.0, 2.0) == 0.0
 
 
 def test_i_d_grows_only_when_no_open_target_gets_a_bid():

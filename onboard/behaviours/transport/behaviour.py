@@ -206,6 +206,9 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
             task = self._nearest_open_task(now)
             if task is not None:
                 self._bid(task, now)
+                if self._head_start(task):
+                    self._note_left_behind(now)
+                    return
             regroup = task is None and self._cut_off(now)
         if regroup:
             self._regroup()

@@ -16,7 +16,7 @@ PROFILES = ("improved", "faithful")
 IMPROVEMENT_FLAGS = ("pipeline_allocation", "equalise_spacing", "hold_yaw_while_pushing",
                      "return_after_turning", "soft_side_contact",
                      "keep_contact", "reinforce_push", "seed_from_rear", "keep_gap_while_caging",
-                     "surface_estimate", "pace_formation", "regroup_when_cut_off")
+                     "surface_estimate", "pace_formation", "regroup_when_cut_off", "head_start")
 SMALL_CAGE_YAW = ("auto", "edges", "contact_normals")
 
 
@@ -104,6 +104,11 @@ class TransportParams:
     # members' IR directions to the object: they turn with the faces, sliding or not, but are noisier), or
     # "auto": contact normals when the path asks for a turn, edges otherwise. docs/behaviour.md section 8.
     small_cage_yaw: str = "auto"
+    # Ours: during T_a the robot holding the lowest bid for a branch target already travels toward it (it
+    # stops 0.6 m short until it owns it); the paper's bidders stand still for the whole window (caging.py).
+    # Off by default, on in the paper and irregular scenarios: round the lab box the trips are short, and it
+    # changed which robots meet the cage enough to move seed-specific small-cage cases outside tolerance.
+    head_start: bool = False
     regroup_when_cut_off: bool = True        # a spare out of radio range of every robot at work moves toward
     #                                          the object estimate until it hears one again (behaviour.py)
 
