@@ -32,12 +32,11 @@ SEED_WEDGED_S = 10.0
 CHAIN_LINK_FACTOR = 2.0    # a branch member farther than this times I_d from its predecessor breaks the chain
 # A predecessor this far (cosine) round the object on the wrong side: slide toward it, not the branch's way.
 WRONG_SIDE_COS = 0.5
-# travel_speed_m_s applies farther than this from the target; it eases down to the cruise speed over the
-# next 0.4 m, so a robot reaches its target and the members next to it at the cruise speed. Round the cage
-# it edge-follows the members at I_d, which holds at 0.2 m/s too. (It was 3 m and 1 m: a trip round the
-# cage's last 3 m at the cruise speed, half of a 25-robot ring's caging time.)
-TRAVEL_FAST_BEYOND_M = 1.0
-TRAVEL_EASE_M = 0.4
+# travel_speed_m_s applies farther than travel_fast_beyond_m from the target and eases down to the cruise speed
+# over the next TRAVEL_EASE_FRACTION of that distance (at most TRAVEL_EASE_M), so a robot reaches its target and
+# the members next to it at the cruise speed.
+TRAVEL_EASE_FRACTION = 0.4
+TRAVEL_EASE_M = 1.0
 # head_start: the presumptive winner of a branch target stops this far from it until it owns it.
 HEAD_START_STOP_M = 0.6
 # An attaching robot that drove SHOVE_ADVANCE_M toward the object while its IR saw it, without touching it
@@ -143,11 +142,12 @@ class CagingPhases:
 
     def _travel_speed_scale(self, remaining: float) -> float:
         """travel_speed_m_s over the cruise speed far from the target, easing to 1 (cruise) between
-        TRAVEL_FAST_BEYOND_M and TRAVEL_FAST_BEYOND_M - TRAVEL_EASE_M; 1 whenever the object is in the way."""
+        travel_fast_beyond_m and that minus the ease distance; 1 whenever the object is in the way."""
         p = self.params
         if self.percept.object_peak > 0.0 or p.travel_speed_m_s <= p.cruise_speed_m_s:
             return 1.0
-        ease = min(1.0, max(0.0, (remaining - TRAVEL_FAST_BEYOND_M + TRAVEL_EASE_M) / TRAVEL_EASE_M))
+        span = min(TRAVEL_EASE_M, TRAVEL_EASE_FRACTION * p.travel_fast_beyond_m)
+        ease = min(1.0, max(0.0, (remaining - p.travel_fast_beyond_m + span) / span))
         return 1.0 + ease * (p.travel_speed_m_s / p.cruise_speed_m_s - 1.0)
 
     # --- attach: touch the object and correct the distance to the branch predecessor ----------------------

@@ -55,11 +55,16 @@ class TransportParams:
     # travel that got no 2 cm nearer its target for this long gives it back too (caging.py:_on_travel).
     attach_timeout_s: float = 120.0
     # Ours: a robot travelling to its branch target drives this fast while it is far from it (caging.py,
-    # TRAVEL_FAST_BEYOND_M) and the object is not in its way. Targets open one after another on each branch,
+    # travel_fast_beyond_m) and the object is not in its way. Targets open one after another on each branch,
     # so time to cage is the sum of the trips: round the 100-robot box they are 5-25 m, and at the cruise
-    # speed that ring took ~7000 s (the paper: 2753 s). The paper-50 and paper-100 scenarios set 0.2 m/s,
+    # speed that ring took ~7000 s (the paper: 2753 s). The paper and irregular scenarios set 0.2 m/s,
     # the top of what KheperaIV controllers usually use; the default is the cruise speed (faithful: always).
     travel_speed_m_s: float = 0.1
+    # Ours: ... while farther than this from the target (easing to the cruise speed over the next 0.4 times
+    # this, at most 1 m). 1 m in the paper-25 and irregular scenarios, where with head_start it halves the
+    # caging time; 3 m elsewhere: on paper-50-straight seed 2, 1 m gave a 48-member cage whose estimate ran
+    # 0.12 m off (docs/behaviour.md section 5).
+    travel_fast_beyond_m: float = 3.0
     # Ours: a robot that has not arrived at a barrier while at least half the live members have, and stay
     # arrived, for this long arrives too. The few still moving cannot move the object alone, so their
     # estimates stop changing; when one differs from the others' by more than the tolerance (members that
@@ -135,8 +140,8 @@ class TransportParams:
         for name in ("safety_distance_m", "inter_robot_distance_m", "caging_tolerance_m", "closure_factor",
                      "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s",
                      "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "attach_timeout_s",
-                     "travel_speed_m_s", "position_tolerance_m", "rotation_tolerance_deg", "seed_approach_radius_m",
-                     "barrier_stall_s"):
+                     "travel_speed_m_s", "travel_fast_beyond_m", "position_tolerance_m", "rotation_tolerance_deg",
+                     "seed_approach_radius_m", "barrier_stall_s"):
             check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
         check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
         check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)
