@@ -61,9 +61,9 @@ class TransportParams:
     # the top of what KheperaIV controllers usually use; the default is the cruise speed (faithful: always).
     travel_speed_m_s: float = 0.1
     # Ours: ... while farther than this from the target (easing to the cruise speed over the next 0.4 times
-    # this, at most 1 m). 1 m in the paper-25 and irregular scenarios, where with head_start it halves the
-    # caging time; 3 m elsewhere: on paper-50-straight seed 2, 1 m gave a 48-member cage whose estimate ran
-    # 0.12 m off (docs/behaviour.md section 5).
+    # this, at most 1 m). 1 m in the irregular scenarios, where with head_start it halves the caging time;
+    # 3 m elsewhere: with 1 m and head_start, a paper-25 and a paper-50 run ended with estimates 0.12 m off
+    # (docs/behaviour.md section 5).
     travel_fast_beyond_m: float = 3.0
     # Ours: a robot that has not arrived at a barrier while at least half the live members have, and stay
     # arrived, for this long arrives too. The few still moving cannot move the object alone, so their
@@ -111,7 +111,7 @@ class TransportParams:
     small_cage_yaw: str = "auto"
     # Ours: during T_a the robot holding the lowest bid for a branch target already travels toward it (it
     # stops 0.6 m short until it owns it); the paper's bidders stand still for the whole window (caging.py).
-    # Off by default, on in the paper and irregular scenarios: round the lab box the trips are short, and it
+    # Off by default, on in the irregular scenarios: round the lab box the trips are short, and it
     # changed which robots meet the cage enough to move seed-specific small-cage cases outside tolerance.
     head_start: bool = False
     regroup_when_cut_off: bool = True        # a spare out of radio range of every robot at work moves toward
