@@ -491,7 +491,7 @@ def test_a_robot_attaching_past_the_timeout_keeps_its_slot_when_the_branch_grew_
 def test_a_robot_far_from_its_branch_target_travels_fast_and_arrives_at_cruise_speed(profile):
     """travel_speed_m_s (0.2 m/s in the paper-50 and paper-100 scenarios): a long trip to a branch target
     (the 100-robot ring's are 5-25 m) goes at the travel speed; the last travel_fast_beyond_m (3 m, or 1 m
-    in the paper-25 scenarios) less the easing, and any stretch where the IR sees the object, go at the
+    in the irregular scenarios) less the easing, and any stretch where the IR sees the object, go at the
     cruise speed. The faithful profile travels at the cruise speed throughout."""
     transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
     transport.params = build_params(get_behaviour("transport"), {"profile": profile, "travel_speed_m_s": 0.2})
@@ -513,7 +513,7 @@ def test_a_robot_far_from_its_branch_target_travels_fast_and_arrives_at_cruise_s
     assert forward_speed_at(8.0) == pytest.approx(p.cruise_speed_m_s)     # 2 m to go: within 3 m, cruise
     transport.params = build_params(get_behaviour("transport"), {"profile": profile, "travel_speed_m_s": 0.2,
                                                                  "travel_fast_beyond_m": 1.0})
-    p = transport.params                                                  # the paper-25 scenarios' setting
+    p = transport.params                                                  # the irregular scenarios' setting
     assert forward_speed_at(8.0) == pytest.approx(fast)                   # 2 m to go: still fast
     assert forward_speed_at(9.4) == pytest.approx(p.cruise_speed_m_s)     # 0.6 m to go
     # The object in the way (it slides along it, turning): no faster than cruise, even 10 m out.

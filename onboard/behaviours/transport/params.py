@@ -57,8 +57,9 @@ class TransportParams:
     # Ours: a robot travelling to its branch target drives this fast while it is far from it (caging.py,
     # travel_fast_beyond_m) and the object is not in its way. Targets open one after another on each branch,
     # so time to cage is the sum of the trips: round the 100-robot box they are 5-25 m, and at the cruise
-    # speed that ring took ~7000 s (the paper: 2753 s). The paper and irregular scenarios set 0.2 m/s,
-    # the top of what KheperaIV controllers usually use; the default is the cruise speed (faithful: always).
+    # speed that ring took ~7000 s (the paper: 2753 s). The paper-50, paper-100 and irregular scenarios set
+    # 0.2 m/s, the top of what KheperaIV controllers usually use; the default is the cruise speed (faithful:
+    # always).
     travel_speed_m_s: float = 0.1
     # Ours: ... while farther than this from the target (easing to the cruise speed over the next 0.4 times
     # this, at most 1 m). 1 m in the irregular scenarios, where with head_start it halves the caging time;
