@@ -309,13 +309,12 @@ def check_cell(data: Dict[str, Any], cell: str, chosen: Dict[str, Any], seed: in
         return Simulation(parse_scenario(data).with_time_limit(time_limit_s), seed=seed).warnings
     except ConfigError as err:
         where = f"overrides ({cell})" if chosen else "scenarios"
-        raise ConfigError(where, str(err) + whole_mapping_hint(str(err), chosen)) from None
+        raise ConfigError(where, str(err) + whole_mapping_hint(err.field, chosen)) from None
 
 
-def whole_mapping_hint(error: str, chosen: Dict[str, Any]) -> str:
+def whole_mapping_hint(field_name: str, chosen: Dict[str, Any]) -> str:
     """An override of one field can leave its siblings unfit (``object.shape: circle`` keeps the box's two-number
     ``size``); the cartesian product cannot pair them, but overriding the whole mapping can: say how."""
-    field_name = error.split(":", 1)[0]
     overridden = [key for key in chosen if field_name == key or field_name.startswith(key + ".")]
     for key in chosen:
         parent = key.rpartition(".")[0]
