@@ -197,7 +197,7 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
     def _on_idle(self, now: float) -> None:
         if self._finish_if_done():
             return
-        regroup = False
+        regroup = moved = False
         if "closed" in self.space:
             if not self._caging_only_done() and (self.params.reinforce_push or self._push_stalled(now)):
                 self._reinforce(now)
@@ -206,13 +206,11 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
             task = self._nearest_open_task(now)
             if task is not None:
                 self._bid(task, now)
-                if self._head_start(task):
-                    self._note_left_behind(now)
-                    return
+                moved = self._head_start(task)
             regroup = task is None and self._cut_off(now)
         if regroup:
             self._regroup()
-        else:
+        elif not moved:
             self._keep_clear()
         self._note_left_behind(now)
 
