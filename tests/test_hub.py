@@ -83,8 +83,10 @@ def test_robots_outside_the_geofence_are_held(three_robots, tmp_path):
         agents = start_agents(hub, 3, tmp_path)
         try:
             hub.request("start")
-            status = hub.wait_until(lambda s: robots_say(s, "agent_mode", "hold"))
-            assert all(r["reason"] == "outside the geofence" for r in status["robots"])
+            # Waited for, not read once: on a loaded machine a late simulated frame briefly holds a robot as
+            # "not tracked by motion capture" instead (a failed fresh-clone run).
+            hub.wait_until(lambda s: robots_say(s, "agent_mode", "hold")
+                           and robots_say(s, "reason", "outside the geofence"))
             before = hub.hub.source.world.robot_poses()
             time.sleep(1.0)
             after = hub.hub.source.world.robot_poses()
