@@ -40,7 +40,7 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_agent(args: argparse.Namespace) -> int:
-    from .link import HubLink, exposed_secret, hub_endpoint, load_robot_keys
+    from .link import HubLink, exposed_secret, hub_endpoint, load_robot_keys, robot_secret_file
     from .loop import Agent
     from .parent import end_with_parent
 
@@ -57,7 +57,7 @@ def run_agent(args: argparse.Namespace) -> int:
     if not 0.0 < args.watchdog <= 0.3:
         raise ConfigError("--watchdog", f"must be in (0, 0.3] seconds (got {args.watchdog})")
     keys = load_robot_keys(args.keys, args.robot_id) if args.keys is not None else None
-    exposed = exposed_secret(args.keys / "robots" / f"robot-{args.robot_id}.key_secret") if keys else None
+    exposed = exposed_secret(robot_secret_file(args.keys, args.robot_id)) if keys else None
     if exposed:
         print(f"agent {args.robot_id}: warning: {exposed}", file=sys.stderr, flush=True)
     for warning in import_user_modules(args.agent_imports):

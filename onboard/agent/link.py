@@ -77,12 +77,16 @@ def exposed_secret(path: Path) -> Optional[str]:
             f"as its owner; run `chmod 600 {path}`")
 
 
+def robot_secret_file(folder: Path, robot_id: int) -> Path:
+    return folder / "robots" / f"robot-{robot_id}.key_secret"
+
+
 def load_robot_keys(folder: Path, robot_id: int) -> Dict[str, bytes]:
     """The robot's key pair and the hub's public key, from a folder laid out by ``khepri keys init``
     (``robots/robot-<id>.key_secret`` and ``hub.key``; copy just these two files onto the robot)."""
     import zmq.auth
 
-    secret_file = folder / "robots" / f"robot-{robot_id}.key_secret"
+    secret_file = robot_secret_file(folder, robot_id)
     hub_file = folder / "hub.key"
     for path in (secret_file, hub_file):
         if not path.is_file():
