@@ -74,7 +74,7 @@ def telemetry_of(behaviour: Behaviour, robot_id: int) -> Dict[str, Any]:
     BehaviourError names which of the two raised."""
     try:
         reported = behaviour.telemetry()
-        if not isinstance(reported, Mapping):
+        if type(reported) is not dict and not isinstance(reported, Mapping):   # a plain dict skips the ABC check
             raise TypeError(f"telemetry() must return a dict (got {type(reported).__name__})")
         data = dict(reported)
     except USER_CODE_ERRORS as exc:

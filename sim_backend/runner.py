@@ -201,7 +201,8 @@ class Simulation:
 
     def _collect_telemetry(self, alive: np.ndarray) -> List[Optional[Dict[str, Any]]]:
         telemetry: List[Optional[Dict[str, Any]]] = [
-            telemetry_of(behaviour, i) if alive[i] else None for i, behaviour in enumerate(self.behaviours)]
+            telemetry_of(behaviour, i) if living else None
+            for i, (behaviour, living) in enumerate(zip(self.behaviours, alive.tolist()))]
         # Every robot's at the first step, then one robot's per step, in turn: a value the wire cannot carry
         # (a set, an object, too many bytes) fails here, not only in `khepri sil` or on the robots. Encoding
         # every robot's every step would cost 100 robots about a tenth of the simulator's time.
@@ -350,9 +351,11 @@ class Simulation:
 
 def check_telemetry_fits_the_wire(telemetry: List[Optional[Dict[str, Any]]], robot: Optional[int] = None) -> None:
     """BehaviourError (robot, ``telemetry()``) for telemetry an agent could not send to the hub: every robot's,
-    or only ``robot``'s."""
-    for i, data in enumerate(telemetry):
-        if data is None or (robot is not None and i != robot):
+    or only ``robot``'s (looked up directly: this runs at every step)."""
+    robots = range(len(telemetry)) if robot is None else (robot,)
+    for i in robots:
+        data = telemetry[i]
+        if data is None:
             continue
         try:
             encode({"type": "telemetry", "behaviour": plain_json(data)})
