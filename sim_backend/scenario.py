@@ -16,6 +16,8 @@ from onboard.behaviour import build_params, get_behaviour, takes_param
 from onboard.config import ConfigError, check_range, from_mapping, join
 from onboard.yamlfile import read_yaml
 
+from .compound import first_loose_part
+
 BUILTIN_DIR = Path(__file__).parent / "scenarios"
 SHAPES = ("box", "circle", "polygon", "compound", "cloud", "box_rotation", "clover")
 PART_SHAPES = ("box", "circle", "polygon")
@@ -131,6 +133,13 @@ class ObjectSpec:
         elif self.parts is not None:
             raise ConfigError(join(where, "parts"), f"only for shape: compound (shape is {self.shape})")
         validate_dimensions(self, where)
+        if self.shape == "compound":
+            loose = first_loose_part(self.parts)
+            if loose is not None:
+                part, nearest, gap = loose
+                raise ConfigError(join(join(where, "parts"), part),
+                                  f"does not touch the rest of the object: it lies {gap:.3g} m from part {nearest}. "
+                                  "A compound object is one rigid piece; move its parts so they touch or overlap")
 
 
 def validate_dimensions(spec: Any, where: str) -> None:

@@ -193,6 +193,13 @@ SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such
      "object.parts: a compound object needs at least one part"),
     ({"object": {"shape": "compound", "parts": [BOX, {"shape": "circle"}]}}, "object.parts[1].radius",
      "object.parts[1].radius: a circle needs radius: <metres>"),
+    ({"object": {"shape": "compound", "parts": [BOX, {**BOX, "offset": [1.5, 0]}]}}, "object.parts[1]",
+     "object.parts[1]: does not touch the rest of the object: it lies 0.5 m from part 0. A compound object is "
+     "one rigid piece; move its parts so they touch or overlap"),
+    ({"object": {"shape": "compound", "parts": [BOX, {**BOX, "offset": [1.0, 0]},
+                                                {"shape": "circle", "radius": 0.2, "offset": [0.0, 0.9]}]}},
+     "object.parts[2]", "object.parts[2]: does not touch the rest of the object: it lies 0.2 m from part 0. A "
+                        "compound object is one rigid piece; move its parts so they touch or overlap"),
     ({"object": {"shape": "compound", "parts": [{"shape": "clover"}]}}, "object.parts[0].shape",
      "object.parts[0].shape: must be one of box, circle, polygon (got 'clover')"),
     ({"object": {**BOX, "static": "yes please"}}, "object.static",
@@ -333,3 +340,24 @@ def test_a_section_with_every_line_commented_out_is_empty_whatever_section_it_is
     emptied = parse_scenario(yaml.safe_load(text + "params:\nfaults:\ncomm:\n"))
     assert emptied.params == plain.params == {} and emptied.faults == plain.faults == []
     assert emptied.comm == plain.comm
+
+
+@pytest.mark.parametrize("parts", [
+    [BOX, {**BOX, "offset": [1.0, 0.0]}],                                     # face to face
+    [BOX, {**BOX, "offset": [0.3, 0.2]}],                                     # overlapping
+    [BOX, {"shape": "box", "size": [0.2, 0.2], "offset": [0.1, 0.1]}],        # one inside the other
+    [BOX, {"shape": "circle", "radius": 0.3, "offset": [0.0, 0.8]}],          # a disc on a face
+    [{"shape": "circle", "radius": 0.3}, {"shape": "circle", "radius": 0.2, "offset": [0.5, 0.0]}],
+    [BOX, {**BOX, "offset": [1.0, 0.0]}, {**BOX, "offset": [2.0, 0.0]}],      # a chain: 0 and 2 apart
+    [BOX, {"shape": "box", "size": [1.0, 0.2], "yaw_deg": 45, "offset": [0.85, 0.85]}],   # a turned bar
+    [BOX, {"shape": "polygon", "vertices": [[0.5, 0.0], [1.2, -0.3], [1.2, 0.3]]}],       # a vertex on a face
+])
+def test_compound_parts_that_touch_make_one_object(make_scenario, parts):
+    assert make_scenario(object={"shape": "compound", "parts": parts}).object.parts
+
+
+def test_a_compound_part_just_clear_of_the_others_is_named_with_its_gap(make_scenario):
+    with pytest.raises(ConfigError) as err:
+        make_scenario(object={"shape": "compound", "parts": [BOX, {"shape": "box", "size": [1.0, 0.2],
+                                                                   "yaw_deg": 45, "offset": [0.9, 0.9]}]})
+    assert err.value.field == "object.parts[1]" and "from part 0" in str(err.value)
