@@ -30,6 +30,8 @@ class RobotLink:
     estop_ack_s: Optional[float] = None      # e-stop to acknowledgement (wheels already stopped)
     frames_dropped: int = 0                  # downlink frames refused by a full queue (latest-only)
     unresponsive_steps: int = 0              # lockstep: consecutive steps without an answer
+    silent_since: float = -math.inf          # lockstep: when the first of those unanswered frames was sent
+    silent_since_clock_s: float = 0.0        # ...and the simulated time it carried
     rival_since: float = -math.inf           # a second connection claiming this id: its first message...
     rival_seen: float = -math.inf            # ...and its latest one
     rival_warned: float = -math.inf          # when the hub last said so

@@ -72,7 +72,10 @@ class Lockstep:
                     report.round_trip_s.append(time.monotonic() - sent_at[rid][0])
                     robot.unresponsive_steps = 0
         for rid in waiting:
-            hub.robots[rid].unresponsive_steps += 1
+            robot = hub.robots[rid]
+            if robot.unresponsive_steps == 0:    # the agent's step for this frame is the one that hangs
+                robot.silent_since, robot.silent_since_clock_s = sent, report.time_s
+            robot.unresponsive_steps += 1
             report.missing.append(rid)
         if waiting:
             self.timeouts += 1

@@ -165,6 +165,20 @@ def spawn_agents(endpoint: str, keys: Path, count: int, out: Path, imports: List
     return [spawn_agent(endpoint, i, logs / f"agent-{i}.log", keys=keys, extra=extra) for i in range(count)]
 
 
+STUCK_STEP_NOTE = "the behaviour's step() has run for "    # the agent's step watchdog, once per stuck step
+
+
+def stuck_step_account(robot, said: str) -> str:
+    """The agent's note on its stuck step, with how long the step has run by now. The note gives the time
+    when the agent's watchdog tripped (a quarter of a second in), said once: the step began when the agent
+    got the first frame it left unanswered, so the hub counts from when it sent that frame."""
+    _, _, rest = said.partition(" s: ")          # "0.26 s: wheels stopped (...)" -> "wheels stopped (...)"
+    if robot.silent_since == -math.inf or not rest:
+        return STUCK_STEP_NOTE + said
+    running_s = time.monotonic() - robot.silent_since
+    return f"{STUCK_STEP_NOTE}{running_s:.1f} s, since t = {robot.silent_since_clock_s:.1f} s: {rest}"
+
+
 class AgentError(RuntimeError):
     """An agent reported that it cannot run (its telemetry's ``error``)."""
 
@@ -229,11 +243,11 @@ class SilSession:
         for rid in missing:
             robot = self.hub.robots[rid]
             if robot.unresponsive_steps >= UNRESPONSIVE_AFTER_STEPS and rid not in self.hub.killed:
-                marker = "the behaviour's step() has run for "
-                said = agent_log_line(self.out, rid, f"agent {rid}: {marker}")
+                said = agent_log_line(self.out, rid, f"agent {rid}: {STUCK_STEP_NOTE}")
                 raise AgentError(f"agent {rid} stopped answering ({robot.unresponsive_steps} frames in a row, "
                                  f"{self.options.step_timeout_s:g} s each)"
-                                 + (f": {marker}{said}" if said else "") + f"; its log is in {self.out / 'agents'}")
+                                 + (f": {stuck_step_account(robot, said)}" if said else "")
+                                 + f"; its log is in {self.out / 'agents'}")
 
     def _crash_line(self, index: int) -> str:
         """The agent's own account of its crash (``behaviour crashed: ...``) from its log, if it wrote one."""
