@@ -330,7 +330,9 @@ class SilSession:
             result.update(self.evaluator.result())
         except Exception as exc:
             error = error or f"evaluation failed: {type(exc).__name__}: {exc}"
-        result["telemetry"] = [self._behaviour_telemetry(i) for i in range(len(self.agents))]   # as sim run's
+        # As sim run's: null for a robot a scenario fault killed, whatever its agent said last.
+        alive = self.source.world.alive()
+        result["telemetry"] = [self._behaviour_telemetry(i) if alive[i] else None for i in range(len(self.agents))]
         result["sil"] = sil_figures(self.hub, lockstep, self.round_trips, self.missing_answers,
                                     not self.options.realtime)
         if error:

@@ -63,6 +63,17 @@ def test_a_slow_scenario_gets_a_hub_watchdog_its_telemetry_can_feed(tmp_path):
     assert result["sil"]["step_timeouts"] == 0 and result["sil"]["missing_answers"] == 0
 
 
+def test_a_robot_killed_by_a_fault_has_null_telemetry_as_in_sim_run(tmp_path):
+    """`sim run` wrote `null` for a dead robot's telemetry, sil what the hub last heard from its agent."""
+    from sim_backend.scenario import Fault
+
+    scenario = load_scenario("lab-6").with_overrides(faults=[Fault(robot=0, at_s=0.5)])
+    result = run_sil(scenario, tmp_path, SilOptions(plot=False, record=False, time_limit_s=1.5))
+    assert "error" not in result
+    assert result["telemetry"][0] is None and all(tel is not None for tel in result["telemetry"][1:])
+    assert json.loads((tmp_path / "result.json").read_text())["telemetry"][0] is None
+
+
 def test_an_earlier_runs_agent_logs_do_not_stay_beside_this_runs(tmp_path):
     """A 6-robot run's agents/agent-4.log and agent-5.log stayed in the folder of a later 4-robot run."""
     (tmp_path / "agents").mkdir()
