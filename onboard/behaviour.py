@@ -70,8 +70,9 @@ class Behaviour:
 
 
 def telemetry_of(behaviour: Behaviour, robot_id: int) -> Dict[str, Any]:
-    """The behaviour's telemetry plus ``finished``: what a robot reports each step (sim runner and agent).
-    BehaviourError names which of the two raised."""
+    """The behaviour's telemetry plus ``finished`` as plain JSON values: what a robot reports each step (sim
+    runner and agent), so an evaluator sees the same values in ``sim run`` as in ``sil``, where they came over
+    the wire (NaN as None, numpy as Python). BehaviourError names which of the two raised."""
     try:
         reported = behaviour.telemetry()
         if type(reported) is not dict and not isinstance(reported, Mapping):   # a plain dict skips the ABC check
@@ -83,12 +84,32 @@ def telemetry_of(behaviour: Behaviour, robot_id: int) -> Dict[str, Any]:
         data["finished"] = bool(behaviour.finished)
     except USER_CODE_ERRORS as exc:
         raise BehaviourError(robot_id, "finished", exc) from exc
-    return data
+    # The check first: most telemetry is plain already, and copying every robot's every step costs the
+    # simulator several times as much as looking.
+    return data if is_plain_json(data) else plain_json(data)
+
+
+_PLAIN_SCALARS = frozenset((str, int, bool, type(None)))
+
+
+def is_plain_json(values: Any) -> bool:
+    """Whether a dict's or list's values are all plain JSON already: what ``plain_json`` would leave as is."""
+    for item in (values.values() if type(values) is dict else values):
+        kind = type(item)
+        if kind is float:
+            if item - item != 0.0:              # NaN or infinity (math.isfinite costs a call per value)
+                return False
+        elif kind is dict or kind is list:
+            if not is_plain_json(item):
+                return False
+        elif kind not in _PLAIN_SCALARS:
+            return False
+    return True
 
 
 def plain_json(value: Any) -> Any:
-    """A behaviour's telemetry as plain JSON values, as the simulator's evaluator would take it: numpy numbers
-    and arrays become Python ones, tuples lists, and NaN or infinity (which JSON cannot carry) None."""
+    """A behaviour's telemetry as plain JSON values, as the hub gets it from an agent: numpy numbers and
+    arrays become Python ones, tuples lists, and NaN or infinity (which JSON cannot carry) None."""
     if isinstance(value, dict):
         return {key: plain_json(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):

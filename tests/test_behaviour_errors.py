@@ -283,9 +283,34 @@ def test_telemetry_that_is_not_a_dict_is_said_so(buggy, tmp_path, capsys):
     assert "robot 0, telemetry(): TypeError: telemetry() must return a dict (got list)" in capsys.readouterr().err
 
 
+PLAIN_TELEMETRY = {"state": "ok", "seen": 0, "numpy": 1.5, "x": None, "finished": False}   # the buggy one's
+
+
+def test_the_simulators_evaluator_gets_telemetry_as_plain_json_as_sils_does(buggy):
+    """`sim run`'s evaluator got the behaviour's NaN and numpy values, sil's the None and floats its agents
+    sent: an evaluator reading a NaN field worked in one and failed in the other."""
+    from onboard.plugins import import_user_modules
+    from sim_backend.scenario import load_scenario
+
+    import_user_modules(["buggy_behaviour"])
+    sim = Simulation(load_scenario(buggy("none")))
+    sim.run(time_limit_s=0.5)
+    assert sim.telemetry == [PLAIN_TELEMETRY] * 3                 # what evaluator.on_step was given
+    assert type(sim.telemetry[0]["numpy"]) is float
+
+
+def test_only_plain_json_telemetry_skips_the_copy():
+    from onboard.behaviour import is_plain_json
+
+    assert is_plain_json({"a": 1, "b": [0.5, "x", None, True], "c": {"d": -2.0}})
+    for odd in (math.inf, -math.inf, [math.nan], {"d": [1.0, math.nan]}, np.float64(0.5), (1, 2), {1, 2}):
+        assert not is_plain_json({"a": odd}), odd
+
+
 def test_sil_agents_send_numpy_and_nan_telemetry_as_plain_json(buggy, tmp_path, capsys):
     assert run("sil", buggy("none"), "--no-plot", "--no-record", "--out", "sil-ok") == 0
     result = json.loads((tmp_path / "sil-ok" / "result.json").read_text())
+    assert result["telemetry"] == [PLAIN_TELEMETRY] * 3
     assert result["stop_reason"] == "time limit" and result["sil"]["step_timeouts"] == 0
     moved = np.load(tmp_path / "sil-ok" / "trajectory.npz")["robot_pose"]
     assert np.hypot(*(moved[-1, :, :2] - moved[0, :, :2]).T).min() > 0.1
