@@ -94,6 +94,10 @@ class LogReader:
 
     def _file_records(self) -> Iterator[Any]:
         """Top-level records, with chunks opened; stops at the footer or at the first incomplete record."""
+        if self.file_bytes < len(MCAP_MAGIC):   # _check_is_mcap let it through: a prefix of the magic
+            self.stop_reason = (f"the file ends inside the MCAP magic bytes at byte {self.file_bytes} (it was cut "
+                                "short as it began)")
+            return
         with open(self.path, "rb") as file:
             offset = file.seek(len(MCAP_MAGIC))
             while True:
@@ -199,8 +203,9 @@ def _check_is_mcap(path: Path) -> int:
     except OSError as err:
         raise LogError(str(path), f"cannot read: {err.strerror or err}") from None
     if size == 0:
-        raise LogError(str(path), "empty file (not an MCAP log)")
-    if head != MCAP_MAGIC:
+        raise LogError(str(path), "empty file (0 bytes): not even the MCAP magic bytes a hub writes as it opens a log")
+    # A file shorter than the magic that starts it is a log cut short in its first bytes: truncated, read as such.
+    if head != MCAP_MAGIC and not (len(head) < len(MCAP_MAGIC) and MCAP_MAGIC.startswith(head)):
         raise LogError(str(path), "not an MCAP file (it does not start with the MCAP magic bytes)")
     return size
 

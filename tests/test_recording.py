@@ -218,7 +218,20 @@ def test_a_log_cut_anywhere_reads_as_a_prefix(tmp_path):
         assert summary.readable_bytes <= cut
         recovered_counts.add(len(got))
     assert {0, 10, 30, 60} <= recovered_counts   # whole chunks come back, and all of them once the data ends
-    cut_path.write_bytes(data[:5])
+
+
+@pytest.mark.parametrize("cut", range(1, 8))
+def test_a_log_cut_inside_its_magic_bytes_reads_as_truncated_not_as_another_format(tmp_path, cut):
+    """A log cut in its first 8 bytes was 'not an MCAP file', while one cut at byte 30 was TRUNCATED."""
+    path = write_log(tmp_path / "whole.mcap", every_topic_records())
+    cut_path = tmp_path / "cut.mcap"
+    cut_path.write_bytes(path.read_bytes()[:cut])
+    assert list(read_log(cut_path)) == []
+    summary = summarise(cut_path)
+    assert summary.truncated and summary.message_count == 0 and summary.readable_bytes == 0
+    assert summary.stop_reason == f"the file ends inside the MCAP magic bytes at byte {cut} (it was cut short " \
+                                  "as it began)"
+    cut_path.write_bytes(b"\x89MCAP1")             # not a prefix of the magic: another file
     with pytest.raises(LogError, match="not an MCAP file"):
         summarise(cut_path)
 
@@ -292,8 +305,8 @@ def test_log_info_on_a_damaged_drops_chunk_says_so_instead_of_a_traceback(tmp_pa
     assert checked.returncode == 0 and "DAMAGED, skipped 1" in checked.stdout
 
 
-@pytest.mark.parametrize("content, problem", [(b"", "empty file"), (b"this is not a log\n" * 20, "not an MCAP"),
-                                              (None, "no such file")])
+@pytest.mark.parametrize("content, problem", [(b"", r"empty file \(0 bytes\): not even the MCAP magic bytes"),
+                                              (b"this is not a log\n" * 20, "not an MCAP"), (None, "no such file")])
 def test_unreadable_files_give_one_clear_error(tmp_path, content, problem):
     path = tmp_path / "bad.mcap"
     if content is not None:
