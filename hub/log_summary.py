@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import math
 import struct
 import zlib
 from collections import Counter
@@ -25,6 +26,7 @@ from hub.log_format import (
     FORMAT_METADATA,
     HUB_DROPS,
     MCAP_MAGIC,
+    MOCAP_POSES,
     USER_METADATA,
     LogError,
     LogRecord,
@@ -230,6 +232,10 @@ class LogSummary:
     metadata: Dict[str, Any]      # the Recorder's ``metadata`` dict
     format_version: Optional[int]
     damaged_records: List[str] = dataclasses.field(default_factory=list)   # skipped: what and where
+    # The simulated time (``clock_s``) of the first and last /mocap/poses record: a sil or sim-source hub's
+    # log, whose wall-clock duration says nothing of how much it simulated. None without a simulated clock.
+    sim_start_s: Optional[float] = None
+    sim_end_s: Optional[float] = None
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -242,6 +248,14 @@ class _Tally:
     drops_by_sender: Counter = dataclasses.field(default_factory=Counter)
     start_ns: Optional[int] = None
     end_ns: Optional[int] = None
+    first_poses: Optional[bytes] = None    # the raw first and last /mocap/poses messages, for their clock_s
+    last_poses: Optional[bytes] = None
+
+    def add_poses(self, data: bytes) -> None:
+        """Only kept: decoding every pose record would cost a long log's walk more than the walk."""
+        if self.first_poses is None:
+            self.first_poses = data
+        self.last_poses = data
 
     def add_drops(self, payload: Any) -> None:
         if not isinstance(payload, dict):
@@ -307,6 +321,11 @@ def _summary_from_index(reader: LogReader) -> LogSummary:
             tally.start_ns, tally.end_ns = stats.message_start_time, stats.message_end_time
         for _schema, _channel, message in indexed.iter_messages(topics=[HUB_DROPS], log_time_order=False):
             tally.add_drops(_json_or_none(message.data))
+        # The first and the last pose record: a chunk at each end, not the whole file.
+        for reverse in (False, True):
+            found = next(indexed.iter_messages(topics=[MOCAP_POSES], reverse=reverse), None)
+            if found is not None:
+                tally.add_poses(found[2].data)
         try:
             metadata = {record.name: record.metadata for record in indexed.iter_metadata()}
         except Exception as err:  # noqa: BLE001 - the counts above stand without it
@@ -327,6 +346,8 @@ def _summary_from_records(reader: LogReader) -> LogSummary:
             tally.end_ns = stamp
         if topic == HUB_DROPS:
             tally.add_drops(_json_or_none(message.data))
+        elif topic == MOCAP_POSES:
+            tally.add_poses(message.data)
     return _build_summary(reader, tally, reader.metadata)
 
 
@@ -334,6 +355,9 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
     start_s = None if tally.start_ns is None else tally.start_ns / 1e9
     end_s = None if tally.end_ns is None else tally.end_ns / 1e9
     version = metadata.get(FORMAT_METADATA, {}).get("version", "")
+    sim_start_s, sim_end_s = _clock_s(tally.first_poses), _clock_s(tally.last_poses)
+    if sim_start_s is None or sim_end_s is None:
+        sim_start_s = sim_end_s = None
     return LogSummary(
         path=str(reader.path), file_bytes=reader.file_bytes, truncated=not reader.complete,
         stop_reason="" if reader.complete else reader.stop_reason, readable_bytes=reader.readable_bytes,
@@ -343,7 +367,17 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         robots=_robot_ids(tally.counts), drops=dict(sorted(tally.drops.items())),
         drops_by_sender=dict(sorted(tally.drops_by_sender.items())),
         metadata=metadata_from_text(metadata.get(USER_METADATA, {})),
-        format_version=int(version) if version.isdigit() else None, damaged_records=list(reader.damaged))
+        format_version=int(version) if version.isdigit() else None, damaged_records=list(reader.damaged),
+        sim_start_s=sim_start_s, sim_end_s=sim_end_s)
+
+
+def _clock_s(poses: Optional[bytes]) -> Optional[float]:
+    """A /mocap/poses record's simulated time; None for motion capture (null) or a record that has none."""
+    payload = _json_or_none(poses) if poses is not None else None
+    clock = payload.get("clock_s") if isinstance(payload, dict) else None
+    if isinstance(clock, (int, float)) and not isinstance(clock, bool) and math.isfinite(clock):
+        return float(clock)
+    return None
 
 
 def _json_or_none(data: bytes) -> Any:

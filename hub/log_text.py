@@ -18,6 +18,9 @@ def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
     else:
         lines += [f"start:     {_clock(summary.start_s)}", f"end:       {_clock(summary.end_s)}",
                   f"duration:  {summary.duration_s:.3f} s"]
+        if summary.sim_start_s is not None:     # a sim-source hub (sil): duration is wall clock, this is not
+            lines.append(f"simulated: {summary.sim_end_s - summary.sim_start_s:.3f} s (clock_s "
+                         f"{summary.sim_start_s:.3f} to {summary.sim_end_s:.3f} s in /mocap/poses)")
     robots = ", ".join(str(robot) for robot in summary.robots) or "none"
     lines.append(f"robots:    {len(summary.robots)} ({robots})" if summary.robots else "robots:    none")
     if summary.start_s is not None:

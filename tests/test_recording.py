@@ -101,6 +101,29 @@ def test_summary_counts_robots_drops_and_metadata(tmp_path):
     assert summarise(path, use_index=False) == summary
 
 
+def test_a_sil_log_says_how_much_it_simulated_beside_its_wall_clock_duration(tmp_path):
+    """log info on a sil log showed 10 s (the wall clock) for a 30 s simulated run, and nothing else."""
+    from hub.log_text import format_summary
+
+    path = tmp_path / "sil.mcap"
+    with Recorder(path, chunk_size=2048) as recorder:       # many chunks: the index path reads only the ends
+        for step in range(300):
+            recorder.write(MOCAP_POSES, {"bodies": {"0": [0.1 * step, 0, 0, 0, 0, 0, 1]}, "clock_s": step / 10},
+                           T0 + step / 30)
+    summary = summarise(path)
+    assert (summary.sim_start_s, summary.sim_end_s) == (0.0, 29.9)
+    assert summarise(path, use_index=False) == summary
+    assert "duration:  9.967 s\nsimulated: 29.900 s (clock_s 0.000 to 29.900 s in /mocap/poses)" \
+        in format_summary(summary)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:6000])
+    recovered = summarise(cut)
+    assert recovered.truncated and recovered.sim_start_s == 0.0 and 0.0 < recovered.sim_end_s < 29.9
+
+    lab = write_log(tmp_path / "lab.mcap", [(MOCAP_POSES, {"bodies": {}, "clock_s": None}, T0 + i) for i in range(3)])
+    assert summarise(lab).sim_start_s is None and "simulated:" not in format_summary(summarise(lab))
+
+
 def test_bad_payloads_raise_naming_the_topic_and_leave_the_file_intact(tmp_path):
     path = tmp_path / "bad.mcap"
     with Recorder(path) as recorder:
