@@ -6,6 +6,8 @@ from typing import Any, Dict, List, Optional
 
 import numpy as np
 
+from sim_backend.trajectory import trajectory_arrays
+
 
 class SilRecording:
     """Samples per control step; ``trajectory_arrays()`` is what ``sim_backend.outputs.write_run`` reads."""
@@ -28,26 +30,7 @@ class SilRecording:
         self.centroid_estimate.append(np.asarray(centroid_estimate, dtype=float))
 
     def trajectory_arrays(self) -> Dict[str, np.ndarray]:
-        count = len(self.world.robots)
-        walls = self.scenario.arena.walls
-        arrays: Dict[str, np.ndarray] = {
-            "t": np.asarray(self.t),
-            "robot_pose": np.asarray(self.robot_pose).reshape(-1, count, 3),
-            "robot_alive": np.asarray(self.robot_alive, dtype=bool).reshape(-1, count),
-            "path": np.asarray(self.scenario.path, dtype=float).reshape(-1, 3),
-            "robot_radius": np.asarray(self.world.spec.radius_m),
-            "arena_walls": np.asarray(walls if walls is not None else [np.nan] * 4, dtype=float),
-        }
-        estimate = np.asarray(self.centroid_estimate, dtype=float).reshape(-1, 2)
-        if np.isfinite(estimate).any():
-            arrays["centroid_estimate"] = estimate
-        geometry = self.world.geometry
-        if geometry is not None:
-            rings = geometry.outline_polygons()
-            arrays["object_pose"] = np.asarray(self.object_pose)
-            arrays["object_outline"] = np.vstack(rings)
-            arrays["object_outline_index"] = np.cumsum([0] + [len(r) for r in rings])
-        return arrays
+        return trajectory_arrays(self, self.scenario, self.world)
 
 
 def agents_total(hub, key: str) -> int:

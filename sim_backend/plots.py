@@ -47,7 +47,22 @@ def load_trajectory(path: PathLike) -> Traj:
 
 
 def _has_object(traj: Traj) -> bool:
-    return "object_pose" in traj and "object_outline" in traj and "object_outline_index" in traj
+    """Whether there is an object with at least one recorded pose to draw it at."""
+    keys = ("object_pose", "object_outline", "object_outline_index")
+    return all(key in traj for key in keys) and len(traj["object_pose"]) > 0
+
+
+def _has_samples(traj: Traj) -> bool:
+    """False for a run that ended (a behaviour raising at t = 0, say) before its first sample was recorded."""
+    return len(traj["t"]) > 0
+
+
+NO_SAMPLES_NOTE = "no samples: the run ended before its first control step was recorded"
+
+
+def _note_no_samples(ax: Axes) -> None:
+    ax.text(0.5, 0.5, NO_SAMPLES_NOTE, transform=ax.transAxes, ha="center", va="center", fontsize=10,
+            bbox={"facecolor": "white", "edgecolor": "0.6"})
 
 
 def _object_polygons(traj: Traj, pose: np.ndarray) -> List[np.ndarray]:
@@ -139,6 +154,8 @@ def _draw_waypoints(ax: Axes, traj: Traj) -> None:
 
 def _draw_robot_paths(ax: Axes, traj: Traj) -> None:
     """Each robot's path (thin line), start marker, end circle, or an 'x' where it died."""
+    if not _has_samples(traj):      # nothing to draw a path from (and alive[-1] would not exist)
+        return
     pose, alive = _held_poses(traj), np.asarray(traj["robot_alive"], bool)
     radius = float(traj["robot_radius"])
     for i, colour in enumerate(_colours(pose.shape[1])):
@@ -179,7 +196,10 @@ def plot_trajectory(traj: Traj, out_png: PathLike, title: str = "") -> None:
         _draw_robot_paths(ax, traj)
         _draw_object(ax, traj)
         _draw_waypoints(ax, traj)
-        ax.legend(loc="best", fontsize=9, framealpha=0.85)
+        if not _has_samples(traj):
+            _note_no_samples(ax)
+        if ax.get_legend_handles_labels()[0]:      # an empty legend only draws a warning
+            ax.legend(loc="best", fontsize=9, framealpha=0.85)
         fig.savefig(out_png, dpi=120, bbox_inches="tight")
     finally:
         plt.close(fig)
@@ -200,39 +220,57 @@ def write_video(
     traj: Traj, out_file: PathLike, fps: int = 10, max_frames: int = 300, title: str = ""
 ) -> None:
     """Animate the run: robots as circles with a heading tick (dead ones grey), the object outline at
-    its current pose, waypoints and a time label; frames subsampled evenly down to ``max_frames``."""
+    its current pose, waypoints and a time label; frames subsampled evenly down to ``max_frames``. A run
+    without samples gets one frame of the arena and waypoints that says so."""
     out_file = Path(out_file)
     writer = _video_writer(out_file, fps)
-    t, pose = np.asarray(traj["t"], float), _held_poses(traj)
-    alive, radius = np.asarray(traj["robot_alive"], bool), float(traj["robot_radius"])
-    frames = np.unique(np.linspace(0, len(t) - 1, max(1, min(len(t), max_frames))).round().astype(int))
     fig, ax = plt.subplots(figsize=(6, 6))
     try:
         _setup_axes(ax, traj, title)
         _draw_waypoints(ax, traj)
-        colours = _colours(pose.shape[1])
-        bodies = [ax.add_patch(Circle((0, 0), radius, edgecolor="black", linewidth=0.5, zorder=3))
-                  for _ in colours]
-        ticks = [ax.plot([], [], "-", color="black", linewidth=1.0, zorder=4)[0] for _ in colours]
-        polys = []
-        if _has_object(traj):
-            polys = [ax.add_patch(Polygon(p, closed=True, facecolor="wheat", edgecolor="saddlebrown",
-                                          alpha=0.7)) for p in _object_polygons(traj, traj["object_pose"][0])]
+        run = _AnimatedRun(ax, traj, max_frames) if _has_samples(traj) else None
+        if run is None:
+            _note_no_samples(ax)
         label = ax.set_title("", loc="right", fontsize=10)
         (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
         fig.set_size_inches(6.0, float(np.clip(6.0 * (y1 - y0) / (x1 - x0), 3.0, 9.0)) + 0.6)
         fig.tight_layout()
         with writer.saving(fig, str(out_file), dpi=80):
-            for f in frames:
-                for i, (body, tick) in enumerate(zip(bodies, ticks)):
-                    x, y, yaw = pose[f, i]
-                    body.set_center((x, y))
-                    body.set_facecolor(colours[i] if alive[f, i] else "0.6")
-                    tick.set_data([x, x + radius * np.cos(yaw)], [y, y + radius * np.sin(yaw)])
-                if polys:
-                    for patch, poly in zip(polys, _object_polygons(traj, traj["object_pose"][f])):
-                        patch.set_xy(poly)
-                label.set_text(f"t = {t[f]:.1f} s")
+            for f in run.frames if run is not None else [None]:
+                if run is not None:
+                    label.set_text(run.draw(f))
                 writer.grab_frame()
     finally:
         plt.close(fig)
+
+
+class _AnimatedRun:
+    """The moving parts of a video: a body and heading tick per robot, and the object's outline."""
+
+    def __init__(self, ax: Axes, traj: Traj, max_frames: int):
+        self.traj = traj
+        self.t, self.pose = np.asarray(traj["t"], float), _held_poses(traj)
+        self.alive, self.radius = np.asarray(traj["robot_alive"], bool), float(traj["robot_radius"])
+        count = max(1, min(len(self.t), max_frames))
+        self.frames = np.unique(np.linspace(0, len(self.t) - 1, count).round().astype(int))
+        self.colours = _colours(self.pose.shape[1])
+        self.bodies = [ax.add_patch(Circle((0, 0), self.radius, edgecolor="black", linewidth=0.5, zorder=3))
+                       for _ in self.colours]
+        self.ticks = [ax.plot([], [], "-", color="black", linewidth=1.0, zorder=4)[0] for _ in self.colours]
+        self.polys = []
+        if _has_object(traj):
+            self.polys = [ax.add_patch(Polygon(p, closed=True, facecolor="wheat", edgecolor="saddlebrown",
+                                               alpha=0.7)) for p in _object_polygons(traj, traj["object_pose"][0])]
+
+    def draw(self, f: int) -> str:
+        """Move everything to sample ``f``; the time label to show."""
+        radius = self.radius
+        for i, (body, tick) in enumerate(zip(self.bodies, self.ticks)):
+            x, y, yaw = self.pose[f, i]
+            body.set_center((x, y))
+            body.set_facecolor(self.colours[i] if self.alive[f, i] else "0.6")
+            tick.set_data([x, x + radius * np.cos(yaw)], [y, y + radius * np.sin(yaw)])
+        if self.polys:
+            for patch, poly in zip(self.polys, _object_polygons(self.traj, self.traj["object_pose"][f])):
+                patch.set_xy(poly)
+        return f"t = {self.t[f]:.1f} s"

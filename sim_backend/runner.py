@@ -31,6 +31,7 @@ from .metrics import evaluator_for
 from .radio import RadioNetwork
 from .scenario import Scenario
 from .sensing import ProximityModel
+from .trajectory import trajectory_arrays
 from .wall_clock import WallClockLimit, WallClockLimitReached
 from .world import World
 
@@ -328,25 +329,7 @@ class Simulation:
         return problem
 
     def trajectory_arrays(self) -> Dict[str, np.ndarray]:
-        rec, world = self.recording, self.world
-        walls = self.scenario.arena.walls
-        arrays: Dict[str, np.ndarray] = {
-            "t": np.asarray(rec.t),
-            "robot_pose": np.asarray(rec.robot_pose).reshape(-1, self.count, 3),
-            "robot_alive": np.asarray(rec.robot_alive, dtype=bool).reshape(-1, self.count),
-            "path": np.asarray(self.scenario.path, dtype=float).reshape(-1, 3),
-            "robot_radius": np.asarray(world.spec.radius_m),
-            "arena_walls": np.asarray(walls if walls is not None else [np.nan] * 4, dtype=float),
-        }
-        estimate = np.asarray(rec.centroid_estimate, dtype=float).reshape(-1, 2)
-        if np.isfinite(estimate).any():
-            arrays["centroid_estimate"] = estimate
-        if world.geometry is not None:
-            rings = world.geometry.outline_polygons()
-            arrays["object_pose"] = np.asarray(rec.object_pose)
-            arrays["object_outline"] = np.vstack(rings)
-            arrays["object_outline_index"] = np.cumsum([0] + [len(r) for r in rings])
-        return arrays
+        return trajectory_arrays(self.recording, self.scenario, self.world)
 
 
 def check_telemetry_fits_the_wire(telemetry: List[Optional[Dict[str, Any]]], robot: Optional[int] = None) -> None:

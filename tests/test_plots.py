@@ -91,3 +91,21 @@ def test_write_video_without_object(tmp_path: Path) -> None:
 def test_unsupported_suffix(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"\.avi"):
         write_video(_saved(tmp_path), tmp_path / "run.avi", max_frames=2)
+
+
+def _no_samples() -> dict:
+    """A run whose behaviour raised at its first step (t = 0): every per-sample array is empty."""
+    traj = _synthetic()
+    for key in ("t", "robot_pose", "robot_alive", "object_pose", "centroid_estimate"):
+        traj[key] = traj[key][:0]
+    return traj
+
+
+def test_a_run_without_samples_is_drawn_as_its_arena_with_a_note(tmp_path: Path) -> None:
+    """Plotting it raised IndexError in khepri's own code, hiding the behaviour's crash report."""
+    png, gif = tmp_path / "empty.png", tmp_path / "empty.gif"
+    plot_trajectory(_no_samples(), png, title="crashed at t = 0")
+    _assert_picture(png)
+    write_video(_no_samples(), gif)
+    with Image.open(gif) as img:
+        assert img.n_frames == 1
