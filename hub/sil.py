@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Optional
 
 from onboard.behaviour import build_params, get_behaviour
 from onboard.config import ConfigError
-from sim_backend.metrics import evaluator_for
+from sim_backend.metrics import EvaluatorError, evaluator_call, evaluator_for, merge_result
 from sim_backend.runner import mission_params
 from sim_backend.scenario import Scenario
 
@@ -214,8 +214,8 @@ class SilSession:
             else:
                 self._run_lockstep(lockstep)
         except Exception as exc:   # a crashed run is reported, not lost (as in `khepri sim run`)
-            error = str(exc) if isinstance(exc, AgentError) else \
-                f"{type(exc).__name__}: {exc} (at t = {self.source.time_s:.1f} s)"
+            what = str(exc) if isinstance(exc, EvaluatorError) else f"{type(exc).__name__}: {exc}"
+            error = str(exc) if isinstance(exc, AgentError) else f"{what} (at t = {self.source.time_s:.1f} s)"
             self.stop_reason = "crashed"
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM: what was recorded is written, as `khepri sim run` does
             error = f"interrupted (Ctrl-C) (at t = {self.source.time_s:.1f} s)"
@@ -297,8 +297,8 @@ class SilSession:
             raise AgentError(f"{dead} (its log is in {self.out / 'agents'})")
         alive = self.source.world.alive()
         telemetry = [self._behaviour_telemetry(i) if alive[i] else None for i in range(len(alive))]
-        self.evaluator.on_step(t, telemetry)
-        self.recording.add(t, self.source.world, self.evaluator.centroid_estimate(telemetry))
+        evaluator_call(self.evaluator, "on_step", t, telemetry)
+        self.recording.add(t, self.source.world, evaluator_call(self.evaluator, "centroid_estimate", telemetry))
         live = [tel for tel, a in zip(telemetry, alive) if a]
         if not live:
             return "every robot failed"
@@ -326,10 +326,11 @@ class SilSession:
         }
         if self.warnings:
             result["warnings"] = list(self.warnings)
-        try:
-            result.update(self.evaluator.result())
-        except Exception as exc:
-            error = error or f"evaluation failed: {type(exc).__name__}: {exc}"
+        failure = merge_result(self.evaluator, result)
+        if failure is not None and error:       # both are said, as in `khepri sim run`
+            result["evaluation_error"] = str(failure)
+        elif failure is not None:
+            error = str(failure)
         # As sim run's: null for a robot a scenario fault killed, whatever its agent said last.
         alive = self.source.world.alive()
         result["telemetry"] = [self._behaviour_telemetry(i) if alive[i] else None for i in range(len(self.agents))]

@@ -307,6 +307,7 @@ def cmd_sil(args: argparse.Namespace) -> int:
         RUN_FILES,
         check_time_limit,
         out_folder_problem,
+        print_evaluation_error,
         print_summary,
         require_out_folder,
     )
@@ -336,6 +337,7 @@ def cmd_sil(args: argparse.Namespace) -> int:
         return 130
     if "error" in result:
         print(f"khepri: error: {result['error']}", file=sys.stderr)
+        print_evaluation_error(result)
         return 1
     return 0
 

@@ -125,8 +125,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"khepri: error: {when}: {result['error']}", file=sys.stderr)
         if result.get("traceback"):
             print("\n".join(result["traceback"]), file=sys.stderr)
+        print_evaluation_error(result)
         return 1
     return 0
+
+
+def print_evaluation_error(result: dict) -> None:
+    """The evaluator's result() that raised after the run had already failed (its own error comes first)."""
+    if result.get("evaluation_error"):
+        print(f"khepri: error: the evaluator failed too: {result['evaluation_error']}", file=sys.stderr)
 
 
 def require_out_folder(out: Path, files: Sequence[str] = ()) -> None:

@@ -28,7 +28,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Type
 
 from .config import ConfigError, from_mapping
 from .hal import Robot
-from .tracebacks import where_in_users_code
+from .tracebacks import traceback_lines, where_in_users_code
 
 # What a behaviour's code may raise that is its own failure, reported as a BehaviourError naming the robot
 # and the line: every Exception, and SystemExit, so that a stray sys.exit() in step() does not end a run
@@ -128,8 +128,7 @@ class BehaviourError(RuntimeError):
     def __init__(self, robot_id: int, call: str, exc: BaseException):
         self.robot_id, self.call, self.exc = robot_id, call, exc
         frames = traceback.extract_tb(exc.__traceback__)[1:]    # [0] is the caller's frame (runner, agent)
-        self.lines: List[str] = [line.rstrip() for line in traceback.format_list(frames[-6:])]
-        self.lines += [line.rstrip() for line in traceback.format_exception_only(type(exc), exc)]
+        self.lines: List[str] = traceback_lines(frames, exc)
         at = where_in_users_code(frames)
         super().__init__(f"robot {robot_id}, {call}: {type(exc).__name__}: {exc}{at}")
 

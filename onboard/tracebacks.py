@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 import sys
 import traceback
-from typing import Optional
+from typing import List, Optional
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # khepri's own code, which a behaviour calls (the HAL, motion helpers, the simulator): an error raised in it
@@ -36,3 +36,10 @@ def where_in_users_code(frames: traceback.StackSummary) -> str:
 def describe(exc: BaseException) -> str:
     """``ZeroDivisionError: division by zero at wander.py:12``: one line for an exception in the user's code."""
     return f"{type(exc).__name__}: {exc}{where_in_users_code(traceback.extract_tb(exc.__traceback__))}"
+
+
+def traceback_lines(frames: traceback.StackSummary, exc: BaseException) -> List[str]:
+    """The end of the traceback of ``exc`` raised in the user's code, as Python prints it, one line per item:
+    ``frames`` (from ``traceback.extract_tb``, the caller's own frame left out) and the exception's line."""
+    lines = [line.rstrip() for line in traceback.format_list(frames[-6:])]
+    return lines + [line.rstrip() for line in traceback.format_exception_only(type(exc), exc)]

@@ -6,11 +6,14 @@ the evaluators. Each returns the behaviour-specific part of result.json.
 """
 from __future__ import annotations
 
+import traceback
 from typing import Any, Callable, Dict, List, Optional, Type
 
 import numpy as np
 
+from onboard.behaviour import USER_CODE_ERRORS
 from onboard.plugins import OTHER_REGISTRIES
+from onboard.tracebacks import traceback_lines, where_in_users_code
 
 
 class Evaluator:
@@ -34,6 +37,36 @@ class Evaluator:
 
     def result(self) -> Dict[str, Any]:
         return {}
+
+
+class EvaluatorError(RuntimeError):
+    """An evaluator's own code raised: which evaluator, in which call, what, and where in the user's file,
+    said as a behaviour's bug is (``onboard.behaviour.BehaviourError``); ``lines`` keeps the traceback's end."""
+
+    def __init__(self, evaluator: Evaluator, call: str, exc: BaseException):
+        self.call, self.exc = call, exc
+        frames = traceback.extract_tb(exc.__traceback__)[1:]    # [0] is evaluator_call's own frame
+        self.lines: List[str] = traceback_lines(frames, exc)
+        super().__init__(f"evaluator {type(evaluator).__name__}.{call}: {type(exc).__name__}: {exc}"
+                         f"{where_in_users_code(frames)}")
+
+
+def evaluator_call(evaluator: Evaluator, method: str, *args: Any) -> Any:
+    """``evaluator.<method>(*args)``, with an exception in it raised as EvaluatorError (a user's evaluator is
+    user code: without this a ZeroDivisionError in it read as a crash of the run with no file or line)."""
+    try:
+        return getattr(evaluator, method)(*args)
+    except USER_CODE_ERRORS as exc:
+        raise EvaluatorError(evaluator, f"{method}()", exc) from exc
+
+
+def merge_result(evaluator: Evaluator, result: Dict[str, Any]) -> Optional[EvaluatorError]:
+    """Add the evaluator's ``result()`` to ``result``; what went wrong if it raised, else None."""
+    try:
+        result.update(evaluator_call(evaluator, "result"))
+    except EvaluatorError as failure:
+        return failure
+    return None
 
 
 _EVALUATORS: Dict[str, Type[Evaluator]] = {}

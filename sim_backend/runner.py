@@ -27,7 +27,7 @@ from onboard.protocol import ProtocolError, encode
 from onboard.tracebacks import where_in_users_code
 
 from .hal import SensorFrame, make_robot
-from .metrics import evaluator_for
+from .metrics import EvaluatorError, evaluator_call, evaluator_for, merge_result
 from .radio import RadioNetwork
 from .scenario import Scenario
 from .sensing import ProximityModel
@@ -174,7 +174,7 @@ class Simulation:
         self._route_broadcasts(t)
         routed = clock()
         self.telemetry = self._collect_telemetry(alive)
-        self.evaluator.on_step(t, self.telemetry)
+        evaluator_call(self.evaluator, "on_step", t, self.telemetry)
         self._record(t, poses, alive)
         evaluated = clock()
         self.world.step(self.substeps)
@@ -237,7 +237,7 @@ class Simulation:
         obj = self.world.object_pose()
         if obj is not None:
             rec.object_pose.append(obj)
-        rec.centroid_estimate.append(self.evaluator.centroid_estimate(self.telemetry))
+        rec.centroid_estimate.append(evaluator_call(self.evaluator, "centroid_estimate", self.telemetry))
 
     def done(self) -> bool:
         """True when every live robot's behaviour says it has finished."""
@@ -286,9 +286,10 @@ class Simulation:
             error = f"{what}{inside} (at t = {self.step_index * self.period:.1f} s)"
             self.recording.trim(has_object=self.world.object_pose() is not None)
         except Exception as exc:  # a crashed run is recorded, not lost: results up to here are kept
-            what = str(exc) if isinstance(exc, BehaviourError) else f"{type(exc).__name__}: {exc}"
+            users = isinstance(exc, (BehaviourError, EvaluatorError))    # they name the call and the line
+            what = str(exc) if users else f"{type(exc).__name__}: {exc}"
             error = f"{what} (at t = {self.step_index * self.period:.1f} s)"
-            trace = exc.lines if isinstance(exc, BehaviourError) else None
+            trace = exc.lines if users else None
             self.stop_reason = "crashed"
         stop_error = self._stop_behaviours()
         error = error or stop_error
@@ -307,10 +308,11 @@ class Simulation:
         }
         if self.warnings:
             result["warnings"] = list(self.warnings)
-        try:
-            result.update(self.evaluator.result())
-        except Exception as exc:
-            error = error or f"evaluation failed: {type(exc).__name__}: {exc}"
+        failure = merge_result(self.evaluator, result)
+        if failure is not None and error:       # both are said: the run's own error, then the evaluator's
+            result["evaluation_error"] = str(failure)
+        elif failure is not None:
+            error, trace = str(failure), failure.lines
         result["telemetry"] = plain_json(self.telemetry)    # each robot's last telemetry(): what it ended with
         if error:
             result["error"] = error

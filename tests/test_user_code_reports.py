@@ -92,3 +92,65 @@ def test_sil_writes_a_crash_at_the_first_step_as_sim_run_does(crashy, tmp_path, 
     assert json.loads((tmp_path / "sil" / "result.json").read_text())["stop_reason"] == "crashed"
     assert_empty_trajectory(tmp_path / "sil" / "trajectory.npz")
     assert (tmp_path / "sil" / "trajectory.png").stat().st_size > 0
+
+
+EVALUATOR = '''
+from sim_backend.metrics import Evaluator, register_evaluator
+
+
+@register_evaluator("crashy")
+class CrashyEvaluator(Evaluator):
+    steps = 0
+
+    def on_step(self, time_s, telemetry):
+        self.steps += 1
+        if self.scenario.params.get("bug") == "on_step" and time_s > 0.25:
+            1 / 0
+
+    def result(self):
+        return {"per_step": 1 / self.steps}      # no step evaluated: ZeroDivisionError
+'''
+
+
+@pytest.fixture
+def judged(crashy, tmp_path, monkeypatch):
+    """The crashy behaviour with its evaluator, registered for this test only."""
+    from sim_backend import metrics
+
+    (tmp_path / "crashy_eval.py").write_text(EVALUATOR)
+    monkeypatch.setattr(metrics, "_EVALUATORS", dict(metrics._EVALUATORS))
+    yield crashy
+    sys.modules.pop("crashy_eval", None)
+
+
+def run_judged(*args):
+    return run("--import", "crashy_eval", *args)
+
+
+def test_an_evaluator_bug_names_the_evaluator_its_call_and_its_line(judged, tmp_path, capsys):
+    """It read `the run crashed: ZeroDivisionError: division by zero (at t = 0.3 s)`: no evaluator, no line."""
+    assert run_judged("sim", "run", judged("on_step"), "--no-plot", "--out", "out") == 1
+    err = capsys.readouterr().err
+    assert "khepri: error: the run crashed: evaluator CrashyEvaluator.on_step(): ZeroDivisionError: division " \
+           "by zero at crashy_eval.py:12 (at t = 0.3 s)" in err
+    assert "    1 / 0" in err
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["stop_reason"] == "crashed" and result["traceback"][-1] == "ZeroDivisionError: division by zero"
+
+
+def test_an_evaluator_failing_after_a_behaviour_crash_is_kept_beside_it(judged, tmp_path, capsys):
+    """The evaluator's result() failing after the behaviour's crash was dropped without a word."""
+    assert run_judged("sim", "run", judged("step_at_0"), "--no-plot", "--out", "out") == 1
+    err = capsys.readouterr().err
+    assert "khepri: error: the run crashed: robot 1, step(): RuntimeError: deliberate crash" in err
+    failure = "evaluator CrashyEvaluator.result(): ZeroDivisionError: division by zero at crashy_eval.py:15"
+    assert f"khepri: error: the evaluator failed too: {failure}" in err
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["error"].startswith("robot 1, step(): ") and result["evaluation_error"] == failure
+
+
+def test_sil_names_an_evaluator_bug_as_sim_run_does(judged, tmp_path, capsys):
+    assert run_judged("sil", judged("on_step"), "--no-plot", "--no-record", "--out", "sil") == 1
+    assert "khepri: error: evaluator CrashyEvaluator.on_step(): ZeroDivisionError: division by zero at " \
+           "crashy_eval.py:12 (at t = 0.3 s)" in capsys.readouterr().err
+    assert json.loads((tmp_path / "sil" / "result.json").read_text())["stop_reason"] == "crashed"
