@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 import sys
 import traceback
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # khepri's own code, which a behaviour calls (the HAL, motion helpers, the simulator): an error raised in it
@@ -38,8 +38,28 @@ def describe(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}{where_in_users_code(traceback.extract_tb(exc.__traceback__))}"
 
 
+SHOWN_FRAMES = 6     # a traceback's end as printed for a bug in the user's code: enough to follow, not a page
+
+
 def traceback_lines(frames: traceback.StackSummary, exc: BaseException) -> List[str]:
     """The end of the traceback of ``exc`` raised in the user's code, as Python prints it, one line per item:
-    ``frames`` (from ``traceback.extract_tb``, the caller's own frame left out) and the exception's line."""
-    lines = [line.rstrip() for line in traceback.format_list(frames[-6:])]
+    ``frames`` (from ``traceback.extract_tb``, the caller's own frame left out) and the exception's line. The
+    user's own frame is always among them: a check deep in khepri's code (a radio payload's nested key, say)
+    had pushed the behaviour's call out of the last six, leaving only hal.py and payload.py."""
+    shown, left_out = _frames_to_show(frames)
+    lines = [line.rstrip() for line in traceback.format_list(shown[:1])]
+    if left_out:
+        lines.append(f"  ... ({left_out} frames in khepri's or Python's code left out)")
+    lines += [line.rstrip() for line in traceback.format_list(shown[1:])]
     return lines + [line.rstrip() for line in traceback.format_exception_only(type(exc), exc)]
+
+
+def _frames_to_show(frames: traceback.StackSummary) -> Tuple[List[traceback.FrameSummary], int]:
+    """The last SHOWN_FRAMES frames, or the user's frame and the last ones after it; how many are skipped
+    between the first shown and the second."""
+    users = users_frame(frames)
+    start = next((i for i, frame in enumerate(frames) if frame is users), 0)
+    if start >= len(frames) - SHOWN_FRAMES:
+        return list(frames[-SHOWN_FRAMES:]), 0
+    tail = list(frames[-(SHOWN_FRAMES - 1):])
+    return [frames[start]] + tail, len(frames) - start - 1 - len(tail)

@@ -27,6 +27,8 @@ class Crashy(Behaviour):
         self.robot.wheels.set_speeds(0.1, 0.1)
         if self.params.bug == "step_at_0" and self.robot.id == 1:
             raise RuntimeError("deliberate crash")
+        if self.params.bug == "tuple_key":
+            self.robot.radio.broadcast({"v": {(1, 2): 3}})
 
     def telemetry(self):
         if self.params.bug == "telemetry_at_0":
@@ -92,6 +94,18 @@ def test_sil_writes_a_crash_at_the_first_step_as_sim_run_does(crashy, tmp_path, 
     assert json.loads((tmp_path / "sil" / "result.json").read_text())["stop_reason"] == "crashed"
     assert_empty_trajectory(tmp_path / "sil" / "trajectory.npz")
     assert (tmp_path / "sil" / "trajectory.png").stat().st_size > 0
+
+
+def test_the_traceback_shows_the_behaviours_own_line_under_khepris_checks(crashy, tmp_path, capsys):
+    """A nested dict with a tuple key is refused six calls deep in the payload check: the traceback showed
+    only sim_backend/hal.py and onboard/hal/payload.py, not the behaviour's broadcast."""
+    assert run("sim", "run", crashy("tuple_key"), "--no-plot", "--out", "out") == 1
+    trace = json.loads((tmp_path / "out" / "result.json").read_text())["traceback"]
+    assert 'crashy_behaviour.py", line 21, in step' in trace[0]
+    assert 'self.robot.radio.broadcast({"v": {(1, 2): 3}})' in trace[0]
+    assert "frames in khepri's or Python's code left out" in trace[1]
+    assert trace[-1].startswith("onboard.hal.payload.RadioPayloadError: radio payload['v'] has the key (1, 2)")
+    assert "\n".join(trace) in capsys.readouterr().err
 
 
 EVALUATOR = '''
