@@ -164,10 +164,20 @@ def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
         except ConfigError:
             raise
         except ValueError as err:      # a user's Params.validate raising a plain ValueError: name the record
-            raise ConfigError(where, str(err)) from None
+            raise _validate_error(where, str(err)) from None
         except Exception as err:       # a bug in a user's validate: one line with its place, not a traceback
             raise ConfigError(where or cls.__name__, f"{cls.__name__}.validate raised {describe(err)}") from None
     return obj
+
+
+def _validate_error(where: str, message: str) -> ConfigError:
+    """A plain ValueError's message from ``validate(where)`` under the record's path, unless it names a field
+    of the record itself (``params.speed_m_s: must be > 0``, made with the ``where`` it was given), which was
+    printed as ``params: params.speed_m_s: ...``."""
+    field, colon, problem = message.partition(": ")
+    if where and colon and (field == where or field.startswith((f"{where}.", f"{where}["))):
+        return ConfigError(field, problem)
+    return ConfigError(where, message)
 
 
 def to_mapping(obj: Any) -> Any:

@@ -168,3 +168,34 @@ def test_sil_names_an_evaluator_bug_as_sim_run_does(judged, tmp_path, capsys):
     assert "khepri: error: evaluator CrashyEvaluator.on_step(): ZeroDivisionError: division by zero at " \
            "crashy_eval.py:12 (at t = 0.3 s)" in capsys.readouterr().err
     assert json.loads((tmp_path / "sil" / "result.json").read_text())["stop_reason"] == "crashed"
+
+
+@pytest.mark.parametrize("message, said", [
+    ("{where}.speed_m_s: must be > 0", "params.speed_m_s: must be > 0"),      # was params: params.speed_m_s: ...
+    ("{where}: speeds must add up", "params: speeds must add up"),
+    ("too fast", "params: too fast"),
+    ("params_speed: not a field of this record", "params: params_speed: not a field of this record"),
+])
+def test_a_validate_message_that_names_its_field_is_not_prefixed_again(message, said):
+    from dataclasses import dataclass
+
+    from onboard.behaviour import Behaviour, build_params
+    from onboard.config import ConfigError
+
+    @dataclass
+    class Checked:
+        speed_m_s: float = 0.1
+
+        def validate(self, where):
+            if self.speed_m_s <= 0:
+                raise ValueError(message.format(where=where))
+
+    class Checking(Behaviour):
+        Params = Checked
+
+        def step(self):
+            pass
+
+    with pytest.raises(ConfigError) as raised:
+        build_params(Checking, {"speed_m_s": -1.0})
+    assert str(raised.value) == said
