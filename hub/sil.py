@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Optional
 
 from onboard.behaviour import build_params, get_behaviour
 from onboard.config import ConfigError
-from sim_backend.metrics import EvaluatorError, evaluator_call, evaluator_for, merge_result
+from sim_backend.metrics import EvaluatorError, evaluator_call, make_evaluator, merge_result
 from sim_backend.runner import mission_params
 from sim_backend.scenario import Scenario
 
@@ -188,9 +188,10 @@ class SilSession:
         self.hub, self.scenario, self.agents, self.options, self.out = hub, scenario, agents, options, out
         self.source = hub.source
         self.limit_s = limit_s
-        self.evaluator = evaluator_for(scenario.behaviour)(scenario, self.source.world)
+        self.evaluator = make_evaluator(scenario.behaviour, scenario, self.source.world)
         behaviour_cls = get_behaviour(scenario.behaviour)       # the agents build these same params
-        self.warnings = self.evaluator.warnings(build_params(behaviour_cls, mission_params(behaviour_cls, scenario)))
+        self.warnings = evaluator_call(self.evaluator, "warnings",
+                                       build_params(behaviour_cls, mission_params(behaviour_cls, scenario)))
         self.recording = SilRecording(scenario, self.source.world)
         self.round_trips: List[float] = []
         self.missing_answers = 0

@@ -12,6 +12,7 @@ from onboard.behaviour import BehaviourError
 from onboard.config import ConfigError
 from onboard.drivers import DriverError
 from onboard.plugins import import_user_modules
+from sim_backend.metrics import EvaluatorError
 
 from . import lab_commands, log_commands, sim_commands, study_commands
 
@@ -121,6 +122,10 @@ def _run(argv: Optional[List[str]]) -> int:
     except BehaviourError as err:     # the user's behaviour raised (before a run could start, or in an agent)
         what = "the robot's driver failed" if isinstance(err.exc, DriverError) else "the behaviour failed"
         print(f"khepri: error: {what}: {err}", file=sys.stderr)
+        print("\n".join(err.lines), file=sys.stderr)
+        return 1
+    except EvaluatorError as err:     # a user's evaluator raised before the run could start (__init__, warnings)
+        print(f"khepri: error: the evaluator failed: {err}", file=sys.stderr)
         print("\n".join(err.lines), file=sys.stderr)
         return 1
     except DriverError as err:        # an agent's robot hardware, outside any behaviour call

@@ -43,11 +43,12 @@ class EvaluatorError(RuntimeError):
     """An evaluator's own code raised: which evaluator, in which call, what, and where in the user's file,
     said as a behaviour's bug is (``onboard.behaviour.BehaviourError``); ``lines`` keeps the traceback's end."""
 
-    def __init__(self, evaluator: Evaluator, call: str, exc: BaseException):
+    def __init__(self, evaluator: Any, call: str, exc: BaseException):
         self.call, self.exc = call, exc
+        name = evaluator.__name__ if isinstance(evaluator, type) else type(evaluator).__name__
         frames = traceback.extract_tb(exc.__traceback__)[1:]    # [0] is evaluator_call's own frame
         self.lines: List[str] = traceback_lines(frames, exc)
-        super().__init__(f"evaluator {type(evaluator).__name__}.{call}: {type(exc).__name__}: {exc}"
+        super().__init__(f"evaluator {name}.{call}: {type(exc).__name__}: {exc}"
                          f"{where_in_users_code(frames)}")
 
 
@@ -58,6 +59,16 @@ def evaluator_call(evaluator: Evaluator, method: str, *args: Any) -> Any:
         return getattr(evaluator, method)(*args)
     except USER_CODE_ERRORS as exc:
         raise EvaluatorError(evaluator, f"{method}()", exc) from exc
+
+
+def make_evaluator(name: str, scenario: Any, world: Any) -> Evaluator:
+    """The evaluator registered for behaviour ``name``, made for this run; an exception in a user's
+    ``__init__`` is an EvaluatorError, as in any other call."""
+    cls = evaluator_for(name)
+    try:
+        return cls(scenario, world)
+    except USER_CODE_ERRORS as exc:
+        raise EvaluatorError(cls, "__init__()", exc) from exc
 
 
 def merge_result(evaluator: Evaluator, result: Dict[str, Any]) -> Optional[EvaluatorError]:

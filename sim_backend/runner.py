@@ -27,7 +27,7 @@ from onboard.protocol import ProtocolError, encode
 from onboard.tracebacks import where_in_users_code
 
 from .hal import SensorFrame, make_robot
-from .metrics import EvaluatorError, evaluator_call, evaluator_for, merge_result
+from .metrics import EvaluatorError, evaluator_call, make_evaluator, merge_result
 from .radio import RadioNetwork
 from .scenario import Scenario
 from .sensing import ProximityModel
@@ -105,8 +105,8 @@ class Simulation:
         params = build_params(behaviour_cls, mission_params(behaviour_cls, scenario))
         self.robots = [make_robot(self.frame, i, self.world.spec) for i in range(self.count)]
         self.behaviours = make_behaviours(behaviour_cls, self.robots, params)
-        self.evaluator = evaluator_for(scenario.behaviour)(scenario, self.world)
-        self.warnings = self.evaluator.warnings(params)    # printed before the run, kept in result.json
+        self.evaluator = make_evaluator(scenario.behaviour, scenario, self.world)
+        self.warnings = evaluator_call(self.evaluator, "warnings", params)   # said before the run, kept in result.json
         self.faults = sorted((f.at_s, f.robot) for f in scenario.faults)
         self.pose_history: List[np.ndarray] = []
         self.recording = Recording()

@@ -116,6 +116,16 @@ from sim_backend.metrics import Evaluator, register_evaluator
 class CrashyEvaluator(Evaluator):
     steps = 0
 
+    def __init__(self, scenario, world):
+        super().__init__(scenario, world)
+        if scenario.params.get("bug") == "evaluator_init":
+            self.steps = int("many")
+
+    def warnings(self, params):
+        if params.bug == "evaluator_warnings":
+            return [params.unknown]
+        return []
+
     def on_step(self, time_s, telemetry):
         self.steps += 1
         if self.scenario.params.get("bug") == "on_step" and time_s > 0.25:
@@ -146,7 +156,7 @@ def test_an_evaluator_bug_names_the_evaluator_its_call_and_its_line(judged, tmp_
     assert run_judged("sim", "run", judged("on_step"), "--no-plot", "--out", "out") == 1
     err = capsys.readouterr().err
     assert "khepri: error: the run crashed: evaluator CrashyEvaluator.on_step(): ZeroDivisionError: division " \
-           "by zero at crashy_eval.py:12 (at t = 0.3 s)" in err
+           "by zero at crashy_eval.py:22 (at t = 0.3 s)" in err
     assert "    1 / 0" in err
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["stop_reason"] == "crashed" and result["traceback"][-1] == "ZeroDivisionError: division by zero"
@@ -157,7 +167,7 @@ def test_an_evaluator_failing_after_a_behaviour_crash_is_kept_beside_it(judged, 
     assert run_judged("sim", "run", judged("step_at_0"), "--no-plot", "--out", "out") == 1
     err = capsys.readouterr().err
     assert "khepri: error: the run crashed: robot 1, step(): RuntimeError: deliberate crash" in err
-    failure = "evaluator CrashyEvaluator.result(): ZeroDivisionError: division by zero at crashy_eval.py:15"
+    failure = "evaluator CrashyEvaluator.result(): ZeroDivisionError: division by zero at crashy_eval.py:25"
     assert f"khepri: error: the evaluator failed too: {failure}" in err
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["error"].startswith("robot 1, step(): ") and result["evaluation_error"] == failure
@@ -166,8 +176,19 @@ def test_an_evaluator_failing_after_a_behaviour_crash_is_kept_beside_it(judged, 
 def test_sil_names_an_evaluator_bug_as_sim_run_does(judged, tmp_path, capsys):
     assert run_judged("sil", judged("on_step"), "--no-plot", "--no-record", "--out", "sil") == 1
     assert "khepri: error: evaluator CrashyEvaluator.on_step(): ZeroDivisionError: division by zero at " \
-           "crashy_eval.py:12 (at t = 0.3 s)" in capsys.readouterr().err
+           "crashy_eval.py:22 (at t = 0.3 s)" in capsys.readouterr().err
     assert json.loads((tmp_path / "sil" / "result.json").read_text())["stop_reason"] == "crashed"
+
+
+@pytest.mark.parametrize("command", [["sim", "run"], ["sil"]])
+@pytest.mark.parametrize("bug, call, line", [("evaluator_init", "__init__()", 12),
+                                             ("evaluator_warnings", "warnings()", 16)])
+def test_an_evaluator_bug_before_the_run_names_its_call_and_line(judged, capsys, command, bug, call, line):
+    """An evaluator raising in __init__ or warnings(), before any step, ended in a bare Python traceback."""
+    assert run_judged(*command, judged(bug), "--no-plot", "--out", "out") == 1
+    err = capsys.readouterr().err
+    assert f"khepri: error: the evaluator failed: evaluator CrashyEvaluator.{call}: " in err
+    assert f"at crashy_eval.py:{line}" in err and "Traceback" not in err
 
 
 @pytest.mark.parametrize("message, said", [
