@@ -295,6 +295,9 @@ class ReplaySource(PoseSource):
         self._last_skip_line = -math.inf
         self._fetch()
         if self.pending is None:
+            if self.reader.stop_reason:           # a hub log cut short before its first poses, not another file
+                raise ConfigError("source.file", f"{path} holds no /mocap/poses records: it is truncated "
+                                                 f"({self.reader.stop_reason})")
             raise ConfigError("source.file", f"{path} holds no /mocap/poses records (not a khepri hub recording?)")
 
     def never_placed(self, ids: List[int]) -> List[int]:

@@ -379,6 +379,20 @@ def test_a_log_without_mocap_poses_is_refused_at_start(tmp_path, messages):
     assert str(info.value) == f"source.file: {path} holds no /mocap/poses records (not a khepri hub recording?)"
 
 
+@pytest.mark.parametrize("kept", [5, 30])
+def test_a_log_cut_short_before_its_first_poses_is_called_truncated(tmp_path, kept):
+    """A hub log cut inside its first bytes was refused as 'not a khepri hub recording?'."""
+    from hub.factory import build_hub
+
+    whole = raw_log(tmp_path / "whole.mcap", [("/mocap/poses", pose_bytes(0.5), T0)])
+    path = tmp_path / "cut.mcap"
+    path.write_bytes(whole.read_bytes()[:kept])
+    with pytest.raises(ConfigError) as info:
+        build_hub(replay_config(path), log=lambda line: None)
+    assert str(info.value).startswith(f"source.file: {path} holds no /mocap/poses records: it is truncated (the "
+                                      "file ends inside ")
+
+
 def test_a_missing_replay_file_is_named_once(tmp_path):
     from hub.factory import build_hub
 
