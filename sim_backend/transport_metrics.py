@@ -27,6 +27,7 @@ class TransportEvaluator(Evaluator):
         super().__init__(scenario, world)
         self.closed_at: Optional[float] = None
         self.pose_at_closure: Optional[np.ndarray] = None
+        self.gap_at_closure_rad: Optional[float] = None   # the members' widest gap round the true centroid
         self.members: List[int] = []
         self.reached: Dict[int, Dict[str, Any]] = {}
         self.pushers: Dict[int, List[int]] = {}
@@ -46,6 +47,9 @@ class TransportEvaluator(Evaluator):
             if any(t.get("closed") for t in reports.values()):
                 self.closed_at = time_s
                 self.pose_at_closure = self.world.object_pose()
+                positions = self.world.robot_poses()[:, :2]
+                members = [positions[i] for i, t in reports.items() if t.get("member")]
+                self.gap_at_closure_rad = widest_gap_rad(members, self.pose_at_closure[:2])
             return
         members = [i for i, t in reports.items() if t["state"] in CAGE_STATES and t.get("member")]
         self.members = members or self.members
@@ -142,6 +146,12 @@ class TransportEvaluator(Evaluator):
         caged = self.closed_at is not None
         out: Dict[str, Any] = {"caged": caged, "time_to_cage_s": self.closed_at, "cage_size": len(self.members)}
         failures = [] if caged else ["cage did not close"]
+        # The swarm decides closure from what it senses; the truth may differ (a ring on one side of the object).
+        encloses = None if self.gap_at_closure_rad is None else self.gap_at_closure_rad < math.pi
+        out["cage_encloses_object"] = encloses
+        if encloses is False:
+            failures.append(f"the cage closed without enclosing the object: seen from its true centroid, the "
+                            f"members left a gap of {math.degrees(self.gap_at_closure_rad):.0f}° (all on one side)")
         dead = [f"robot {f.robot} failed at {f.at_s:g} s" for f in scenario.faults if f.at_s <= self.last_time]
         if scenario.path:
             waypoints = [self.reached[k] for k in sorted(self.reached)]
@@ -186,3 +196,14 @@ class TransportEvaluator(Evaluator):
                 known = "" if estimate is None else f"; the swarm's centroid estimate was {estimate:.2f} m off"
                 lines.append(f"waypoint {w['index'] + 1} was passed with the object {' and '.join(off)}{known}")
         return lines
+
+
+def widest_gap_rad(points: List[np.ndarray], centre: np.ndarray) -> float:
+    """The widest angle between neighbouring points as seen from ``centre``: below pi exactly when the points
+    surround it (it lies inside their convex hull). 2 pi for fewer than 2 points."""
+    if len(points) < 2:
+        return 2.0 * math.pi
+    angles = sorted(math.atan2(float(p[1] - centre[1]), float(p[0] - centre[0])) for p in points)
+    gaps = [b - a for a, b in zip(angles, angles[1:])]
+    gaps.append(angles[0] + 2.0 * math.pi - angles[-1])
+    return max(gaps)

@@ -856,3 +856,19 @@ def test_a_study_takes_whole_numbers_written_as_floats_as_scenario_files_do():
     assert parse_study({"scenarios": ["lab-6"], "seeds": [1.0, 3]}).seeds == [1, 3]
     with pytest.raises(ConfigError, match=r"seeds\[0\]: must be an integer >= 0 \(got 1.5\)"):
         parse_study({"scenarios": ["lab-6"], "seeds": [1.5]})
+
+
+def test_a_caging_only_run_whose_cage_missed_the_object_is_not_a_success(tmp_path):
+    """A cage the ground truth finds closed on one side of the object counts as caged, not as a success."""
+    from sim_backend.study.aggregate import success_rate
+
+    for seed, encloses in ((1, True), (2, False), (3, None)):          # None: a result from before the check
+        result = {"scenario": "irregular-clover", "seed": seed, "robots": 30, "behaviour": "transport",
+                  "failed": False, "stop_reason": "behaviour finished", "caged": True, "time_to_cage_s": 300.0,
+                  "cage_size": 18, "study": {"cell": "irregular-clover", "overrides": {}}}
+        if encloses is not None:
+            result["cage_encloses_object"] = encloses
+        (tmp_path / "irregular-clover" / f"seed-{seed}").mkdir(parents=True)
+        write(tmp_path / "irregular-clover" / f"seed-{seed}" / "result.json", json.dumps(result))
+    (cell,) = load_results(tmp_path).cells
+    assert cell.rate(lambda r: bool(r.get("caged"))) == 1.0 and success_rate(cell) == 2 / 3

@@ -975,3 +975,34 @@ def test_a_path_that_starts_where_the_object_lies_is_pushed_straight(tmp_path, s
     assert result["completed"], result["failures"]
     assert result["final_position_error_m"] < 0.05
     assert result["final_orientation_error_rad"] < math.radians(5.72)
+
+
+class _StillWorld:
+    """A world frozen at one moment: what the evaluator reads of the truth."""
+
+    def __init__(self, object_pose, robot_xy):
+        self._object, self._robots = np.asarray(object_pose, float), np.asarray(robot_xy, float)
+
+    def object_pose(self):
+        return self._object
+
+    def robot_poses(self):
+        return np.column_stack([self._robots, np.zeros(len(self._robots))])
+
+
+@pytest.mark.parametrize("robot_xy, encloses", [
+    ([(0.3, 0.0), (-0.15, 0.26), (-0.15, -0.26)], True),       # round the object
+    ([(0.3, 0.2), (0.3, 0.0), (0.3, -0.2)], False),           # a ring closed on one side of it
+])
+def test_result_json_says_whether_the_closed_cage_really_encloses_the_object(make_scenario, robot_xy, encloses):
+    """The swarm decides closure from what it senses; the result checks the truth: a ring that closed on one
+    side of the object (a compound of two parts far apart did that, and the run said caged=True) is a failure."""
+    from sim_backend.transport_metrics import TransportEvaluator
+
+    scenario = make_scenario(behaviour="transport", robots={"count": 3}, object={"shape": "box", "size": [0.3, 0.3]})
+    evaluator = TransportEvaluator(scenario, _StillWorld((0.0, 0.0, 0.0), robot_xy))
+    member = {"state": "caged", "member": True, "closed": True, "waypoint": 0}
+    evaluator.on_step(10.0, [dict(member) for _ in robot_xy])
+    result = evaluator.result()
+    assert result["caged"] and result["cage_encloses_object"] is encloses
+    assert any("without enclosing the object" in line for line in result["failures"]) is not encloses

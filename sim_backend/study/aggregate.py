@@ -172,12 +172,14 @@ class SummaryRow:
 
 
 def success_rate(cell: Cell) -> Optional[float]:
-    """Completed (every waypoint, within tolerance) for a transport; caged for a caging-only run; None for a
-    behaviour whose results say neither (another behaviour's own metrics are in its result.json)."""
+    """Completed (every waypoint, within tolerance) for a transport; caged round the object for a caging-only
+    run (a cage the ground truth finds closed on one side of it does not count; results from before that
+    check count when caged); None for a behaviour whose results say neither (another behaviour's own metrics
+    are in its result.json)."""
     if cell.has_path:
         return cell.rate(lambda r: bool(r.get("completed")))
     if any("caged" in r for r in cell.ok):
-        return cell.rate(lambda r: bool(r.get("caged")))
+        return cell.rate(lambda r: bool(r.get("caged")) and r.get("cage_encloses_object") is not False)
     return None
 
 
