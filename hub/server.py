@@ -33,6 +33,10 @@ from .sensors import SensingModel, VirtualSensors
 from .sources import PoseFrame, PoseSource
 from .uplink import Uplink
 
+# Agents that drive no real wheels: the simulated robot's (sil), and the hub benchmark's clients. Any other
+# driver (kh4) moves a robot in the room, and is held when the poses do not come from the room.
+VIRTUAL_DRIVERS = ("sim", "bench")
+
 DOWNLINK_HWM = 8          # frames queued per robot; older data is useless, a full queue drops (latest-only)
 UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting pose frame and at the clock
 # The longest the hub reads one socket before it sends the frames due: a flood of messages (a fuzzer, a
@@ -290,6 +294,8 @@ class Hub(Downlink, Uplink):
             return "hold", "killed by a scenario fault"
         if self.mode != "run":
             return self.mode, ""
+        if robot.driver not in VIRTUAL_DRIVERS and self.source.not_the_real_robots is not None:
+            return "hold", f"{self.source.not_the_real_robots}: a robot with real wheels ({robot.driver}) is held"
         row = self.row[robot.id]
         if not self.sensors.present[row]:
             return "hold", "not tracked by motion capture"

@@ -23,6 +23,7 @@ from .sources import PoseFrame, PoseSource
 
 
 class SimSource(PoseSource):
+    not_the_real_robots = "this hub simulates the robots"
     def __init__(self, scenario: Scenario, seed: Optional[int] = None, frame_hz: float = 50.0):
         self.scenario = scenario
         self.seed = scenario.seed if seed is None else seed

@@ -32,6 +32,10 @@ class PoseSource:
 
     description = "source"
     wake_socket = None
+    # Not None when the poses do not come from the robots in the room (a recording, a simulation, the mock
+    # motion capture): why. A robot with real wheels is then held (Hub.mode_for): it would steer by poses that
+    # do not follow it, and drive on where no geofence can see it.
+    not_the_real_robots: Optional[str] = None
 
     def robot_ids(self) -> Optional[List[int]]:
         """The robots this source knows, or None when the config's list decides."""
@@ -177,6 +181,8 @@ class MotionCaptureSource(PoseSource):
         options = {k: str(v) for k, v in options.items()}
         host = options.get("hostname")
         self.description = f"motioncapture {system}" + (f" at {host}" if host else "")
+        if system == "mock":
+            self.not_the_real_robots = "the mock motion capture's poses do not follow real robots"
         self.bodies, self.up_axis, self.log = dict(bodies), up_axis, log
         log(f"hub: connecting to {system} ({describe_options(options)})...")
         if connect is None and system not in IN_PROCESS_SYSTEMS:
@@ -280,6 +286,7 @@ class ReplaySource(PoseSource):
         from hub.recording import LogError
 
         self.description = f"replay {path}"
+        self.not_the_real_robots = "a replay's poses come from a recording"
         self.path, self.rate, self.log = path, rate, log
         try:
             self.reader = LogReader(path)

@@ -76,10 +76,10 @@ class Uplink:
     def _note_driver(self, robot: RobotLink, driver: str) -> None:
         """A real robot's agent talking to a hub that simulates that robot drives real wheels the hub never
         sees, while the simulated robot stands still: almost surely a mistake, so say it when it starts."""
-        if driver != robot.driver and driver != "sim" and getattr(self.source, "command", None) is not None:
-            self.log(f"hub: robot {robot.id}'s agent uses the {driver} driver, but this hub simulates robot "
-                     f"{robot.id} (sim source): the agent gets the simulated robot's sensors and drives real "
-                     f"wheels, and the simulated robot never moves; start the agent with --driver sim")
+        if driver != robot.driver and driver not in ("sim", "bench") and self.source.not_the_real_robots:
+            self.log(f"hub: robot {robot.id}'s agent uses the {driver} driver, but {self.source.not_the_real_robots}"
+                     f" ({self.source.description}): it is held, its wheels stopped, so that it does not drive by "
+                     f"poses that do not follow it; for a simulated robot start the agent with --driver sim")
         robot.driver = driver
 
     def _on_hello(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:

@@ -337,6 +337,39 @@ def test_a_real_robots_agent_joining_a_sim_hub_is_told_about_once():
         hub.close()
 
 
+def real_wheels_source(kind, tmp_path):
+    if kind == "sim":
+        return {"type": "sim"}
+    if kind == "mock":
+        return {"type": "motioncapture", "system": "mock", "up_axis": "z", "bodies": {"kh0": 0, "kh1": 1},
+                "options": {"frequency": "50", "rigid_bodies": "kh0(0,0,0,1,0,0,0);kh1(0.5,0,0,1,0,0,0)"}}
+    log = tmp_path / "run.mcap"
+    with Recorder(log) as recorder:
+        recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0, 1], np.array([[0.0, 0, 0], [0.5, 0, 0]]))),
+                       stamp_s=1.7e9)
+    return {"type": "replay", "file": str(log)}
+
+
+@pytest.mark.parametrize("kind, why", [("sim", "this hub simulates the robots"),
+                                       ("mock", "the mock motion capture's poses do not follow real robots"),
+                                       ("replay", "a replay's poses come from a recording")])
+def test_a_robot_with_real_wheels_is_held_when_the_poses_are_not_the_rooms(tmp_path, kind, why):
+    """A kh4 agent drove its wheels through a whole replay (and against the mock motion capture, whose poses
+    never move), steering by poses that did not follow it; lab.md says the wheels move nothing there."""
+    source = real_wheels_source(kind, tmp_path)
+    hub = build_hub(parse_config({"source": source, "network": NETWORK, "security": {"insecure": True},
+                                  "robots": [0, 1], "run": {"behaviour": "aggregate"}}), log=lambda line: None)
+    try:
+        real, simulated = hub.robots[0], hub.robots[1]
+        hub._on_hello(real, {"driver": "kh4"}, time.monotonic())
+        hub._on_hello(simulated, {"driver": "sim"}, time.monotonic())
+        hub.mode = "run"
+        assert hub.mode_for(real) == ("hold", f"{why}: a robot with real wheels (kh4) is held")
+        assert hub.mode_for(simulated)[1] != hub.mode_for(real)[1]
+    finally:
+        hub.close()
+
+
 def test_a_recorded_pose_holds_no_negative_zero():
     record = poses_record(PoseFrame(0.0, [4], np.array([[-1e-7, -2e-6, -1e-8]])))
     assert json.dumps(record["bodies"]) == '{"4": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}'
