@@ -178,6 +178,8 @@ def record_path(config: LabConfig, now: Optional[float] = None) -> Path:
     if config.source.type == "replay" and path.exists() and path.resolve() == Path(config.source.file).resolve():
         raise ConfigError("record", f"{path} is the log being replayed (source.file): recording would erase it; "
                           "name another file")
+    if path.is_dir():
+        raise ConfigError("record", f"{path} is a folder: give the log's file name, e.g. {path / 'run-{time}.mcap'}")
     if path.exists() or path.is_symlink():
         raise ConfigError("record", f"{path} exists (an earlier run's log, or one a hub is writing): the hub does "
                           "not write over a log. Remove it, name another file, or put {time} in the name "

@@ -456,3 +456,13 @@ def test_a_hub_on_an_ipv6_address_serves_a_real_agent_and_ctl(tmp_path, make_sce
                               "--port", control_port], capture_output=True, text=True, timeout=60)
         assert ctl.returncode == 0 and "robot  connected" in ctl.stdout, ctl.stderr
         assert request(hub.endpoints["control"], "status")["ok"]
+
+
+def test_a_robot_without_the_agents_packages_is_told_which_in_one_line():
+    """`python3 -m onboard.agent` on a robot without pyzmq ended in a ModuleNotFoundError traceback."""
+    blocked = "import sys, runpy; sys.modules['zmq'] = None; sys.argv = ['agent', '--id', '0', '--driver', 'sim']; " \
+              "runpy.run_module('onboard.agent', run_name='__main__')"
+    done = subprocess.run([sys.executable, "-c", blocked], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr.startswith("agent: error: import of zmq halted; None in sys.modules: the agent needs Python")
+

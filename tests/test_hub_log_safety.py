@@ -74,6 +74,13 @@ def test_an_existing_log_is_refused_and_left_as_it_was(tmp_path, capsys):
     assert log.read_bytes() == b"an earlier run's log"
 
 
+def test_a_folder_given_as_the_log_is_refused_with_a_file_name_to_use(tmp_path, capsys):
+    """It said 'logs exists (an earlier run's log, or one a hub is writing)'."""
+    assert main(["hub", "--demo", "--record", str(tmp_path)]) == 2
+    assert f"khepri: error: record: {tmp_path} is a folder: give the log's file name, e.g. " \
+           f"{tmp_path / 'run-{time}.mcap'}" in capsys.readouterr().err
+
+
 def test_time_in_the_log_name_gives_each_start_its_own_file(tmp_path):
     config = parse_config({"record": str(tmp_path / "run-{time}.mcap")})
     at = time.mktime((2026, 11, 21, 20, 15, 2, 0, 0, -1))

@@ -3,6 +3,13 @@
 Start it with ``khepri agent --id N --hub HOST --driver kh4|sim`` (or ``python -m onboard.agent ...`` on a
 robot). See docs/lab.md and docs/protocol.md.
 """
-from .loop import Agent, LoopStats
-
 __all__ = ["Agent", "LoopStats"]
+
+
+def __getattr__(name):
+    # Imported on first use, not with the package: `python -m onboard.agent` on a robot that lacks pyzmq or
+    # numpy must reach __main__, which says which package is missing in one line instead of a traceback.
+    if name in __all__:
+        from . import loop
+        return getattr(loop, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
