@@ -18,7 +18,8 @@ def add_log(groups) -> None:
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.add_argument("--check", action="store_true",
                       help="read every record and check every chunk's CRC, also in a complete log (slower; by "
-                           "default a complete log is summarised from its index)")
+                           "default a complete log is summarised from its index); exit code 1 when the log is "
+                           "truncated or has damaged records")
     info.add_argument("--all-topics", action="store_true",
                       help="list every robot's topics (default: one line per kind, e.g. /robot/*/frame)")
     info.set_defaults(func=cmd_info)
@@ -38,4 +39,5 @@ def cmd_info(args: argparse.Namespace) -> int:
         print(json.dumps(summary.to_dict(), indent=2))
     else:
         print(format_summary(summary, all_topics=args.all_topics))
-    return 0
+    # With --check a script can tell a sound log from a damaged one by the exit code, not only by reading.
+    return 1 if args.check and (summary.truncated or summary.damaged_records) else 0
