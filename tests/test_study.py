@@ -872,3 +872,13 @@ def test_a_caging_only_run_whose_cage_missed_the_object_is_not_a_success(tmp_pat
         write(tmp_path / "irregular-clover" / f"seed-{seed}" / "result.json", json.dumps(result))
     (cell,) = load_results(tmp_path).cells
     assert cell.rate(lambda r: bool(r.get("caged"))) == 1.0 and success_rate(cell) == 2 / 3
+
+
+@pytest.mark.parametrize("overrides", ["{object.mass: [2.0, 3.0], object: [{shape: circle, radius: 0.2}]}",
+                                       "{object: [{shape: circle, radius: 0.2}], object.mass: [2.0, 3.0]}"])
+def test_a_key_overridden_inside_a_whole_mapping_override_is_refused(tmp_path, capsys, overrides):
+    """The whole mapping silently replaced the sub-key: two cells labelled mass 2 and 3 both ran the default."""
+    study = write(tmp_path / "s.yaml", TINY_STUDY + f"overrides: {overrides}\n")
+    assert main(["study", str(study), "--dry-run"]) == 2
+    assert "khepri: error: overrides.object.mass: lies inside overrides.object, which replaces all of object: " \
+           "one of them would be lost; put mass into each value of overrides.object instead" in capsys.readouterr().err

@@ -212,7 +212,19 @@ def parse_overrides(value: Any) -> Dict[str, List[Any]]:
         if repeated:
             raise ConfigError(where, f"lists the value {repeated[0]!r} twice")
         overrides[key] = values
+    check_nested_overrides(overrides)
     return overrides
+
+
+def check_nested_overrides(overrides: Dict[str, List[Any]]) -> None:
+    """Refuse a key overridden inside another that is overridden whole (``object.mass`` and ``object``): the
+    one applied last wins, so cells were labelled with masses that never ran."""
+    for key in overrides:
+        for outer in overrides:
+            if key != outer and key.startswith(outer + "."):
+                raise ConfigError(f"overrides.{key}", f"lies inside overrides.{outer}, which replaces all of {outer}: "
+                                  f"one of them would be lost; put {key[len(outer) + 1:]} into each value of "
+                                  f"overrides.{outer} instead")
 
 
 def parse_time_limit(where: str, value: Any) -> Optional[float]:
