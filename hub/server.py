@@ -294,7 +294,7 @@ class Hub(Downlink, Uplink):
             return "hold", "killed by a scenario fault"
         if self.mode != "run":
             return self.mode, ""
-        if robot.driver not in VIRTUAL_DRIVERS and self.source.not_the_real_robots is not None:
+        if robot.driver and robot.driver not in VIRTUAL_DRIVERS and self.source.not_the_real_robots is not None:
             return "hold", f"{self.source.not_the_real_robots}: a robot with real wheels ({robot.driver}) is held"
         row = self.row[robot.id]
         if not self.sensors.present[row]:
