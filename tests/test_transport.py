@@ -575,44 +575,6 @@ def test_i_d_grows_only_when_no_open_target_gets_a_bid():
     assert board.grow_level() >= 1
 
 
-def test_i_d_does_not_grow_while_a_robot_is_still_on_its_way_to_a_target():
-    """A target nobody bids for is no sign of a swarm out of robots while another robot still travels to or
-    attaches at its own target: growing I_d then moves that robot's target away from under it."""
-    sim = Simulation(load_scenario("lab-6"), seed=1)
-    transport = sim.behaviours[0]
-    board, me, coming = transport.board, transport.robot.id, 4
-    patience = 3 * transport.params.allocation_time_s
-    waiting = Task("R2", 1.0, 0.0, "R", 2, me, 0)
-    attaching = Task("L1", -1.0, 0.0, "L", 1, 11, 0)
-    board.put_task(waiting)
-    board.put_task(attaching)
-    board.take(attaching, coming, 1.0)                        # robot 4 owns L1 and has not joined the cage
-    transport.spawned_times[("R2", 0)] = 0.0
-    end = int(3 * patience)
-    for now in range(1, end):
-        board.heartbeat(coming, -1.0, 0.0, None, now=float(now), state="attach")
-        board.refresh_liveness(float(now))
-        transport._grow_if_out_of_robots(float(now))
-    assert board.grow_level() == 0
-    board.join_cage(coming, attaching)                        # it joined: now nobody is coming
-    for now in range(end, end + int(patience) + 5):
-        transport._grow_if_out_of_robots(float(now) + 0.5)
-    assert board.grow_level() >= 1
-
-
-def test_three_robots_cage_a_small_box_and_deliver_it(make_scenario):
-    """With 3 robots on a 0.3 m box the third one attached while I_d grew under it (the other branch's
-    target had no bidder), and chased a spacing of over 1 m round the box until the time limit."""
-    scenario = make_scenario(behaviour="transport", robots={"count": 3, "spawn": {"x": [-1.2, -0.6],
-                                                                                  "y": [-1.2, -0.6]}},
-                             object={"shape": "box", "size": [0.3, 0.3], "mass": 0.3},
-                             path=[[0, 0.3, 0], [0, 0.6, 0]], comm={"range_m": 3.0},
-                             arena={"walls": [-2.0, -2.0, 2.0, 2.0]}, time_limit_s=200)
-    result = Simulation(scenario, seed=1).run()
-    assert result["caged"] and result["cage_size"] == 3
-    assert result["final_position_error_m"] < 0.06
-
-
 def test_a_member_shoved_beyond_its_predecessor_slides_back_toward_it():
     """A cage member corrects its distance to its predecessor by sliding along perp(x_o), the branch's way
     as the paper has it when the predecessor is behind. A member shoved past its predecessor (round a corner)

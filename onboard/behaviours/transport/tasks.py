@@ -182,12 +182,6 @@ class TaskBoard:
         return bool(self._odd_owners) and \
             any(tid != except_tid and value == robot for value, tid in self._odd_owners)
 
-    def on_the_way(self, now: float) -> bool:
-        """Some live robot owns a task but has not joined the cage yet: it is travelling to its target or
-        attaching. (Owners stay listed after they join; members, and members that died, are left out.)"""
-        self._index_owners()
-        return any(f"member/{robot}" not in self.space and self.alive(robot, now) for robot in self._owned)
-
     def _index_owners(self) -> None:
         """Which robot validly owns which task: the owner entry's epoch is the live, uncancelled task's."""
         revisions = (self.space.revision("owner"), self.space.revision("task"))

@@ -150,14 +150,11 @@ class TransportPhases:
     def _grow_if_out_of_robots(self, now: float) -> None:
         """Nobody bids for the next target: grow I_d so the branches spread until the cage closes.
 
-        Only when no open task has had a valid bid for OUT_OF_ROBOTS_FACTOR * T_a either, and nobody has been
-        on the way to a target for as long. Idle robots bid for their nearest open task only, so while one
-        target is being bid for, the others wait their turn unbid; that is a queue, not a swarm out of robots.
-        Nor is a swarm whose last robot is still travelling or attaching: growing I_d under it moves its own
-        target away (+2 % a second), and with 3 robots on a 0.3 m box the third chased a spacing of over 1 m
-        round the object for ever. A member cut off from the swarm's messages still sees stale bids and can
-        grow I_d for nothing (docs/behaviour.md section 3)."""
-        if any(best is not None for _, _, best in self.board.open_tasks()) or self.board.on_the_way(now):
+        Only when no open task has had a valid bid for OUT_OF_ROBOTS_FACTOR * T_a either. Idle robots bid
+        for their nearest open task only, so while one target is being bid for, the others wait their turn
+        unbid; that is a queue, not a swarm out of robots. A member cut off from the swarm's messages still
+        sees stale bids and can grow I_d for nothing (docs/behaviour.md section 3)."""
+        if any(best is not None for _, _, best in self.board.open_tasks()):
             self.bidding_seen_at = now
         patience = OUT_OF_ROBOTS_FACTOR * self.params.allocation_time_s
         if now - self.bidding_seen_at <= patience or now - self.grow_at < GROW_PERIOD_S:
