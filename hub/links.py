@@ -11,6 +11,10 @@ import zmq
 REPEAT_QUIET_MAX_S = 60.0   # the longest a sender repeating one bad message goes unmentioned
 
 
+# Agents that drive no real wheels: the simulated robot's (sil), and the hub benchmark's clients. Any other
+# driver (kh4) moves a robot in the room, and is held when the poses do not come from the room (Hub.mode_for).
+VIRTUAL_DRIVERS = ("sim", "bench")
+
 @dataclass
 class RobotLink:
     """What the hub knows about one robot and its agent."""

@@ -26,16 +26,12 @@ from .background_recorder import BackgroundRecorder
 from .config import LabConfig
 from .control_service import ControlService
 from .downlink import Downlink
-from .links import DropLog, RateMeter, RobotLink
+from .links import VIRTUAL_DRIVERS, DropLog, RateMeter, RobotLink
 from .relay import RadioRelay
 from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HandshakeWatch, HubAuthenticator, KeyRing, make_curve_server
 from .sensors import SensingModel, VirtualSensors
 from .sources import PoseFrame, PoseSource
 from .uplink import Uplink
-
-# Agents that drive no real wheels: the simulated robot's (sil), and the hub benchmark's clients. Any other
-# driver (kh4) moves a robot in the room, and is held when the poses do not come from the room.
-VIRTUAL_DRIVERS = ("sim", "bench")
 
 DOWNLINK_HWM = 8          # frames queued per robot; older data is useless, a full queue drops (latest-only)
 UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting pose frame and at the clock

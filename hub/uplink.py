@@ -13,7 +13,7 @@ import zmq
 
 from onboard.protocol import UPLINK_TYPES, ProtocolError, check_payload_size, decode
 
-from .links import RobotLink, frame_property, frame_sender
+from .links import VIRTUAL_DRIVERS, RobotLink, frame_property, frame_sender
 from .log_format import robot_topic
 
 DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
@@ -76,7 +76,7 @@ class Uplink:
     def _note_driver(self, robot: RobotLink, driver: str) -> None:
         """A real robot's agent talking to a hub that simulates that robot drives real wheels the hub never
         sees, while the simulated robot stands still: almost surely a mistake, so say it when it starts."""
-        if driver != robot.driver and driver not in ("sim", "bench") and self.source.not_the_real_robots:
+        if driver != robot.driver and driver not in VIRTUAL_DRIVERS and self.source.not_the_real_robots:
             self.log(f"hub: robot {robot.id}'s agent uses the {driver} driver, but {self.source.not_the_real_robots}"
                      f" ({self.source.description}): it is held, its wheels stopped, so that it does not drive by "
                      f"poses that do not follow it; for a simulated robot start the agent with --driver sim")
