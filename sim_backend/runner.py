@@ -18,7 +18,6 @@ from onboard.behaviour import (
     build_params,
     get_behaviour,
     make_behaviours,
-    plain_json,
     takes_param,
     telemetry_of,
 )
@@ -313,7 +312,7 @@ class Simulation:
             result["evaluation_error"] = str(failure)
         elif failure is not None:
             error, trace = str(failure), failure.lines
-        result["telemetry"] = plain_json(self.telemetry)    # each robot's last telemetry(): what it ended with
+        result["telemetry"] = list(self.telemetry)    # each robot's last telemetry() (telemetry_of made it plain JSON)
         if error:
             result["error"] = error
         if trace:
@@ -343,7 +342,7 @@ def check_telemetry_fits_the_wire(telemetry: List[Optional[Dict[str, Any]]], rob
         if data is None:
             continue
         try:
-            encode({"type": "telemetry", "behaviour": plain_json(data)})
+            encode({"type": "telemetry", "behaviour": data})      # telemetry_of made it plain JSON already
         except ProtocolError as err:
             problem = ValueError(f"the hub could not be sent this telemetry, so every agent in a lab would stop "
                                  f"on it: {err.problem} (plain JSON only: dict, list, str, numbers, bool, None)")
