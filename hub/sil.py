@@ -327,10 +327,8 @@ class SilSession:
         }
         if self.warnings:
             result["warnings"] = list(self.warnings)
-        failure = merge_result(self.evaluator, result)
-        if failure is not None and error:       # both are said, as in `khepri sim run`
-            result["evaluation_error"] = str(failure)
-        elif failure is not None:
+        failure = merge_result(self.evaluator, result, error)     # both kept when both failed, as in sim run
+        if failure is not None:
             error = str(failure)
         # As sim run's: null for a robot a scenario fault killed, whatever its agent said last.
         alive = self.source.world.alive()

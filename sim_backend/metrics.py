@@ -71,12 +71,17 @@ def make_evaluator(name: str, scenario: Any, world: Any) -> Evaluator:
         raise EvaluatorError(cls, "__init__()", exc) from exc
 
 
-def merge_result(evaluator: Evaluator, result: Dict[str, Any]) -> Optional[EvaluatorError]:
-    """Add the evaluator's ``result()`` to ``result``; what went wrong if it raised, else None."""
+def merge_result(evaluator: Evaluator, result: Dict[str, Any],
+                 earlier_error: Optional[str] = None) -> Optional[EvaluatorError]:
+    """Add the evaluator's ``result()`` to ``result``. If it raised after the run had already failed
+    (``earlier_error``), both are kept: its failure goes to ``result["evaluation_error"]``. Returns the failure
+    when it is the run's error (no earlier one), else None."""
     try:
         result.update(evaluator_call(evaluator, "result"))
     except EvaluatorError as failure:
-        return failure
+        if not earlier_error:
+            return failure
+        result["evaluation_error"] = str(failure)
     return None
 
 

@@ -307,10 +307,8 @@ class Simulation:
         }
         if self.warnings:
             result["warnings"] = list(self.warnings)
-        failure = merge_result(self.evaluator, result)
-        if failure is not None and error:       # both are said: the run's own error, then the evaluator's
-            result["evaluation_error"] = str(failure)
-        elif failure is not None:
+        failure = merge_result(self.evaluator, result, error)
+        if failure is not None:
             error, trace = str(failure), failure.lines
         result["telemetry"] = list(self.telemetry)    # each robot's last telemetry() (telemetry_of made it plain JSON)
         if error:
