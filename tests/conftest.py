@@ -1,4 +1,5 @@
 import signal
+import sys
 
 import pytest
 
@@ -36,3 +37,28 @@ def restore_behaviour_registry():
     yield
     behaviour._REGISTRY.clear()
     behaviour._REGISTRY.update(before)
+
+
+@pytest.fixture
+def user_behaviour(tmp_path, monkeypatch):
+    """``install(module, code, scenario_template)``: a user's behaviour module written into a fresh folder, the
+    test run from there; returns ``scenario(bug)``, which writes ``<bug>.yaml`` from the template (``{bug}``
+    filled in) and gives its name. The module is forgotten afterwards, so the next test's import registers it
+    again."""
+    installed = []
+
+    def install(module: str, code: str, template: str):
+        (tmp_path / f"{module}.py").write_text(code)
+        monkeypatch.chdir(tmp_path)
+        installed.append(module)
+
+        def scenario(bug: str) -> str:
+            (tmp_path / f"{bug}.yaml").write_text(template.format(bug=bug))
+            return f"{bug}.yaml"
+
+        return scenario
+
+    yield install
+    for module in installed:
+        sys.modules.pop(module, None)
+

@@ -98,18 +98,8 @@ time_limit_s: 2
 
 
 @pytest.fixture
-def buggy(tmp_path, monkeypatch):
-    (tmp_path / "buggy_behaviour.py").write_text(BUGGY)
-    monkeypatch.chdir(tmp_path)
-
-    def scenario(bug: str) -> str:
-        (tmp_path / f"{bug}.yaml").write_text(SCENARIO.format(bug=bug))
-        return f"{bug}.yaml"
-
-    yield scenario
-    import sys
-
-    sys.modules.pop("buggy_behaviour", None)         # the next test's import registers it again
+def buggy(user_behaviour):
+    return user_behaviour("buggy_behaviour", BUGGY, SCENARIO)
 
 
 def run(*args):

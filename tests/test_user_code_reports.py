@@ -47,16 +47,8 @@ time_limit_s: 1
 
 
 @pytest.fixture
-def crashy(tmp_path, monkeypatch):
-    (tmp_path / "crashy_behaviour.py").write_text(CRASHY)
-    monkeypatch.chdir(tmp_path)
-
-    def scenario(bug: str) -> str:
-        (tmp_path / f"{bug}.yaml").write_text(SCENARIO.format(bug=bug))
-        return f"{bug}.yaml"
-
-    yield scenario
-    sys.modules.pop("crashy_behaviour", None)         # the next test's import registers it again
+def crashy(user_behaviour):
+    return user_behaviour("crashy_behaviour", CRASHY, SCENARIO)
 
 
 def run(*args):
