@@ -71,7 +71,8 @@ def cmd_study(args: argparse.Namespace) -> int:
     with sigterm_as_ctrl_c():
         outcome = run_study(spec, runs, out, executor, retry_failed=args.retry_failed, command=command_line(args))
     print(f"ran {outcome.ran} runs ({outcome.failed} failed), skipped {outcome.skipped} finished"
-          + (f" and {outcome.kept_failed} failed (re-run them with --retry-failed)" if outcome.kept_failed else ""))
+          + (f" and {outcome.kept_failed} failed (re-run them with --retry-failed)" if outcome.kept_failed else "")
+          + (f"; {len(outcome.unwritable)} could not write their result" if outcome.unwritable else ""))
     return print_outputs(write_study_outputs(out, figures=not args.no_figures))
 
 
@@ -147,16 +148,22 @@ def print_dry_run(runs, out: Path, retry_failed: bool) -> int:
 
 def print_outputs(files) -> int:
     from sim_backend.study.aggregate import load_results
+    from sim_backend.study.driver import read_study
+    from sim_backend.study.report import unwritable_runs
 
     for name, path in files.items():
         print(f"  {name}: {path}")
-    results = load_results(files["summary"].parent)
+    folder = files["summary"].parent
+    results = load_results(folder)
     failed = sum(len(cell.failed) for cell in results.cells)
+    unwritable = len(unwritable_runs(results, read_study(folder)))
     if failed:
         print(f"khepri: {failed} runs failed; report.md lists why (re-run them with --retry-failed)",
               file=sys.stderr)
-        return 1
-    return 0
+    if unwritable:
+        print(f"khepri: {unwritable} runs have no result because their folder could not be written; report.md "
+              f"lists them (fix the folders and run the same command again)", file=sys.stderr)
+    return 1 if failed or unwritable else 0
 
 
 def command_line(args: argparse.Namespace) -> str:

@@ -1,6 +1,7 @@
 """``khepri study``: the grid, real runs through a process pool and a Dask LocalCluster, resume, failures,
 and the aggregation (summary.csv, report.md, figures) of known results."""
 import csv
+import io
 import json
 import os
 import time
@@ -309,6 +310,45 @@ def test_the_driver_writes_the_result_a_remote_worker_could_not(tmp_path):
     here = json.loads((tmp_path / "out" / "lab-6" / "seed-1" / "result.json").read_text())
     there = json.loads((tmp_path / "out-elsewhere" / "lab-6" / "seed-1" / "result.json").read_text())
     assert here == there and here["failed"] is False
+
+
+def test_a_cell_folder_that_cannot_be_written_fails_its_runs_not_the_study(tmp_path, capsys):
+    """A file where a cell's folder goes (as root, the way to make a folder unwritable): the whole study stopped
+    with exit 2 ("Not a directory") after running every run."""
+    study = write(tmp_path / "tiny.yaml", TINY_STUDY + "overrides: {comm.drop: [0.0, 0.1]}\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    blocker = write(out / "lab-6@comm.drop=0.1", "not a folder")
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 1
+    said = capsys.readouterr()
+    assert "ran 2 runs (0 failed), skipped 0 finished; 2 could not write their result" in said.out
+    assert f"FAILED: not run: its folder cannot be written (Not a directory: {out}/lab-6@comm.drop=0.1/seed-1)" \
+        in said.err
+    assert sorted(results_in(out)) == ["lab-6@comm.drop=0/seed-1", "lab-6@comm.drop=0/seed-2"]
+    report = (out / "report.md").read_text()
+    assert f"- `lab-6@comm.drop=0.1/seed-2`: not run: its folder cannot be written (Not a directory: {out}/" in report
+    blocker.unlink()                       # fixed: the same command runs them, and they are failures no more
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
+    assert "ran 2 runs (0 failed), skipped 2 finished\n" in capsys.readouterr().out
+    assert "cannot be written" not in (out / "report.md").read_text()
+
+
+def block_own_folder(spec, out_root):
+    """A run whose folder turns into a file while it runs (a full disk, a folder made read-only meanwhile):
+    neither the worker nor the driver can write its result."""
+    result = execute_run(spec, out_root + "-elsewhere")
+    run_dir = Path(out_root) / spec.run_dir
+    run_dir.rmdir()
+    run_dir.write_text("in the way")
+    return result
+
+
+def test_a_result_that_cannot_be_written_after_its_run_is_recorded_as_lost(tmp_path):
+    spec = parse_study({"name": "lost", "scenarios": ["lab-6"], "seeds": [1], "time_limit_s": 1})
+    outcome = run_study(spec, expand(spec), tmp_path, LocalExecutor(1, block_own_folder), stream=io.StringIO())
+    assert outcome.ran == 1 and list(outcome.unwritable) == ["lab-6/seed-1"]
+    assert outcome.unwritable["lab-6/seed-1"].startswith("ran, but its result could not be written and is lost (")
+    assert json.loads((tmp_path / "study.json").read_text())["unwritable"] == outcome.unwritable
 
 
 def test_a_dask_local_cluster_gives_the_same_results_as_the_local_pool(local_study, tmp_path, capsys):

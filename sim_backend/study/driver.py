@@ -7,7 +7,9 @@ again.
 from __future__ import annotations
 
 import json
+import os
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,9 +18,10 @@ from typing import Any, Dict, List, Optional, Sequence, TextIO, Tuple
 from onboard.config import to_mapping
 
 from .grid import RunSpec, StudySpec
-from .worker import RESULT_FILE, read_result, write_result
+from .worker import RESULT_FILE, failed_result, read_result, write_result
 
 STUDY_FILE = "study.json"
+UNWRITABLE_KEY = "unwritable"     # study.json: run folder -> why its result.json could not be written
 
 
 @dataclass
@@ -37,6 +40,7 @@ class StudyOutcome:
     failed: int = 0
     skipped: int = 0
     kept_failed: int = 0
+    unwritable: Dict[str, str] = field(default_factory=dict)   # run folder -> why it has no result.json
 
 
 def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) -> StudyPlan:
@@ -100,27 +104,82 @@ def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, ret
     record_study(spec, out_dir, command, [run.run_dir for run in runs])
     plan = plan_runs(runs, out_dir, retry_failed)
     outcome = StudyOutcome(skipped=len(plan.finished), kept_failed=len(plan.kept_failed))
-    for run in plan.to_run:
-        # A retried run's old result.json goes first, so "missing" below means "the worker could not write".
-        (out_dir / run.run_dir / RESULT_FILE).unlink(missing_ok=True)
     stream = stream or sys.stderr
     for warning in plan_warnings(plan, out_dir):
         stream.write(f"warning: {warning}\n")
-    by_key = {(run.cell, run.seed): run for run in plan.to_run}
+    problems = {run.run_dir: run_dir_problem(out_dir / run.run_dir) for run in plan.to_run}
+    runnable = [run for run in plan.to_run if not problems[run.run_dir]]
+    # A run that is not run takes no time: only the runnable ones weigh in the ETA.
     progress = StudyProgress(len(plan.to_run), stream,
-                             costs={(run.cell, run.seed): expected_cost(run) for run in plan.to_run})
+                             costs={(run.cell, run.seed): expected_cost(run) for run in runnable})
     try:
-        for result in executor.results(longest_first(plan.to_run), str(out_dir.resolve())):
-            run = by_key[(result["study"]["cell"], result["seed"])]
-            run_dir = out_dir / run.run_dir
-            if not (run_dir / RESULT_FILE).is_file():
-                write_result(result, run_dir)   # the worker had no access to this folder
-            outcome.ran += 1
-            outcome.failed += bool(result.get("failed"))
-            progress.update(result)
+        for run in plan.to_run:
+            if problems[run.run_dir]:     # nothing it computed could be kept: said now, not run, the study goes on
+                record_unwritable(outcome, run, problems[run.run_dir], progress)
+        collect_results(executor, runnable, out_dir, outcome, progress)
     finally:
         progress.close()
+        record_unwritable_runs(out_dir, [run.run_dir for run in plan.to_run], outcome.unwritable)
     return outcome
+
+
+def collect_results(executor, runs: List[RunSpec], out_dir: Path, outcome: StudyOutcome,
+                    progress: StudyProgress) -> None:
+    """Send the runs to the executor and record each result as it comes back."""
+    by_key = {(run.cell, run.seed): run for run in runs}
+    for result in executor.results(longest_first(runs), str(out_dir.resolve())):
+        run = by_key[(result["study"]["cell"], result["seed"])]
+        run_dir = out_dir / run.run_dir
+        outcome.ran += 1
+        try:
+            if not (run_dir / RESULT_FILE).is_file():
+                write_result(result, run_dir)   # the worker had no access to this folder
+        except OSError as err:
+            reason = f"ran, but its result could not be written and is lost ({os_error_text(err, run_dir)})"
+            record_unwritable(outcome, run, reason, progress)
+            continue
+        outcome.failed += bool(result.get("failed"))
+        progress.update(result)
+
+
+def run_dir_problem(run_dir: Path) -> Optional[str]:
+    """Make the run's folder and remove a retried run's old result.json (so that a missing one means "the worker
+    could not write it"); why the folder cannot take the run's files, or None. Checked before the run, since
+    a run whose result cannot be kept is minutes of a worker for nothing."""
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / RESULT_FILE).unlink(missing_ok=True)
+        handle, probe = tempfile.mkstemp(prefix=".probe-", dir=run_dir)
+        os.close(handle)
+        os.unlink(probe)
+    except OSError as err:
+        return f"not run: its folder cannot be written ({os_error_text(err, run_dir)})"
+    return None
+
+
+def os_error_text(err: OSError, path: Path) -> str:
+    return f"{err.strerror or err}: {err.filename or path}"
+
+
+def record_unwritable(outcome: StudyOutcome, run: RunSpec, reason: str, progress: StudyProgress) -> None:
+    outcome.unwritable[run.run_dir] = reason
+    progress.update(failed_result(run, reason))
+
+
+def record_unwritable_runs(out_dir: Path, attempted: Sequence[str], unwritable: Dict[str, str]) -> None:
+    """study.json ``unwritable``: the runs whose result.json could not be written, and why, for report.md and the
+    exit status (they have no result.json to say it). The runs this command attempted replace their entries."""
+    study = read_study(out_dir)
+    if not study:
+        return
+    earlier = study.get(UNWRITABLE_KEY)
+    earlier = earlier if isinstance(earlier, dict) else {}
+    attempted_set = set(attempted)
+    kept = {run_dir: why for run_dir, why in earlier.items() if run_dir not in attempted_set}
+    if UNWRITABLE_KEY not in study and not unwritable:
+        return       # nothing to say, nor to take back: study.json as it was
+    study[UNWRITABLE_KEY] = dict(kept, **unwritable)
+    write_study_json(out_dir, study)
 
 
 def record_study(spec: StudySpec, out_dir: Path, command: str, run_dirs: Sequence[str] = ()) -> None:
@@ -137,6 +196,13 @@ def record_study(spec: StudySpec, out_dir: Path, command: str, run_dirs: Sequenc
     known = set(planned)
     planned += [d for d in run_dirs if d not in known]
     data = dict(to_mapping(spec), commands=commands, planned=planned)
+    if isinstance(previous.get(UNWRITABLE_KEY), dict):
+        data[UNWRITABLE_KEY] = previous[UNWRITABLE_KEY]
+    write_study_json(out_dir, data)
+
+
+def write_study_json(out_dir: Path, data: Dict[str, Any]) -> None:
+    path = out_dir / STUDY_FILE
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
     tmp.replace(path)

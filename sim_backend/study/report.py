@@ -9,7 +9,7 @@ import numpy as np
 
 from . import paper_reference as paper
 from .aggregate import Cell, StudyResults, distribution, load_results, success_rate, write_summary_csv
-from .driver import outcome_text, read_study
+from .driver import UNWRITABLE_KEY, outcome_text, read_study
 
 # Every file ``write_figures`` may draw. One this aggregation does not draw is removed: it would show an earlier
 # aggregation's runs beside a summary of the current ones (and report.md would not link it).
@@ -80,7 +80,7 @@ def write_report(results: StudyResults, study: Dict[str, Any], path: Path, figur
     lines += error_tables(results.cells)
     lines += effective_tables(results.cells)
     lines += figure_section(figures, path.parent)
-    lines += failure_section(results)
+    lines += failure_section(results, unwritable_runs(results, study))
     lines += source_section()
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
@@ -124,6 +124,16 @@ def time_limit_text(cells: List[Cell]) -> str:
         limit = next(iter(counts))
         return f"{text(limit)} for every run" if isinstance(limit, (int, float)) else text(limit)
     return "mixed: " + ", ".join(f"{text(limit)} ({n} runs)" for limit, n in counts.items())
+
+
+def unwritable_runs(results: StudyResults, study: Dict[str, Any]) -> Dict[str, str]:
+    """The runs whose result.json could not be written (study.json ``unwritable``), and why; a run that has a
+    result by now (the folder was fixed and the study resumed) is no longer one of them."""
+    recorded = study.get(UNWRITABLE_KEY)
+    if not isinstance(recorded, dict):
+        return {}
+    present = {f"{cell.name}/seed-{seed}" for cell in results.cells for seed in cell.results}
+    return {str(run_dir): str(why) for run_dir, why in recorded.items() if run_dir not in present}
 
 
 def missing_runs(results: StudyResults, study: Dict[str, Any]) -> Tuple[List[str], List[str]]:
@@ -261,14 +271,19 @@ def figure_section(figures: Dict[str, Path], folder: Path) -> List[str]:
     return lines
 
 
-def failure_section(results: StudyResults) -> List[str]:
+def failure_section(results: StudyResults, unwritable: Dict[str, str]) -> List[str]:
     failed = [(cell.name, seed, result) for cell in results.cells for seed, result in cell.failed]
-    if not failed and not results.unreadable:
+    if not failed and not results.unreadable and not unwritable:
         return []
     lines = ["## Failed runs", ""]
     if failed:
         lines += ["Re-run them with `--retry-failed`.", ""]
         lines += [f"- `{name}` seed {seed}: {outcome_text(result)[len('FAILED: '):]}" for name, seed, result in failed]
+        lines.append("")
+    if unwritable:
+        lines += ["Their folder could not be written, so they have no result.json (make the folder writable and run "
+                  "the same command again):", ""]
+        lines += [f"- `{run_dir}`: {why}" for run_dir, why in unwritable.items()]
         lines.append("")
     if results.unreadable:
         lines += ["Unreadable, or not a run's result.json (left out; a run of the study's grid is run again when "
