@@ -39,6 +39,9 @@ def add_study(groups) -> None:
                        help="stop any run after S seconds of wall-clock time and record it as failed (a behaviour "
                             "that hangs would otherwise hold its worker forever)")
     study.add_argument("--retry-failed", action="store_true", help="run again the runs recorded as failed")
+    study.add_argument("--merge", action="store_true",
+                       help="write into an --out folder that holds another study (its finished runs of the same "
+                            "cells and seeds are then taken as this study's)")
     study.add_argument("--dry-run", action="store_true", help="print the grid and what is done; run nothing")
     study.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     study.set_defaults(func=cmd_study)
@@ -57,6 +60,8 @@ def cmd_study(args: argparse.Namespace) -> int:
     workers = worker_count(args.workers)
     spec, runs = study_grid(args)
     out = args.out or Path("out") / f"study-{spec.name}"
+    if not args.merge:
+        refuse_another_study(out, spec.name)
     if args.dry_run:
         return print_dry_run(runs, out, args.retry_failed)
     from khepri_cli.sim_commands import require_out_folder
@@ -74,6 +79,17 @@ def cmd_study(args: argparse.Namespace) -> int:
           + (f" and {outcome.kept_failed} failed (re-run them with --retry-failed)" if outcome.kept_failed else "")
           + (f"; {len(outcome.unwritable)} could not write their result" if outcome.unwritable else ""))
     return print_outputs(write_study_outputs(out, figures=not args.no_figures))
+
+
+def refuse_another_study(out: Path, name: str) -> None:
+    """A folder that holds another study (its study.json names it) is not this study's to resume: its finished
+    runs would pass for this study's wherever cells and seeds coincide, and its report would take this name."""
+    from sim_backend.study.driver import STUDY_FILE, read_study
+
+    recorded = read_study(out).get("name")
+    if isinstance(recorded, str) and recorded != name:
+        raise ConfigError("--out", f"{out} holds the study {recorded!r} ({out / STUDY_FILE}), not {name!r}: give "
+                                   f"another --out, or add --merge to add this study's runs to that folder")
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -176,4 +192,5 @@ def command_line(args: argparse.Namespace) -> str:
         if value is not None and not (flag == "--executor" and value == "local"):
             words += [flag, format(value, "g") if isinstance(value, float) else str(value)]
     words += ["--retry-failed"] if args.retry_failed else []
+    words += ["--merge"] if args.merge else []
     return " ".join(shlex.quote(word) for word in words)

@@ -772,6 +772,25 @@ def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_pat
         assert (tmp_path / "study.json.unreadable").read_text() == damaged
 
 
+def test_a_folder_of_another_study_is_refused_unless_merge_asks_for_it(tmp_path, capsys):
+    """--out naming another study's folder took its finished runs of lab-6 as this study's, and renamed its
+    report, without a word."""
+    first = write(tmp_path / "first.yaml", TINY_STUDY.replace("seeds: 1..2", "seeds: [1]"))
+    second = write(tmp_path / "second.yaml", TINY_STUDY.replace("name: tiny", "name: second"))
+    out = tmp_path / "out"
+    assert main(["study", str(first), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
+    capsys.readouterr()
+    for dry_run in (["--dry-run"], []):
+        assert main(["study", str(second), "--out", str(out), "--workers", "1", "--no-figures", *dry_run]) == 2
+        assert (f"khepri: error: --out: {out} holds the study 'tiny' ({out}/study.json), not 'second': give another "
+                "--out, or add --merge to add this study's runs to that folder") in capsys.readouterr().err
+    assert json.loads((out / "study.json").read_text())["name"] == "tiny"
+    assert main(["study", str(first), "--out", str(out), "--workers", "1", "--no-figures"]) == 0   # its own: resumes
+    assert main(["study", str(second), "--out", str(out), "--workers", "1", "--no-figures", "--merge"]) == 0
+    assert "ran 1 runs (0 failed), skipped 1 finished" in capsys.readouterr().out
+    assert json.loads((out / "study.json").read_text())["commands"][-1].endswith("--merge")
+
+
 def write_gathering(path: Path, name: str, time_limit_s: float) -> Path:
     """A scenario file of six robots running `aggregate` where lab-6 places them, named ``name``."""
     scenario = load_scenario("lab-6")
