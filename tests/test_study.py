@@ -465,6 +465,30 @@ def test_a_cell_with_another_robot_count_or_path_gets_no_paper_numbers(tmp_path)
     assert "| paper-25-straight@robots.count=12 | 12 | 1 | 0 | 1/1 | 1/1 | 100% | 100 | – | 90 | – |" in report
 
 
+def test_a_paper_cell_with_another_object_or_a_look_alike_file_gets_no_paper_numbers(tmp_path):
+    """Only the robot count was checked: a paper transport whose box an override replaced, or a user's scenario
+    file that is merely named paper-25-straight, showed the paper's numbers beside its own."""
+    cells = {"paper-25-straight@object.size=0.2,0.2": {"object.size": [0.2, 0.2]},
+             "paper-25-straight@object=shape=circle,radius=0.3": {"object": {"shape": "circle", "radius": 0.3}},
+             "paper-25-straight@object.mass=3": {"object.mass": 3}}
+    look_alike = tmp_path / "mine" / "paper-25-straight"        # a file `name: paper-25-straight`, 25 robots
+    folders = {tmp_path / cell: {"cell": cell, "scenario": "paper-25-straight", "overrides": overrides}
+               for cell, overrides in cells.items()}
+    folders[look_alike] = {"cell": "paper-25-straight", "scenario": str(tmp_path / "mine.yaml"), "overrides": {}}
+    for folder, study in folders.items():
+        (folder / "seed-1").mkdir(parents=True)
+        result = dict(transport_result(1, 100.0, 90.0, [waypoint(0, 0.1, 0.2, 0.01, 10)]), study=study)
+        write(folder / "seed-1" / "result.json", json.dumps(result))
+    for root in (tmp_path, tmp_path / "mine"):
+        write_study_outputs(root, figures=False)
+    rows = summary_rows(tmp_path)
+    rows.update({("mine",) + key[1:]: row for key, row in summary_rows(tmp_path / "mine").items()})
+    for cell in [*cells, "mine"]:
+        same_case = cell.endswith("object.mass=3")       # the paper's box, heavier: the paper's baseline still
+        cage, position = rows[(cell, "time_to_cage_s", "")], rows[(cell, "position_error_m", "0")]
+        assert (cage["paper_value"] == "247", position["paper_n"] == "30") == (same_case, same_case), cell
+
+
 def test_an_irregular_cell_with_another_robot_count_or_object_gets_no_paper_numbers(tmp_path):
     """irregular-clover@robots.count=12 showed the paper's 30-robot caging time (300 s) as its reference."""
     cells = {"irregular-clover@robots.count=12": ({"robots.count": 12}, 12),

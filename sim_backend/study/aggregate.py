@@ -125,8 +125,10 @@ def load_results(out_dir: Path) -> StudyResults:
             study = result.get("study") or {}
             scenario = str(result.get("scenario", name.split("@")[0]))
             overrides = dict(study.get("overrides") or {})
+            source = study.get("scenario")
             cells[name] = Cell(name, scenario, result.get("robots"), overrides,
-                               paper_case_of(scenario, result.get("robots"), overrides))
+                               paper_case_of(scenario, result.get("robots"), overrides,
+                                             source if isinstance(source, str) else None))
         cells[name].results[int(seed_text)] = result
     return StudyResults(out_dir, sorted(cells.values(), key=cell_order), unreadable)
 
@@ -135,20 +137,27 @@ def load_results(out_dir: Path) -> StudyResults:
 OBJECT_IDENTITY = ("shape", "size", "radius", "vertices", "parts", "scale", "static")
 
 
-def paper_case_of(scenario: str, robots: Any, overrides: Dict[str, Any]) -> PaperCase:
-    """The paper's experiment a cell reproduces, by its scenario's name, unless the cell changed what identifies
-    that experiment: another robot count (``robots.count``, or a file named like a paper scenario) or another
-    path; for an irregular object, another robot count than the paper's 30 or another object. The paper's
-    numbers for 25 robots are not those of 12 robots pushing the 25-robot box."""
+def paper_case_of(scenario: str, robots: Any, overrides: Dict[str, Any], source: Optional[str] = None) -> PaperCase:
+    """The paper's experiment a cell reproduces, by its scenario's name, unless the cell is not that experiment:
+    a scenario file merely named like it (``source``, the scenario as the study named it, is a path rather than
+    the built-in name; None for results from before it was recorded), or a cell that changed what identifies it:
+    another robot count (``robots.count``), path or object. The paper's numbers for 25 robots are not those of 12
+    robots pushing the 25-robot box, nor of 25 robots pushing another box."""
     case = paper.paper_case(scenario)
-    if case.irregular:
-        other_object = any(key == "object" or key in {f"object.{name}" for name in OBJECT_IDENTITY}
-                           for key in overrides)
-        return PaperCase() if robots != paper.IRREGULAR_ROBOTS or other_object else case
-    if case.robots is None:
+    if case == PaperCase():
         return case
-    other_path = any(key == "path" or key.startswith("path.") for key in overrides)
-    return PaperCase() if robots != case.robots or other_path else case
+    if source not in (None, scenario) or changes_object(overrides) or changes_path(overrides):
+        return PaperCase()
+    paper_robots = paper.IRREGULAR_ROBOTS if case.irregular else case.robots
+    return case if robots == paper_robots else PaperCase()
+
+
+def changes_object(overrides: Dict[str, Any]) -> bool:
+    return any(key == "object" or key in {f"object.{name}" for name in OBJECT_IDENTITY} for key in overrides)
+
+
+def changes_path(overrides: Dict[str, Any]) -> bool:
+    return any(key == "path" or key.startswith("path.") for key in overrides)
 
 
 def cell_order(cell: Cell) -> tuple:
