@@ -351,6 +351,23 @@ def test_a_result_that_cannot_be_written_after_its_run_is_recorded_as_lost(tmp_p
     assert json.loads((tmp_path / "study.json").read_text())["unwritable"] == outcome.unwritable
 
 
+def run_other_code(spec, out_root):
+    """A worker whose checkout holds another version of the behaviour (a Dask worker on another machine)."""
+    result = execute_run(spec, out_root)
+    result["study"]["behaviour_sha1"] = "0123456789abcdef"
+    return result
+
+
+def test_a_worker_that_ran_another_version_of_the_code_is_said_during_the_run(tmp_path):
+    spec = parse_study({"name": "versions", "scenarios": ["lab-6"], "seeds": [1, 2], "time_limit_s": 1})
+    said = io.StringIO()
+    run_study(spec, expand(spec), tmp_path, LocalExecutor(1, run_other_code), stream=said)
+    warnings = [line for line in said.getvalue().splitlines() if line.startswith("warning:")]
+    assert warnings == ["warning: lab-6/seed-1 ran another version of the code of behaviour 'transport' "
+                        f"(behaviour_sha1 0123456789abcdef) than this machine has ({behaviour_code_sha1('transport')}"
+                        "): the study mixes code versions; give every worker the same commit"]     # once, not per run
+
+
 def test_a_dask_local_cluster_gives_the_same_results_as_the_local_pool(local_study, tmp_path, capsys):
     study, local_out, _, module = local_study
     code = main(["--import", str(module), "study", str(study), "--executor", "dask", "--workers", "1",
@@ -543,6 +560,24 @@ def test_the_report_counts_what_is_missing_and_says_what_actually_ran(known_stud
     assert "Time limit: mixed: each scenario’s own (5 runs), 1500 s (1 runs)." in report   # not study.json's 100
     assert "- `irregular-clover`: comm.range_m: 0.3 m is shorter than the cage spacing I_d" in report
     assert "- `junk/seed-1/result.json`" in report and len(load_results(known_study).cells) == 2
+
+
+def test_the_report_flags_results_of_mixed_code_and_scenario_versions(known_study):
+    """Results carry behaviour_sha1 and scenario_sha1, but a folder mixing two versions of the code (workers with
+    other checkouts, a fix between two commands) was reported as if it were one."""
+    write_study_outputs(known_study, figures=False)
+    assert "## Mixed versions" not in (known_study / "report.md").read_text()    # nothing recorded: nothing said
+    versions = {1: ("aaaa", "s1"), 2: ("aaaa", "s1"), 3: ("bbbb", "s2")}
+    for seed, (code, scenario) in versions.items():
+        path = known_study / "paper-25-straight" / f"seed-{seed}" / "result.json"
+        data = json.loads(path.read_text())
+        data["study"].update(behaviour_sha1=code, scenario_sha1=scenario)
+        write(path, json.dumps(data))
+    write_study_outputs(known_study, figures=False)
+    report = (known_study / "report.md").read_text()
+    assert "## Mixed versions" in report and "**These results come from different versions" in report
+    assert "- behaviour `transport`: 2 versions of its code (`aaaa` 2 runs, `bbbb` 1 runs)" in report
+    assert "- `paper-25-straight`: 2 versions of its scenario (`s1` 2 runs, `s2` 1 runs)" in report
 
 
 def test_a_behaviour_without_caging_gets_no_success_rate(tmp_path):

@@ -13,7 +13,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, TextIO, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Set, TextIO, Tuple
 
 from onboard.config import to_mapping
 
@@ -127,8 +127,10 @@ def collect_results(executor, runs: List[RunSpec], out_dir: Path, outcome: Study
                     progress: StudyProgress) -> None:
     """Send the runs to the executor and record each result as it comes back."""
     by_key = {(run.cell, run.seed): run for run in runs}
+    versions_said: Set[Tuple[Any, str]] = set()
     for result in executor.results(longest_first(runs), str(out_dir.resolve())):
         run = by_key[(result["study"]["cell"], result["seed"])]
+        warn_of_other_code(result, run, versions_said, progress)
         run_dir = out_dir / run.run_dir
         outcome.ran += 1
         try:
@@ -140,6 +142,22 @@ def collect_results(executor, runs: List[RunSpec], out_dir: Path, outcome: Study
             continue
         outcome.failed += bool(result.get("failed"))
         progress.update(result)
+
+
+def warn_of_other_code(result: Dict[str, Any], run: RunSpec, said: Set[Tuple[Any, str]],
+                       progress: StudyProgress) -> None:
+    """Say (once per version) that a worker ran another version of the behaviour's code than this machine has:
+    a Dask worker on a machine with another checkout, or a file edited while the study runs. Its result is
+    kept, and report.md flags the mix."""
+    theirs = (result.get("study") or {}).get("behaviour_sha1")
+    ours = run.behaviour_sha1
+    behaviour = run.scenario_data.get("behaviour")
+    if not theirs or not ours or theirs == ours or (behaviour, theirs) in said:
+        return
+    said.add((behaviour, theirs))
+    progress.say(f"warning: {run.run_dir} ran another version of the code of behaviour {behaviour!r} "
+                 f"(behaviour_sha1 {theirs}) than this machine has ({ours}): the study mixes code versions; give "
+                 f"every worker the same commit")
 
 
 def run_dir_problem(run_dir: Path) -> Optional[str]:
@@ -277,6 +295,11 @@ class StudyProgress:
             wall_text = f" ({wall:.1f} s wall)" if isinstance(wall, (int, float)) else ""
             self.stream.write(f"[{self.done}/{self.total}] {result['study']['cell']} seed {result['seed']}: "
                               f"{outcome_text(result)}{wall_text}{failed} | {self.eta_text()}\n")
+        self.stream.flush()
+
+    def say(self, line: str) -> None:
+        """A line of its own between progress updates (on a terminal, below the bar, which is redrawn next)."""
+        self.stream.write(("\n" if self.is_terminal and self.done else "") + line + "\n")
         self.stream.flush()
 
     def close(self) -> None:

@@ -75,6 +75,7 @@ def remove_stale_figures(folder: Path, drawn: Dict[str, Path]) -> None:
 
 def write_report(results: StudyResults, study: Dict[str, Any], path: Path, figures: Dict[str, Path]) -> Path:
     lines = header(results, study)
+    lines += version_section(results.cells)
     lines += warning_section(results.cells)
     lines += outcome_table(results.cells)
     lines += error_tables(results.cells)
@@ -143,6 +144,37 @@ def missing_runs(results: StudyResults, study: Dict[str, Any]) -> Tuple[List[str
     planned = study.get("planned")
     planned = [d for d in planned if isinstance(d, str)] if isinstance(planned, list) else []
     return planned, [d for d in planned if d not in present]
+
+
+def version_section(cells: List[Cell]) -> List[str]:
+    """Runs that ran different versions of their behaviour's code (``study.behaviour_sha1``: workers with other
+    checkouts, or the code edited between two commands) or of their cell's scenario (``study.scenario_sha1``):
+    their statistics mix what no single version would give."""
+    lines = []
+    by_behaviour: Dict[str, Counter] = {}
+    for cell in cells:
+        for result in cell.results.values():
+            version = (result.get("study") or {}).get("behaviour_sha1")
+            if version:
+                by_behaviour.setdefault(str(result.get("behaviour")), Counter())[version] += 1
+        scenarios = Counter(str((r.get("study") or {}).get("scenario_sha1")) for r in cell.results.values()
+                            if (r.get("study") or {}).get("scenario_sha1"))
+        if len(scenarios) > 1:
+            lines.append(f"- `{cell.name}`: {len(scenarios)} versions of its scenario ({versions_text(scenarios)})")
+    for behaviour, versions in sorted(by_behaviour.items()):
+        if len(versions) > 1:
+            lines.insert(0, f"- behaviour `{behaviour}`: {len(versions)} versions of its code "
+                            f"({versions_text(versions)})")
+    if not lines:
+        return []
+    return ["## Mixed versions", "",
+            "**These results come from different versions of the code or scenarios** (`behaviour_sha1`, "
+            "`scenario_sha1` in each result.json): a statistic over them describes none of the versions. Delete "
+            "the runs of the versions you do not want and run the same command again.", "", *lines, ""]
+
+
+def versions_text(versions: Counter) -> str:
+    return ", ".join(f"`{version}` {count} runs" for version, count in versions.most_common())
 
 
 def warning_section(cells: List[Cell]) -> List[str]:
