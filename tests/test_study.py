@@ -530,6 +530,28 @@ def test_an_irregular_cell_with_another_robot_count_or_object_gets_no_paper_numb
     assert {load_scenario(name).robots.count for name in IRREGULAR_SCENARIOS} == {IRREGULAR_ROBOTS}
 
 
+def test_runs_stopped_before_their_scenarios_time_limit_get_no_paper_times(known_study):
+    """--time-limit 200 on paper-25-straight (own limit 1500 s): the runs that would have caged after 200 s have
+    no time, and our median of the fast ones stood beside the paper's as if the swarm were faster."""
+    limits = {"paper-25-straight": 200.0, "irregular-clover": 5000.0}     # the clover's is longer: kept
+    for path in known_study.glob("*/seed-*/result.json"):
+        data = json.loads(path.read_text())
+        data["study"] = dict(data.get("study") or {}, time_limit_s=limits[path.parent.parent.name])
+        write(path, json.dumps(data))
+    write_study_outputs(known_study)
+    rows = summary_rows(known_study)
+    assert rows[("paper-25-straight", "time_to_cage_s", "")]["paper_value"] == ""
+    assert rows[("paper-25-straight", "time_to_complete_s", "")]["paper_value"] == ""
+    assert rows[("paper-25-straight", "position_error_m", "0")]["paper_n"] == "30"   # errors where reached: kept
+    assert rows[("irregular-clover", "time_to_cage_s", "")]["paper_value"] == "300"
+    report = (known_study / "report.md").read_text()
+    assert "| paper-25-straight | 25 | 4 | 1 | 3/3 | 2/3 | 67% | 200 [150–300] | – | 100 [95–105] | – |" in report
+    own = load_scenario("paper-25-straight").time_limit_s
+    assert (f"Paper times left out: these cells' runs were stopped before their scenario's own time limit "
+            f"(`--time-limit`), so runs that would have caged or completed later have no time and our medians are "
+            f"of the fast runs only: `paper-25-straight` (200 s, not {own:g} s).") in report
+
+
 def test_report_md_puts_ours_next_to_the_paper(known_study):
     write_study_outputs(known_study, figures=False)
     report = (known_study / "report.md").read_text()

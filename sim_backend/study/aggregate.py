@@ -73,6 +73,21 @@ class Cell:
     def has_path(self) -> bool:
         return any("completed" in r for r in self.ok)
 
+    def time_limits_s(self) -> List[float]:
+        """The time limits its runs ran with, where the study replaced the scenario's own (``--time-limit``, a
+        study's ``time_limit_s``, or an override of ``time_limit_s``)."""
+        limits = [(r.get("study") or {}).get("time_limit_s") for r in self.results.values()]
+        limits.append(self.overrides.get("time_limit_s"))
+        return [float(v) for v in limits if isinstance(v, (int, float)) and not isinstance(v, bool)]
+
+    @property
+    def shortened(self) -> bool:
+        """Some of its runs were stopped before the time limit of the paper's scenario it reproduces."""
+        if self.case == PaperCase():
+            return False
+        own = paper.scenario_time_limit_s(self.scenario)
+        return own is not None and any(limit < own for limit in self.time_limits_s())
+
     def values(self, key: str) -> List[float]:
         # A cage that never closed has no size (result.json says 0): count cage sizes of caged runs only.
         runs = [r for r in self.ok if r.get("caged")] if key in CAGED_ONLY else self.ok
@@ -160,6 +175,16 @@ def changes_path(overrides: Dict[str, Any]) -> bool:
     return any(key == "path" or key.startswith("path.") for key in overrides)
 
 
+PAPER_TIMES = {"time_to_cage_s": paper.time_to_cage_s, "time_to_complete_s": paper.time_to_push_s}
+
+
+def paper_time_s(cell: Cell, metric: str) -> Optional[float]:
+    """The paper's median of a time (``PAPER_TIMES``) for this cell; None when the paper has none, and when the
+    cell's runs were stopped early: a run that would have caged or completed after its limit has no time, so
+    our median is one of the fast runs only, and beside the paper's it would read as a speed-up."""
+    return None if cell.shortened else PAPER_TIMES[metric](cell.case)
+
+
 def cell_order(cell: Cell) -> tuple:
     """Paper cells in the paper's order (robots, then path), then irregular objects, then the rest; within
     one scenario, numbers in the cell name by value (``count=6`` before ``count=40``)."""
@@ -202,10 +227,9 @@ def cell_rows(cell: Cell) -> List[SummaryRow]:
         rows.append(SummaryRow("all_waypoints_rate", ok, cell.rate(lambda r: r.get("time_to_complete_s") is not None)))
         rows.append(SummaryRow("completed_rate", ok, cell.rate(lambda r: bool(r.get("completed")))))
     rows.append(SummaryRow("success_rate", ok, success_rate(cell)))
-    paper_runs = {"time_to_cage_s": paper.time_to_cage_s(cell.case),
-                  "time_to_complete_s": paper.time_to_push_s(cell.case)}
     for metric in RUN_METRICS:
-        rows.append(distribution_row(metric, cell.values(metric), paper_runs.get(metric)))
+        paper_value = paper_time_s(cell, metric) if metric in PAPER_TIMES else None
+        rows.append(distribution_row(metric, cell.values(metric), paper_value))
     for index in cell.waypoint_indices():
         for metric in WAYPOINT_METRICS:
             reference = paper.error_values(cell.case, index, metric)

@@ -17,7 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first
 import numpy as np  # noqa: E402
 
 from . import paper_reference as paper  # noqa: E402
-from .aggregate import Cell, StudyResults, overrides_text  # noqa: E402
+from .aggregate import Cell, StudyResults, overrides_text, paper_time_s  # noqa: E402
 
 ERROR_ROWS = (("centroid_estimation_error_m", "centroid estimation error (m)"),
               ("position_error_m", "position error (m)"),
@@ -56,8 +56,8 @@ def write_figures(results: StudyResults, folder: Path) -> Dict[str, Path]:
     path_cells = [c for c in results.cells if c.has_path]
     drawn: Dict[str, Path] = {}
     # Also when nothing caged: the paper's medians alone still say where the runs should have been.
-    if any(c.values("time_to_cage_s") or c.values("time_to_complete_s") or paper.time_to_cage_s(c.case) is not None
-           for c in results.cells):
+    if any(c.values("time_to_cage_s") or c.values("time_to_complete_s")
+           or paper_time_s(c, "time_to_cage_s") is not None for c in results.cells):
         drawn["Time to cage and to complete"] = plot_times(results.cells, folder / "times.png")
     if path_cells:
         drawn["Errors per waypoint"] = plot_waypoint_rows(path_cells, ERROR_ROWS, folder / "errors.png", True)
@@ -79,10 +79,9 @@ def short_label(cell: Cell) -> str:
 
 def plot_times(cells: List[Cell], target: Path) -> Path:
     figure, axes = plt.subplots(1, 2, figsize=(max(8, 1.3 * len(cells) + 4), 5), squeeze=False)
-    for ax, key, reference, title in ((axes[0, 0], "time_to_cage_s", paper.time_to_cage_s, "time to cage"),
-                                      (axes[0, 1], "time_to_complete_s", paper.time_to_push_s,
-                                       "time to complete the path (after caging)")):
-        shown = [c for c in cells if c.values(key) or reference(c.case) is not None]
+    for ax, key, title in ((axes[0, 0], "time_to_cage_s", "time to cage"),
+                           (axes[0, 1], "time_to_complete_s", "time to complete the path (after caging)")):
+        shown = [c for c in cells if c.values(key) or paper_time_s(c, key) is not None]
         if key == "time_to_complete_s":
             shown = [c for c in shown if c.has_path]
         for i, cell in enumerate(shown):
@@ -90,8 +89,9 @@ def plot_times(cells: List[Cell], target: Path) -> Path:
             if values:
                 ax.boxplot([values], positions=[i], widths=0.5, patch_artist=True,
                            boxprops={"facecolor": colour(i), "alpha": 0.6}, medianprops={"color": "black"})
-            if reference(cell.case) is not None:
-                ax.plot([i], [reference(cell.case)], "D", color="red", markersize=8,
+            reference = paper_time_s(cell, key)
+            if reference is not None:
+                ax.plot([i], [reference], "D", color="red", markersize=8,
                         label="paper (median)" if "paper (median)" not in ax.get_legend_handles_labels()[1] else None)
         # Slanted, right-aligned labels: cell names such as "irregular-box_rotation" overlap when level.
         ax.set_xticks(range(len(shown)), [short_label(c) for c in shown], fontsize=8, rotation=30, ha="right")

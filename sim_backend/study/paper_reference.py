@@ -8,7 +8,7 @@ from __future__ import annotations
 import csv
 import re
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -93,3 +93,16 @@ def time_to_push_s(case: PaperCase) -> Optional[float]:
         return None
     value = quoted_numbers()["time_to_push_s"].get(case.robots, {}).get(case.path)
     return None if value is None else float(value)
+
+
+@cache
+def scenario_time_limit_s(scenario_name: str) -> Optional[float]:
+    """The time limit of the built-in scenario that reproduces a paper case (what the paper's runs had room for,
+    as far as we know); None when there is no such scenario."""
+    from onboard.config import ConfigError
+    from sim_backend.scenario import load_scenario  # here: the scenarios need not load to read the paper's data
+
+    try:
+        return float(load_scenario(scenario_name).time_limit_s)
+    except ConfigError:        # no such built-in scenario: nothing to compare with
+        return None

@@ -8,7 +8,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from . import paper_reference as paper
-from .aggregate import Cell, StudyResults, distribution, load_results, success_rate, write_summary_csv
+from .aggregate import Cell, StudyResults, distribution, load_results, paper_time_s, success_rate, write_summary_csv
 from .driver import UNWRITABLE_KEY, outcome_text, read_study
 
 # Every file ``write_figures`` may draw. One this aggregation does not draw is removed: it would show an earlier
@@ -214,11 +214,24 @@ def outcome_table(cells: List[Cell]) -> List[str]:
         lines.append(
             f"| {cell.name} | {cell.robots if cell.robots is not None else '–'} | {len(cell.results)} | "
             f"{len(cell.failed)} | {count_of(cell, 'caged')} | {all_waypoints} | {percent(success_rate(cell))} | "
-            f"{median_and_spread(cell.values('time_to_cage_s'), 4)} | {number(paper.time_to_cage_s(cell.case), 4)} | "
+            f"{median_and_spread(cell.values('time_to_cage_s'), 4)} | "
+            f"{number(paper_time_s(cell, 'time_to_cage_s'), 4)} | "
             f"{median_and_spread(cell.values('time_to_complete_s'), 4)} | "
-            f"{number(paper.time_to_push_s(cell.case), 4)} | {median_and_spread(cell.values('cage_size'))} | "
+            f"{number(paper_time_s(cell, 'time_to_complete_s'), 4)} | {median_and_spread(cell.values('cage_size'))} | "
             f"{spacing_text(cell)} |")
-    return lines + [""]
+    return lines + [""] + shortened_note(cells)
+
+
+def shortened_note(cells: List[Cell]) -> List[str]:
+    """Why a paper cell has no paper times: its runs were stopped before its scenario's own time limit."""
+    shortened = [cell for cell in cells if cell.shortened]
+    if not shortened:
+        return []
+    listed = ", ".join(f"`{cell.name}` ({'/'.join(f'{v:g}' for v in sorted(set(cell.time_limits_s())))} s, "
+                       f"not {paper.scenario_time_limit_s(cell.scenario):g} s)" for cell in shortened)
+    return [f"Paper times left out: these cells' runs were stopped before their scenario's own time limit "
+            f"(`--time-limit`), so runs that would have caged or completed later have no time and our medians "
+            f"are of the fast runs only: {listed}.", ""]
 
 
 def generic_outcome_table(cells: List[Cell]) -> List[str]:
