@@ -462,6 +462,29 @@ def test_summary_csv_has_the_medians_spreads_rates_and_paper_values(known_study)
     assert ("irregular-clover", "completed_rate", "") not in rows
 
 
+def test_a_cell_without_times_still_has_its_time_rows_with_empty_values(known_study):
+    """A cell whose runs all failed, or none of which caged, had no time rows at all in summary.csv."""
+    dead = {"scenario": "paper-25-zigzag", "seed": 1, "robots": 25, "behaviour": "transport", "failed": True,
+            "error": WORKER_DIED, "study": {"cell": "paper-25-zigzag", "scenario": "paper-25-zigzag", "overrides": {}}}
+    uncaged = {"scenario": "irregular-cloud", "seed": 1, "robots": 30, "behaviour": "transport", "failed": False,
+               "stop_reason": "time limit", "caged": False, "time_to_cage_s": None, "cage_size": 0,
+               "study": {"cell": "irregular-cloud", "scenario": "irregular-cloud", "overrides": {}}}
+    for result in (dead, uncaged):
+        (known_study / result["scenario"] / "seed-1").mkdir(parents=True)
+        write(known_study / result["scenario"] / "seed-1" / "result.json", json.dumps(result))
+    write_study_outputs(known_study, figures=False)
+    rows = summary_rows(known_study)
+    push = f"{paper.time_to_push_s(paper.paper_case('paper-25-zigzag')):.6g}"
+    for cell, metric, paper_value in (("paper-25-zigzag", "time_to_cage_s", "247"),
+                                      ("paper-25-zigzag", "time_to_complete_s", push),
+                                      ("paper-25-zigzag", "wall_time_s", ""),
+                                      ("irregular-cloud", "time_to_cage_s", "300")):
+        row = rows[(cell, metric, "")]
+        assert (row["n"], row["value"], row["q1"], row["max"], row["paper_value"]) == ("0", "", "", "", paper_value)
+    assert ("irregular-cloud", "time_to_complete_s", "") not in rows       # caging only: no path, no such time
+    assert ("paper-25-zigzag", "position_error_m", "0") not in rows        # per waypoint: only where reached
+
+
 def test_a_cell_with_another_robot_count_or_path_gets_no_paper_numbers(tmp_path):
     """paper-25-straight@robots.count=12 showed the paper's 25-robot times and errors as if they were its own."""
     cells = {"paper-25-straight@robots.count=12": ({"robots.count": 12}, 12),

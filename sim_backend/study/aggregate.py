@@ -236,7 +236,25 @@ def cell_rows(cell: Cell) -> List[SummaryRow]:
             reference_median = float(np.median(reference)) if reference else None
             rows.append(distribution_row(metric, cell.waypoint_values(index, metric), reference_median,
                                          index, len(reference) or None))
-    return [row for row in rows if row.n or row.metric in ("runs", "failed_runs")]
+    always = {"runs", "failed_runs", *time_metrics(cell)}
+    return [row for row in rows if row.n or (row.metric in always and row.waypoint is None)]
+
+
+def time_metrics(cell: Cell) -> List[str]:
+    """The times a cell's summary has a row for even without a value (every run failed, or none caged), so that
+    the cell is not missing from a table of times: wall_time_s always; the time to cage for a cell that cages
+    (said by a run, or known from its paper case or its transport behaviour when every run failed before
+    saying); the time to complete when it has a path, or may have one (its runs all failed)."""
+    results = list(cell.results.values())
+    caging = (cell.case != PaperCase() or any("caged" in r for r in results)
+              or any(r.get("behaviour") == "transport" for r in results))
+    without_path = cell.case.irregular or (bool(cell.ok) and not cell.has_path)
+    times = ["wall_time_s"]
+    if caging:
+        times.append("time_to_cage_s")
+    if cell.has_path or (caging and not without_path):
+        times.append("time_to_complete_s")
+    return times
 
 
 def distribution_row(metric: str, values: List[float], paper_value: Optional[float], waypoint: Optional[int] = None,
