@@ -153,6 +153,13 @@ def test_the_summarys_overrides_column_writes_lists_and_mappings_as_json_without
     ("scenarios: [lab-6]\nreps: 1\nrepeats: 3", "repeats: unknown key"),
     ("scenarios: [lab-6\nreps: 1", "bad.yaml:2: not valid YAML"),
     ("# nothing but a comment\n", "bad.yaml: the file is empty (a study needs at least its scenarios)"),
+    # A list-valued key lists its values: [-1, 0] is two cells, x = -1 and x = 0; say how to give one list.
+    ("scenarios: [lab-6]\nreps: 1\noverrides: {robots.spawn.x: [-1, 0]}",
+     "robots.spawn.x: must be a list (got -1); each value listed under overrides.robots.spawn.x is one whole "
+     "robots.spawn.x (a cell each), which is a list: to give it [-1, 0] as one value, write robots.spawn.x: [[-1, 0]]"),
+    ("scenarios: [lab-6]\nreps: 1\noverrides: {path: [[1, 0, 0]]}",
+     "path[0]: must be a list (got 1); each value listed under overrides.path is one whole path (a cell each), which "
+     "is a list: to give it [[1, 0, 0]] as one value, write path: [[[1, 0, 0]]]"),
 ])
 def test_a_bad_study_file_is_refused_with_the_field_named(tmp_path, capsys, text, message):
     study = write(tmp_path / "bad.yaml", text)
@@ -170,6 +177,9 @@ def test_a_bad_study_file_is_refused_with_the_field_named(tmp_path, capsys, text
     (["--reps", "1000000000", "--dry-run"], "--reps: must be at most 100000 (got 1000000000)"),
     (["--executor", "dask:notaurl"], "--executor: not a Dask scheduler address: 'notaurl' (missing port number"),
     (["--executor", "dask:http://localhost:80"], "--executor: not a Dask scheduler address: 'http://localhost:80'"),
+    (["--executor", "dask:tcp://127.0.0.1:99999", "--dry-run"],
+     "--executor: the scheduler's port must be 1..65535 (got 99999 in 'tcp://127.0.0.1:99999')"),
+    (["--executor", "dask:tcp://127.0.0.1:0"], "--executor: the scheduler's port must be 1..65535 (got 0 in"),
     (["--reps", "0"], "--reps: must be an integer >= 1"),
     (["--workers", "0"], "--workers: must be >= 1 (got 0)"),
     (["--workers", "-2", "--dry-run"], "--workers: must be >= 1 (got -2)"),

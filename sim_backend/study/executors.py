@@ -54,11 +54,13 @@ def check_dask_address(address: str) -> None:
     try:
         scheme, location = parse_address(address)
         get_backend(scheme)
-        if scheme in ("tcp", "tls"):
-            parse_host_port(location)
+        port = parse_host_port(location)[1] if scheme in ("tcp", "tls") else None
     except ValueError as err:
         raise ConfigError("--executor", f"not a Dask scheduler address: {address!r} ({err}); "
                                         "e.g. dask:tcp://10.0.0.5:8786") from None
+    if port is not None and not 1 <= port <= 65535:
+        # Dask takes any integer here, and an impossible port then fails as a 30 s timeout "cannot connect".
+        raise ConfigError("--executor", f"the scheduler's port must be 1..65535 (got {port} in {address!r})")
 
 
 def default_workers() -> int:

@@ -275,7 +275,10 @@ def expand(spec: StudySpec) -> List[RunSpec]:
                                   f"the same folder name {cell!r}: their runs would share it (give values that "
                                   f"differ in their first 6 digits and in letters or digits)")
             named[cell] = chosen
-            warnings = check_cell(data, cell, chosen, spec.seeds[0], spec.time_limit_s)
+            try:
+                warnings = check_cell(data, cell, chosen, spec.seeds[0], spec.time_limit_s)
+            except ConfigError as err:
+                raise ConfigError(err.field, err.problem + list_value_hint(err.problem, base, spec.overrides)) from None
             runs.extend(RunSpec(cell, scenario_ref, data, seed, chosen, spec.time_limit_s, warnings=list(warnings))
                         for seed in spec.seeds)
     runs_per_cell = Counter(r.cell for r in runs)
@@ -338,6 +341,34 @@ def whole_mapping_hint(field_name: str, chosen: Dict[str, Any]) -> str:
         return (f"; {field_name} {kept}: to change them together, override {parent} as a whole, e.g. "
                 f"{parent}: [{pair}] (see docs/study.md)")
     return ""
+
+
+def list_value_hint(problem: str, base: Dict[str, Any], listed: Dict[str, List[Any]]) -> str:
+    """An override of a key that takes a list lists its values, so ``robots.spawn.x: [-1, 0]`` is two cells, x = -1
+    and x = 0, each refused as "must be a list". When the failing key is such an override with a value less deeply
+    nested than the scenario's own, say how to give the whole list as one value."""
+    failing = problem.partition(": ")[0]       # the field the scenario's check named, e.g. path[0]
+    for key, values in listed.items():
+        own = nested_value(base, key)
+        mentioned = failing == key or failing.startswith((key + "[", key + "."))
+        if mentioned and isinstance(own, list) and own and any(depth(value) < depth(own) for value in values):
+            whole = json.dumps(values)
+            return (f"; each value listed under overrides.{key} is one whole {key} (a cell each), which is a "
+                    f"list: to give it {whole} as one value, write {key}: [{whole}]")
+    return ""
+
+
+def nested_value(data: Dict[str, Any], dotted_key: str) -> Any:
+    for part in dotted_key.split("."):
+        if not isinstance(data, dict):
+            return None
+        data = data.get(part)
+    return data
+
+
+def depth(value: Any) -> int:
+    """How deeply lists nest in ``value``, by their first items: 0 for a number, 1 for [x, y], 2 for [[x, y, th]]."""
+    return 1 + depth(value[0]) if isinstance(value, list) and value else int(isinstance(value, list))
 
 
 def overrides_text(chosen: Dict[str, Any]) -> str:
