@@ -378,6 +378,21 @@ def test_a_worker_that_ran_another_version_of_the_code_is_said_during_the_run(tm
                         "): the study mixes code versions; give every worker the same commit"]     # once, not per run
 
 
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o027, 0o640)])
+def test_a_result_the_driver_writes_has_the_umasks_permissions(tmp_path, umask, mode):
+    """write_result's temporary file came from mkstemp, so its result.json was 0600: the rest of the lab could
+    not read the runs of a remote worker, nor those that could not start."""
+    spec = parse_study({"name": "remote", "scenarios": ["lab-6"], "seeds": [1], "time_limit_s": 1})
+    before = os.umask(umask)
+    try:
+        run_study(spec, expand(spec), tmp_path / "out", LocalExecutor(1, run_elsewhere), stream=io.StringIO())
+    finally:
+        os.umask(before)
+    run_dir = tmp_path / "out" / "lab-6" / "seed-1"
+    assert (run_dir / "result.json").stat().st_mode & 0o777 == mode
+    assert [p.name for p in run_dir.iterdir()] == ["result.json"]      # no temporary file left behind
+
+
 def test_a_dask_local_cluster_gives_the_same_results_as_the_local_pool(local_study, tmp_path, capsys):
     study, local_out, _, module = local_study
     code = main(["--import", str(module), "study", str(study), "--executor", "dask", "--workers", "1",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import shutil
 import tempfile
 import traceback
@@ -90,13 +91,19 @@ def write_run_files(sim, result: Dict[str, Any], run_dir: Path) -> None:
 
 
 def write_result(result: Dict[str, Any], run_dir: Path) -> Path:
-    """Write result.json atomically (temporary file, then rename)."""
+    """Write result.json atomically (temporary file, then rename), with the permissions of any file written here
+    (the umask's): ``tempfile.mkstemp`` makes its files 0600, which kept the rest of a lab from reading them."""
     run_dir.mkdir(parents=True, exist_ok=True)
     target = run_dir / RESULT_FILE
-    handle, temporary = tempfile.mkstemp(prefix=".result-", suffix=".json", dir=run_dir)
-    with os.fdopen(handle, "w", encoding="utf-8") as stream:
-        stream.write(json.dumps(result, indent=2, default=json_value) + "\n")
-    os.replace(temporary, target)
+    temporary = run_dir / f".result-{os.getpid()}-{secrets.token_hex(4)}.json"
+    handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8") as stream:
+            stream.write(json.dumps(result, indent=2, default=json_value) + "\n")
+        os.replace(temporary, target)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
     return target
 
 
