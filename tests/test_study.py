@@ -819,6 +819,34 @@ def test_sigterm_stops_the_study_and_its_workers_and_keeps_it_resumable(tmp_path
     assert not list(out.glob("*/seed-*/result.json"))        # interrupted runs left no result: a resume reruns them
 
 
+def test_ctrl_c_on_a_dask_local_cluster_says_one_line_and_keeps_the_runs_so_far(tmp_path):
+    """Ctrl-C in a terminal reaches the whole foreground group: each LocalCluster worker printed a traceback of
+    its event loop's KeyboardInterrupt beside the driver's "khepri: interrupted"."""
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    study = write(tmp_path / "many.yaml", "name: many\nscenarios: [lab-6]\nreps: 500\ntime_limit_s: 10\n")
+    driver = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "study", str(study), "--out", str(out),
+                               "--executor", "dask", "--workers", "1", "--no-figures"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))   # as in a terminal
+    try:
+        deadline = time.monotonic() + 60
+        while not list(out.glob("*/seed-*/result.json")) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(0.5)                                   # the next run in flight
+        os.killpg(driver.pid, signal.SIGINT)              # what the terminal does on Ctrl-C
+        _, err = driver.communicate(timeout=30)
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
+    lines = [line for line in err.decode().splitlines() if not line.startswith("[")]   # not the progress lines
+    assert (driver.returncode, lines) == (130, ["khepri: interrupted"])
+    assert 0 < len(results_in(out)) < 500
+
+
 def test_the_workers_of_a_killed_driver_do_not_stay_behind(tmp_path):
     """SIGKILL of the driver (the out-of-memory killer, `kill -9`) left its pool's worker waiting for ever."""
     import signal

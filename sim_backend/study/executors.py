@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 import time
 from collections import deque
@@ -218,6 +219,16 @@ def connect_to_scheduler(address: str, timeout_s: float = 30.0):
     raise ConfigError("--executor", f"cannot use the Dask scheduler {address}: {reason}")
 
 
+def dask_setup(worker: Any) -> None:
+    """Run by each worker process of our LocalCluster as it starts (this module is its Dask ``preload``).
+
+    Ctrl-C in a terminal reaches every process of the foreground group, so the LocalCluster's workers too: each
+    printed a traceback of its event loop's KeyboardInterrupt beside the driver's one line. The driver stops
+    them (closing the cluster) and keeps the results so far; they need not hear the Ctrl-C themselves."""
+    if threading.current_thread() is threading.main_thread():      # signal.signal works only there
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class DaskExecutor:
     """Dask distributed: a LocalCluster of ``workers`` single-threaded processes, or an existing scheduler.
 
@@ -248,8 +259,9 @@ class DaskExecutor:
             client, self.client = self.client, None
         else:
             # One thread per worker: the simulator is pure Python, threads would only contend for the GIL.
+            # The preload makes its workers ignore Ctrl-C (see dask_setup).
             cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.ERROR)
+                                   dashboard_address=None, silence_logs=logging.ERROR, preload=[__name__])
             try:
                 client = Client(cluster, timeout="30s")
             except OSError as err:
