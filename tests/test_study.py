@@ -409,6 +409,84 @@ def test_a_dask_local_cluster_gives_the_same_results_as_the_local_pool(local_stu
     assert "--executor dask" in json.loads((tmp_path / "study.json").read_text())["commands"][0]
 
 
+def die_on_seed_1(spec, out_root):
+    """The first run's worker process dies (no exception, no result); the others are ordinary runs."""
+    if spec.seed == 1:
+        os._exit(3)
+    return execute_run(spec, out_root)
+
+
+def test_runs_that_shared_a_dying_dask_worker_are_run_again_alone(tmp_path):
+    """Dask counts every task a dying worker held as suspect, and loses the results it held: the runs queued
+    behind a run that kills its worker were recorded as failed ("KilledWorker", "ended as 'lost'") with it.
+    Dask here gives up on a task at once, and sends every run to the one worker, so they all share its death."""
+    import dask
+
+    from sim_backend.study.executors import DaskExecutor
+
+    spec = parse_study({"name": "deaths", "scenarios": ["lab-6"], "seeds": [1, 2, 3], "time_limit_s": 1})
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0,
+                          "distributed.scheduler.worker-saturation": float("inf")}):
+        outcome = run_study(spec, expand(spec), tmp_path, DaskExecutor(None, 1, die_on_seed_1), stream=io.StringIO())
+    results = results_in(tmp_path)
+    assert outcome.ran == 3 and outcome.failed == 1
+    assert results["lab-6/seed-1"]["failed"] is True and results["lab-6/seed-1"]["error"].startswith(WORKER_DIED)
+    assert results["lab-6/seed-2"]["failed"] is False and results["lab-6/seed-3"]["failed"] is False
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:       # a free port, closed again
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class SchedulerDiesAfterTheFirstResult:
+    """An executor that passes the results on, and ends the Dask scheduler once the first one is in."""
+
+    def __init__(self, executor, stop_scheduler):
+        self.executor, self.stop_scheduler = executor, stop_scheduler
+
+    def results(self, runs, out_root):
+        for count, result in enumerate(self.executor.results(runs, out_root)):
+            yield result
+            if count == 0:
+                self.stop_scheduler()
+
+
+def test_a_lost_dask_scheduler_leaves_the_unfinished_runs_to_the_resume(tmp_path):
+    """Every unfinished run was recorded as failed ("the Dask task ended as 'cancelled'"), so a resume skipped
+    them for good, and a worker still running one could overwrite that record with its result afterwards."""
+    import subprocess
+    import sys
+
+    from sim_backend.study.executors import DaskExecutor
+
+    address = f"tcp://127.0.0.1:{free_port()}"
+    scheduler = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                  "--port", address.rsplit(":", 1)[1], "--no-dashboard"], stderr=subprocess.DEVNULL)
+    worker = None
+    try:
+        executor = DaskExecutor(address, 1)
+        executor.prepare()         # waits (up to 30 s) for the scheduler to start
+        worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                                   "--no-dashboard"], stderr=subprocess.DEVNULL)
+        spec = parse_study({"name": "lost", "scenarios": ["lab-6"], "seeds": [1, 2, 3, 4, 5, 6], "time_limit_s": 30})
+        with pytest.raises(ConfigError, match=f"--executor: lost the connection to the Dask scheduler at {address}: "
+                                              "the runs not finished have no result; run the same command again"):
+            run_study(spec, expand(spec), tmp_path, SchedulerDiesAfterTheFirstResult(executor, scheduler.kill),
+                      stream=io.StringIO())
+    finally:
+        for process in (scheduler, worker):
+            if process is not None:
+                process.kill()
+                process.wait()
+    results = results_in(tmp_path)
+    assert results and not any(result["failed"] for result in results.values())
+    assert len(results) < 6          # the others are left to the resume
+
+
 # --- aggregation of known results ----------------------------------------------------------------------
 
 def waypoint(index, position, centroid, orientation, pushers, rotators=0.0):

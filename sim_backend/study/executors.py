@@ -251,36 +251,81 @@ class DaskExecutor:
             self.client = connect_to_scheduler(self.address)   # a ConfigError naming the address
 
     def results(self, runs: Iterable[RunSpec], out_root: str) -> Iterator[Dict[str, Any]]:
-        from distributed import Client, LocalCluster, as_completed
+        from distributed import as_completed
 
-        cluster = None
-        if self.address is not None:
-            self.prepare()
-            client, self.client = self.client, None
-        else:
-            # One thread per worker: the simulator is pure Python, threads would only contend for the GIL.
-            # The preload makes its workers ignore Ctrl-C (see dask_setup).
-            cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.ERROR, preload=[__name__])
-            try:
-                client = Client(cluster, timeout="30s")
-            except OSError as err:
-                cluster.close()
-                raise ConfigError("--executor", f"cannot connect to the Dask LocalCluster: {err}") from None
-        futures = {}
+        client, cluster = self._start()
+        futures: Dict[Any, RunSpec] = {}
         try:
-            for spec in runs:
-                future = client.submit(self.run_function, spec, out_root, pure=False,
-                                       key=f"khepri-run-{spec.cell}-seed-{spec.seed}-{os.urandom(4).hex()}")
-                futures[future] = spec
+            futures = {self._submit(client, spec, out_root): spec for spec in runs}
+            suspects = []
             for future in as_completed(futures):
-                yield self._outcome(future, futures[future])
+                self._check_connected(client, future)
+                if self._ran_to_an_end(future):
+                    yield self._outcome(future, futures[future])
+                else:
+                    suspects.append(futures[future])
+            yield from self._isolate(client, suspects, out_root)
         finally:
             for future in futures:
                 future.cancel()
             client.close()
             if cluster is not None:
                 cluster.close()
+
+    def _start(self):
+        """The client, and the LocalCluster it talks to (None with a scheduler's address)."""
+        from distributed import Client, LocalCluster
+
+        if self.address is not None:
+            self.prepare()
+            client, self.client = self.client, None
+            return client, None
+        # One thread per worker: the simulator is pure Python, threads would only contend for the GIL.
+        # The preload makes its workers ignore Ctrl-C (see dask_setup).
+        cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.ERROR, preload=[__name__])
+        try:
+            return Client(cluster, timeout="30s"), cluster
+        except OSError as err:
+            cluster.close()
+            raise ConfigError("--executor", f"cannot connect to the Dask LocalCluster: {err}") from None
+
+    def _submit(self, client, spec: RunSpec, out_root: str):
+        return client.submit(self.run_function, spec, out_root, pure=False,
+                             key=f"khepri-run-{spec.cell}-seed-{spec.seed}-{os.urandom(4).hex()}")
+
+    def _check_connected(self, client, future) -> None:
+        """A task cancelled because the client lost its scheduler did not fail: its run is left without a result
+        (a resume runs it) rather than recorded as failed for good; and a worker still running it may yet write
+        its real result. The study cannot go on without a scheduler: say so."""
+        if future.status in ("cancelled", "lost") and client.status != "running":
+            where = f"the Dask scheduler at {self.address}" if self.address else "the Dask LocalCluster's scheduler"
+            raise ConfigError("--executor", f"lost the connection to {where}: the runs not finished have no "
+                                            f"result; run the same command again to resume them")
+
+    @staticmethod
+    def _ran_to_an_end(future) -> bool:
+        """Finished, or failed with the run's own exception; not a task that died with its worker (KilledWorker:
+        Dask counts every task a dying worker held, so runs queued behind the culprit too) or was lost."""
+        from distributed.scheduler import KilledWorker
+
+        if future.status == "finished":
+            return True
+        return future.status == "error" and not isinstance(future.exception(), KilledWorker)
+
+    def _isolate(self, client, suspects: List[RunSpec], out_root: str) -> Iterator[Dict[str, Any]]:
+        """Run each suspect alone, as LocalExecutor._isolate does: the one that kills its worker again is
+        recorded as failed, the innocent ones that shared a dying worker simply complete."""
+        from distributed import wait as wait_for
+
+        for spec in suspects:
+            future = self._submit(client, spec, out_root)
+            try:
+                wait_for([future])
+                self._check_connected(client, future)
+                yield self._outcome(future, spec)
+            finally:
+                future.cancel()
 
     @staticmethod
     def _outcome(future, spec: RunSpec) -> Dict[str, Any]:
@@ -290,7 +335,7 @@ class DaskExecutor:
             return future.result()
         exc = future.exception() if future.status == "error" else None
         if isinstance(exc, KilledWorker):
-            # Dask retried the task on other workers; each of them died with it.
+            # Run alone, Dask retried the task on other workers; each of them died with it.
             return failed_result(spec, f"{WORKER_DIED} (Dask: {exc})")
         if exc is not None:
             return failed_result(spec, f"{type(exc).__name__}: {exc}")
