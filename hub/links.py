@@ -39,6 +39,7 @@ class RobotLink:
     rival_since: float = -math.inf           # a second connection claiming this id: its first message...
     rival_seen: float = -math.inf            # ...and its latest one
     rival_warned: float = -math.inf          # when the hub last said so
+    silence_said: bool = False               # the hub said it went silent, and has not yet said it is back
 
     def connected(self, now: float, timeout_s: float) -> bool:
         return self.routing is not None and now - self.last_uplink <= timeout_s

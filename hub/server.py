@@ -305,6 +305,7 @@ class Hub(Downlink, Uplink):
         if not self.run.lockstep:       # in lockstep the hub paces the frames itself: none is ever late
             self._expire_stale_poses(now)
         self._warn_if_no_pose_yet(now)
+        self.say_silent_robots(now)
         self.drops.flush(now)
         silent = now - self.last_frame_stamp > MOCAP_SILENT_S and self.last_frame_stamp > -math.inf
         if silent != self.mocap_silent:

@@ -6,6 +6,7 @@ same robot) and hands it to the ``_on_<type>`` handler of its type.
 """
 from __future__ import annotations
 
+import math
 import time
 from typing import Any, Dict, List, Optional
 
@@ -17,6 +18,9 @@ from .links import VIRTUAL_DRIVERS, RobotLink, frame_property, frame_sender
 from .log_format import robot_topic
 
 DUPLICATE_WARNING_S = 30.0     # a robot id claimed by two live connections is said this often
+# A robot whose agent said nothing for this long (or watchdog_s, if longer) is said to be silent. A shorter gap
+# (a Wi-Fi hiccup) shows in `ctl status` only: a line for each would flood the console on a flaky network.
+SILENT_LOG_S = 1.0
 
 
 class Uplink:
@@ -47,6 +51,9 @@ class Uplink:
                 self._rival(robot, peer, sender, now)
                 return
             self._connected(robot, routing.bytes, peer, now)
+        elif robot.silence_said:
+            self.log(f"hub: robot {robot.id} is back after {now - robot.last_uplink:.1f} s of silence")
+        robot.silence_said = False
         robot.last_uplink = now
         getattr(self, f"_on_{message['type']}")(robot, message, now)
 
@@ -72,6 +79,17 @@ class Uplink:
         self.log(f"hub: robot {robot.id} is claimed by two connections: {robot.peer or '?'} (first, keeps the "
                  f"robot) and {peer or '?'} (ignored while the first is alive); is a second agent running with "
                  f"--id {robot.id}?")
+
+    def say_silent_robots(self, now: float) -> None:
+        """One line when a robot that was connected goes silent (its agent died, or its Wi-Fi dropped), and one
+        when it speaks again (``handle_uplink``): `ctl status` showed it as not connected, but nobody watching the
+        hub's console learnt that a robot had stopped."""
+        quiet_s = max(SILENT_LOG_S, self.config.watchdog_s)
+        for robot in self.robots.values():
+            heard = robot.last_uplink > -math.inf
+            if heard and not robot.silence_said and now - robot.last_uplink > quiet_s:
+                robot.silence_said = True
+                self.log(silence_line(robot, quiet_s))
 
     def _note_driver(self, robot: RobotLink, driver: str) -> None:
         """A real robot's agent talking to a hub that simulates that robot drives real wheels the hub never
@@ -137,3 +155,12 @@ class Uplink:
             robot.pending = None
         if message["cmd"] == "estop" and self.estop_at is not None and robot.estop_ack_s is None:
             robot.estop_ack_s = now - self.estop_at
+
+
+def silence_line(robot: RobotLink, quiet_s: float) -> str:
+    """Why a robot went quiet, as far as the hub knows: an agent that said goodbye (its last telemetry's mode is
+    ``exiting``: stopped with Ctrl-C or SIGTERM, or crashed) left; any other just stopped talking."""
+    if (robot.telemetry or {}).get("mode") == "exiting":
+        return f"hub: robot {robot.id}'s agent has exited (its last message said so)"
+    return (f"hub: robot {robot.id} went silent: no message from its agent at {robot.peer or '?'} for {quiet_s:g} s "
+            f"(did the agent stop, or its network drop?)")
