@@ -21,6 +21,8 @@ class RobotLink:
 
     id: int
     routing: Optional[bytes] = None          # the agent's ZeroMQ routing id (None: never heard from)
+    agent: Optional[str] = None              # the token its agent process puts on every message (None: older agents)
+    replaced_routing: Optional[bytes] = None     # that agent's previous connection, after it reconnected
     peer: str = ""                           # the agent's network address
     driver: str = ""
     run_id: Optional[str] = None             # the run the agent says it holds

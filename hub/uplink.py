@@ -47,28 +47,40 @@ class Uplink:
             self.drops.drop("unknown robot", sender, f"{sender} claimed robot {rid}, which is not in this lab")
             return
         if robot.routing != routing.bytes:
-            if robot.connected(now, self.config.watchdog_s):
+            if routing.bytes == robot.replaced_routing:
+                return            # still in flight on the connection its agent has just replaced: stale
+            same_agent = message.get("agent") is not None and message.get("agent") == robot.agent
+            if robot.connected(now, self.config.watchdog_s) and not same_agent:
                 self._rival(robot, peer, sender, now)
                 return
-            self._connected(robot, routing.bytes, peer, now)
+            self._connected(robot, routing.bytes, peer, now, message.get("agent"), same_agent)
         elif robot.silence_said:
             self.log(f"hub: robot {robot.id} is back after {now - robot.last_uplink:.1f} s of silence")
         robot.silence_said = False
         robot.last_uplink = now
         getattr(self, f"_on_{message['type']}")(robot, message, now)
 
-    def _connected(self, robot: RobotLink, routing: bytes, peer: Optional[str], now: float) -> None:
-        robot.routing, robot.peer = routing, peer or ""
+    def _connected(self, robot: RobotLink, routing: bytes, peer: Optional[str], now: float, agent: Optional[str],
+                   same_agent: bool) -> None:
+        """A connection takes the robot: a new agent's, or the robot's own agent's new one (``same_agent``: it
+        reopened its socket, or ZeroMQ reconnected it), which takes over at once even while the old one looks
+        alive, and whose old connection is then ignored."""
+        robot.replaced_routing = robot.routing if same_agent else None
+        robot.routing, robot.peer, robot.agent = routing, peer or "", agent
         index = self.ids.index(robot.id)
         robot.next_due = now + (index / max(1, len(self.ids))) / self.config.network.downlink_hz  # spread sends
-        self.log(f"hub: robot {robot.id} connected from {robot.peer or '?'}")
+        if same_agent:
+            self.log(f"hub: robot {robot.id}'s agent reconnected from {robot.peer or '?'}")
+        else:
+            self.log(f"hub: robot {robot.id} connected from {robot.peer or '?'}")
 
     def _rival(self, robot: RobotLink, peer: Optional[str], sender: str, now: float) -> None:
         """A second connection speaks for a robot whose connection is alive (two agents started with one --id,
         or one robot key copied twice). The first keeps the robot, frames and wheels, until it is silent for
         watchdog_s; the other's messages are dropped. Switching on every message instead would hand the frames
         back and forth, and the agents' wheels with them. Said once every DUPLICATE_WARNING_S, and only once the
-        first connection spoke after the second appeared: an agent that reconnects leaves its old one silent."""
+        first connection spoke after the second appeared: an agent too old to send its token (``agent``) that
+        reconnects leaves its old one silent."""
         self.drops.count("duplicate robot", sender)
         if now - robot.rival_seen > self.config.watchdog_s:
             robot.rival_since = now            # a new contest

@@ -144,26 +144,27 @@ SCHEMAS: Dict[str, Dict[str, Schema]] = {
     # agent -> hub
     "hello": {
         "required": {"id": robot_id, "driver": text},
-        "optional": {"run_id": optional(text)},
+        "optional": {"run_id": optional(text), "agent": text},
     },
     "telemetry": {
         "required": {"id": robot_id, "step": integer, "mode": text},
         "optional": {"behaviour": optional(mapping), "loop": mapping, "battery_v": optional(number),
                      "clock_s": optional(number), "frames_lost": integer, "frames_bad": integer,
                      "unsent": integer, "inbox_dropped": integer, "run_id": optional(text),
-                     "error": optional(text), "refused_run_id": optional(text), "driver": text},
+                     "error": optional(text), "refused_run_id": optional(text), "driver": text,
+                     "agent": text},
     },
     "broadcast": {
         "required": {"id": robot_id, "payload": mapping, "sent_s": number},
-        "optional": {},
+        "optional": {"agent": text},
     },
     "wheels": {
         "required": {"id": robot_id, "left": number, "right": number},
-        "optional": {},
+        "optional": {"agent": text},
     },
     "ack": {
         "required": {"id": robot_id, "cmd": one_of(COMMANDS)},
-        "optional": {"seq": integer},
+        "optional": {"seq": integer, "agent": text},
     },
     # operator <-> hub (control socket)
     "request": {

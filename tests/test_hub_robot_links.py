@@ -3,8 +3,12 @@ reconnects, a second agent that claims a robot already taken. Real agent process
 import signal
 import time
 
+import zmq
+
 from hub.config import parse_config
 from hub.harness import HubThread, spawn_agent, stop_processes
+from onboard.agent.link import HubLink
+from onboard.protocol import DOWNLINK_TYPES, decode, encode
 
 LAB = {"source": {"type": "sim"}, "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0},
        "security": {"insecure": True}}
@@ -54,3 +58,67 @@ def test_an_agent_that_exits_is_said_to_have_exited(tmp_path):
         finally:
             assert stop_processes([agent]) == [0]       # SIGTERM: it says goodbye on its way out
         assert wait_for_lines(hub, "has exited")[-1] == "hub: robot 1's agent has exited (its last message said so)"
+
+
+def dealer(endpoint: str) -> zmq.Socket:
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.linger = 0
+    sock.connect(endpoint)
+    return sock
+
+
+def say(sock: zmq.Socket, agent: str, times: int = 1) -> None:
+    """An agent's hellos, from robot 0, with its process token."""
+    for _ in range(times):
+        sock.send(encode({"type": "hello", "id": 0, "driver": "sim", "agent": agent}))
+        time.sleep(0.05)
+
+
+def gets_frames(sock: zmq.Socket, within_s: float = 1.0) -> bool:
+    deadline = time.monotonic() + within_s
+    while sock.poll(max(0.0, deadline - time.monotonic()) * 1000.0):
+        if decode(sock.recv(), "hub", accept=DOWNLINK_TYPES)["type"] == "frame":
+            return True
+    return False
+
+
+def test_an_agents_own_reconnect_takes_the_robot_over_quietly_and_a_second_agent_is_still_refused():
+    """An agent that reopens its socket while its old connection still looks alive to the hub (it stopped
+    getting frames, but its own messages got through) had its new connection's messages dropped as `duplicate
+    robot` until the old one had been silent for watchdog_s. Its token says it is the same agent: it takes the
+    robot over at once, in one line; a second agent (another token) is still kept out and counted."""
+    with HubThread(parse_config(LAB)) as hub:
+        old, new, other = (dealer(hub.endpoints["robots"]) for _ in range(3))
+        try:
+            say(old, "agent-a")
+            hub.wait_until(lambda s: s["robots"][0]["connected"])
+            say(old, "agent-a", times=2)           # alive: it spoke just now
+            say(new, "agent-a")                    # the same agent on a new socket
+            wait_for_lines(hub, "reconnected")
+            say(old, "agent-a")                    # a message still in flight on the replaced connection
+            assert gets_frames(new)                # the new connection holds the robot
+            assert "duplicate robot" not in hub.status()["drops"]
+            for _ in range(10):                    # another agent with --id 0, while this one is alive
+                say(other, "agent-b")
+                say(new, "agent-a")
+            assert hub.status()["drops"]["duplicate robot"] >= 10
+            wait_for_lines(hub, "claimed by two connections")
+        finally:
+            for sock in (old, new, other):
+                sock.close(0)
+    assert lines_with(hub, "robot 0")[:2] == ["hub: robot 0 connected from 127.0.0.1",
+                                              "hub: robot 0's agent reconnected from 127.0.0.1"], hub.lines
+    assert len(lines_with(hub, "connected from")) == 2, hub.lines       # no hand-over back to the old socket
+
+
+def test_an_agent_names_itself_with_one_token_on_every_connection():
+    link, another = HubLink(3, "tcp://127.0.0.1:9"), HubLink(3, "tcp://127.0.0.1:9")
+    try:
+        before = decode(link.encode({"type": "wheels", "left": 0.0, "right": 0.0}), "agent")
+        link.reset()                               # what the agent does after 2 s without a frame
+        after = decode(link.encode({"type": "hello", "driver": "sim"}), "agent")
+    finally:
+        link.close()
+        another.close()
+    assert before["agent"] == after["agent"] and len(after["agent"]) == 16
+    assert another.instance != link.instance       # another agent with the same --id: another token

@@ -120,6 +120,10 @@ class HubLink:
         self._last_bad_line = -1e9
         self.keys = keys
         self.resets = 0
+        # Names this agent process on every message, the same on each connection it opens: the hub tells the
+        # agent's own reconnect (a new socket after a silence, or ZeroMQ's after a dropped TCP connection) from a
+        # second agent with the same --id, which keeps its own token.
+        self.instance = os.urandom(8).hex()
         self._open()
 
     def _open(self) -> None:
@@ -150,8 +154,9 @@ class HubLink:
         self._open()
 
     def encode(self, message: Dict[str, Any]) -> bytes:
-        """The message's wire bytes with this robot's id; ProtocolError if the hub would refuse it."""
-        return encode(dict(message, id=self.robot_id))
+        """The message's wire bytes with this robot's id and this agent's token; ProtocolError if the hub would
+        refuse it."""
+        return encode(dict(message, id=self.robot_id, agent=self.instance))
 
     def send(self, message: Dict[str, Any]) -> bool:
         """Best effort: False when the hub is unreachable right now (nothing is queued for later)."""
