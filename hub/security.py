@@ -69,20 +69,41 @@ def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: b
 def add_keys(folder: Path, robot_ids: List[int], operators: List[str]) -> List[Path]:
     """Add robot and operator key pairs to an existing key folder, leaving every key in it as it is (the hub's
     and the other robots' and operators'), so nothing already given out has to be copied again. Refuses a
-    robot or operator that already has a key: replacing one is deleting it first, or ``init --force``."""
+    robot or operator that already has a key: replacing one is deleting it first, or ``init --force``. A
+    revoked key's leftover secret (``revoked_secrets``) is replaced."""
     if not (folder / "hub.key").is_file():
         raise ConfigError("FOLDER", f"no hub key {folder / 'hub.key'}: make the lab's keys with "
                                     f"`khepri keys init {folder}` first")
     check_operator_names(operators)
-    targets = [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
-        + [folder / "operators" / f"{name}.key" for name in operators]
+    targets = _peer_keys(folder, robot_ids, operators)
     for path in targets:
-        if path.exists() or path.with_suffix(".key_secret").exists():
-            who = f"robot {path.stem[len('robot-'):]}" if path.parent.name == "robots" else f"operator {path.stem}"
-            option = "--robots" if path.parent.name == "robots" else "--operator"
-            raise ConfigError(option, f"{who} already has a key ({path}); to replace it, delete "
-                                      f"{path.name} and {path.stem}.key_secret first")
+        _refuse_a_key_in_use(path)
     return _create_pairs(targets)
+
+
+def revoked_secrets(folder: Path, robot_ids: List[int], operators: List[str]) -> List[Path]:
+    """The secret files these robots and operators still have without their public key: what revoking a key
+    (deleting its ``.key``) leaves behind. ``add_keys`` replaces them; the hub no longer accepts them anyway."""
+    secrets = [path.with_suffix(".key_secret") for path in _peer_keys(folder, robot_ids, operators)]
+    return [path for path in secrets if path.exists() and not path.with_suffix(".key").exists()]
+
+
+def _peer_keys(folder: Path, robot_ids: List[int], operators: List[str]) -> List[Path]:
+    return [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
+        + [folder / "operators" / f"{name}.key" for name in operators]
+
+
+def _refuse_a_key_in_use(path: Path) -> None:
+    """A robot or operator whose public key is in the folder keeps it (the hub accepts it, and the robot may hold
+    its secret): replacing it is deleting it first. The hint names only the files that are there."""
+    if not path.exists():
+        return
+    robot = path.parent.name == "robots"
+    who = f"robot {path.stem[len('robot-'):]}" if robot else f"operator {path.stem}"
+    secret = path.with_suffix(".key_secret")
+    files = f"{path.name} and {secret.name}" if secret.exists() else path.name
+    raise ConfigError("--robots" if robot else "--operator",
+                      f"{who} already has a key ({path}); to replace it, delete {files} first")
 
 
 def _create_pairs(targets: List[Path]) -> List[Path]:

@@ -227,13 +227,17 @@ def cmd_keys_init(args: argparse.Namespace) -> int:
 
 
 def cmd_keys_add(args: argparse.Namespace) -> int:
-    from hub.security import add_keys
+    from hub.security import add_keys, revoked_secrets
 
     if args.robots is None and not args.operator:
         raise ConfigError("--robots", "name the robots (--robots 6,7) or operators (--operator NAME) to add")
     ids = parse_robot_ids(args.robots) if args.robots is not None else []
     operators = list(dict.fromkeys(args.operator or []))
+    revoked = revoked_secrets(args.folder, ids, operators)
     created = add_keys(args.folder, ids, operators)
+    if revoked:
+        print(f"replaced what revoked keys had left (a .key_secret without its .key): "
+              f"{', '.join(str(path) for path in revoked)}")
     what = ([f"robots {describe_ids(ids)} ({len(ids)})"] if ids else []) \
         + ([f"operators {', '.join(operators)}"] if operators else [])
     print(f"added {len(created)} key files in {args.folder}: {'; '.join(what)}; every other key is unchanged")

@@ -157,6 +157,28 @@ def test_keys_add_adds_robots_and_operators_to_a_key_folder(tmp_path):
     assert nothing.returncode == 2 and "name the robots" in nothing.stderr
 
 
+def test_keys_add_gives_a_revoked_robot_a_new_key_and_names_only_files_that_exist(tmp_path, capsys):
+    """Revoking a key (deleting its .key) leaves its .key_secret; `keys add` then refused, saying the robot already
+    had a key, named the deleted robot-1.key, and the hub's own hint at start (`keys add --robots 1,`) led there."""
+    from khepri_cli.main import main
+
+    keys = tmp_path / "keys"
+    assert main(["keys", "init", str(keys), "--robots", "3"]) == 0
+    (keys / "robots" / "robot-1.key").unlink()                  # robot 1 revoked
+    (keys / "robots" / "robot-2.key_secret").unlink()           # robot 2's secret moved onto the robot
+    old_secret = (keys / "robots" / "robot-1.key_secret").read_bytes()
+    capsys.readouterr()
+    assert main(["keys", "add", str(keys), "--robots", "1,"]) == 0
+    said = capsys.readouterr().out
+    assert "replaced what revoked keys had left (a .key_secret without its .key): " \
+           f"{keys / 'robots' / 'robot-1.key_secret'}" in said, said
+    assert (keys / "robots" / "robot-1.key").is_file()
+    assert (keys / "robots" / "robot-1.key_secret").read_bytes() != old_secret
+    assert main(["keys", "add", str(keys), "--robots", "2,"]) == 2
+    assert capsys.readouterr().err.strip() == f"khepri: error: --robots: robot 2 already has a key " \
+        f"({keys / 'robots' / 'robot-2.key'}); to replace it, delete robot-2.key first"
+
+
 def test_keys_init_with_a_refused_operator_name_leaves_nothing_behind(tmp_path):
     refused = khepri("keys", "init", str(tmp_path / "keys"), "--operator", "ann/../bob")
     assert refused.returncode == 2 and "--operator: use letters" in refused.stderr
