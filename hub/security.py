@@ -302,7 +302,8 @@ class HandshakeWatch:
         robots = self.domain == ROBOT_DOMAIN
         who, option = ("a robot's agent", "the agent's --keys") if robots else ("an operator", "khepri ctl --keys")
         if error == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:
-            why = f"it is not encrypted: {who} started without --keys?"
+            keyless = "a robot's agent started" if robots else "an operator's `khepri ctl`"
+            why = f"it is not encrypted: {keyless} without --keys?"
         elif error == zmq.PROTOCOL_ERROR_ZMTP_CRYPTOGRAPHIC:
             why = (f"its hello cannot be decrypted with this hub's key: {option} holds a hub.key that is not "
                    f"{self.ring.folder / 'hub.key'} (keys of another hub or an older `keys init`?)")

@@ -255,6 +255,20 @@ def test_an_agent_without_keys_is_logged_by_the_hub(secure_hub, tmp_path):
     assert 1 <= len(said) <= 2 and all(line.endswith(UNENCRYPTED) for line in said), secure_hub.lines
 
 
+def test_ctl_without_keys_is_logged_by_the_hub_once_however_often_it_is_run(secure_hub):
+    for _ in range(3):
+        with pytest.raises(ControlError, match="no answer"):
+            request(secure_hub.endpoints["control"], "status", keys=None, timeout_s=0.5)
+    deadline = time.monotonic() + 10.0
+    while not [line for line in secure_hub.lines if "to the control socket" in line]:
+        assert time.monotonic() < deadline, secure_hub.lines
+        time.sleep(0.05)
+    said = [line for line in secure_hub.lines if "to the control socket" in line]
+    assert 1 <= len(said) <= 2, said            # one line (two when the first peer is gone before its address)
+    assert "to the control socket in the CURVE handshake: it is not encrypted: an operator's `khepri ctl` without " \
+           "--keys?; nothing was answered (said at most every 10 s per address)" in said[0], said
+
+
 def test_an_unencrypted_peer_is_named_by_its_address_and_gets_no_message(secure_hub):
     """A ZMTP peer offering the NULL mechanism (what an agent without --keys speaks), its greeting sent a moment
     after connecting: the hub names its address, and sends it nothing but its own greeting."""
