@@ -131,13 +131,16 @@ def _add_ctl(groups) -> None:
 def cmd_ctl(args: argparse.Namespace) -> int:
     from hub.control import BadEndpoint, ControlError, refusals_after_start, request, status_table
     from hub.security import operator_client_keys
-    from onboard.agent.link import hub_endpoint
+    from onboard.agent.link import hub_endpoint, resolve_problem, unresolvable_host
 
     port = DEFAULT_CONTROL_PORT if args.port is None else args.port
     check_port("--port", port)
     check_timeout("--timeout", args.timeout)
     keys = operator_client_keys(args.keys, args.operator) if args.keys is not None else None
     endpoint = hub_endpoint(args.hub, port, port_given=args.port is not None)
+    unresolved = unresolvable_host(endpoint)       # else a typo waits out --timeout as if no hub ran
+    if unresolved is not None:
+        raise ConfigError("--hub", resolve_problem(*unresolved))
     try:
         reply = request(endpoint, args.command, keys=keys, timeout_s=args.timeout)
     except BadEndpoint as err:

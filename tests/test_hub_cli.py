@@ -20,9 +20,9 @@ ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
 
 
-def khepri(*args, **kwargs):
+def khepri(*args, timeout=120, **kwargs):
     return subprocess.run([sys.executable, "-m", "khepri_cli.main", *args], capture_output=True, text=True,
-                          env=ENV, timeout=120, **kwargs)
+                          env=ENV, timeout=timeout, **kwargs)
 
 
 def spawn(*args, log):
@@ -206,3 +206,31 @@ def test_output_into_a_closed_pipe_ends_quietly(unbuffered):
     stderr = reader.stderr.read().decode()
     assert reader.wait(timeout=60) == 1
     assert "Traceback" not in stderr and "BrokenPipeError" not in stderr, stderr
+
+
+@pytest.mark.parametrize("command", [("agent", "--id", "1", "--driver", "sim"), ("ctl", "status")])
+def test_a_hub_host_name_that_does_not_resolve_is_an_error_naming_it(command):
+    """ZeroMQ resolves a host name only while connecting, and says nothing when it cannot: a typo in --hub made
+    the agent wait for ever and ctl time out as if no hub were running. (.invalid never resolves: RFC 6761.)"""
+    run = khepri(*command, "--hub", "labpc.invalid", timeout=20)
+    assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr
+    assert run.stderr.strip().splitlines()[-1].startswith(
+        "khepri: error: --hub: cannot resolve the host name 'labpc.invalid': "), run.stderr
+
+
+def test_an_agent_whose_dns_is_not_reachable_yet_keeps_trying(monkeypatch):
+    """A robot booting before its Wi-Fi is up cannot look the name up yet: said, not fatal."""
+    import socket
+
+    from onboard.agent import link as links
+    from onboard.agent.cli import open_link
+
+    def no_dns(*args, **kwargs):
+        raise socket.gaierror(socket.EAI_AGAIN, "Temporary failure in name resolution")
+
+    monkeypatch.setattr(links.socket, "getaddrinfo", no_dns)
+    said = []
+    link = open_link(2, "tcp://labpc:5560", None, said.append)
+    link.close()
+    assert said == ["agent 2: warning: cannot resolve the host name 'labpc': Temporary failure in name resolution "
+                    "(a typo? or give the hub PC's IP address); still trying"]

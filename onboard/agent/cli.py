@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import socket
 import sys
 from pathlib import Path
-from typing import List, Optional
+from typing import TYPE_CHECKING, List, Optional
 
 import zmq
 
@@ -16,6 +17,9 @@ from onboard.config import ConfigError
 from onboard.drivers import Driver, DriverError
 from onboard.plugins import import_user_modules
 from onboard.protocol import MAX_ROBOT_ID
+
+if TYPE_CHECKING:
+    from .link import HubLink
 
 DEFAULT_ROBOT_PORT = 5560
 
@@ -40,7 +44,7 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_agent(args: argparse.Namespace) -> int:
-    from .link import HubLink, exposed_secret, hub_endpoint, load_robot_keys, robot_secret_file
+    from .link import exposed_secret, hub_endpoint, load_robot_keys, robot_secret_file
     from .loop import Agent
     from .parent import end_with_parent
 
@@ -68,10 +72,7 @@ def run_agent(args: argparse.Namespace) -> int:
     if args.driver == "sim" and kh4_only:
         log(f"agent {args.robot_id}: {' and '.join(kh4_only)}: only for the kh4 driver, ignored with --driver sim")
     endpoint = hub_endpoint(args.hub, port, port_given=args.port is not None)
-    try:
-        link = HubLink(args.robot_id, endpoint, keys, log=log)
-    except zmq.ZMQError as err:     # e.g. a space or a stray colon in --hub: ZeroMQ refuses the address
-        raise ConfigError("--hub", f"cannot connect to {endpoint!r}: {err.strerror}") from None
+    link = open_link(args.robot_id, endpoint, keys, log)
     if keys is None and not args.quiet:
         log(f"agent {args.robot_id}: no --keys: connecting unencrypted (only a hub run with --insecure accepts this)")
 
@@ -85,6 +86,26 @@ def run_agent(args: argparse.Namespace) -> int:
     finally:
         link.close()
     return 0
+
+
+def open_link(robot_id: int, endpoint: str, keys, log) -> HubLink:
+    """The link to the hub, once ZeroMQ took the address and its host name resolves. A name the resolver says
+    does not exist is an error; one it cannot look up now (no DNS server reachable yet, as on a robot booting
+    before its Wi-Fi is up) is said, and the agent keeps trying: ZeroMQ resolves it again at each attempt."""
+    from .link import HubLink, resolve_problem, unresolvable_host
+
+    try:
+        link = HubLink(robot_id, endpoint, keys, log=log)
+    except zmq.ZMQError as err:     # e.g. a space or a stray colon in --hub: ZeroMQ refuses the address
+        raise ConfigError("--hub", f"cannot connect to {endpoint!r}: {err.strerror}") from None
+    unresolved = unresolvable_host(endpoint)
+    if unresolved is None:
+        return link
+    if unresolved[1].errno == socket.EAI_AGAIN:
+        log(f"agent {robot_id}: warning: {resolve_problem(*unresolved)}; still trying")
+        return link
+    link.close()
+    raise ConfigError("--hub", resolve_problem(*unresolved))
 
 
 def open_driver(args: argparse.Namespace, agent) -> Driver:

@@ -3,9 +3,10 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import socket
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import zmq
 
@@ -38,6 +39,29 @@ def hub_endpoint(hub: str, port: int, option: str = "--hub", port_given: bool = 
                                   f"(--hub {host} --port {given_port}), or a whole address "
                                   f"(--hub tcp://{host}:{given_port})")
     return f"tcp://{hub}:{port}"
+
+
+def unresolvable_host(endpoint: str) -> Optional[Tuple[str, socket.gaierror]]:
+    """The host of a ``tcp://`` address and why it cannot be resolved, or None when it can (or is an address).
+    ZeroMQ resolves a host name only while connecting, in its own thread, and says nothing when it cannot: a
+    typo in ``--hub`` made the agent wait for ever and ``ctl`` time out as if no hub were running."""
+    if not endpoint.startswith("tcp://"):
+        return None
+    host = endpoint[len("tcp://"):].rsplit(";", 1)[-1].rpartition(":")[0]    # tcp://[iface;]host:port
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not host:
+        return None        # no port: ZeroMQ itself refuses the address
+    try:
+        socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except socket.gaierror as err:
+        return host, err
+    except UnicodeError:            # an empty label (labpc..lan) fails before any lookup
+        return host, socket.gaierror(socket.EAI_NONAME, "not a valid host name")
+    return None
+
+
+def resolve_problem(host: str, err: socket.gaierror) -> str:
+    return f"cannot resolve the host name {host!r}: {err.strerror} (a typo? or give the hub PC's IP address)"
 
 
 def ipv6_literal(host: str) -> Optional[str]:
