@@ -64,22 +64,26 @@ class ControlService:
             self.estop(sender)
             return True, {"note": self._reach("told to stop") + "; acknowledgements: `khepri ctl status`"}
         if cmd == "clear":
-            if hub.mode == "estop":
-                hub.mode = "hold" if hub.run_id is not None else "idle"
-                hub.estop_at = None         # cleared: its acknowledgement times are history (status showed them)
-                for robot in hub.robots.values():
-                    robot.estop_ack_s = None
-                hub.log(f"hub: e-stop cleared by {sender}; robots stay stopped until `khepri ctl start`")
-                hub.send_command_to_all("clear")
-            return True, {}
+            return self.clear(sender)
         if cmd == "start":
             return self.start(sender)
         if cmd == "stop":
             if hub.mode == "estop":
                 return False, {"error": "the e-stop is latched: `khepri ctl clear` first"}
-            self.stop(sender)
-            return True, {}
+            return self.stop(sender)
         return False, {"error": f"unknown command {cmd!r}"}
+
+    def clear(self, sender: str) -> Tuple[bool, Dict[str, Any]]:
+        hub = self.hub
+        if hub.mode != "estop":
+            return True, nothing_done("nothing to clear: no e-stop was latched")
+        hub.mode = "hold" if hub.run_id is not None else "idle"
+        hub.estop_at = None         # cleared: its acknowledgement times are history (status showed them)
+        for robot in hub.robots.values():
+            robot.estop_ack_s = None
+        hub.log(f"hub: e-stop cleared by {sender}; robots stay stopped until `khepri ctl start`")
+        hub.send_command_to_all("clear")
+        return True, {"note": "robots stay stopped until `khepri ctl start`"}
 
     def estop(self, sender: str) -> None:
         hub = self.hub
@@ -119,14 +123,19 @@ class ControlService:
                         if r.routing is not None and r.connected(now, self.hub.config.watchdog_s))
         return f"{connected} of {len(self.hub.robots)} robots connected and {what}"
 
-    def stop(self, sender: str) -> None:
+    def stop(self, sender: str) -> Tuple[bool, Dict[str, Any]]:
+        """Ends the run. Without one, the robots are told to stop all the same (an agent may hold a run of an
+        earlier hub), but the operator is told there was nothing to stop rather than a bare "ok"."""
         hub = self.hub
-        if hub.run_id is not None:
-            hub.log(f"hub: run {hub.run_id} stopped by {sender}")
+        run_id = hub.run_id
         hub.mode = "idle"
         hub.run_id = None
         hub.send_command_to_all("stop")
         hub._hold_sim_wheels(time.monotonic())
+        if run_id is None:
+            return True, nothing_done("nothing to stop: no run is going")
+        hub.log(f"hub: run {run_id} stopped by {sender}")
+        return True, {"note": f"run {run_id} ended; " + self._reach("told to stop")}
 
     def status(self, now: float) -> Dict[str, Any]:
         hub = self.hub
@@ -146,6 +155,12 @@ class ControlService:
             "relay": hub.relay.stats.as_dict(),
             "robots": rows,
         }
+
+
+def nothing_done(why: str) -> Dict[str, Any]:
+    """A reply's extra fields for a command that had nothing to act on: ``khepri ctl`` prints ``why`` instead of
+    "ok", and exits 0 all the same (the hub is in the state the operator asked for)."""
+    return {"note": why, "nothing_done": True}
 
 
 def recording_status(recorder: Any) -> Optional[Dict[str, Any]]:

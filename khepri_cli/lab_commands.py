@@ -150,6 +150,8 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         return 1
     if args.command == "status":
         print(json.dumps(reply["status"], indent=2) if args.json else status_table(reply["status"]))
+    elif reply.get("nothing_done"):
+        print(f"{args.command}: {reply['note']}")
     else:
         print(f"{args.command}: ok{' (' + reply['note'] + ')' if reply.get('note') else ''}")
     if args.command == "start":    # the hub is in run mode now; say which robots will not run (ctl said ok)

@@ -132,6 +132,32 @@ def test_ctl_start_names_the_robots_that_cannot_run_it(tmp_path):
     assert said[0].startswith("hub: robot 1: cannot start the run: run.behaviour: unknown behaviour 'hub-only'")
 
 
+def test_ctl_stop_and_clear_with_nothing_to_do_say_so(tmp_path):
+    """Both printed a bare "ok" with no run going and no e-stop latched: the operator could not tell a stop that
+    ended a run from one that found none."""
+    hub_log = open(tmp_path / "hub.log", "w")
+    hub = spawn("hub", "--config", str(lab_config(tmp_path, "lab-6")), "--insecure", log=hub_log)
+    try:
+        control = hub_ports(tmp_path / "hub.log", hub)["control"]
+
+        def ctl(command: str) -> str:
+            run = khepri("ctl", command, "--port", control)
+            assert run.returncode == 0, run.stderr
+            return run.stdout.strip()
+
+        assert ctl("stop") == "stop: nothing to stop: no run is going"
+        assert ctl("clear") == "clear: nothing to clear: no e-stop was latched"
+        ctl("start")
+        ctl("estop")
+        assert ctl("clear") == "clear: ok (robots stay stopped until `khepri ctl start`)"
+        assert re.fullmatch(r"stop: ok \(run [0-9a-f]{12} ended; 0 of 6 robots connected and told to stop\)",
+                            ctl("stop"))
+    finally:
+        codes = stop_processes([hub])
+        hub_log.close()
+    assert codes == [0]
+
+
 def test_keys_init_and_ctl_error_without_a_hub(tmp_path):
     made = khepri("keys", "init", str(tmp_path / "keys"), "--robots", "3", "--operator", "ann")
     assert made.returncode == 0, made.stderr
