@@ -148,18 +148,24 @@ def load_keyring(folder: Path) -> KeyRing:
 
 def operator_client_keys(folder: Path, name: Optional[str] = None) -> Dict[str, bytes]:
     """``khepri ctl``'s side: an operator pair (the only one in the folder unless ``name`` is given)."""
-    candidates = sorted((folder / "operators").glob("*.key_secret"))
-    if name is not None:
-        candidates = [p for p in candidates if p.stem == name]
+    found = sorted((folder / "operators").glob("*.key_secret"))
+    candidates = [p for p in found if name is None or p.stem == name]
     if not candidates:
-        raise ConfigError("--keys", f"no operator key{' ' + repr(name) if name else ''} in {folder / 'operators'}")
+        raise ConfigError("--keys", f"no operator key{' ' + repr(name) if name else ''} in {folder / 'operators'}"
+                                    f"{' (it holds ' + key_files(found) + ')' if found else ''}")
     if len(candidates) > 1:
-        raise ConfigError("--operator", f"several operator keys in {folder / 'operators'}: name one")
+        raise ConfigError("--operator", f"several operator keys in {folder / 'operators'}: {key_files(found)}; "
+                                        f"name one, e.g. --operator {found[0].stem}")
     public, secret = _load_pair(candidates[0], "operator", "--keys")
     exposed = exposed_secret(candidates[0])
     if exposed:
         print(f"khepri ctl: warning: {exposed}", file=sys.stderr, flush=True)
     return {"public": public, "secret": secret, "server": _load_public(folder / "hub.key", "--keys")}
+
+
+def key_files(paths: List[Path]) -> str:
+    """'alice.key_secret, bob.key_secret': the key files an error offers to choose from."""
+    return ", ".join(path.name for path in paths)
 
 
 def apply_client_keys(socket: zmq.Socket, keys: Dict[str, bytes]) -> None:

@@ -84,6 +84,19 @@ def test_keys_add_gives_new_robots_keys_and_leaves_every_other_key_as_it_was(key
         add_keys(keys.parent / "elsewhere", [5], [])
 
 
+def test_ctl_with_several_operator_keys_lists_them(keys):
+    """'several operator keys in keys/operators: name one' left the operator to go and look which."""
+    add_keys(keys, [], ["bob"])
+    with pytest.raises(ConfigError) as several:
+        operator_client_keys(keys)
+    assert str(several.value) == f"--operator: several operator keys in {keys / 'operators'}: alice.key_secret, " \
+                                 "bob.key_secret; name one, e.g. --operator alice"
+    with pytest.raises(ConfigError) as unknown:
+        operator_client_keys(keys, "carol")
+    assert str(unknown.value).endswith("(it holds alice.key_secret, bob.key_secret)")
+    assert operator_client_keys(keys, "bob")["public"] != operator_client_keys(keys, "alice")["public"]
+
+
 def test_two_key_files_with_the_same_key_are_refused_naming_both(keys):
     """robot-1.key copied to robot-9.key: the later file silently won, so robot 1 was refused as robot 9 and
     the hub said that robot 1 had no key."""
