@@ -46,19 +46,27 @@ class Uplink:
         if robot is None:
             self.drops.drop("unknown robot", sender, f"{sender} claimed robot {rid}, which is not in this lab")
             return
-        if robot.routing != routing.bytes:
-            if routing.bytes == robot.replaced_routing:
-                return            # still in flight on the connection its agent has just replaced: stale
-            same_agent = message.get("agent") is not None and message.get("agent") == robot.agent
-            if robot.connected(now, self.config.watchdog_s) and not same_agent:
-                self._rival(robot, peer, sender, now)
-                return
-            self._connected(robot, routing.bytes, peer, now, message.get("agent"), same_agent)
-        elif robot.silence_said:
-            self.log(f"hub: robot {robot.id} is back after {now - robot.last_uplink:.1f} s of silence")
-        robot.silence_said = False
-        robot.last_uplink = now
-        getattr(self, f"_on_{message['type']}")(robot, message, now)
+        if self._speaks_for(robot, routing.bytes, peer, sender, message.get("agent"), now):
+            robot.last_uplink = now
+            getattr(self, f"_on_{message['type']}")(robot, message, now)
+
+    def _speaks_for(self, robot: RobotLink, routing: bytes, peer: Optional[str], sender: str, agent: Optional[str],
+                    now: float) -> bool:
+        """Whether this connection holds the robot: the one that does, a new one once it is silent (or at once
+        for its own agent's reconnect), not a rival while it is alive, nor the connection its agent replaced."""
+        if robot.routing == routing:
+            if robot.silence_said:
+                self.log(f"hub: robot {robot.id} is back after {now - robot.last_uplink:.1f} s of silence")
+                robot.silence_said = False
+            return True
+        if routing == robot.replaced_routing:
+            return False          # still in flight on the connection its agent has just replaced: stale
+        same_agent = agent is not None and agent == robot.agent
+        if robot.connected(now, self.config.watchdog_s) and not same_agent:
+            self._rival(robot, peer, sender, now)
+            return False
+        self._connected(robot, routing, peer, now, agent, same_agent)
+        return True
 
     def _connected(self, robot: RobotLink, routing: bytes, peer: Optional[str], now: float, agent: Optional[str],
                    same_agent: bool) -> None:
@@ -67,6 +75,7 @@ class Uplink:
         alive, and whose old connection is then ignored."""
         robot.replaced_routing = robot.routing if same_agent else None
         robot.routing, robot.peer, robot.agent = routing, peer or "", agent
+        robot.silence_said = False          # this line says it is back
         index = self.ids.index(robot.id)
         robot.next_due = now + (index / max(1, len(self.ids))) / self.config.network.downlink_hz  # spread sends
         if same_agent:
