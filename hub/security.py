@@ -37,6 +37,7 @@ ROBOT_KEY = re.compile(r"^robot-(\d+)\.key$")
 HUB_KEYS_FIELD = "security.keys"   # what the hub's key errors name: the lab config's key
 REFUSAL_LOG_S = 60.0    # a refused key is logged at most this often per peer address and socket
 HANDSHAKE_LOG_S = 10.0  # a failed CURVE handshake is logged at most this often per peer address and socket
+ZAP_REBIND_WAIT_S = 2.0  # how long a starting hub waits for the previous one's ZAP endpoint to be released
 
 
 @dataclass
@@ -203,6 +204,23 @@ class HubAuthenticator(ThreadAuthenticator):
         self._refusals_said: Dict[Tuple[str, str], float] = {}
         for domain, keys in self.members.items():
             self.configure_curve_callback(domain, _Members(keys))
+
+    def start(self) -> None:
+        """Bind the context's one ZAP endpoint, waiting up to ZAP_REBIND_WAIT_S for a hub closed just before in
+        this process to let go of it: ZeroMQ unbinds a closed socket's inproc endpoint in its own thread, so a
+        hub started right after another (the tests, one after the other) found it still taken."""
+        deadline = time.monotonic() + ZAP_REBIND_WAIT_S
+        while True:
+            try:
+                super().start()
+                return
+            except zmq.ZMQError as err:
+                if err.errno != zmq.EADDRINUSE or time.monotonic() > deadline:
+                    raise
+                if self.zap_socket is not None:
+                    self.zap_socket.close(0)
+                    self.zap_socket = None
+                time.sleep(0.01)
 
     async def handle_zap_message(self, msg: List[bytes]) -> None:
         self._say_if_refused(msg)

@@ -9,7 +9,7 @@ import zmq
 from hub.config import parse_config
 from hub.control import ControlError, request
 from hub.harness import HubThread, spawn_agent, stop_processes
-from hub.security import add_keys, init_keys, load_keyring, operator_client_keys
+from hub.security import HubAuthenticator, add_keys, init_keys, load_keyring, operator_client_keys
 from onboard.agent.link import load_robot_keys
 from onboard.config import ConfigError
 from onboard.protocol import encode
@@ -66,6 +66,17 @@ def test_lab_robots_without_a_key_are_said_at_start(keys, make_scenario):
     assert said == [f"hub: robot 2 of this lab has no key in {keys / 'robots'}, so cannot connect (add its key "
                     f"with `khepri keys add {keys} --robots 2,`, which leaves the other keys as they are, or take "
                     f"it off robots)"]
+
+
+def test_a_hub_started_right_after_another_in_one_process_gets_the_zap_endpoint(keys):
+    """ZeroMQ releases a closed socket's inproc endpoint in its own thread: a secure hub started just after
+    another one in the same process (the tests do, one after the other) failed with `Address already in use
+    (addr='inproc://zeromq.zap.01')` in a fresh-clone run."""
+    ring = load_keyring(keys)
+    for _ in range(50):
+        authenticator = HubAuthenticator(zmq.Context.instance(), ring, log=lambda line: None)
+        authenticator.start()
+        authenticator.stop()
 
 
 def test_keys_add_gives_new_robots_keys_and_leaves_every_other_key_as_it_was(keys):
