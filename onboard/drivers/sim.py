@@ -5,6 +5,7 @@ Wheel commands go up to the hub as ``wheels`` messages; IR and encoder readings 
 """
 from __future__ import annotations
 
+import time
 from typing import Any, Callable, Dict, List, Optional
 
 from onboard.drivers import Driver
@@ -22,7 +23,9 @@ class SimDriver(Driver):
 
     def set_wheel_speeds(self, left_m_s: float, right_m_s: float) -> None:
         self.left, self.right = float(left_m_s), float(right_m_s)
-        self.send({"type": "wheels", "left": self.left, "right": self.right})
+        # at_s: when the agent set them, on its monotonic clock: what a test on this machine compares with when
+        # it stopped sending frames (the watchdog's 0.3 s), without the hub's and the test's own delays.
+        self.send({"type": "wheels", "left": self.left, "right": self.right, "at_s": time.monotonic()})
 
     def proximity(self) -> List[float]:
         data = self.readings()
