@@ -18,6 +18,9 @@ from .transport_preflight import floor_friction_n, push_force_n, transport_warni
 
 SPACING_SAMPLE_PERIOD_S = 1.0
 STUCK_BELOW_M = 0.05            # a closed cage that moved the object less than this got nowhere
+# A push is judged stuck only when the run went on this long after the cage settled (the stall detection's own
+# window, reinforce_when_stalled_s): a run stopped sooner (a short --time-limit) did not get to push.
+PUSH_JUDGED_AFTER_S = 15.0
 CAGE_STATES = ("caged", "settle", "push", "rotate", "done")
 
 
@@ -115,6 +118,19 @@ class TransportEvaluator(Evaluator):
         poses = [t["estimate"][:2] for t in telemetry if t is not None and "estimate" in t]
         return np.mean(poses, axis=0) if poses else np.array([np.nan, np.nan])
 
+    def _too_soon_hint(self) -> List[str]:
+        """A run that ended soon after its cage closed (a short time limit) had no time to push: said instead of
+        the stuck hint, which would blame the floor friction for an object the cage never got to push."""
+        params = self.scenario.params
+        faithful = params.get("profile") == "faithful"
+        settle_s = 0.0 if faithful else float(params.get("settle_time_s", TransportParams.settle_time_s))
+        after_s = self.last_time - self.closed_at
+        if after_s >= settle_s + PUSH_JUDGED_AFTER_S:
+            return []
+        settle = f" (the cage settles for {settle_s:g} s before it pushes)" if settle_s > 0 else ""
+        return [f"the run ended {after_s:.1f} s after the cage closed{settle}, too soon to judge the push: "
+                f"give it a longer time limit (time_limit_s, --time-limit)"]
+
     def _stuck_hint(self, truth: np.ndarray) -> List[str]:
         """Why a closed cage may not have got anywhere: said when the object hardly moved after closure."""
         start = self.pose_at_closure
@@ -174,7 +190,7 @@ class TransportEvaluator(Evaluator):
             })
             if caged and not done:
                 failures.append(f"reached {len(waypoints)} of {len(scenario.path)} waypoints")
-                failures.extend(self._stuck_hint(truth))
+                failures.extend(self._too_soon_hint() or self._stuck_hint(truth))
             failures.extend(self._outside_tolerance(waypoints, d_tol, yaw_tol if judge_yaw else math.inf))
         out["failures"] = failures
         out["faults_fired"] = dead          # not failures: a run that loses a robot may still complete

@@ -786,6 +786,18 @@ def test_the_stuck_hint_offers_reinforce_push_only_when_the_spares_did_not_push(
     assert "reinforce_push" not in hint_with({"reinforce_push": True})
 
 
+def test_a_run_stopped_soon_after_its_cage_closed_is_not_blamed_on_friction():
+    """`khepri sim run lab-6 --time-limit 68` (seed 1 cages at 63.6 s, then settles for 10 s) said `the object
+    moved 0.00 m after the cage closed: 4 members against 0.9 N of floor friction ...; more robots, less
+    friction`: the cage had not pushed yet. Now the failures say the run ended too soon to judge the push."""
+    scenario = load_scenario("lab-6").with_overrides(time_limit_s=68.0)
+    result = Simulation(scenario, seed=1).run()
+    assert result["caged"] and not result["completed"], result["failures"]
+    assert not any("floor friction" in f for f in result["failures"]), result["failures"]
+    (soon,) = [f for f in result["failures"] if "too soon to judge the push" in f]
+    assert soon.startswith("the run ended 4.") and "settles for 10 s" in soon and "--time-limit" in soon
+
+
 def test_the_stuck_hint_does_not_offer_reinforce_push_when_all_the_robots_are_too_weak(make_scenario):
     from sim_backend.transport_metrics import TransportEvaluator
 
