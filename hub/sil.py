@@ -275,6 +275,10 @@ class SilSession:
         def should_stop() -> bool:
             nonlocal observed
             step = self.source.control_steps_done()
+            # Step k begins at k * period: the step that would begin at the time limit is not run (as in
+            # lockstep and `khepri sim run`), so that sim_time_s is the limit, not one period past it.
+            if step * period >= self.limit_s - 1e-9:
+                return True
             if step != observed and self.hub.clock_s is not None:
                 observed = step
                 reason = self._observe(step * period)

@@ -53,6 +53,18 @@ def test_a_clean_short_run_reports_no_drop(tmp_path):
     assert sil_summary_lines(result["sil"])[1] == "  dropped: nothing"
 
 
+def test_a_realtime_run_stops_at_its_time_limit_as_lockstep_does(tmp_path):
+    """`khepri sil ... --realtime --time-limit 2` wrote sim_time_s 2.1 and a 21st sample at t = 2.0: the step
+    that began at the limit was observed. Lockstep and `sim run` give 2.0 s and 20 samples (t = 0 .. 1.9)."""
+    lab6 = load_scenario("lab-6")
+    scenario = lab6.with_overrides(robots=dataclasses.replace(lab6.robots, count=3))
+    result = run_sil(scenario, tmp_path, SilOptions(plot=False, record=False, realtime=True, time_limit_s=2.0))
+    assert "error" not in result and result["stop_reason"] == "time limit"
+    assert result["sim_time_s"] == pytest.approx(2.0)
+    t = np.load(tmp_path / "trajectory.npz")["t"]
+    assert len(t) == 20 and t[-1] == pytest.approx(1.9)
+
+
 def test_a_slow_scenario_gets_a_hub_watchdog_its_telemetry_can_feed(tmp_path):
     """At 5 Hz an agent speaks every 0.2 s, and the default watchdog_s (0.3 s) is refused for that: sil, whose
     config the user does not write, stopped with that error before it sets the watchdog from the scenario."""
