@@ -10,8 +10,8 @@ from .factory import build_hub
 
 INSECURE_WARNING = """\
 ************************************************************************
-*  WARNING: --insecure: no encryption and no authentication.            *
-*  Anyone who can reach these ports can drive the robots and read the   *
+*  WARNING: --insecure: no encryption and no authentication.           *
+*  Anyone who can reach these ports can drive the robots and read the  *
 *  lab's traffic. Use it only on loopback or an isolated test network. *
 ************************************************************************"""
 

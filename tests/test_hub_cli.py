@@ -260,3 +260,12 @@ def test_an_agent_whose_dns_is_not_reachable_yet_keeps_trying(monkeypatch):
     link.close()
     assert said == ["agent 2: warning: cannot resolve the host name 'labpc': Temporary failure in name resolution "
                     "(a typo? or give the hub PC's IP address); still trying"]
+
+
+def test_the_insecure_warning_is_a_closed_box():
+    """Two of its lines were one character wider than the others, so the box's right edge was ragged."""
+    from hub.runner import INSECURE_WARNING
+
+    lines = INSECURE_WARNING.splitlines()
+    assert len({len(line) for line in lines}) == 1, [len(line) for line in lines]
+    assert all(line.endswith("*") for line in lines)
