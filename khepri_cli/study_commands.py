@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from onboard.config import ConfigError
+from sim_backend.study.text import counted
 
 from .signals import sigterm_as_ctrl_c
 from .sim_commands import folder_arg
@@ -70,12 +71,12 @@ def cmd_study(args: argparse.Namespace) -> int:
     executor = make_executor(choice, workers)
     executor.prepare()          # a Dask scheduler that cannot be reached: said before the folder is touched
     require_out_folder(out)
-    print(f"study {spec.name}: {len(runs)} runs on {executor.describe()}, writing to {out}")
+    print(f"study {spec.name}: {counted(len(runs), 'run')} on {executor.describe()}, writing to {out}")
     # `kill` (SIGTERM) ends a study like Ctrl-C: workers stopped, finished runs kept, resumable. Without
     # this the driver died alone and its pool's workers ran on, orphaned, until their runs finished.
     with sigterm_as_ctrl_c():
         outcome = run_study(spec, runs, out, executor, retry_failed=args.retry_failed, command=command_line(args))
-    print(f"ran {outcome.ran} runs ({outcome.failed} failed), skipped {outcome.skipped} finished"
+    print(f"ran {counted(outcome.ran, 'run')} ({outcome.failed} failed), skipped {outcome.skipped} finished"
           + (f" and {outcome.kept_failed} failed (re-run them with --retry-failed)" if outcome.kept_failed else "")
           + (f"; {len(outcome.unwritable)} could not write their result" if outcome.unwritable else ""))
     return print_outputs(write_study_outputs(out, figures=not args.no_figures))
@@ -149,7 +150,8 @@ def print_dry_run(runs, out: Path, retry_failed: bool) -> int:
         print(f"warning: {warning}", file=sys.stderr)
     done = {(r.cell, r.seed) for r in plan.finished}
     kept = {(r.cell, r.seed) for r in plan.kept_failed}
-    print(f"{len(runs)} runs, {len(plan.to_run)} to run, {len(done)} finished, {len(kept)} failed kept; out {out}")
+    print(f"{counted(len(runs), 'run')}, {len(plan.to_run)} to run, {len(done)} finished, {len(kept)} failed kept; "
+          f"out {out}")
     table = grid_table(runs)
     width = max([40] + [len(cell) for cell, _ in table])
     for cell, seeds in table:

@@ -398,7 +398,7 @@ def test_a_dask_local_cluster_gives_the_same_results_as_the_local_pool(local_stu
     code = main(["--import", str(module), "study", str(study), "--executor", "dask", "--workers", "1",
                  "--out", str(tmp_path)])
     assert code == 1   # the failing cell fails on Dask too
-    assert "on Dask LocalCluster, 1 workers" in capsys.readouterr().out
+    assert "on Dask LocalCluster, 1 worker," in capsys.readouterr().out
     dask_results, local_results = results_in(tmp_path), results_in(local_out)
     assert sorted(dask_results) == sorted(local_results)
     for key, result in dask_results.items():
@@ -705,7 +705,7 @@ def test_the_report_counts_what_is_missing_and_says_what_actually_ran(known_stud
     report = (known_study / "report.md").read_text()
     assert "**2 of the 3 runs the commands above asked for have no result yet**" in report
     assert "`paper-25-straight/seed-5`, `irregular-clover/seed-3`" in report
-    assert "Time limit: mixed: each scenario’s own (5 runs), 1500 s (1 runs)." in report   # not study.json's 100
+    assert "Time limit: mixed: each scenario’s own (5 runs), 1500 s (1 run)." in report   # not study.json's 100
     assert "- `irregular-clover`: comm.range_m: 0.3 m is shorter than the cage spacing I_d" in report
     assert "- `junk/seed-1/result.json`" in report and len(load_results(known_study).cells) == 2
 
@@ -724,8 +724,8 @@ def test_the_report_flags_results_of_mixed_code_and_scenario_versions(known_stud
     write_study_outputs(known_study, figures=False)
     report = (known_study / "report.md").read_text()
     assert "## Mixed versions" in report and "**These results come from different versions" in report
-    assert "- behaviour `transport`: 2 versions of its code (`aaaa` 2 runs, `bbbb` 1 runs)" in report
-    assert "- `paper-25-straight`: 2 versions of its scenario (`s1` 2 runs, `s2` 1 runs)" in report
+    assert "- behaviour `transport`: 2 versions of its code (`aaaa` 2 runs, `bbbb` 1 run)" in report
+    assert "- `paper-25-straight`: 2 versions of its scenario (`s1` 2 runs, `s2` 1 run)" in report
 
 
 def test_a_behaviour_without_caging_gets_no_success_rate(tmp_path):
@@ -1022,7 +1022,7 @@ def test_a_folder_of_another_study_is_refused_unless_merge_asks_for_it(tmp_path,
     assert json.loads((out / "study.json").read_text())["name"] == "tiny"
     assert main(["study", str(first), "--out", str(out), "--workers", "1", "--no-figures"]) == 0   # its own: resumes
     assert main(["study", str(second), "--out", str(out), "--workers", "1", "--no-figures", "--merge"]) == 0
-    assert "ran 1 runs (0 failed), skipped 1 finished" in capsys.readouterr().out
+    assert "ran 1 run (0 failed), skipped 1 finished" in capsys.readouterr().out
     assert json.loads((out / "study.json").read_text())["commands"][-1].endswith("--merge")
 
 
@@ -1045,7 +1045,7 @@ def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_pa
     for dry_run in (["--dry-run"], []):     # --dry-run says so too, before anything would run
         main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", *dry_run])
         err = capsys.readouterr().err
-        assert "warning: 1 runs already in" in err and "ran a scenario that has changed since (cells mine)" in err
+        assert "warning: 1 run already in" in err and "ran a scenario that has changed since (cells mine)" in err
 
 
 def test_resume_warns_about_finished_runs_of_a_behaviour_edited_since(tmp_path, capsys, monkeypatch):
@@ -1066,7 +1066,7 @@ def test_resume_warns_about_finished_runs_of_a_behaviour_edited_since(tmp_path, 
     behaviour_code_sha1.cache_clear()           # a new `khepri study` process would read the file afresh
     main(command + ["--dry-run"])
     err = capsys.readouterr().err
-    assert "warning: 1 runs already in out ran another version of their behaviour's code" in err
+    assert "warning: 1 run already in out ran another version of their behaviour's code" in err
 
 
 def test_scenarios_picks_a_scenario_file_by_its_name_too(tmp_path, capsys):

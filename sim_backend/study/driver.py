@@ -18,6 +18,7 @@ from typing import Any, Dict, List, Optional, Sequence, Set, TextIO, Tuple
 from onboard.config import to_mapping
 
 from .grid import RunSpec, StudySpec
+from .text import counted
 from .worker import RESULT_FILE, failed_result, read_result, write_result
 
 STUDY_FILE = "study.json"
@@ -65,16 +66,19 @@ def plan_warnings(plan: StudyPlan, out_dir: Path) -> List[str]:
     """Finished runs that are kept although they do not match what the study asks now."""
     found = []
     if plan.other_limit:
-        found.append(f"{len(plan.other_limit)} runs already in {out_dir} ran with another time limit and are "
+        found.append(f"{counted(len(plan.other_limit), 'run')} already in {out_dir} "
+                     f"ran with another time limit and are "
                      f"kept; use another --out to run them again")
     if plan.other_scenario:
         cells = sorted({run.cell for run in plan.other_scenario})
-        found.append(f"{len(plan.other_scenario)} runs already in {out_dir} ran a scenario that has changed since "
+        found.append(f"{counted(len(plan.other_scenario), 'run')} already in {out_dir} "
+                     f"ran a scenario that has changed since "
                      f"(cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}) and are kept; use another "
                      f"--out, or delete those cells' folders, to run them again")
     if plan.other_code:
         cells = sorted({run.cell for run in plan.other_code})
-        found.append(f"{len(plan.other_code)} runs already in {out_dir} ran another version of their behaviour's "
+        found.append(f"{counted(len(plan.other_code), 'run')} already in {out_dir} "
+                     f"ran another version of their behaviour's "
                      f"code (its files changed since; cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}"
                      f") and are kept; use another --out, or delete those cells' folders, to run them again")
     return found

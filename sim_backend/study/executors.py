@@ -21,6 +21,7 @@ from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional
 from onboard.config import ConfigError
 
 from .grid import RunSpec
+from .text import counted
 from .worker import execute_run, failed_result
 
 RunFunction = Callable[[RunSpec, str], Dict[str, Any]]
@@ -92,7 +93,7 @@ class LocalExecutor:
         self.context = multiprocessing.get_context("spawn")
 
     def describe(self) -> str:
-        return f"local process pool, {self.workers} workers"
+        return f"local process pool, {counted(self.workers, 'worker')}"
 
     def prepare(self) -> None:
         """Nothing to reach before the study starts."""
@@ -242,7 +243,9 @@ class DaskExecutor:
         self.client = None          # connected by prepare(), before the study writes anything
 
     def describe(self) -> str:
-        return f"Dask scheduler at {self.address}" if self.address else f"Dask LocalCluster, {self.workers} workers"
+        if self.address:
+            return f"Dask scheduler at {self.address}"
+        return f"Dask LocalCluster, {counted(self.workers, 'worker')}"
 
     def prepare(self) -> None:
         """Reach the scheduler now: an address that cannot be used is an error before the study folder is

@@ -10,6 +10,7 @@ import numpy as np
 from . import paper_reference as paper
 from .aggregate import Cell, StudyResults, distribution, load_results, paper_time_s, success_rate, write_summary_csv
 from .driver import UNWRITABLE_KEY, outcome_text, read_study
+from .text import counted
 
 # Every file ``write_figures`` may draw. One this aggregation does not draw is removed: it would show an earlier
 # aggregation's runs beside a summary of the current ones (and report.md would not link it).
@@ -95,8 +96,8 @@ def header(results: StudyResults, study: Dict[str, Any]) -> List[str]:
     if commands:
         lines += ["Commands that wrote this folder:", "", "```sh", *commands, "```", ""]
     unreadable = f", {len(results.unreadable)} unreadable (listed below)" if results.unreadable else ""
-    lines += [f"{runs} runs in {len(results.cells)} cells, {failed} failed (crashed or stopped; excluded from the "
-              f"statistics){unreadable}. Time limit: {time_limit_text(results.cells)}.", ""]
+    lines += [f"{counted(runs, 'run')} in {counted(len(results.cells), 'cell')}, {failed} failed (crashed or stopped; "
+              f"excluded from the statistics){unreadable}. Time limit: {time_limit_text(results.cells)}.", ""]
     planned, missing = missing_runs(results, study)
     if missing:
         shown = ", ".join(f"`{d}`" for d in missing[:8]) + (" ..." if len(missing) > 8 else "")
@@ -124,7 +125,7 @@ def time_limit_text(cells: List[Cell]) -> str:
     if len(counts) == 1:
         limit = next(iter(counts))
         return f"{text(limit)} for every run" if isinstance(limit, (int, float)) else text(limit)
-    return "mixed: " + ", ".join(f"{text(limit)} ({n} runs)" for limit, n in counts.items())
+    return "mixed: " + ", ".join(f"{text(limit)} ({counted(n, 'run')})" for limit, n in counts.items())
 
 
 def unwritable_runs(results: StudyResults, study: Dict[str, Any]) -> Dict[str, str]:
@@ -174,7 +175,7 @@ def version_section(cells: List[Cell]) -> List[str]:
 
 
 def versions_text(versions: Counter) -> str:
-    return ", ".join(f"`{version}` {count} runs" for version, count in versions.most_common())
+    return ", ".join(f"`{version}` {counted(count, 'run')}" for version, count in versions.most_common())
 
 
 def warning_section(cells: List[Cell]) -> List[str]:
