@@ -60,7 +60,7 @@ def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: b
         + [folder / "operators" / f"{name}.key" for name in operators]
     existing = [p for p in targets if p.exists()]
     if existing and not force:
-        raise ConfigError("keys", f"{existing[0]} already exists (use --force to replace keys)")
+        raise ConfigError("FOLDER", f"{existing[0]} already exists (use --force to replace keys)")
     check_operator_names(operators)
     for path in stale_keys(folder, targets) if force else []:   # rotating keys must not leave an old robot
         path.unlink()                                             # or operator key that the hub still accepts

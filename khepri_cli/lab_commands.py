@@ -123,7 +123,7 @@ def _add_ctl(groups) -> None:
     ctl.add_argument("--port", type=int, default=None, help=f"hub control port (default {DEFAULT_CONTROL_PORT})")
     ctl.add_argument("--keys", type=Path, metavar="DIR", help="key folder with operators/<name>.key_secret, hub.key")
     ctl.add_argument("--operator", help="operator key name when the folder holds several")
-    ctl.add_argument("--timeout", type=float, default=2.0, metavar="S", help="wait this long for the hub")
+    ctl.add_argument("--timeout", type=float, default=2.0, metavar="S", help="wait this long for the hub (default 2)")
     ctl.add_argument("--json", action="store_true", help="status: print JSON")
     ctl.set_defaults(func=cmd_ctl)
 
@@ -186,8 +186,8 @@ def _add_keys(groups) -> None:
                              description="Manage the lab's CURVE keys (see docs/lab.md).")
     commands = keys.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
     init = commands.add_parser("init", help="create hub, robot and operator key pairs",
-                               description="Create DIR/hub.key(_secret), DIR/robots/robot-<id>.key(_secret) and "
-                                           "DIR/operators/<name>.key(_secret).")
+                               description="Create FOLDER/hub.key(_secret), FOLDER/robots/robot-<id>.key(_secret) and "
+                                           "FOLDER/operators/<name>.key(_secret).")
     init.add_argument("folder", nargs="?", type=Path, default=Path("keys"), metavar="FOLDER",
                       help="key folder (default ./keys)")
     init.add_argument("--robots", default="6", help="robot count N (ids 0..N-1), or ids with commas: 0,1,5 "
@@ -197,8 +197,8 @@ def _add_keys(groups) -> None:
                       help="replace existing keys; robot and operator keys not named again are removed")
     init.set_defaults(func=cmd_keys_init)
     add = commands.add_parser("add", help="add robot or operator key pairs to an existing key folder",
-                              description="Add DIR/robots/robot-<id>.key(_secret) and DIR/operators/<name>.key"
-                                          "(_secret) for new robots or operators. Every key already in DIR stays "
+                              description="Add FOLDER/robots/robot-<id>.key(_secret) and FOLDER/operators/<name>.key"
+                                          "(_secret) for new robots or operators. Every key already in FOLDER stays "
                                           "as it is; restart the hub to accept the new ones.")
     add.add_argument("folder", nargs="?", type=Path, default=Path("keys"), metavar="FOLDER",
                      help="key folder (default ./keys)")

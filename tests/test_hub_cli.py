@@ -163,7 +163,7 @@ def test_keys_init_and_ctl_error_without_a_hub(tmp_path):
     assert made.returncode == 0, made.stderr
     assert (tmp_path / "keys" / "robots" / "robot-2.key_secret").is_file()
     again = khepri("keys", "init", str(tmp_path / "keys"))
-    assert again.returncode == 2 and "already exists" in again.stderr
+    assert again.returncode == 2 and "error: FOLDER: " in again.stderr and "already exists" in again.stderr
     lonely = khepri("ctl", "status", "--port", "1", "--timeout", "0.3")
     assert lonely.returncode == 1 and "no answer from the hub" in lonely.stderr
 
