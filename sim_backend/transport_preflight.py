@@ -23,6 +23,12 @@ RING_SLACK = 0.95
 # 0.35 m and more as far from any wall. The warning asks for gap + body + IR reach + this margin (0.33 m).
 WALL_MARGIN_M = 0.05
 CAGE_GAP_M = 0.02               # caging robots hold about this far off the surface (keep_gap_while_caging)
+# A cage of fewer members than the behaviour's surface_estimate_min_points (6) reads the object's yaw from few
+# robots, which slide along the faces as the object turns (docs/behaviour.md section 8). Measured with 4
+# members: legs 30-45 degrees off the faces completed 0 of 7 runs, a 30-degree turn 5 of 12. Smaller angles
+# were not measured, hence a threshold between.
+SMALL_CAGE_TURN_DEG = 20.0
+FACE_SHARE = 0.1                # a hull edge is a face (its normal an axis to push along) from this share of the hull
 
 
 def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
@@ -40,6 +46,8 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
                      "neighbours")
     if world.geometry is not None and spacing is not None:
         found += _cage_fits(world.geometry, spacing, spec.radius_m)
+    if world.geometry is not None and spacing is not None and scenario.object is not None:
+        found += _small_cage_turns(scenario, world.geometry, spacing, spec.radius_m, params)
     if world.geometry is not None and scenario.arena.walls is not None:
         needed = CAGE_GAP_M + 2.0 * spec.radius_m + spec.proximity_range_m + WALL_MARGIN_M
         found += _room_to_walls(scenario, world.geometry, needed)
@@ -97,7 +105,7 @@ def _faults(scenario: Any) -> List[str]:
 def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[str]:
     """The ring the cage lies on (the object's convex hull grown by a robot's radius and its gap) must hold
     MIN_CAGE robots I_d apart; the behaviour only ever widens I_d (the `grow` levels), never narrows it."""
-    ring = hull_perimeter(geometry) + 2.0 * math.pi * (robot_radius + CAGE_GAP_M)
+    ring = _cage_ring(geometry, robot_radius)
     if ring >= RING_SLACK * MIN_CAGE * spacing:       # also whenever MIN_CAGE robots fit outright
         return []
     fit = int(ring // spacing)
@@ -105,6 +113,57 @@ def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[
     return [f"params.inter_robot_distance_m: only {fit} {robots} {spacing:g} m apart round this object (the "
             f"cage ring is {ring:.2f} m long), and a cage needs {MIN_CAGE}: it cannot close. Set "
             f"params.inter_robot_distance_m to {math.floor(100 * ring / MIN_CAGE) / 100:.2f} m or less"]
+
+
+def _small_cage_turns(scenario: Any, geometry: Geometry, spacing: float, robot_radius: float,
+                      params: Any) -> List[str]:
+    """A small cage often misses the object turning: on a leg that runs across its faces (the object turns
+    towards pushing a face flat) and on a turn the path asks for. Said once per leg, naming the waypoint."""
+    ring = _cage_ring(geometry, robot_radius)
+    members = min(scenario.robots.count, int(ring // spacing))
+    small = getattr(params, "surface_estimate_min_points", 6)
+    if members >= small or members < MIN_CAGE:
+        return []
+    normals = _face_normals(geometry)
+    cage = (f"a cage of about {members} robots (its ring is {ring:.2f} m, params.inter_robot_distance_m "
+            f"{spacing:g} m)")
+    advice = ("often does not see the object turn, and the run ends off in yaw (docs/behaviour.md section 8). "
+              "Legs along the object's faces with no turns avoid it; a smaller params.inter_robot_distance_m "
+              f"(a cage of {small} or more) helps in some runs")
+    found = []
+    x, y, yaw = scenario.object.position[0], scenario.object.position[1], scenario.object.yaw_deg
+    for i, (wx, wy, wyaw) in enumerate(scenario.path):
+        turn = abs(_wrap_deg(wyaw - yaw))
+        off = _off_faces_deg(math.degrees(math.atan2(wy - y, wx - x)) - yaw, normals) \
+            if math.hypot(wx - x, wy - y) > 0.05 else 0.0
+        if off > SMALL_CAGE_TURN_DEG:
+            found.append(f"path[{i}]: the object would travel {off:.0f} degrees off the normals of its faces with "
+                         f"{cage}; such a cage {advice}")
+        elif turn > SMALL_CAGE_TURN_DEG:
+            found.append(f"path[{i}]: the object would turn {turn:.0f} degrees with {cage}; such a cage {advice}")
+        x, y, yaw = wx, wy, wyaw
+    return found
+
+
+def _face_normals(geometry: Geometry) -> List[float]:
+    """Outward normal angles (degrees, object frame) of the hull's long edges: the directions a push along
+    which keeps a face square to it. None for a round object (no edge is long)."""
+    hull = _convex_hull(np.vstack(geometry.outline_polygons()))
+    edges = np.roll(hull, -1, axis=0) - hull
+    lengths = np.hypot(edges[:, 0], edges[:, 1])
+    long = lengths >= FACE_SHARE * lengths.sum()
+    return [math.degrees(math.atan2(-ex, ey)) for ex, ey in edges[long].tolist()]
+
+
+def _off_faces_deg(direction_deg: float, normals: List[float]) -> float:
+    """How far a travel direction is from the nearest face normal, either way along it (0 when no faces)."""
+    if not normals:
+        return 0.0
+    return min(min(abs(_wrap_deg(direction_deg - n)), abs(_wrap_deg(direction_deg - n + 180.0))) for n in normals)
+
+
+def _wrap_deg(angle: float) -> float:
+    return (angle + 180.0) % 360.0 - 180.0
 
 
 def _room_to_walls(scenario: Any, geometry: Geometry, needed: float) -> List[str]:
@@ -124,6 +183,11 @@ def _room_to_walls(scenario: Any, geometry: Geometry, needed: float) -> List[str
                          f"{needed:.2f} m (their gap, a body, the IR's reach and a margin) to get round it, and "
                          "their IR cannot tell the wall from the object")
     return found
+
+
+def _cage_ring(geometry: Geometry, robot_radius: float) -> float:
+    """The length of the ring the cage lies on: the convex hull grown by a robot's radius and its gap."""
+    return hull_perimeter(geometry) + 2.0 * math.pi * (robot_radius + CAGE_GAP_M)
 
 
 def hull_perimeter(geometry: Geometry) -> float:

@@ -137,3 +137,25 @@ def test_the_disc_the_preflight_no_longer_warns_about_does_cage(make_scenario):
                          arena={"walls": [-2, -2, 2, 2]}, time_limit_s=150)
     result = Simulation(disc, seed=2).run()
     assert result["caged"] and result["completed"], result["failures"]
+
+
+def test_a_small_cage_asked_to_push_across_its_faces_or_to_turn_is_warned_about(make_scenario):
+    """4 members round a box completed none of 7 runs on legs 30-45 degrees off its faces, 5 of 12 with a
+    30-degree turn (docs/behaviour.md section 8): the user hears it before the run, naming the waypoint."""
+    diagonal = Simulation(transport(make_scenario, path=[[0.3, 0.3, 0], [0.6, 0.3, 0]])).warnings
+    assert len(diagonal) == 1 and diagonal[0].startswith(
+        "path[0]: the object would travel 45 degrees off the normals of its faces with a cage of about 4 robots")
+    turned_box = {"shape": "box", "size": [0.5, 0.3], "mass": 0.3, "position": [0, 0], "yaw_deg": 30}
+    started_turned = Simulation(transport(make_scenario, object=turned_box, path=[[0.5, 0.0, 30]])).warnings
+    assert [w[:50] for w in started_turned] == ["path[0]: the object would travel 30 degrees off th"]
+    turn = Simulation(transport(make_scenario, path=[[0.5, 0.0, 0], [0.5, 0.0, 30]])).warnings
+    assert len(turn) == 1 and turn[0].startswith("path[1]: the object would turn 30 degrees with a cage of about 4")
+    assert "params.inter_robot_distance_m" in turn[0] and "behaviour.md" in turn[0]
+
+
+def test_small_cages_on_legs_along_their_faces_round_objects_and_large_cages_are_not_warned_about(make_scenario):
+    along = transport(make_scenario, path=[[0.5, 0.0, 0], [0.5, 0.5, 0], [0.5, 0.5, 10]])   # a 10-degree touch-up
+    disc = transport(make_scenario, object={"shape": "circle", "radius": 0.2, "mass": 0.3, "position": [0, 0]},
+                     path=[[0.3, 0.3, 0]])
+    larger = transport(make_scenario, path=[[0.3, 0.3, 0], [0.3, 0.3, 60]], params={"inter_robot_distance_m": 0.3})
+    assert [Simulation(s).warnings for s in (along, disc, larger)] == [[], [], []]
