@@ -12,10 +12,11 @@ from onboard.config import ConfigError
 from onboard.hal import RobotSpec
 
 from .config import LabConfig, check_watchdog
+from .replay_source import ReplaySource
 from .security import KeyRing, exposed_secret, load_keyring
 from .sensors import SensingModel
 from .server import Hub, RunTemplate
-from .sources import MotionCaptureSource, PoseSource, ReplaySource
+from .sources import MotionCaptureSource, PoseSource
 
 
 def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Optional[zmq.Context] = None,

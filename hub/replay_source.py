@@ -1,0 +1,164 @@
+"""The ``replay`` pose source: a recorded MCAP log's ``/mocap/poses``, paced by their stamps."""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable, List, Optional, Tuple
+
+import numpy as np
+
+from onboard.config import ConfigError
+
+from .sources import PoseFrame, PoseSource, pose_from_mocap
+
+
+class ReplaySource(PoseSource):
+    """Poses from a recorded log's ``/mocap/poses`` topic, paced by their stamps at ``rate``.
+
+    A record that cannot be read as poses is skipped (one log line a second at most): a replay is a tool for
+    looking at a run, and one damaged record must not end it. A log that holds no such record at all is not a
+    hub recording, which is said at start."""
+
+    def __init__(self, path: str, rate: float = 1.0, log: Callable[[str], None] = print):
+        from hub.log_summary import LogReader
+        from hub.recording import LogError
+
+        self.description = f"replay {path}"
+        self.not_the_real_robots = "a replay's poses come from a recording"
+        self.path, self.rate, self.log = path, rate, log
+        try:
+            self.reader = LogReader(path)
+        except LogError as err:      # it names the file already: say the problem once
+            raise ConfigError("source.file", f"cannot read {path}: {err.problem}") from None
+        self.records = self._pose_messages()
+        self.pending: Optional[Tuple[int, Any]] = None     # (position among the pose records, MCAP message)
+        self.first_stamp: Optional[float] = None
+        self.started_at: Optional[float] = None
+        self.finished = False
+        self.skipped = 0
+        self._skips_unsaid = 0
+        self._last_skip_line = -math.inf
+        self._fetch()
+        if self.pending is None:
+            if self.reader.stop_reason:           # a hub log cut short before its first poses, not another file
+                raise ConfigError("source.file", f"{path} holds no /mocap/poses records: it is truncated "
+                                                 f"({self.reader.stop_reason})")
+            raise ConfigError("source.file", f"{path} holds no /mocap/poses records (not a khepri hub recording?)")
+
+    def never_placed(self, ids: List[int]) -> List[int]:
+        """Those of ``ids`` that no readable ``/mocap/poses`` record of the log places: the replay would hold
+        them all along. Reads the log (a second reader) only until every one of ``ids`` has been seen."""
+        from hub.log_summary import LogReader
+        from hub.recording import MOCAP_POSES, LogError
+
+        missing = set(ids)
+        try:
+            for topic, message in LogReader(self.path).messages():
+                if not missing:
+                    break
+                if topic == MOCAP_POSES:
+                    try:
+                        missing.difference_update(poses_from_record(message.data)[0])
+                    except (KeyError, TypeError, ValueError, AttributeError):
+                        continue     # the replay skips it too, and says so when it gets there
+        except LogError:             # damaged beyond what the reader walks past: what was read is the log
+            pass
+        return sorted(missing)
+
+    def _pose_messages(self):
+        from hub.recording import MOCAP_POSES
+
+        count = 0
+        for topic, message in self.reader.messages():
+            if topic == MOCAP_POSES:
+                yield count, message
+                count += 1
+
+    def _fetch(self) -> None:
+        from hub.recording import LogError
+
+        try:
+            self.pending = next(self.records)
+            return
+        except StopIteration:
+            reason = self.reader.stop_reason if not self.reader.complete else ""
+        except LogError as err:      # damaged beyond what the reader walks past: what was read is the log
+            reason = err.problem
+        self.pending = None
+        if not self.finished and self.first_stamp is not None:
+            self.finished = True
+            damaged = self.reader.damaged
+            if damaged:      # skipped on the way, the records after them were replayed
+                reason = "; ".join(filter(None, [reason, f"{len(damaged)} damaged record(s) skipped: {damaged[0]}"]))
+            if self._skips_unsaid:
+                reason = "; ".join(filter(None, [reason, f"{self.skipped} unreadable pose records skipped in all"]))
+            self.log("hub: replay reached the end of the log" + (f" ({reason})" if reason else ""))
+
+    def _stamp(self, message) -> float:
+        return message.log_time / 1e9
+
+    def _due_at(self) -> float:
+        return self.started_at + (self._stamp(self.pending[1]) - self.first_stamp) / self.rate
+
+    def poll(self, now: float) -> List[PoseFrame]:
+        out = []
+        while self.pending is not None:
+            if self.first_stamp is None:
+                self.first_stamp, self.started_at = self._stamp(self.pending[1]), now
+            if self._due_at() > now:
+                break
+            frame = self._to_frame(*self.pending, now)
+            if frame is not None:
+                out.append(frame)
+            self._fetch()
+        return out[-1:]   # latest-only: a late hub skips to the newest frame
+
+    def _to_frame(self, index: int, message, now: float) -> Optional[PoseFrame]:
+        try:
+            ids, poses, clock_s = poses_from_record(message.data)
+        except (KeyError, TypeError, ValueError, AttributeError) as err:
+            self._skip(index, message, str(err) or type(err).__name__)
+            return None
+        return PoseFrame(now, ids, poses, clock_s=clock_s)
+
+    def _skip(self, index: int, message, reason: str) -> None:
+        self.skipped += 1
+        now = time.monotonic()
+        if now - self._last_skip_line < 1.0:
+            self._skips_unsaid += 1
+            return
+        self._last_skip_line = now
+        more = f" (+{self._skips_unsaid} more skipped in the last second)" if self._skips_unsaid else ""
+        self._skips_unsaid = 0
+        into = self._stamp(message) - self.first_stamp
+        self.log(f"hub: replay: skipping /mocap/poses record {index} ({into:.3f} s into the log): {reason}{more}")
+
+    def next_due(self, now: float) -> float:
+        if self.pending is None:
+            return 0.1
+        if self.first_stamp is None:
+            return 0.0
+        return max(0.0, self._due_at() - now)
+
+
+def poses_from_record(data: bytes) -> Tuple[List[int], np.ndarray, Optional[float]]:
+    """Robot ids, world poses and sim clock of one recorded ``/mocap/poses`` message (its JSON bytes):
+    ``{"bodies": {"<id>": [x, y, z, qx, qy, qz, qw], ...}, "clock_s": ...}``. ValueError, KeyError or
+    TypeError for anything else."""
+    import json
+
+    payload = json.loads(data)
+    if not isinstance(payload, dict):
+        raise ValueError(f"not a JSON object but {type(payload).__name__}")
+    ids, poses = [], []
+    for name, (x, y, _z, qx, qy, qz, qw) in payload["bodies"].items():
+        ids.append(int(name))
+        poses.append(pose_from_mocap((x, y, 0.0), (qw, qx, qy, qz), "z"))
+    array = np.asarray(poses, dtype=float).reshape(len(ids), 3)
+    if not np.isfinite(array).all():
+        raise ValueError("a pose is not finite")
+    clock_s = payload.get("clock_s")
+    if clock_s is not None and (isinstance(clock_s, bool) or not isinstance(clock_s, (int, float))
+                                or not math.isfinite(clock_s)):
+        raise ValueError(f"clock_s must be a finite number (got {clock_s!r})")
+    return ids, array, clock_s
