@@ -26,6 +26,9 @@ CAGE_GAP_M = 0.02               # caging robots hold about this far off the surf
 # Three robots must all join the cage, with none spare, and on a small object they rarely close it: at I_d 0.45 m
 # 1 of 12 runs did on boxes of 0.2-0.35 m and discs of 0.12-0.15 m (rings 2.9-4.4 I_d; seeds 1-2 each), and
 # 2 of 2 on a 0.4 m box (4.8 I_d); four or six robots caged the 0.25-0.35 m boxes and the discs in 20 of 20.
+# Round corners a ring of about 3 I_d is not enough: a 0.2 m box (3.0 I_d) caged in 1 of 4 runs with 4-6
+# robots at I_d 0.45 m, and in 6 of 6 at 0.30-0.35 m; a 0.25 m box (3.5 I_d) in 4 of 4. Discs caged at 2.9 I_d.
+CORNERED_RING = 3.25
 THREE_ROBOT_RING = 4.5          # in I_d: below it, three robots are warned about
 # A cage of fewer members than the behaviour's surface_estimate_min_points (6) reads the object's yaw from few
 # robots, which slide along the faces as the object turns (docs/behaviour.md section 8). Measured with 4
@@ -111,13 +114,20 @@ def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[
     """The ring the cage lies on (the object's convex hull grown by a robot's radius and its gap) must hold
     MIN_CAGE robots I_d apart; the behaviour only ever widens I_d (the `grow` levels), never narrows it."""
     ring = _cage_ring(geometry, robot_radius)
-    if ring >= RING_SLACK * MIN_CAGE * spacing:       # also whenever MIN_CAGE robots fit outright
+    cornered = bool(_face_normals(geometry))
+    if ring >= CORNERED_RING * spacing or (ring >= RING_SLACK * MIN_CAGE * spacing and not cornered):
         return []
+    fitting = 4 if cornered else MIN_CAGE      # the spacing suggested leaves a ring of this many spacings
+    if ring >= RING_SLACK * MIN_CAGE * spacing:       # room for 3, but round corners they rarely settle
+        return [f"params.inter_robot_distance_m: the cage ring round this object is only {ring / spacing:.1f} x "
+                f"{spacing:g} m ({ring:.2f} m), and round a small object with corners such a cage rarely closes "
+                "(a 0.2 m box: 1 of 4 runs with 4-6 robots, 6 of 6 at 0.30-0.35 m). Set "
+                f"params.inter_robot_distance_m to {math.floor(100 * ring / fitting) / 100:.2f} m or less"]
     fit = int(ring // spacing)
     robots = "robot fits" if fit == 1 else "robots fit"
     return [f"params.inter_robot_distance_m: only {fit} {robots} {spacing:g} m apart round this object (the "
             f"cage ring is {ring:.2f} m long), and a cage needs {MIN_CAGE}: it cannot close. Set "
-            f"params.inter_robot_distance_m to {math.floor(100 * ring / MIN_CAGE) / 100:.2f} m or less"]
+            f"params.inter_robot_distance_m to {math.floor(100 * ring / fitting) / 100:.2f} m or less"]
 
 
 def _three_robots(count: int, geometry: Geometry, spacing: float, robot_radius: float) -> List[str]:

@@ -170,3 +170,18 @@ def test_three_robots_round_a_small_object_are_warned_about(make_scenario, count
     warnings = Simulation(transport(make_scenario, object=box, robots=robots)).warnings
     assert [w.split(" (")[0] for w in warnings] == (
         ["robots.count: 3 robots must all join the cage round this object"] if warned else [])
+
+
+def test_a_ring_of_about_three_spacings_round_corners_is_warned_about_with_a_spacing_that_fits(make_scenario):
+    """A 0.2 m box (ring 3.0 I_d) caged in 1 of 4 runs with 4-6 robots at I_d 0.45 m and 6 of 6 at 0.30-0.35
+    m; a disc with a ring as short (2.9 I_d) cages, so only cornered objects are warned about."""
+    six = {"count": 6, "spawn": {"x": [-1.5, -0.7], "y": [-1.5, -0.7]}}
+    box = {"shape": "box", "size": [0.2, 0.2], "mass": 0.3, "position": [0, 0]}
+    warnings = Simulation(transport(make_scenario, object=box, robots=six)).warnings
+    assert len(warnings) == 1 and "such a cage rarely closes" in warnings[0]
+    suggested = float(warnings[0].split("to ")[-1].split(" m")[0])
+    assert 0.30 <= suggested <= 0.35
+    fitted = transport(make_scenario, object=box, robots=six, params={"inter_robot_distance_m": suggested})
+    disc = {"shape": "circle", "radius": 0.12, "mass": 0.3, "position": [0, 0]}
+    round_one = transport(make_scenario, object=disc, robots=six)
+    assert Simulation(fitted).warnings == [] and Simulation(round_one).warnings == []
