@@ -23,13 +23,9 @@ RING_SLACK = 0.95
 # 0.35 m and more as far from any wall. The warning asks for gap + body + IR reach + this margin (0.33 m).
 WALL_MARGIN_M = 0.05
 CAGE_GAP_M = 0.02               # caging robots hold about this far off the surface (keep_gap_while_caging)
-# Three robots must all join the cage, with none spare, and on a small object they rarely close it: at I_d 0.45 m
-# 1 of 12 runs did on boxes of 0.2-0.35 m and discs of 0.12-0.15 m (rings 2.9-4.4 I_d; seeds 1-2 each), and
-# 2 of 2 on a 0.4 m box (4.8 I_d); four or six robots caged the 0.25-0.35 m boxes and the discs in 20 of 20.
 # Round corners a ring of about 3 I_d is not enough: a 0.2 m box (3.0 I_d) caged in 1 of 4 runs with 4-6
 # robots at I_d 0.45 m, and in 6 of 6 at 0.30-0.35 m; a 0.25 m box (3.5 I_d) in 4 of 4. Discs caged at 2.9 I_d.
 CORNERED_RING = 3.25
-THREE_ROBOT_RING = 4.5          # in I_d: below it, three robots are warned about
 # A cage of fewer members than the behaviour's surface_estimate_min_points (6) reads the object's yaw from few
 # robots, which slide along the faces as the object turns (docs/behaviour.md section 8). Measured with 4
 # members: legs 30-45 degrees off the faces completed 0 of 7 runs, a 30-degree turn 5 of 12. Smaller angles
@@ -53,7 +49,6 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
                      "neighbours")
     if world.geometry is not None and spacing is not None:
         found += _cage_fits(world.geometry, spacing, spec.radius_m)
-        found += _three_robots(scenario.robots.count, world.geometry, spacing, spec.radius_m)
     if world.geometry is not None and spacing is not None and scenario.object is not None:
         found += _small_cage_turns(scenario, world.geometry, spacing, spec.radius_m, params)
     if world.geometry is not None and scenario.arena.walls is not None:
@@ -128,16 +123,6 @@ def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[
     return [f"params.inter_robot_distance_m: only {fit} {robots} {spacing:g} m apart round this object (the "
             f"cage ring is {ring:.2f} m long), and a cage needs {MIN_CAGE}: it cannot close. Set "
             f"params.inter_robot_distance_m to {math.floor(100 * ring / fitting) / 100:.2f} m or less"]
-
-
-def _three_robots(count: int, geometry: Geometry, spacing: float, robot_radius: float) -> List[str]:
-    ring = _cage_ring(geometry, robot_radius)
-    if count != MIN_CAGE or ring >= THREE_ROBOT_RING * spacing or ring < RING_SLACK * MIN_CAGE * spacing:
-        return []
-    return [f"robots.count: 3 robots must all join the cage round this object (its ring is {ring:.2f} m, "
-            f"{ring / spacing:.1f} x params.inter_robot_distance_m), with none spare, and on an object this "
-            "small they rarely close it (1 of 12 runs on boxes of 0.2-0.35 m and discs of 0.12-0.15 m; "
-            "docs/scenarios.md). Use 4 or more robots"]
 
 
 def _small_cage_turns(scenario: Any, geometry: Geometry, spacing: float, robot_radius: float,

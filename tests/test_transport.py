@@ -1,4 +1,5 @@
 """The transport behaviour: what works today, and the rule that robots never see the object's true pose."""
+import dataclasses
 import math
 from types import SimpleNamespace
 
@@ -573,6 +574,38 @@ def test_i_d_grows_only_when_no_open_target_gets_a_bid():
     for now in range(60 + int(patience), 60 + int(patience) + 5):
         transport._grow_if_out_of_robots(float(now) + 0.5)
     assert board.grow_level() >= 1
+
+
+def test_i_d_does_not_grow_while_a_live_robot_is_on_its_way_to_its_slot():
+    """A target nobody bids for, but robot 5 holds another and has not joined yet: its arrival may close the
+    cage, so I_d waits. It grows once robot 5 has joined, or once robot 5 is silent (dead on its way)."""
+    transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
+    board, me = transport.board, transport.robot.id
+    patience = 3 * transport.params.allocation_time_s
+    waiting, taken = Task("L3", 1.0, 0.0, "L", 3, me, 0), Task("R2", -1.0, 0.0, "R", 2, 11, 0)
+    board.put_task(waiting)
+    board.put_task(taken)
+    board.take(taken, 5, 2.0)
+    transport.spawned_times[("L3", 0)] = 0.0
+    start = 10.0 + patience
+    board.heartbeat(5, -1.0, 0.2, None, now=start)
+    board.refresh_liveness(start)
+    for now in range(int(start), int(start) + 3):
+        transport._grow_if_out_of_robots(float(now))
+    assert board.grow_level() == 0                            # robot 5 is alive and still travelling
+    board.join_cage(5, taken)
+    for now in range(int(start) + 3, int(start) + 6):
+        transport._grow_if_out_of_robots(float(now))
+    assert board.grow_level() >= 1
+
+
+def test_three_robots_cage_a_small_box_and_deliver_it():
+    """Three robots round a 0.3 m box (ring 3.9 I_d) never caged: while the third travelled to its slot, I_d
+    grew and the second member slid on round the box past where the third could reach it."""
+    scenario = load_scenario("lab-6").with_overrides(robots=dataclasses.replace(load_scenario("lab-6").robots, count=3))
+    box = dataclasses.replace(scenario.object, size=(0.3, 0.3), mass=0.3)
+    result = Simulation(dataclasses.replace(scenario, object=box, time_limit_s=300.0), seed=1).run()
+    assert result["caged"] and result["cage_size"] == 3 and result["completed"], result["failures"]
 
 
 def test_a_member_shoved_beyond_its_predecessor_slides_back_toward_it():

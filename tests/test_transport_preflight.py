@@ -161,17 +161,6 @@ def test_small_cages_on_legs_along_their_faces_round_objects_and_large_cages_are
     assert [Simulation(s).warnings for s in (along, disc, larger)] == [[], [], []]
 
 
-@pytest.mark.parametrize("count, size, warned", [(3, 0.3, True), (4, 0.3, False), (3, 0.45, False)])
-def test_three_robots_round_a_small_object_are_warned_about(make_scenario, count, size, warned):
-    """Three robots on a 0.3 m box (ring 3.9 I_d) never caged in 4 runs, four did in 4 of 4; a 0.45 m box
-    (ring 5.2 I_d) is large enough for three."""
-    box = {"shape": "box", "size": [size, size], "mass": 0.3, "position": [0, 0]}
-    robots = {"count": count, "spawn": {"x": [-1.5, -0.7], "y": [-1.5, -0.7]}}
-    warnings = Simulation(transport(make_scenario, object=box, robots=robots)).warnings
-    assert [w.split(" (")[0] for w in warnings] == (
-        ["robots.count: 3 robots must all join the cage round this object"] if warned else [])
-
-
 def test_a_ring_of_about_three_spacings_round_corners_is_warned_about_with_a_spacing_that_fits(make_scenario):
     """A 0.2 m box (ring 3.0 I_d) caged in 1 of 4 runs with 4-6 robots at I_d 0.45 m and 6 of 6 at 0.30-0.35
     m; a disc with a ring as short (2.9 I_d) cages, so only cornered objects are warned about."""

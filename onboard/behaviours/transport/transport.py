@@ -164,9 +164,23 @@ class TransportPhases:
                 continue
             opened = self.spawned_times.get((task.tid, task.epoch), now)
             if now - opened > patience and self.board.best_bid(task) is None:
+                if self._robot_on_its_way(now):
+                    return
                 self.space.put("grow", {"level": self.board.grow_level() + 1})
                 self.grow_at = now
                 return
+
+    def _robot_on_its_way(self, now: float) -> bool:
+        """Ours: a live robot holds a task and has not joined the cage yet; its arrival may close the cage, so
+        I_d does not grow meanwhile. Three robots round a 0.3 m box never caged: while the third travelled,
+        the second member slid on round the object with every growth, away from the seed and past the chord
+        the third could reach (docs/behaviour.md section 8)."""
+        for task in self.board.tasks():
+            owner = None if task.cancelled else self.board.owner(task)
+            if owner is not None and not self.board.is_member(owner["robot"]) \
+                    and self.board.alive(owner["robot"], now):
+                return True
+        return False
 
     # --- settle: even out the spacing once the ring is closed --------------------------------------------
     def _on_settle(self, now: float) -> None:
