@@ -157,7 +157,7 @@ def _small_cage_turns(scenario: Any, geometry: Geometry, spacing: float, robot_r
 
 def _face_normals(geometry: Geometry) -> List[float]:
     """Outward normal angles (degrees, object frame) of the hull's long edges: the directions a push along
-    which keeps a face square to it. None for a round object (no edge is long)."""
+    which keeps a face square to it. Empty for a round object: no edge is long."""
     hull = _convex_hull(np.vstack(geometry.outline_polygons()))
     edges = np.roll(hull, -1, axis=0) - hull
     lengths = np.hypot(edges[:, 0], edges[:, 1])
