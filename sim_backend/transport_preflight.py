@@ -26,11 +26,13 @@ CAGE_GAP_M = 0.02               # caging robots hold about this far off the surf
 # Round corners a ring of about 3 I_d is not enough: a 0.2 m box (3.0 I_d) caged in 1 of 4 runs with 4-6
 # robots at I_d 0.45 m, and in 6 of 6 at 0.30-0.35 m; a 0.25 m box (3.5 I_d) in 4 of 4. Discs caged at 2.9 I_d.
 CORNERED_RING = 3.25
-# A cage of fewer members than the behaviour's surface_estimate_min_points (6) reads the object's yaw from few
-# robots, which slide along the faces as the object turns (docs/behaviour.md section 8). Measured with 4
-# members: legs 30-45 degrees off the faces completed 0 of 7 runs, a 30-degree turn 5 of 12. Smaller angles
-# were not measured, hence a threshold between.
+# A small cage reads the object's yaw from few robots, which slide along the faces as the object turns
+# (docs/behaviour.md section 8). Measured with 4 members: legs 30-45 degrees off the faces completed 0 of 7
+# runs, a 30-degree turn 5 of 12; with 6 members, turns of 60 and 90 degrees 1 of 6; with a ring of about 10
+# I_d, a 90-degree turn 2 of 3; cages of 17 or more turn within the tolerance (paper-25-straight_rot).
+# Smaller angles were not measured, hence a threshold between.
 SMALL_CAGE_TURN_DEG = 20.0
+SMALL_CAGE_MEMBERS = 8          # cages of fewer members are warned about
 FACE_SHARE = 0.1                # a hull edge is a face (its normal an axis to push along) from this share of the hull
 
 
@@ -50,7 +52,7 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
     if world.geometry is not None and spacing is not None:
         found += _cage_fits(world.geometry, spacing, spec.radius_m)
     if world.geometry is not None and spacing is not None and scenario.object is not None:
-        found += _small_cage_turns(scenario, world.geometry, spacing, spec.radius_m, params)
+        found += _small_cage_turns(scenario, world.geometry, spacing, spec.radius_m)
     if world.geometry is not None and scenario.arena.walls is not None:
         needed = CAGE_GAP_M + 2.0 * spec.radius_m + spec.proximity_range_m + WALL_MARGIN_M
         found += _room_to_walls(scenario, world.geometry, needed)
@@ -125,21 +127,19 @@ def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[
             f"params.inter_robot_distance_m to {math.floor(100 * ring / fitting) / 100:.2f} m or less"]
 
 
-def _small_cage_turns(scenario: Any, geometry: Geometry, spacing: float, robot_radius: float,
-                      params: Any) -> List[str]:
+def _small_cage_turns(scenario: Any, geometry: Geometry, spacing: float, robot_radius: float) -> List[str]:
     """A small cage often misses the object turning: on a leg that runs across its faces (the object turns
     towards pushing a face flat) and on a turn the path asks for. Said once per leg, naming the waypoint."""
     ring = _cage_ring(geometry, robot_radius)
     members = min(scenario.robots.count, int(ring // spacing))
-    small = getattr(params, "surface_estimate_min_points", 6)
-    if members >= small or members < MIN_CAGE:
+    if members >= SMALL_CAGE_MEMBERS or members < MIN_CAGE:
         return []
     normals = _face_normals(geometry)
     cage = (f"a cage of about {members} robots (its ring is {ring:.2f} m, params.inter_robot_distance_m "
             f"{spacing:g} m)")
     advice = ("often does not see the object turn, and the run ends off in yaw (docs/behaviour.md section 8). "
               "Legs along the object's faces with no turns avoid it; a smaller params.inter_robot_distance_m "
-              f"(a cage of {small} or more) helps in some runs")
+              "(a larger cage) helps in some runs")
     found = []
     x, y, yaw = scenario.object.position[0], scenario.object.position[1], scenario.object.yaw_deg
     for i, (wx, wy, wyaw) in enumerate(scenario.path):
