@@ -20,6 +20,7 @@ from onboard.behaviours.transport.estimator import (
 from onboard.behaviours.transport.params import IMPROVEMENT_FLAGS
 from onboard.behaviours.transport.perception import Percept
 from onboard.behaviours.transport.tasks import Task
+from onboard.behaviours.transport.transport import ON_ITS_WAY_WAIT_S
 from onboard.config import ConfigError
 from onboard.hal.ir_curve import ir_distance_m, ir_response
 from sim_backend.runner import Simulation
@@ -578,7 +579,7 @@ def test_i_d_grows_only_when_no_open_target_gets_a_bid():
 
 def test_i_d_does_not_grow_while_a_live_robot_is_on_its_way_to_its_slot():
     """A target nobody bids for, but robot 5 holds another and has not joined yet: its arrival may close the
-    cage, so I_d waits. It grows once robot 5 has joined, or once robot 5 is silent (dead on its way)."""
+    cage, so I_d waits, for ON_ITS_WAY_WAIT_S at most (a robot stuck on its way must not hold the swarm)."""
     transport = Simulation(load_scenario("lab-6"), seed=1).behaviours[0]
     board, me = transport.board, transport.robot.id
     patience = 3 * transport.params.allocation_time_s
@@ -593,10 +594,15 @@ def test_i_d_does_not_grow_while_a_live_robot_is_on_its_way_to_its_slot():
     for now in range(int(start), int(start) + 3):
         transport._grow_if_out_of_robots(float(now))
     assert board.grow_level() == 0                            # robot 5 is alive and still travelling
-    board.join_cage(5, taken)
-    for now in range(int(start) + 3, int(start) + 6):
+    late = start + ON_ITS_WAY_WAIT_S + 1.0                    # stuck on its way: the swarm waits no longer
+    board.heartbeat(5, -1.1, 0.2, None, now=late)
+    board.refresh_liveness(late)
+    transport._grow_if_out_of_robots(late)
+    assert board.grow_level() == 1
+    board.join_cage(5, taken)                                 # a member now: growth goes on as before
+    for now in range(int(late) + 2, int(late) + 5):
         transport._grow_if_out_of_robots(float(now))
-    assert board.grow_level() >= 1
+    assert board.grow_level() >= 2
 
 
 def test_three_robots_cage_a_small_box_and_deliver_it():
@@ -881,9 +887,10 @@ def test_a_seed_that_dies_before_closure_is_replaced_and_the_box_still_arrives(t
     sim = lab_box_with_a_death(tmp_path / "dead-seed.yaml", robot=4, at_s=40, time_limit_s=200, seed=1)
     result = sim.run()
     assert result["caged"] and result["completed"], result["failures"]
-    # 0.045 m until side robots far ahead of their formation stopped (PACE_STOP_M, 2026-11-22): 0.058 m since;
-    # this new seed settles behind the dead one, so the sides look ahead of it (docs/behaviour.md section 8).
-    assert result["final_position_error_m"] <= 0.06
+    # 0.045 m until side robots far ahead of their formation stopped (PACE_STOP_M, 2026-11-22): 0.058 m since,
+    # and 0.065 m since I_d waits for a robot on its way to its slot (ON_ITS_WAY_WAIT_S); this new seed settles
+    # behind the dead one, so the sides look ahead of it (docs/behaviour.md section 8).
+    assert result["final_position_error_m"] <= 0.07
     board = sim.behaviours[0].board
     seed = board.seed_member()
     assert seed is not None and seed != 4 and 4 not in board.members()    # the dead seed no longer counts
@@ -943,7 +950,10 @@ def test_a_cage_with_nobody_behind_its_object_does_not_chase_it_away_from_the_wa
     every member on the waypoint's side of it. Those members lose the object as u_t draws them toward the
     waypoint; keep_contact sends them back into it, which pushed it away from the waypoint: 1.2 m from the
     last one at 330 s, on its way 2.1 m into the wall. The spares now see the cage make no progress toward
-    its waypoint (reinforce_when_stalled_s) and push from behind: 0.13 m (section 8)."""
+    its waypoint (reinforce_when_stalled_s) and push from behind: 0.13 m (section 8). Since I_d waits for a
+    robot on its way to its slot (ON_ITS_WAY_WAIT_S), this run's cage closes later (288 s, 6 members) round the
+    drifted triangle and delivers it 0.17 m from the last waypoint without stalling; the spares' push on a stall
+    is tested on a heavy box (test_the_robots_left_out_push_a_box_too_heavy_for_the_cage_once_it_stalls)."""
     from onboard.behaviours.transport.caging import CagingPhases
 
     monkeypatch.setattr(CagingPhases, "_shoving", lambda self, now, contact: False)
@@ -951,7 +961,6 @@ def test_a_cage_with_nobody_behind_its_object_does_not_chase_it_away_from_the_wa
     sim.run()
     x, y, _ = sim.world.object_pose()
     assert math.hypot(x + 0.3, y - 0.7) < 0.3
-    assert any(b.push_stalled for b in sim.behaviours)
 
 
 @pytest.mark.parametrize("seed", [2, 3])

@@ -55,6 +55,7 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
         self.settle_window: Deque[Tuple[float, Vec]] = deque(maxlen=AVERAGE_SETTLE_STEPS)   # _settled_on_average
         self.spawned: Optional[str] = None       # the task this robot opened for its successor
         self.spawned_times: Dict[Tuple[str, int], float] = {}   # (tid, epoch) -> when this robot opened it
+        self.on_its_way_since: Dict[Tuple[str, int, int], float] = {}   # (tid, epoch, robot) -> first seen so
         self.path: list = []
         self.estimated_at = 0.0
         self.grow_at = 0.0

@@ -17,6 +17,7 @@ from .heartbeat import HEARTBEAT_RULES
 from .tasks import Task
 
 GROW_PERIOD_S = 1.0           # out of robots: I_d grows one level (2 %) per second
+ON_ITS_WAY_WAIT_S = 30.0      # I_d waits this long at most for a robot on its way to its slot (_robot_on_its_way)
 OUT_OF_ROBOTS_FACTOR = 3.0    # a target nobody took for 3 T_a means the swarm has no robot left for it
 CONTACT_GAIN = 0.3            # gentle push toward the object while holding a cage position
 SPACING_GAIN = 4.0
@@ -177,8 +178,11 @@ class TransportPhases:
         the third could reach (docs/behaviour.md section 8)."""
         for task in self.board.tasks():
             owner = None if task.cancelled else self.board.owner(task)
-            if owner is not None and not self.board.is_member(owner["robot"]) \
-                    and self.board.alive(owner["robot"], now):
+            if owner is None or self.board.is_member(owner["robot"]) or not self.board.alive(owner["robot"], now):
+                continue
+            # A robot stuck on its way (shoving a corner it cannot sense) must not hold the swarm for good.
+            since = self.on_its_way_since.setdefault((task.tid, task.epoch, owner["robot"]), now)
+            if now - since < ON_ITS_WAY_WAIT_S:
                 return True
         return False
 
