@@ -88,8 +88,7 @@ def pose_from_mocap(position, quaternion_wxyz, up_axis: str) -> Tuple[float, flo
 
 
 class _YawReader:
-    """The yaws of some of a frame's bodies (the SDK's objects, kept with the frame), as
-    :func:`poses_from_mocap` computes them."""
+    """The yaws of some of a frame's bodies (the SDK's objects, kept with the frame)."""
 
     def __init__(self, bodies: List[Any], up_axis: str):
         self.bodies, self.up_axis = bodies, up_axis
@@ -99,26 +98,23 @@ class _YawReader:
         return yaws_from_mocap(np.array(wxyz, dtype=float), self.up_axis)
 
 
-def poses_from_mocap(positions: np.ndarray, quaternions_wxyz: Optional[np.ndarray], up_axis: str) -> np.ndarray:
-    """:func:`pose_from_mocap` for many bodies at once: (K, 3) positions, (K, 4) quaternions -> (K, 3).
-    Without quaternions (None) the yaws are NaN.
-
-    Few numpy calls (each costs microseconds when the caches are cold, as they are once per mocap frame): the
-    heading is ``atan2(a, 0.5 - b)`` with both arguments half those of :func:`pose_from_mocap`, which halves
-    them exactly and so gives the same angle."""
+def floor_positions(positions: np.ndarray, up_axis: str) -> np.ndarray:
+    """Many bodies' (K, 3) mocap positions as (K, 3) world x, y and a yaw left NaN (the yaws are read when
+    needed: PoseFrame.yaw_reader, :func:`yaws_from_mocap`), with :func:`pose_from_mocap`'s axis convention."""
     poses = np.empty((len(positions), 3))
     poses[:, :2] = positions[:, (0, 2) if up_axis == "y" else (0, 1)]
     if up_axis == "y":
         np.negative(poses[:, 1], out=poses[:, 1])
-    if quaternions_wxyz is None:        # the yaws are read later (PoseFrame.yaw_reader)
-        poses[:, 2] = np.nan
-    else:
-        poses[:, 2] = yaws_from_mocap(quaternions_wxyz, up_axis)
+    poses[:, 2] = np.nan
     return poses
 
 
 def yaws_from_mocap(quaternions_wxyz: np.ndarray, up_axis: str) -> np.ndarray:
-    """The yaw part of :func:`poses_from_mocap`: (K, 4) quaternions -> (K,)."""
+    """:func:`pose_from_mocap`'s yaw for many bodies at once: (K, 4) quaternions -> (K,).
+
+    Few numpy calls (each costs microseconds when the caches are cold, as they are once per mocap frame): the
+    heading is ``atan2(a, 0.5 - b)`` with both arguments half those of :func:`pose_from_mocap`, which halves
+    them exactly and so gives the same angle."""
     w, qx, qy, qz = np.asarray(quaternions_wxyz, dtype=float).reshape(-1, 4).T
     across = qy * qy
     across += qz * qz                          # (1 - ax) / 2
@@ -259,7 +255,7 @@ class MotionCaptureSource(PoseSource):
 
     def _convert(self, stamp: float, bodies) -> PoseFrame:
         """One mocap frame as a :class:`PoseFrame`: listed bodies only (others are logged once and ignored),
-        in the world frame (:func:`poses_from_mocap`, vectorised), occluded bodies (a non-finite position)
+        in the world frame (:func:`floor_positions`, vectorised), occluded bodies (a non-finite position)
         dropped. Only positions are read here; the yaws when the hub sends or records a row (``yaw_reader``).
 
         The SDK hands out one Python object per body, so reading their fields stays a loop; everything else is
@@ -274,7 +270,7 @@ class MotionCaptureSource(PoseSource):
         if not values:
             return PoseFrame(stamp, [], np.zeros((0, 3)))
         positions = np.concatenate([body.position for body in values]).reshape(-1, 3)
-        poses = poses_from_mocap(positions, None, self.up_axis)      # yaw NaN: read when needed
+        poses = floor_positions(positions, self.up_axis)      # yaw NaN: read when needed
         seen = np.isfinite(poses[:, :2]).all(axis=1)   # occluded bodies come as NaN in some systems
         if not seen.all():
             ids = [rid for rid, ok in zip(ids, seen.tolist()) if ok]
