@@ -31,7 +31,7 @@ class PoseFrame:
     yaw_reader: Optional[Callable[[np.ndarray], np.ndarray]] = None
 
     def yaw_at(self, indices: np.ndarray) -> np.ndarray:
-        """The yaw of these rows, read from the SDK the first time."""
+        """The yaw of these rows, read from the SDK while it is NaN (not read yet, or not finite)."""
         if self.yaw_reader is not None:
             unread = indices[np.isnan(self.poses[indices, 2])]
             if len(unread):
