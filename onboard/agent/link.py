@@ -47,8 +47,7 @@ def unresolvable_host(endpoint: str) -> Optional[Tuple[str, socket.gaierror]]:
     typo in ``--hub`` made the agent wait for ever and ``ctl`` time out as if no hub were running."""
     if not endpoint.startswith("tcp://"):
         return None
-    host = endpoint[len("tcp://"):].rsplit(";", 1)[-1].rpartition(":")[0]    # tcp://[iface;]host:port
-    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    host = unbracket(endpoint[len("tcp://"):].rsplit(";", 1)[-1].rpartition(":")[0])   # tcp://[iface;]host:port
     if not host:
         return None        # no port: ZeroMQ itself refuses the address
     try:
@@ -64,9 +63,14 @@ def resolve_problem(host: str, err: socket.gaierror) -> str:
     return f"cannot resolve the host name {host!r}: {err.strerror} (a typo? or give the hub PC's IP address)"
 
 
+def unbracket(host: str) -> str:
+    """``host`` without the brackets round an IPv6 address in a URL (``[::1]`` gives ``::1``)."""
+    return host[1:-1] if host.startswith("[") and host.endswith("]") else host
+
+
 def ipv6_literal(host: str) -> Optional[str]:
     """``host`` as a bare IPv6 address (``::1`` or ``[::1]`` give ``::1``), or None if it is not one."""
-    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    bare = unbracket(host)
     try:
         return str(ipaddress.IPv6Address(bare)) if ":" in bare else None
     except ValueError:
