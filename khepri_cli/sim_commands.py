@@ -7,7 +7,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 from .signals import sigterm_as_ctrl_c
 
@@ -242,12 +242,19 @@ def cmd_show(args: argparse.Namespace) -> int:
     # and `object`.
     params = to_mapping(build_params(get_behaviour(scenario.behaviour, "behaviour"), scenario.params))
     shown["params"] = {key: value for key, value in params.items()
-                       if key not in MISSION_PARAMS or key in scenario.params}
+                       if (key not in MISSION_PARAMS or key in scenario.params) and not _non_finite(value)}
     print(yaml.safe_dump(shown, sort_keys=False), end="")
     return 0
 
 
 MISSION_PARAMS = ("path", "object_estimate")     # filled in by the runner from the scenario (mission_params)
+
+
+def _non_finite(value: Any) -> bool:
+    """A value no scenario file can give (the loader refuses .inf and .nan), so only the Params' own validate
+    set it (the faithful profile's attach_timeout_s = inf), and it sets it again when the file shown is loaded:
+    printed, it made that file fail with `must be a finite number (got inf)`."""
+    return isinstance(value, float) and not math.isfinite(value)
 
 
 def cmd_bench_sim(args: argparse.Namespace) -> int:

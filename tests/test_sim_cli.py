@@ -217,6 +217,28 @@ def test_sim_show_fills_in_the_behaviours_parameters_and_runs_as_the_scenario_do
     assert np.array_equal(*runs)
 
 
+def test_sim_show_of_a_faithful_scenario_loads_again(tmp_path, capsys):
+    """The faithful profile sets attach_timeout_s to inf, which show printed as .inf, and the file shown was
+    refused: `params.attach_timeout_s: must be a finite number (got inf)`."""
+    import yaml
+
+    from onboard.behaviour import build_params, get_behaviour
+    from sim_backend.runner import mission_params
+    from sim_backend.scenario import load_scenario
+
+    def params(path):
+        loaded = load_scenario(str(path))
+        return build_params(get_behaviour("transport"), mission_params(get_behaviour("transport"), loaded))
+
+    scenario = tmp_path / "faithful.yaml"
+    scenario.write_text("behaviour: transport\nobject: {shape: box, size: [0.3, 0.3]}\npath: [[0, 0.3, 0]]\n"
+                        "params: {profile: faithful}\n")
+    assert main(["sim", "show", str(scenario)]) == 0
+    (tmp_path / "shown.yaml").write_text(capsys.readouterr().out)
+    assert params(tmp_path / "shown.yaml") == params(scenario)
+    assert "attach_timeout_s" not in yaml.safe_load((tmp_path / "shown.yaml").read_text())["params"]
+
+
 def test_sim_show_warns_as_sim_run_does_before_a_doomed_run(tmp_path, capsys):
     """A scenario could be checked with `sim show` and pass, then `sim run` warned that the box sat too close to
     a wall for the robots to get round it."""
