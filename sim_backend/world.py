@@ -31,6 +31,9 @@ COLLISION_SLOP_M = 0.0005        # allowed overlap; pymunk's default (0.1) is me
 ROBOT_CONTACT_FRICTION = 0.4     # plastic shell against foam/cardboard/plastic (combined by product in pymunk)
 OBJECT_CONTACT_FRICTION = 1.0
 WALL_THICKNESS_M = 0.02
+# Robots start at least this far clear of the object and of the walls' inner face (the walls are segments of
+# WALL_THICKNESS_M centred on the arena's edges, so their face lies half a thickness inside).
+SPAWN_GAP_M = 0.01
 
 # Every world not yet garbage-collected, so that the ones still alive when the interpreter exits are freed
 # while it can (see _free_live_worlds).
@@ -231,10 +234,10 @@ class World:
             if any((x - px) ** 2 + (y - py) ** 2 < clearance ** 2 for px, py, _ in placed):
                 blocked["other robots"] += 1
                 continue
-            if self.object_body is not None and self.space.point_query((x, y), radius + 0.01, pymunk.ShapeFilter()):
+            if self._on_object(x, y, radius + SPAWN_GAP_M):
                 blocked["the object"] += 1
                 continue
-            if not self._inside_walls(x, y, radius):
+            if not self._inside_walls(x, y, radius + WALL_THICKNESS_M / 2.0 + SPAWN_GAP_M):
                 blocked["the walls"] += 1
                 continue
             placed.append((x, y, rng.uniform(-math.pi, math.pi)))
@@ -256,6 +259,14 @@ class World:
             raise ConfigError("robots.spawn", f"{count} robots need about {needed:.3g} m² to be placed at random "
                               f"without overlap; x {list(spawn.x)}, y {list(spawn.y)} gives {room:.3g} m²: "
                               f"make the area larger")
+
+    def _on_object(self, x: float, y: float, distance: float) -> bool:
+        """Whether the object lies within ``distance`` of (x, y). The space holds the walls too: counting them
+        here said `most tries landed on the object` of a spawn area that lay on a wall."""
+        if self.object_body is None:
+            return False
+        hits = self.space.point_query((x, y), distance, pymunk.ShapeFilter())
+        return any(hit.shape.body is self.object_body for hit in hits if hit.shape is not None)
 
     def _inside_walls(self, x: float, y: float, margin: float) -> bool:
         walls = self.scenario.arena.walls

@@ -209,6 +209,23 @@ def test_a_spawn_area_that_cannot_hold_the_robots_is_refused_at_once(make_scenar
                             object={"shape": "box", "size": [0.6, 0.6]}), np.random.default_rng(1))
 
 
+def test_a_spawn_area_on_a_wall_is_blamed_on_the_wall_and_robots_start_clear_of_it(make_scenario):
+    """The object's query hit the wall segments too: an area on a wall was said to land `on the object`. And
+    without an object, robots started up to a half wall thickness inside the wall."""
+    from onboard.config import ConfigError
+    from sim_backend.world import WALL_THICKNESS_M
+
+    on_wall = {"x": [-2.0, -1.95], "y": [-1.5, 1.5]}
+    with pytest.raises(ConfigError, match="most tries landed on the walls"):
+        World(make_scenario(robots={"count": 6, "spawn": on_wall}, arena={"walls": [-2, -2, 2, 2]},
+                            object={"shape": "box", "size": [0.5, 0.5]}), np.random.default_rng(1))
+    near_wall = {"x": [-1.93, -1.90], "y": [-1.9, 1.9]}        # centres 0.07-0.10 m from the wall at x = -2
+    world = World(make_scenario(robots={"count": 6, "spawn": near_wall}, arena={"walls": [-2, -2, 2, 2]}),
+                  np.random.default_rng(1))
+    clear = world.spec.radius_m + WALL_THICKNESS_M / 2.0
+    assert all(robot.body.position.x + 2.0 >= clear for robot in world.robots)
+
+
 def test_a_run_whose_robots_have_all_failed_ends_there(make_scenario):
     scenario = make_scenario(robots={"count": 2}, faults=[{"robot": 0, "at_s": 1.0}, {"robot": 1, "at_s": 2.0}],
                              time_limit_s=60)
