@@ -406,10 +406,10 @@ def resolve(name_or_path: str) -> Path:
             raise ConfigError("scenario", f"{name_or_path!r} is both a built-in scenario and a file in this "
                               f"folder: write ./{name_or_path} for the file, or rename the file")
         return path
-    if is_yaml and path.is_dir():
-        raise ConfigError("scenario", f"{name_or_path} is a folder, not a file")
     if not is_yaml and builtin.is_file():
         return builtin     # even when a folder of that name is here (a run's output, say)
+    if path.is_dir():      # with any name: `sim run ./my-runs` said `no such file` of a folder that is there
+        raise ConfigError("scenario", f"{name_or_path} is a folder, not a file")
     if is_yaml or path.exists():
         raise ConfigError("scenario", f"no such file: {name_or_path}")
     raise ConfigError("scenario", f"unknown scenario {name_or_path!r}: not a file and not built in "

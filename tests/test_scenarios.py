@@ -316,7 +316,7 @@ def test_builtin_name_wins_over_a_folder_of_that_name(tmp_path, monkeypatch):
     (tmp_path / "lab-6").mkdir()
     assert load_scenario("lab-6").name == "lab-6"
     (tmp_path / "not-a-scenario").mkdir()
-    with pytest.raises(ConfigError, match="no such file: not-a-scenario"):
+    with pytest.raises(ConfigError, match="not-a-scenario is a folder, not a file"):
         load_scenario("not-a-scenario")
 
 

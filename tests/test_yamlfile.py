@@ -37,6 +37,9 @@ def test_a_folder_or_a_file_that_is_not_text_is_named(tmp_path):
     (tmp_path / "dir.yaml").mkdir()
     with pytest.raises(ConfigError, match="dir.yaml is a folder"):
         load_scenario(str(tmp_path / "dir.yaml"))
+    (tmp_path / "my-runs").mkdir()                 # a folder without .yaml was `no such file`
+    with pytest.raises(ConfigError, match="my-runs is a folder, not a file"):
+        load_scenario(str(tmp_path / "my-runs"))
     (tmp_path / "empty.yaml").write_text("# nothing yet\n")
     with pytest.raises(ConfigError, match="empty.yaml: the file is empty"):
         load_scenario(str(tmp_path / "empty.yaml"))
