@@ -14,7 +14,7 @@ from onboard.behaviours.transport.params import TransportParams
 from onboard.geometry import wrap
 
 from .metrics import Evaluator, register_evaluator
-from .transport_preflight import floor_friction_n, push_force_n, transport_warnings
+from .transport_preflight import floor_friction_n, judges_yaw, push_force_n, transport_warnings
 
 SPACING_SAMPLE_PERIOD_S = 1.0
 STUCK_BELOW_M = 0.05            # a closed cage that moved the object less than this got nowhere
@@ -172,9 +172,7 @@ class TransportEvaluator(Evaluator):
         if scenario.path:
             waypoints = [self.reached[k] for k in sorted(self.reached)]
             done = len(waypoints) == len(scenario.path)
-            # A disc looks the same at every yaw, and nothing a robot senses can tell how it turned: its
-            # orientation is reported but not judged.
-            judge_yaw = scenario.object is None or scenario.object.shape != "circle"
+            judge_yaw = judges_yaw(scenario.object)     # not a disc's
             within = all(w["position_error_m"] <= d_tol and (not judge_yaw or w["orientation_error_rad"] <= yaw_tol)
                          for w in waypoints)
             truth = self.world.object_pose()
