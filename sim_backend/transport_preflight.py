@@ -33,6 +33,12 @@ CORNERED_RING = 3.25
 # Smaller angles were not measured, hence a threshold between.
 SMALL_CAGE_TURN_DEG = 20.0
 SMALL_CAGE_MEMBERS = 8          # cages of fewer members are warned about
+# A small cage whose path changes the direction of push by more than this between legs, with no turn asked:
+# its members slide round the object on one leg and are not behind it on the next. Measured (2026-11-22,
+# 4-6 members, boxes 0.29 x 0.44 to 1.0 x 0.3 m, 90-degree changes, seeds 1-3): 7 of 15 runs completed, the
+# others 6-8 degrees off in yaw or, a 1.0 x 0.3 m box pushed across and then along its length, 0.2 m short
+# (behaviour.md section 8).
+SMALL_CAGE_NEW_DIRECTION_DEG = 45.0
 FACE_SHARE = 0.1                # a hull edge is a face (its normal an axis to push along) from this share of the hull
 
 
@@ -142,16 +148,25 @@ def _small_cage_turns(scenario: Any, geometry: Geometry, spacing: float, robot_r
               "(a larger cage) helps in some runs")
     found = []
     x, y, yaw = scenario.object.position[0], scenario.object.position[1], scenario.object.yaw_deg
+    heading = None      # the direction of the last leg that moved the object (degrees)
     for i, (wx, wy, wyaw) in enumerate(scenario.path):
         turn = abs(_wrap_deg(wyaw - yaw)) if judges_yaw(scenario.object) else 0.0
-        off = _off_faces_deg(math.degrees(math.atan2(wy - y, wx - x)) - yaw, normals) \
-            if math.hypot(wx - x, wy - y) > 0.05 else 0.0
+        moves = math.hypot(wx - x, wy - y) > 0.05
+        direction = math.degrees(math.atan2(wy - y, wx - x)) if moves else heading
+        off = _off_faces_deg(direction - yaw, normals) if moves else 0.0
+        change = abs(_wrap_deg(direction - heading)) if moves and heading is not None and normals else 0.0
         if off > SMALL_CAGE_TURN_DEG:
             found.append(f"path[{i}]: the object would travel {off:.0f} degrees off the normals of its faces with "
                          f"{cage}; such a cage {advice}")
         elif turn > SMALL_CAGE_TURN_DEG:
             found.append(f"path[{i}]: the object would turn {turn:.0f} degrees with {cage}; such a cage {advice}")
-        x, y, yaw = wx, wy, wyaw
+        elif change > SMALL_CAGE_NEW_DIRECTION_DEG:
+            found.append(f"path[{i}]: the push would change direction by {change:.0f} degrees with {cage}: its "
+                         "members slide round the object on one leg and are not behind it on the next, and such "
+                         "a run often ends off in yaw or short of the waypoint (docs/behaviour.md section 8). "
+                         "Legs in one direction avoid it; a smaller params.inter_robot_distance_m (a larger cage) "
+                         "or params.closure_factor 1.3 (a tighter ring) helps in some runs")
+        x, y, yaw, heading = wx, wy, wyaw, direction
     return found
 
 
