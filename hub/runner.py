@@ -5,6 +5,8 @@ import signal
 import sys
 from typing import Callable
 
+from onboard.config import ConfigError
+
 from .config import LabConfig
 from .factory import build_hub
 
@@ -33,7 +35,17 @@ def discard_log(hub) -> None:
             pass
 
 
+def check_servable(config: LabConfig) -> None:
+    """Refuse what this loop would not do. Only ``khepri sil`` drives the lockstep (``hub.lockstep``): served here,
+    physics ran by the wall clock while the agents, told lockstep, stepped once per frame, at downlink_hz (20
+    Hz) instead of the scenario's control rate."""
+    if config.source.type == "sim" and config.source.lockstep:
+        raise ConfigError("source.lockstep", "khepri hub paces the simulation by the wall clock; a lockstep run is "
+                          "`khepri sil SCENARIO`, which waits for every agent's answer at each step (remove it)")
+
+
 def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
+    check_servable(config)
     if config.security.insecure:
         print(INSECURE_WARNING, file=sys.stderr, flush=True)
     hub = build_hub(config, log=log)

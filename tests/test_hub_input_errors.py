@@ -719,3 +719,16 @@ def test_an_empty_key_folder_is_refused_like_an_empty_record():
     with pytest.raises(ConfigError, match="security.keys: is empty"):
         parse_config({"source": {"type": "sim"}, "security": {"keys": " "}})
     assert parse_config({"source": {"type": "sim"}, "security": {"keys": "", "insecure": True}}).security.insecure
+
+
+def test_a_lockstep_sim_source_is_refused_by_the_hub_command(tmp_path, capsys):
+    """Only `khepri sil` drives the lockstep: `khepri hub` ran physics by the wall clock and the agents, told
+    lockstep, stepped once per frame (20 Hz) instead of at the scenario's 10 Hz."""
+    from khepri_cli.main import main
+
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump(sim_config(source={"type": "sim", "lockstep": True})))
+    assert main(["hub", "--config", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith("khepri: error: source.lockstep: khepri hub paces the simulation")
