@@ -1,6 +1,7 @@
 """From a validated :class:`LabConfig` to a ready :class:`Hub`: source, robot list, run, sensing, keys, log."""
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
@@ -175,7 +176,11 @@ def record_path(config: LabConfig, now: Optional[float] = None) -> Path:
     ``logs/run-20261121-201502.mcap``). An existing file is refused: the hub never writes over a log (an
     earlier run's, the one being replayed, or one another hub is still writing)."""
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
-    path = Path(str(config.record).replace("{time}", stamp))
+    text = str(config.record).replace("{time}", stamp)
+    if text.endswith(("/", os.sep)):     # Path() drops the slash: a folder not made yet became a file of its name
+        raise ConfigError("record", f"{text} names a folder: give the log's file name, e.g. "
+                                    f"{Path(text) / 'run-{time}.mcap'}")
+    path = Path(text)
     if config.source.type == "replay" and path.exists() and path.resolve() == Path(config.source.file).resolve():
         raise ConfigError("record", f"{path} is the log being replayed (source.file): recording would erase it; "
                           "name another file")

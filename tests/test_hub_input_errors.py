@@ -732,3 +732,14 @@ def test_a_lockstep_sim_source_is_refused_by_the_hub_command(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1].startswith("khepri: error: source.lockstep: khepri hub paces the simulation")
+
+
+def test_a_record_path_ending_in_a_slash_is_refused_not_written_as_a_file(tmp_path, capsys):
+    """`--record logs/` for a folder not made yet wrote a log file named `logs` (Path drops the slash)."""
+    from khepri_cli.main import main
+
+    folder = tmp_path / "logs"
+    assert main(["hub", "--demo", "--record", f"{folder}/"]) == 2
+    expected = f"record: {folder}/ names a folder: give the log's file name, e.g. {folder / 'run-{time}.mcap'}"
+    assert expected in capsys.readouterr().err
+    assert not folder.exists()
