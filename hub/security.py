@@ -152,8 +152,10 @@ def operator_client_keys(folder: Path, name: Optional[str] = None) -> Dict[str, 
     found = sorted((folder / "operators").glob("*.key_secret"))
     candidates = [p for p in found if name is None or p.stem == name]
     if not candidates:
-        raise ConfigError("--keys", f"no operator key{' ' + repr(name) if name else ''} in {folder / 'operators'}"
-                                    f"{' (it holds ' + key_files(found) + ')' if found else ''}")
+        # With keys in the folder, the name is what is wrong (`--operator bob` among alice's): say that option.
+        option = "--operator" if name is not None and found else "--keys"
+        raise ConfigError(option, f"no operator key{'' if name is None else ' ' + repr(name)} in "
+                                  f"{folder / 'operators'}{' (it holds ' + key_files(found) + ')' if found else ''}")
     if len(candidates) > 1:
         raise ConfigError("--operator", f"several operator keys in {folder / 'operators'}: {key_files(found)}; "
                                         f"name one, e.g. --operator {found[0].stem}")

@@ -479,6 +479,22 @@ def test_key_errors_name_the_config_key_or_the_option_they_come_from(tmp_path):
     assert f"no hub key {keys / 'hub.key_secret'}" in line
 
 
+def test_an_operator_name_the_folder_lacks_names_the_operator_option(tmp_path):
+    """`--operator bob` in a folder of alice's key said `--keys: no operator key 'bob'`: the folder was right."""
+    from hub.security import init_keys, operator_client_keys
+
+    keys = tmp_path / "keys"
+    init_keys(keys, [0], ["alice"])
+    for name in ("bob", ""):
+        with pytest.raises(ConfigError) as info:
+            operator_client_keys(keys, name)
+        assert info.value.field == "--operator", info.value
+        assert info.value.problem == f"no operator key {name!r} in {keys / 'operators'} (it holds alice.key_secret)"
+    with pytest.raises(ConfigError) as info:      # no key at all: the folder is what is wrong
+        operator_client_keys(tmp_path / "elsewhere", "bob")
+    assert info.value.field == "--keys"
+
+
 # --- 11. keys init -------------------------------------------------------------------------------------------------
 def limited_memory():
     import resource
