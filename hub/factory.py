@@ -135,14 +135,14 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     if name is None:
         raise ConfigError("run.behaviour", "name the behaviour to run (e.g. aggregate)")
     cls = get_behaviour(name, "run.behaviour")
-    if run.params is not None:
-        params: Dict[str, Any] = dict(run.params)
-    elif scenario is not None and name == scenario.behaviour:
+    params: Dict[str, Any] = {}
+    if scenario is not None and name == scenario.behaviour:
         from sim_backend.runner import mission_params
 
+        # run.params go on top: replacing them dropped the scenario's mission (transport's path and object
+        # estimate), and the robots idled for ever after tuning one gain.
         params = mission_params(cls, scenario)
-    else:
-        params = {}
+    params.update(run.params or {})
     build_params(cls, params, "run.params")     # reject bad parameters here, not on every robot
     spec = RobotSpec() if scenario is None else RobotSpec(max_wheel_speed_m_s=scenario.robots.max_wheel_speed_m_s)
     control_hz = scenario.physics.control_hz if scenario is not None else run.control_hz

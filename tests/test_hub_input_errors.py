@@ -759,3 +759,19 @@ def test_a_record_path_ending_in_a_slash_is_refused_not_written_as_a_file(tmp_pa
     expected = f"record: {folder}/ names a folder: give the log's file name, e.g. {folder / 'run-{time}.mcap'}"
     assert expected in capsys.readouterr().err
     assert not folder.exists()
+
+
+def test_run_params_for_the_sim_source_go_on_top_of_the_scenarios_mission():
+    """`run.params` replaced the scenario's: tuning one gain of lab-6 dropped transport's path and object
+    estimate, and every robot stayed idle."""
+    from hub.factory import run_template
+    from sim_backend.scenario import load_scenario
+
+    scenario = load_scenario("lab-6")
+    run = run_template(parse_config(sim_config(run={"params": {"k_cr": 100.0}})), scenario)
+    assert run.params["k_cr"] == 100.0
+    assert run.params["path"] == [list(w) for w in scenario.path]
+    assert run.params["object_estimate"] is not None
+    other = run_template(parse_config(sim_config(run={"behaviour": "aggregate", "params": {"k_avoid": 2.0}})),
+                         scenario)
+    assert other.params == {"k_avoid": 2.0}      # another behaviour than the scenario's: its params only
