@@ -8,6 +8,7 @@ from typing import Any, Callable, List, Optional, Tuple
 import numpy as np
 
 from onboard.config import ConfigError
+from onboard.protocol import MAX_ROBOT_ID
 
 from .sources import PoseFrame, PoseSource, pose_from_mocap
 
@@ -144,15 +145,25 @@ class ReplaySource(PoseSource):
 def poses_from_record(data: bytes) -> Tuple[List[int], np.ndarray, Optional[float]]:
     """Robot ids, world poses and sim clock of one recorded ``/mocap/poses`` message (its JSON bytes):
     ``{"bodies": {"<id>": [x, y, z, qx, qy, qz, qw], ...}, "clock_s": ...}``. ValueError, KeyError or
-    TypeError for anything else."""
+    TypeError for anything else, whose text names the field (the replay's skip line shows it)."""
     import json
 
-    payload = json.loads(data)
+    try:
+        payload = json.loads(data)
+    except ValueError as err:
+        raise ValueError(f"not JSON ({err})") from None
     if not isinstance(payload, dict):
         raise ValueError(f"not a JSON object but {type(payload).__name__}")
+    bodies = payload.get("bodies")
+    if not isinstance(bodies, dict):       # was said in Python's words: 'list' object has no attribute 'items'
+        raise ValueError(f"bodies: must be a mapping of robot id to {BODY_FIELDS} (got {_short(bodies)})")
     ids, poses = [], []
-    for name, (x, y, _z, qx, qy, qz, qw) in payload["bodies"].items():
-        ids.append(int(name))
+    for name, value in bodies.items():
+        ids.append(_robot_id(name))
+        if not isinstance(value, list) or len(value) != 7 \
+                or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
+            raise ValueError(f"bodies[{name!r}]: must be {BODY_FIELDS}, 7 numbers (got {_short(value)})")
+        x, y, _z, qx, qy, qz, qw = value
         poses.append(pose_from_mocap((x, y, 0.0), (qw, qx, qy, qz), "z"))
     array = np.asarray(poses, dtype=float).reshape(len(ids), 3)
     if not np.isfinite(array).all():
@@ -162,3 +173,18 @@ def poses_from_record(data: bytes) -> Tuple[List[int], np.ndarray, Optional[floa
                                 or not math.isfinite(clock_s)):
         raise ValueError(f"clock_s must be a finite number (got {clock_s!r})")
     return ids, array, clock_s
+
+
+BODY_FIELDS = "[x, y, z, qx, qy, qz, qw]"
+
+
+def _robot_id(name: str) -> int:
+    """A ``bodies`` key as the hub writes it: a robot id in decimal (int() took '-1', ' 7' and '1_0' too)."""
+    if not (name.isascii() and name.isdigit() and int(name) <= MAX_ROBOT_ID):
+        raise ValueError(f"bodies: {name!r} is not a robot id 0..{MAX_ROBOT_ID}")
+    return int(name)
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."

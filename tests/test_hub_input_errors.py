@@ -419,6 +419,26 @@ def test_malformed_pose_records_are_skipped_and_the_replay_goes_on(tmp_path):
     assert hub.hub.source.skipped == len(bad)
 
 
+@pytest.mark.parametrize("data, problem", [
+    (b"not json", "not JSON (Expecting value: line 1 column 1 (char 0))"),
+    (b'{"no bodies": 1}', "bodies: must be a mapping of robot id to [x, y, z, qx, qy, qz, qw] (got None)"),
+    (b'{"bodies": [1, 2]}', "bodies: must be a mapping of robot id to [x, y, z, qx, qy, qz, qw] (got [1, 2])"),
+    (b'{"bodies": {"1.5": [0, 0, 0, 0, 0, 0, 1]}}', "bodies: '1.5' is not a robot id 0..999999"),
+    (b'{"bodies": {"-1": [0, 0, 0, 0, 0, 0, 1]}}', "bodies: '-1' is not a robot id 0..999999"),
+    (b'{"bodies": {"0": [1, 2]}}', "bodies['0']: must be [x, y, z, qx, qy, qz, qw], 7 numbers (got [1, 2])"),
+    (b'{"bodies": {"0": [true, 0, 0, 0, 0, 0, 1]}}',
+     "bodies['0']: must be [x, y, z, qx, qy, qz, qw], 7 numbers (got [True, 0, 0, 0, 0, 0, 1])"),
+])
+def test_a_malformed_pose_record_is_said_by_its_field(data, problem):
+    """The replay's skip line gave Python's words ("'list' object has no attribute 'items'", "invalid literal for
+    int() with base 10: '1.5'", "'bodies'"), and took a body "-1" as a robot."""
+    from hub.replay_source import poses_from_record
+
+    with pytest.raises(ValueError) as info:
+        poses_from_record(data)
+    assert str(info.value) == problem
+
+
 def test_a_burst_of_malformed_records_says_how_many_were_left_unsaid(tmp_path):
     messages = [("/mocap/poses", b"[]", T0 + 0.5 * k) for k in range(30)]      # 1.5 s of bad records at 10x
     messages += [("/mocap/poses", pose_bytes(0.0), T0 + 15.0 + 0.1 * k) for k in range(100)]
