@@ -143,7 +143,8 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
         # estimate), and the robots idled for ever after tuning one gain.
         params = mission_params(cls, scenario)
     params.update(run.params or {})
-    build_params(cls, params, "run.params")     # reject bad parameters here, not on every robot
+    built = build_params(cls, params, "run.params")     # reject bad parameters here, not on every robot
+    check_required(name, built)
     spec = RobotSpec() if scenario is None else RobotSpec(max_wheel_speed_m_s=scenario.robots.max_wheel_speed_m_s)
     control_hz = scenario.physics.control_hz if scenario is not None else run.control_hz
     if scenario is not None:       # the config checked watchdog_s against run.control_hz, which sim replaces
@@ -151,6 +152,13 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     seed = config.source.seed if config.source.seed is not None else getattr(scenario, "seed", None)
     return RunTemplate(name, params, control_hz, lockstep=config.source.type == "sim" and config.source.lockstep,
                        spec=dict(spec.__dict__), seed=seed)
+
+
+def check_required(behaviour: str, params: Any) -> None:
+    """A behaviour's Params may name what a run cannot do without (``REQUIRED_FOR_A_RUN``: field -> why)."""
+    for name, why in getattr(params, "REQUIRED_FOR_A_RUN", {}).items():
+        if getattr(params, name, None) is None:
+            raise ConfigError(f"run.params.{name}", f"the {behaviour} behaviour needs it: {why}")
 
 
 def sensing_model(config: LabConfig, scenario) -> SensingModel:

@@ -190,6 +190,21 @@ def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
     build_hub(parse_config(sim_config(robots=[1, 3])), log=lambda line: None).close()    # a subset is fine
 
 
+def test_a_transport_lab_without_the_objects_start_is_refused_rather_than_left_idle():
+    """On motion capture nothing fills in transport's object_estimate: every robot stayed idle, with no word."""
+    from hub.factory import run_template
+
+    mocap = {"type": "motioncapture", "system": "mock", "options": {"rigid_bodies": "kh0(0,0,0,1,0,0,0)"},
+             "bodies": {"kh0": 0}}
+    config = parse_config({"source": mocap, "run": {"behaviour": "transport", "params": {"path": [[0, 1, 0]]}}})
+    with pytest.raises(ConfigError) as info:
+        run_template(config, None)
+    assert info.value.field == "run.params.object_estimate" and "stays idle" in info.value.problem
+    given = parse_config({"source": mocap, "run": {"behaviour": "transport",
+                                                   "params": {"path": [[0, 1, 0]], "object_estimate": [0, 0, 0]}}})
+    assert run_template(given, None).params["object_estimate"] == [0, 0, 0]
+
+
 def test_an_empty_robot_list_is_refused_rather_than_serving_nobody(tmp_path):
     """`robots: []` started a hub with no robots at all, which then said `this lab's robots: ` every 30 s."""
     config = tmp_path / "lab.yaml"

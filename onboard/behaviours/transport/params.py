@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional, Tuple
+from typing import ClassVar, Dict, List, Optional, Tuple
 
 from ...config import ConfigError, check_range
 
@@ -76,6 +76,13 @@ class TransportParams:
     # --- The mission: given by the operator (scenario path and the paper's assumed initial estimate) ---
     path: List[Tuple[float, float, float]] = field(default_factory=list)   # waypoints [x, y, yaw_deg]
     object_estimate: Optional[Tuple[float, float, float]] = None             # C_o(0) guess [x, y, yaw_deg]
+    # What a run cannot do without and no default can stand for, and why. The simulator fills it in from the
+    # scenario's object (sim_backend.runner.mission_params); a lab gives it in run.params, and the hub refuses
+    # a run without it (hub.factory.run_template) rather than start robots that stay idle for ever.
+    REQUIRED_FOR_A_RUN: ClassVar[Dict[str, str]] = {
+        "object_estimate": "where the object starts, [x, y, yaw_deg] in the motion-capture world frame: "
+                           "the seed is sent there, and without it no seed is elected and every robot stays idle",
+    }
     # --- Our improvements over the paper; profile "faithful" turns every one of them off ---
     profile: str = "improved"
     pipeline_allocation: bool = True         # open the next branch target while the previous robot travels
