@@ -60,6 +60,12 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
         found.append(f"comm.range_m: {scenario.comm.range_m:g} m is shorter than the cage spacing I_d "
                      f"(params.inter_robot_distance_m = {spacing:g} m): cage members will not hear their "
                      "neighbours")
+    if scenario.comm.drop >= 1.0:
+        found.append("comm.drop: 1 loses every message: the robots never hear each other, so no seed is elected "
+                     "and no cage closes")
+    if scenario.sensors.pose_dropout >= 1.0:
+        found.append("sensors.pose_dropout: 1 loses every pose: no robot ever knows where it is, so none moves "
+                     "with purpose")
     if world.geometry is not None and spacing is not None:
         found += _cage_fits(world.geometry, spacing, spec.radius_m)
     if world.geometry is not None and spacing is not None and scenario.object is not None:

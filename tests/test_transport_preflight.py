@@ -65,6 +65,11 @@ def test_too_few_robots_a_short_radio_a_frictionless_floor_and_no_object_are_war
     assert len(deaf) == 1 and deaf[0].startswith("comm.range_m: 0.3 m is shorter than the cage spacing I_d")
     slippery = {"shape": "box", "size": [0.3, 0.4], "mass": 0.3, "position": [0, 0], "friction": 0}
     assert Simulation(transport(make_scenario, object=slippery)).warnings[0].startswith("object.friction: 0")
+    silent = Simulation(transport(make_scenario, comm={"drop": 1.0})).warnings
+    assert silent == ["comm.drop: 1 loses every message: the robots never hear each other, so no seed is elected "
+                      "and no cage closes"]
+    lost = Simulation(transport(make_scenario, sensors={"pose_dropout": 1.0})).warnings
+    assert len(lost) == 1 and lost[0].startswith("sensors.pose_dropout: 1 loses every pose")
     nothing = Simulation(transport(make_scenario, object=None, path=[])).warnings
     assert nothing == ["object: this scenario has none, and the transport behaviour cages one: no cage will close"]
 
