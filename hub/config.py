@@ -269,6 +269,7 @@ def parse_config(data: Any) -> LabConfig:
         raise ConfigError("", f"a lab config must be a mapping of keys (got {type(data).__name__})")
     config = from_mapping(LabConfig, data, "")
     check_source_fields(data.get("source") or {}, config.source.type)
+    check_run_fields(data.get("run") or {}, config.source.type)
     return config
 
 
@@ -280,6 +281,15 @@ def check_source_fields(source: Dict[str, Any], kind: str) -> None:
             raise ConfigError(join("source", name), f"is for a {' or '.join(owners)} source, and this one is "
                               f"type {kind}, which would ignore it; a {kind} source takes type, seed, stale_s, "
                               f"{', '.join(SOURCE_FIELDS[kind])} (remove it, or change source.type)")
+
+
+def check_run_fields(run: Dict[str, Any], kind: str) -> None:
+    """Refuse ``run.control_hz`` under a sim source: its agents loop at the scenario's ``physics.control_hz``
+    (the physics steps in whole control periods), so a rate given here was ignored without a word."""
+    if kind == "sim" and "control_hz" in run:
+        raise ConfigError("run.control_hz", "is for a motioncapture or replay source, and this one is type sim, "
+                          "which would ignore it: the scenario's physics.control_hz sets the agents' rate "
+                          "(remove it, or set physics.control_hz in the scenario)")
 
 
 def load_config(path: Path) -> LabConfig:

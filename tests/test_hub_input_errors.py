@@ -172,6 +172,19 @@ def test_the_fields_every_source_type_reads_are_taken_by_each():
     assert parse_config({"source": {"type": "sim", "seed": 3, "stale_s": 0.5, "frame_hz": 20}})
 
 
+def test_run_control_hz_under_a_sim_source_is_refused_rather_than_ignored():
+    """The sim source's agents loop at the scenario's physics.control_hz: a run.control_hz of 5 ran them at 10 Hz
+    without a word. The other source types take it."""
+    with pytest.raises(ConfigError) as info:
+        parse_config(sim_config(run={"behaviour": "aggregate", "control_hz": 5}))
+    assert info.value.field == "run.control_hz"
+    assert "type sim, which would ignore it: the scenario's physics.control_hz sets" in info.value.problem
+    assert parse_config(sim_config(run={"behaviour": "aggregate"})).source.type == "sim"
+    assert parse_config(mocap_config({"kh0": 0}, run={"behaviour": "aggregate", "control_hz": 20})).run.control_hz == 20
+    replay = {"source": {"type": "replay", "file": "run.mcap"}, "run": {"control_hz": 20}}
+    assert parse_config(replay).run.control_hz == 20
+
+
 def test_a_negative_seed_is_refused_in_the_config_and_on_the_command_line():
     with pytest.raises(ConfigError) as info:
         parse_config({"source": {"type": "sim", "seed": -1}})
