@@ -356,6 +356,7 @@ def cmd_sil(args: argparse.Namespace) -> int:
 MAX_BENCH_ROBOTS = 1000
 MAX_BENCH_RATE_HZ = 1000.0
 MAX_BENCH_SECONDS = 3600.0
+BENCH_MOCAP_PERIODS = 2     # the shortest --seconds, in motion-capture periods
 
 
 def check_bench_options(args: argparse.Namespace) -> None:
@@ -364,6 +365,13 @@ def check_bench_options(args: argparse.Namespace) -> None:
     if args.rate < 1 or not args.rate.is_integer():     # the mock backend's frequency is an integer; 0: unthrottled
         raise ConfigError("--rate", f"must be a whole number of Hz >= 1 (got {args.rate:g})")
     check_range("--seconds", args.seconds, 0, MAX_BENCH_SECONDS, low_open=True)
+    # Only frames that carry a new pose count, one per motion-capture period: a shorter window may see none,
+    # which read as "the hub sent no frames", blaming the hub for the window.
+    shortest = BENCH_MOCAP_PERIODS / args.rate
+    if args.seconds < shortest:
+        raise ConfigError("--seconds", f"must be at least {shortest:g} s at --rate {args.rate:g} (got "
+                          f"{args.seconds:g}): {BENCH_MOCAP_PERIODS} motion-capture periods, as only frames "
+                          "with a new pose are measured")
     if not (math.isfinite(args.telemetry_hz) and 0 <= args.telemetry_hz <= MAX_BENCH_RATE_HZ):
         raise ConfigError("--telemetry-hz", f"give a rate 0..{MAX_BENCH_RATE_HZ:g} (0: no telemetry), "
                           f"not {args.telemetry_hz:g}")

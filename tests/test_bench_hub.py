@@ -79,6 +79,17 @@ def test_bench_options_outside_what_works_are_refused(calls, option, value, prob
     assert calls == []
 
 
+def test_a_window_shorter_than_two_mocap_periods_is_refused_rather_than_blamed_on_the_hub(calls):
+    """--rate 1 --seconds 0.5 ended in "the hub sent no frames during the benchmark": no pose was due yet."""
+    args = build_parser().parse_args(["bench", "hub", "--robots", "2", "--rate", "1", "--seconds", "0.5"])
+    with pytest.raises(ConfigError) as info:
+        args.func(args)
+    assert info.value.field == "--seconds"
+    assert info.value.problem.startswith("must be at least 2 s at --rate 1 (got 0.5): 2 motion-capture periods")
+    assert calls == []
+    assert main(["bench", "hub", "--rate", "120", "--seconds", "0.5", "--json"]) == 0     # 60 periods
+
+
 def test_a_hub_that_stops_answering_during_the_bench_is_one_line(monkeypatch, capsys):
     from hub.control import ControlError
 
