@@ -290,16 +290,20 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
         run_agent(args)
 
 
-def test_kh4_options_with_the_sim_driver_are_said_to_be_ignored(capsys):
+@pytest.mark.parametrize("option", ["--calibration", "--library"])
+def test_kh4_options_with_the_sim_driver_are_refused_rather_than_ignored(option, capsys):
+    """The notice that said they were ignored was dropped with --quiet: the file went unused without a word."""
     from onboard.agent.cli import add_agent_arguments, run_agent
     from onboard.config import ConfigError
 
     parser = argparse.ArgumentParser()
     add_agent_arguments(parser)
-    args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--calibration", "c.yaml"])
-    with pytest.raises(ConfigError):      # stops at the address, after the options were looked at
+    # a bad --hub: without the check, the agent stopped there (and the test did not wait for a hub)
+    args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--quiet", option, "c.yaml"])
+    with pytest.raises(ConfigError) as info:
         run_agent(args)
-    assert "agent 0: --calibration: only for the kh4 driver, ignored with --driver sim" in capsys.readouterr().err
+    assert info.value.field == option
+    assert info.value.problem.startswith("is only for --driver kh4: the sim driver's readings come from the hub")
 
 
 class BrokenIRDriver(SimDriver):

@@ -58,6 +58,7 @@ def run_agent(args: argparse.Namespace) -> int:
     for option in ("library", "calibration"):     # "" (an unset shell variable) must not mean the default
         if getattr(args, option) is not None and not getattr(args, option).strip():
             raise ConfigError(f"--{option}", "an empty path; leave the option out for the default")
+    check_kh4_only_options(args)
     if not 0.0 < args.watchdog <= 0.3:
         raise ConfigError("--watchdog", f"must be in (0, 0.3] seconds (got {args.watchdog})")
     keys = load_robot_keys(args.keys, args.robot_id) if args.keys is not None else None
@@ -68,9 +69,6 @@ def run_agent(args: argparse.Namespace) -> int:
         print(f"agent: warning: --import {warning}", file=sys.stderr, flush=True)
     behaviour_names()       # import the behaviours now, not when the hub says start (that takes a while)
     log = _logger(args.quiet)
-    kh4_only = [f"--{name}" for name in ("library", "calibration") if getattr(args, name)]
-    if args.driver == "sim" and kh4_only:
-        log(f"agent {args.robot_id}: {' and '.join(kh4_only)}: only for the kh4 driver, ignored with --driver sim")
     endpoint = hub_endpoint(args.hub, port, port_given=args.port is not None)
     link = open_link(args.robot_id, endpoint, keys, log)
     if keys is None and not args.quiet:
@@ -86,6 +84,17 @@ def run_agent(args: argparse.Namespace) -> int:
     finally:
         link.close()
     return 0
+
+
+def check_kh4_only_options(args: argparse.Namespace) -> None:
+    """Refuse --library and --calibration with --driver sim, which would ignore them: the notice that said so
+    was dropped with --quiet, and the run went on as if the robot's IR calibration were in use."""
+    if args.driver != "sim":
+        return
+    for name in ("calibration", "library"):
+        if getattr(args, name):
+            raise ConfigError(f"--{name}", "is only for --driver kh4: the sim driver's readings come from the "
+                              "hub's simulation, so it would be ignored (leave it out, or use --driver kh4)")
 
 
 def open_link(robot_id: int, endpoint: str, keys, log) -> HubLink:
