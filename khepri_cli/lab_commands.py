@@ -136,6 +136,9 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     port = DEFAULT_CONTROL_PORT if args.port is None else args.port
     check_port("--port", port)
     check_timeout("--timeout", args.timeout)
+    if args.operator is not None and args.keys is None:    # it only picks a key pair: without one, it was dropped
+        raise ConfigError("--operator", "names an operator key in the --keys folder: give --keys DIR too "
+                          "(without --keys, ctl connects unencrypted, as a hub run with --insecure takes)")
     keys = operator_client_keys(args.keys, args.operator) if args.keys is not None else None
     endpoint = hub_endpoint(args.hub, port, port_given=args.port is not None)
     unresolved = unresolvable_host(endpoint)       # else a typo waits out --timeout as if no hub ran

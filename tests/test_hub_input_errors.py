@@ -489,6 +489,13 @@ def test_ctl_refuses_a_bad_option_naming_it(option, value):
     one_error_line(khepri("ctl", "status", option, value), option)
 
 
+def test_ctl_refuses_an_operator_without_keys_rather_than_dropping_it():
+    """--operator bob without --keys connected unencrypted, and a hub with keys let ctl wait out --timeout."""
+    run = khepri("ctl", "status", "--operator", "bob", "--port", str(free_port()), "--timeout", "0.2")
+    line = one_error_line(run, "--operator")
+    assert "names an operator key in the --keys folder: give --keys DIR too" in line
+
+
 def test_ctl_still_waits_for_a_hub_that_is_not_there():
     run = khepri("ctl", "status", "--port", str(free_port()), "--timeout", "0.2")
     assert run.returncode == 1 and "no answer from the hub" in run.stderr
