@@ -6,7 +6,7 @@ measured against the simulator's true object pose, which the robots never see.
 from __future__ import annotations
 
 import math
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -201,15 +201,32 @@ class TransportEvaluator(Evaluator):
         for w in waypoints:
             off = []
             if w["position_error_m"] > d_tol:
-                off.append(f"{w['position_error_m']:.2f} m from it (tolerance {d_tol:.2f} m)")
+                error, tolerance = beyond_tolerance(w["position_error_m"], d_tol, 2, 2)
+                off.append(f"{error} m from it (tolerance {tolerance} m)")
             if w["orientation_error_rad"] > yaw_tol:
-                off.append(f"{math.degrees(w['orientation_error_rad']):.1f}° off its yaw "
-                           f"(tolerance {math.degrees(yaw_tol):.2f}°)")
+                error, tolerance = beyond_tolerance(math.degrees(w["orientation_error_rad"]),
+                                                    math.degrees(yaw_tol), 1, 2)
+                off.append(f"{error}° off its yaw (tolerance {tolerance}°)")
             if off:
                 estimate = w.get("centroid_estimation_error_m")
                 known = "" if estimate is None else f"; the swarm's centroid estimate was {estimate:.2f} m off"
                 lines.append(f"waypoint {w['index'] + 1} was passed with the object {' and '.join(off)}{known}")
         return lines
+
+
+def beyond_tolerance(value: float, tolerance: float, value_decimals: int,
+                     tolerance_decimals: int) -> Tuple[str, str]:
+    """``value`` and the ``tolerance`` it exceeds, as text that reads above it: with more decimals where the
+    usual ones round the two together ("0.10 m from it (tolerance 0.10 m)" was 0.104 against 0.100)."""
+    text = f"{value:.{value_decimals}f}", f"{tolerance:.{tolerance_decimals}f}"
+    decimals = max(value_decimals, tolerance_decimals)
+    while float(text[0]) <= float(text[1]) and decimals <= MAX_TOLERANCE_DECIMALS:
+        text = f"{value:.{decimals}f}", f"{tolerance:.{decimals}f}"
+        decimals += 1
+    return text
+
+
+MAX_TOLERANCE_DECIMALS = 9      # beyond, the value is over its tolerance by float noise only
 
 
 def widest_gap_rad(points: List[np.ndarray], centre: np.ndarray) -> float:

@@ -52,6 +52,17 @@ def test_each_waypoint_passed_outside_tolerance_is_named_with_how_far_off():
     assert TransportEvaluator._outside_tolerance(waypoints, 0.1, math.inf)[0].endswith("0.29 m off")
 
 
+def test_an_error_just_over_its_tolerance_is_printed_with_the_decimals_that_show_it():
+    """0.104 m against 0.100 m read "0.10 m from it (tolerance 0.10 m)": as if it were within."""
+    from sim_backend.transport_metrics import TransportEvaluator
+
+    waypoints = [{"index": 0, "position_error_m": 0.104, "orientation_error_rad": math.radians(5.74),
+                  "centroid_estimation_error_m": None}]
+    lines = TransportEvaluator._outside_tolerance(waypoints, 0.1, 0.1)      # 0.1 rad: 5.73°
+    assert lines == ["waypoint 1 was passed with the object 0.104 m from it (tolerance 0.100 m) and 5.74° off its "
+                     "yaw (tolerance 5.73°)"]
+
+
 def test_an_out_folder_that_cannot_be_made_is_refused_before_the_run(tmp_path, capsys, monkeypatch):
     from sim_backend.runner import Simulation
 
