@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import typing
-from typing import Any, Dict, Mapping, Optional, Type, TypeVar
+from typing import Any, Dict, List, Mapping, Optional, Type, TypeVar
 
 from .tracebacks import describe
 
@@ -143,6 +143,9 @@ def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
         raise ConfigError(where, f"must be a mapping (got {data!r})")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    not_names = [k for k in data if not isinstance(k, str)]
+    if not_names:
+        raise _key_not_a_name(where, not_names[0], sorted(fields))
     unknown = [k for k in data if k not in fields]
     if unknown:
         known = ", ".join(sorted(fields))
@@ -168,6 +171,22 @@ def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
         except Exception as err:       # a bug in a user's validate: one line with its place, not a traceback
             raise ConfigError(where or cls.__name__, f"{cls.__name__}.validate raised {describe(err)}") from None
     return obj
+
+
+def _key_not_a_name(where: str, key: Any, known: List[str]) -> ConfigError:
+    """YAML reads a key like ``1:``, ``true:``, ``on:`` or ``null:`` as a number, a boolean or None, whose path
+    read ``[1]``, ``object[True]`` or ``robots.None``: say what it was read as, where."""
+    if isinstance(key, bool):
+        spelled, read_as = str(key).lower(), "a boolean (YAML reads true, false, yes, no, on and off so)"
+    elif key is None:
+        spelled, read_as = "null", "null (YAML reads null, ~ and an empty key so)"
+    elif isinstance(key, (int, float)):
+        spelled, read_as = str(key), "a number"
+    else:
+        spelled, read_as = str(key), f"a {type(key).__name__}"
+    place = "key" if where else "top-level key"
+    return ConfigError(where, f"{place} {spelled} is {read_as}, not a name: keys must be names (known: "
+                              f"{', '.join(known)}); quote it (\"{spelled}\") to make it a name")
 
 
 def _validate_error(where: str, message: str) -> ConfigError:

@@ -268,6 +268,23 @@ def test_validation_error_names_the_field(data, field, message):
         assert str(err) == message
 
 
+@pytest.mark.parametrize(("text", "field", "problem"), [
+    ("1: 2\n", "", "top-level key 1 is a number, not a name"),
+    ("object: {shape: box, size: [1, 1], true: 1}\n", "object", "key true is a boolean (YAML reads true, false, "
+                                                                "yes, no, on and off so), not a name"),
+    ("robots: {null: 3}\n", "robots", "key null is null (YAML reads null, ~ and an empty key so), not a name"),
+    ("robots: {spawn: {1.5: [0, 1]}}\n", "robots.spawn", "key 1.5 is a number, not a name"),
+    ("behaviour: aggregate\nparams: {on: 1}\n", "params", "key true is a boolean (YAML reads true, false, yes, no, "
+                                                          "on and off so), not a name"),
+])
+def test_a_key_yaml_reads_as_a_number_a_boolean_or_null_is_said_to_be_no_name(text, field, problem):
+    """Such keys gave paths like `[1]: unknown key`, `object[True]: ...` and `robots.None: ...`."""
+    err = error_of(yaml.safe_load(text))
+    assert (err.field, err.problem.split(": keys must")[0]) == (field, problem)
+    assert "keys must be names (known: " in err.problem and "\n" not in str(err)
+    assert str(err).startswith("top-level key 1 " if not field else f"{field}: key ")
+
+
 def test_unknown_params_key_lists_the_known_names():
     err = error_of({"params": {"inter_robot_distance": 0.65}})
     assert err.problem.startswith("unknown key (known: allocation_time_s, attach_timeout_s, barrier_fraction, ")
