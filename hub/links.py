@@ -175,3 +175,29 @@ def frame_property(frame: zmq.Frame, name: str) -> Optional[str]:
 
 def _span(seconds: float) -> str:
     return "second" if seconds < 2.0 else f"{seconds:.0f} s"
+
+
+class SparseFrames:
+    """Says once when motion-capture frames keep coming further apart than ``stale_s``: each pose then goes stale
+    before the next arrives, and every robot is held between two frames (a 2 Hz mock with the default 0.1 s did
+    so without a word). Only a run of such gaps counts, each under ``silence_s``: one outage is not a rate, and a
+    longer silence is said by the hub's own line."""
+
+    RUN = 5
+
+    def __init__(self, stale_s: float, silence_s: float):
+        self.stale_s, self.silence_s = stale_s, silence_s
+        self.last: Optional[float] = None
+        self.run = 0
+        self.said = False
+
+    def tick(self, stamp: float) -> Optional[str]:
+        gap = 0.0 if self.last is None else stamp - self.last
+        self.last = stamp
+        self.run = self.run + 1 if self.stale_s < gap <= self.silence_s else 0
+        if self.said or self.run < self.RUN:
+            return None
+        self.said = True
+        return (f"motion-capture frames come {gap:.2f} s apart, further than source.stale_s ({self.stale_s:g} s): "
+                "every robot loses its pose between frames and is held; raise source.stale_s above the frame "
+                "period, or check the system's frame rate")

@@ -26,7 +26,7 @@ from .background_recorder import BackgroundRecorder
 from .config import LabConfig
 from .control_service import ControlService
 from .downlink import Downlink
-from .links import VIRTUAL_DRIVERS, DropLog, RateMeter, RobotLink
+from .links import VIRTUAL_DRIVERS, DropLog, RateMeter, RobotLink, SparseFrames
 from .relay import RadioRelay
 from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HandshakeWatch, HubAuthenticator, KeyRing, make_curve_server
 from .sensors import SensingModel, VirtualSensors
@@ -95,6 +95,7 @@ class Hub(Downlink, Uplink):
         slowed = min(1.0, getattr(source, "rate", 1.0))
         self.stale_s = config.source.stale_s / slowed if config.source.type == "replay" else config.source.stale_s
         self.mocap_silent = False
+        self.sparse_frames = SparseFrames(self.stale_s, MOCAP_SILENT_S)
         self._finished_said: Optional[str] = None    # the run whose end was said
         self.placed_a_robot = False       # some frame has held a pose for one of this lab's robots
         self.mode = "idle"
@@ -265,6 +266,9 @@ class Hub(Downlink, Uplink):
         self.clock_s = frame.clock_s
         self.last_frame_stamp = frame.stamp
         self.mocap_rate.tick(frame.stamp)
+        sparse = None if self.run.lockstep else self.sparse_frames.tick(frame.stamp)   # lockstep: paced by agents
+        if sparse:
+            self.log(f"hub: {sparse}")
         present = frame.stamp - self.seen_at <= self.stale_s
         for rid in self.killed:
             present[self.row[rid]] = False

@@ -362,7 +362,29 @@ def test_a_source_that_placed_robots_says_nothing_of_the_kind():
     config = parse_config(mocap_config({"kh0": 0}, robots=[0]))
     with HubThread(config) as hub:
         time.sleep(2.5)
-    assert not [text for text in hub.lines if "yet after" in text]
+    assert not [text for text in hub.lines if "yet after" in text or "further than source.stale_s" in text]
+
+
+def test_frames_further_apart_than_stale_s_are_said_once():
+    """A 5 Hz mock with the default stale_s (0.1 s): every pose went stale before the next frame, so every robot
+    was held between frames, with no word."""
+    data = mocap_config({"kh0": 0}, robots=[0])
+    data["source"]["options"]["frequency"] = "5"
+    with HubThread(parse_config(data)) as hub:
+        time.sleep(2.5)
+    said = [text for text in hub.lines if "further than source.stale_s" in text]
+    assert len(said) == 1 and said[0].startswith("hub: motion-capture frames come 0.2") and "is held" in said[0]
+
+
+def test_one_outage_is_not_taken_for_sparse_frames():
+    from hub.links import SparseFrames
+
+    sparse = SparseFrames(stale_s=0.1, silence_s=1.0)
+    stamps = [k * 0.01 for k in range(50)] + [0.49 + 0.5] + [0.99 + k * 0.01 for k in range(1, 50)]
+    assert [s for s in map(sparse.tick, stamps) if s] == []        # 100 Hz with one 0.5 s gap
+    slow = SparseFrames(stale_s=0.1, silence_s=1.0)
+    said = [s for s in map(slow.tick, [k * 0.5 for k in range(20)]) if s]
+    assert len(said) == 1 and "0.50 s apart" in said[0]
 
 
 # --- 6, 7. replaying logs that are not what the hub wrote ----------------------------------------------------------
