@@ -473,3 +473,26 @@ def test_a_robot_without_the_agents_packages_is_told_which_in_one_line():
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert done.stderr.startswith("agent: error: import of zmq halted; None in sys.modules: the agent needs Python")
 
+
+
+@pytest.mark.parametrize("field, value, problem", [
+    ("spec", [1], "run.spec: must be a mapping"),
+    ("spec", {"max_wheel_speed_m_s": 0}, "run.spec.max_wheel_speed_m_s: must be a number > 0"),
+    ("control_hz", -10, "run.control_hz: must be a number > 0"),
+    ("control_hz", 1e9, "run.control_hz: must be <= 100"),
+    ("params", [1, 2], "run.params: must be a mapping"),
+    ("run_id", ["r1"], "run.run_id: must be a string"),
+])
+def test_a_start_with_malformed_run_settings_is_refused_not_crashed(scripted, field, value, problem):
+    """The hub's `start` is input like any frame: a list for `spec` raised AttributeError out of the agent's loop,
+    and a control_hz <= 0 or huge had the behaviour stepped as fast as the loop went, every step a miss."""
+    said = []
+    link = HubLink(0, scripted.endpoint)
+    try:
+        agent = Agent(0, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=said.append)
+        agent.on_command({"type": "command", "cmd": "start", "run": {**RUN, field: value}})
+    finally:
+        link.close()
+    assert agent.run is None and agent.behaviour is None
+    assert agent.error.startswith(f"cannot start the run: {problem}"), agent.error
+    assert agent.refused_run_id == ("r1" if field != "run_id" else None)

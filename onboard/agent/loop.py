@@ -43,6 +43,7 @@ SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is sai
 HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
 RESET_AFTER_S = 2.0       # this long without a frame: reopen the socket (a connection can be stuck for good)
 WAITING_LOG_S = 10.0      # while the hub stays silent, say so this often
+MAX_CONTROL_HZ = 100.0    # the fastest run.control_hz the hub's config accepts
 
 
 @dataclass
@@ -75,6 +76,49 @@ class LoopStats:
         mean = self.total_step_s / self.steps if self.steps else 0.0
         return {"hz": round(self.hz, 2), "steps": self.steps, "misses": self.misses,
                 "mean_ms": round(mean * 1000.0, 3), "max_ms": round(self.max_step_s * 1000.0, 3)}
+
+
+def run_spec(spec: Any) -> RobotSpec:
+    """The ``start`` command's ``run.spec``: a mapping of positive numbers, unknown names ignored. Checked here
+    because the hub's command is input: a list crashed the agent, and a speed limit of 0 or less turned the HAL's
+    clamp off."""
+    if spec is None:
+        return RobotSpec()
+    if not isinstance(spec, dict):
+        raise ConfigError("run.spec", f"must be a mapping (got {spec!r:.40})")
+    values = {}
+    for name, value in spec.items():
+        if name in RobotSpec.__dataclass_fields__:
+            values[name] = positive_number(f"run.spec.{name}", value)
+    return RobotSpec(**values)
+
+
+def run_params(params: Any) -> Dict[str, Any]:
+    if params is not None and not isinstance(params, dict):
+        raise ConfigError("run.params", f"must be a mapping (got {params!r:.40})")
+    return params or {}
+
+
+def run_control_hz(value: Any) -> float:
+    """``run.control_hz`` as the hub's config allows it, (0, MAX_CONTROL_HZ]: 0 or less, or a huge rate, made the
+    loop step the behaviour as fast as it could, every step a deadline miss."""
+    hz = positive_number("run.control_hz", value)
+    if hz > MAX_CONTROL_HZ:
+        raise ConfigError("run.control_hz", f"must be <= {MAX_CONTROL_HZ:g} (got {hz:g})")
+    return hz
+
+
+def run_id_text(value: Any) -> None:
+    """A run id the agent can echo: its telemetry names the run, and the hub drops telemetry whose run_id is not
+    a string, so the robot would look silent."""
+    if value is not None and not isinstance(value, str):
+        raise ConfigError("run.run_id", f"must be a string (got {value!r:.40})")
+
+
+def positive_number(where: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value < math.inf:
+        raise ConfigError(where, f"must be a number > 0 (got {value!r:.40})")
+    return float(value)
 
 
 class Agent:
@@ -222,17 +266,18 @@ class Agent:
         self.end_run()
         try:
             cls = get_behaviour(str(run.get("behaviour")), "run.behaviour")
-            params = build_params(cls, run.get("params") or {}, "run.params")
-            spec = RobotSpec(**{k: float(v) for k, v in (run.get("spec") or {}).items()
-                                if k in RobotSpec.__dataclass_fields__})
-            self.period = 1.0 / float(run.get("control_hz", 10.0))
-        except (ConfigError, TypeError, ValueError, ZeroDivisionError) as err:
+            params = build_params(cls, run_params(run.get("params")), "run.params")
+            spec = run_spec(run.get("spec"))
+            period = 1.0 / run_control_hz(run.get("control_hz", 10.0))
+            run_id_text(run.get("run_id"))
+        except (ConfigError, TypeError, ValueError) as err:
             self.error = f"cannot start the run: {err}"
-            self.refused_run_id = run.get("run_id")
+            run_id = run.get("run_id")
+            self.refused_run_id = run_id if isinstance(run_id, str) else None   # telemetry carries text only
             self.log(f"agent {self.robot_id}: {self.error}")
             return
         self.error = None
-        self.run = run
+        self.run, self.period = run, period
         self.clock.restart(run.get("clock") == "hub")
         seed = run.get("seed")
         if isinstance(seed, int) and not isinstance(seed, bool):
