@@ -407,6 +407,27 @@ def test_a_process_killed_with_sigkill_has_its_wheels_stopped_by_the_guard(stub_
     assert time.monotonic() - started < 20.0
 
 
+@pytest.mark.parametrize("glitch", ["kh4_ConfigurePID", "kh4_SetSpeedProfile", "kh4_get_position", "kh4_init"])
+def test_the_guard_stops_the_wheels_though_setting_up_the_motors_fails(stub_library, stub_log, monkeypatch, glitch):
+    """The guard opened a whole driver to stop the wheels: motor set-up and an encoder read came first, and one
+    failing call there left the dead agent's last speed on the wheels."""
+    driver = KheperaIV(library_path=str(stub_library))
+    driver.set_wheel_speeds(0.2, 0.2)
+    monkeypatch.setenv("KH4_STUB_FAIL", glitch)          # the guard's environment: its calls fail there
+    driver.start_guard()
+    try:
+        driver.guard.pipe.close()                        # the agent dies without saying it stopped the wheels
+        assert driver.guard.process.wait(timeout=20) == 0
+    finally:
+        monkeypatch.delenv("KH4_STUB_FAIL")
+        driver.guard.pipe = None
+        driver.close()
+    logged = calls(stub_log)
+    first_guard_call = [name for name, _ in logged].index("kh4_init", 1)
+    assert ("kh4_set_speed", {"left": "0", "right": "0", "dev": "ok"}) in logged[first_guard_call:]
+    assert ("kh4_SetMode", {"mode": "0", "dev": "ok"}) in logged[first_guard_call:]
+
+
 def test_the_guard_leaves_the_wheels_alone_after_an_orderly_exit(stub_library, stub_log, tmp_path):
     finished = run_child(stub_library, stub_log, tmp_path, "guarded")
     assert finished.returncode == 0, finished.stderr

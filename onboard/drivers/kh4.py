@@ -333,8 +333,41 @@ class KheperaIV(Driver):
         return int.from_bytes(buffer.raw[10:12], "little") * BATTERY_V_PER_COUNT
 
 
+def stop_robot(library_path: str) -> None:
+    """Open the dsPic only to stop it: zero speeds (retried), then the motors idle and the dsPic closed, each tried
+    whatever the one before did. The wheel guard's way in: opening a :class:`KheperaIV` configures the motors
+    and reads the encoders first, so one bus error there (a glitch the driver tolerates elsewhere) left a dead
+    agent's last speed on the wheels."""
+    lib = Libkhepera(library_path)
+    try:
+        lib.call("kh4_init", 0, None)
+    except LibkheperaError:
+        pass            # knet_open says whether the robot can be reached; try it all the same
+    dspic = lib.functions["knet_open"](DSPIC_DEVICE, KNET_BUS_I2C, 0, None)
+    if not dspic:
+        raise LibkheperaError(f"{lib.path}: knet_open could not open {DSPIC_DEVICE.decode()}")
+    try:
+        try:
+            _retried(STOP_ATTEMPTS, lambda: lib.call("kh4_set_speed", 0, 0, dspic))
+        finally:        # unpowered motors stop the wheels too, when the speed command would not pass
+            _retried(STOP_ATTEMPTS, lambda: lib.call("kh4_SetMode", KH4_REG_IDLE, dspic))
+    finally:
+        lib.functions["knet_close"](dspic)
+
+
+def _retried(attempts: int, call: Callable[[], Any]) -> None:
+    """``call()`` until it does not raise LibkheperaError, at most ``attempts`` times; the last error goes on."""
+    for attempt in range(1, attempts + 1):
+        try:
+            call()
+            return
+        except LibkheperaError:
+            if attempt == attempts:
+                raise
+
+
 __all__ = [
     "KH4_SPEED_TO_MM_S", "KH4_PULSE_TO_MM", "HARDWARE_IR_NAMES", "HAL_TO_HARDWARE_IR", "LIBRARY_ENV",
     "CALIBRATION_ENV", "DEFAULT_LIBRARY", "LibkheperaError", "Libkhepera", "KheperaIV", "resolve_library_path",
-    "resolve_calibration", "hardware_to_hal_order",
+    "resolve_calibration", "hardware_to_hal_order", "stop_robot",
 ]

@@ -59,14 +59,13 @@ def _child_environment() -> dict:
 
 
 def guard(library_path: str, parent_pid: int, stream: IO[bytes]) -> int:
-    from onboard.drivers.kh4 import CALIBRATION_ENV, KheperaIV, LibkheperaError  # loaded now: react at once
+    from onboard.drivers.kh4 import LibkheperaError, stop_robot  # loaded now: react at once
 
-    os.environ.pop(CALIBRATION_ENV, None)   # stopping needs no IR calibration, and a bad one must not stop us
     said = stream.read()          # returns when the agent closes the pipe, or dies
     if said.endswith(CLEAN):
         return 0
     try:
-        KheperaIV(library_path=library_path).close()      # opens the dsPic, stops, idles, releases
+        stop_robot(library_path)      # opens the dsPic, stops, idles, releases; no motor set-up to fail first
     except (LibkheperaError, OSError) as err:
         print(f"kh4 wheel guard: agent {parent_pid} ended without stopping the wheels, and they could not be "
               f"stopped: {err}",
