@@ -18,7 +18,7 @@ import pytest
 
 from onboard.config import ConfigError
 from onboard.drivers.calibration import load_calibration
-from onboard.drivers.kh4 import KheperaIV, LibkheperaError
+from onboard.drivers.kh4 import SENSOR_FAILURES_TOLERATED, KheperaIV, LibkheperaError
 from onboard.hal import WheelOdometry
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,7 +51,7 @@ def stub_log(tmp_path, monkeypatch) -> Path:
     """A fresh call log and neutral scripted values (os.environ changes reach the C library's getenv)."""
     log = tmp_path / "calls.log"
     monkeypatch.setenv("KH4_STUB_LOG", str(log))
-    for name in ("KH4_STUB_IR", "KH4_STUB_POSITION", "KH4_STUB_BATTERY", "KH4_STUB_FAIL",
+    for name in ("KH4_STUB_IR", "KH4_STUB_POSITION", "KH4_STUB_BATTERY", "KH4_STUB_FAIL", "KH4_STUB_FAIL_TIMES",
                  "KHEPRI_LIBKHEPERA", "KHEPRI_KH4_CALIBRATION"):
         monkeypatch.delenv(name, raising=False)
     return log
@@ -300,6 +300,26 @@ def test_a_sensor_read_that_errs_now_and_then_gives_the_last_good_value_then_rai
         assert driver.battery_v() is None                       # an optional figure: never fatal
         monkeypatch.delenv("KH4_STUB_FAIL")
         assert driver.proximity() == good and driver.battery_v() is not None
+
+
+@pytest.mark.parametrize("function, read", [("kh4_proximity_ir", KheperaIV.proximity),
+                                            ("kh4_get_position", KheperaIV.encoders)])
+def test_a_glitch_on_a_sensors_first_read_is_read_again_not_fatal(stub_library, stub_log, monkeypatch, function,
+                                                                  read):
+    """With no good value yet to fall back on, the first read raised at once: one glitch in the first step ended
+    the run as `driver failed`, though later reads are let off five times in a row."""
+    monkeypatch.setenv("KH4_STUB_IR", hardware_ir({"front": 500}))
+    monkeypatch.setenv("KH4_STUB_POSITION", "1000 2000")
+    for failures, fatal in ((2, False), (SENSOR_FAILURES_TOLERATED + 1, True)):
+        with KheperaIV(library_path=str(stub_library)) as driver:
+            monkeypatch.setenv("KH4_STUB_FAIL", function)
+            monkeypatch.setenv("KH4_STUB_FAIL_TIMES", str(failures))     # the stub counts it down
+            if fatal:                                                  # a bus that stays broken still raises
+                with pytest.raises(LibkheperaError, match=f"{function} failed"):
+                    read(driver)
+            else:
+                assert read(driver) == read(driver)
+            monkeypatch.delenv("KH4_STUB_FAIL")
 
 
 @pytest.mark.parametrize("speed", ["0.5", True, b"1"])

@@ -288,14 +288,17 @@ class KheperaIV(Driver):
 
     def _tolerated(self, sensor: str, read: Callable[[], Any]) -> Any:
         """A read that errs on the bus gives the sensor's latest good value instead, up to
-        SENSOR_FAILURES_TOLERATED times in a row (one glitch must not end the run); then it raises."""
+        SENSOR_FAILURES_TOLERATED times in a row (one glitch must not end the run); then it raises. Before any
+        good value it reads again at once, within the same count: the first step's glitch ended the run."""
         try:
             value = read()
         except LibkheperaError:
             self._failures[sensor] = self._failures.get(sensor, 0) + 1
-            if sensor in self._last_good and self._failures[sensor] <= SENSOR_FAILURES_TOLERATED:
+            if self._failures[sensor] > SENSOR_FAILURES_TOLERATED:
+                raise
+            if sensor in self._last_good:
                 return self._last_good[sensor]
-            raise
+            return self._tolerated(sensor, read)
         self._failures[sensor] = 0
         self._last_good[sensor] = value
         return value

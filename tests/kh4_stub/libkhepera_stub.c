@@ -13,6 +13,8 @@
  *   KH4_STUB_POSITION     "left right" encoder counts returned by kh4_get_position.
  *   KH4_STUB_BATTERY      battery voltage in the DS2781's counts of 9.76 mV (bytes 10-11).
  *   KH4_STUB_FAIL         name of one function that fails (negative code, or NULL for knet_open).
+ *   KH4_STUB_FAIL_TIMES   if set, how many more calls of that function fail; the stub counts it down, so
+ *                         a glitch of one call is "1" (unset: every call fails).
  *
  * Every function that takes the dsPic handle logs dev=ok only if it got the very pointer knet_open
  * returned (a 64-bit address: a restype left as int would truncate it), and fails otherwise.
@@ -62,7 +64,21 @@ static const char *handle_label(const knet_dev_t *dev)
 static int scripted_to_fail(const char *function)
 {
     const char *failing = getenv("KH4_STUB_FAIL");
-    return failing != NULL && strcmp(failing, function) == 0;
+    if (failing == NULL || strcmp(failing, function) != 0) {
+        return 0;
+    }
+    const char *times = getenv("KH4_STUB_FAIL_TIMES");
+    if (times == NULL) {
+        return 1;
+    }
+    long left = strtol(times, NULL, 10);
+    if (left <= 0) {
+        return 0;
+    }
+    char buffer[32];
+    snprintf(buffer, sizeof buffer, "%ld", left - 1);
+    setenv("KH4_STUB_FAIL_TIMES", buffer, 1);
+    return 1;
 }
 
 /* 0 for success, or the error code libkhepera would give for a bad handle or the scripted failure. */
