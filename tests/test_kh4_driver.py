@@ -322,6 +322,19 @@ def test_a_glitch_on_a_sensors_first_read_is_read_again_not_fatal(stub_library, 
             monkeypatch.delenv("KH4_STUB_FAIL")
 
 
+def test_a_speed_command_that_errs_once_is_sent_again_not_fatal(stub_library, stub_log, monkeypatch):
+    """Reads were let off a glitch, speed commands were not: one failed kh4_set_speed in a step ended the run."""
+    with KheperaIV(library_path=str(stub_library)) as driver:
+        monkeypatch.setenv("KH4_STUB_FAIL", "kh4_set_speed")
+        monkeypatch.setenv("KH4_STUB_FAIL_TIMES", "2")
+        driver.set_wheel_speeds(0.1, 0.1)
+        monkeypatch.setenv("KH4_STUB_FAIL_TIMES", "3")
+        with pytest.raises(LibkheperaError, match="kh4_set_speed failed"):
+            driver.set_wheel_speeds(0.1, 0.1)                   # a bus that stays broken still raises
+        monkeypatch.delenv("KH4_STUB_FAIL")
+    assert speed_commands(stub_log) == [(147, 147)] * 6 + [(0, 0)]
+
+
 @pytest.mark.parametrize("speed", ["0.5", True, b"1"])
 def test_text_and_flags_are_not_wheel_speeds(stub_library, stub_log, speed):
     with KheperaIV(library_path=str(stub_library)) as driver:

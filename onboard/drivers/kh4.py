@@ -46,7 +46,7 @@ HAL_TO_HARDWARE_IR = (3, 2, 1, 0, 7, 6, 5, 4)
 LIBRARY_ENV = "KHEPRI_LIBKHEPERA"
 CALIBRATION_ENV = "KHEPRI_KH4_CALIBRATION"
 DEFAULT_LIBRARY = "libkhepera.so"
-STOP_ATTEMPTS = 3               # a stop that fails on the I2C bus is retried before giving up
+STOP_ATTEMPTS = 3               # a speed command or stop that fails on the I2C bus is retried before giving up
 SENSOR_FAILURES_TOLERATED = 5   # IR or encoder reads in a row that may fail (a bus glitch) before one raises
 
 _DEV = ctypes.c_void_p          # knet_dev_t *: a 64-bit pointer, never let ctypes truncate it to int
@@ -238,7 +238,9 @@ class KheperaIV(Driver):
         left_m_s = self._finite_speed("left_m_s", left_m_s)
         right_m_s = self._finite_speed("right_m_s", right_m_s)
         left_m_s, right_m_s = clamp_wheel_speeds(left_m_s, right_m_s, self.max_wheel_speed_m_s)
-        self._send_speed(self.speed_units(left_m_s), self.speed_units(right_m_s))
+        left_units, right_units = self.speed_units(left_m_s), self.speed_units(right_m_s)
+        # Retried as a stop is: one I2C glitch on a speed command ended the run as `driver failed`.
+        _retried(STOP_ATTEMPTS, lambda: self._send_speed(left_units, right_units))
 
     def _finite_speed(self, name: str, value: Any) -> float:
         try:    # a number only: float("0.5") and float(True) would pass text and flags as speeds
@@ -265,13 +267,7 @@ class KheperaIV(Driver):
         with self._lock:
             if self.closed:
                 return
-            for attempt in range(1, STOP_ATTEMPTS + 1):
-                try:
-                    self._send_speed(0, 0)
-                    return
-                except LibkheperaError:
-                    if attempt == STOP_ATTEMPTS:
-                        raise
+            _retried(STOP_ATTEMPTS, lambda: self._send_speed(0, 0))
 
     # --- sensors ------------------------------------------------------------------------------------------
     def raw_proximity(self) -> List[int]:
