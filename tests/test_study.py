@@ -118,6 +118,20 @@ def test_a_whole_mapping_override_names_its_cell_with_its_keys():
     assert run.scenario_data["object"]["mass"] == 2.0
 
 
+def test_a_cell_name_too_long_for_a_folder_is_shortened_with_a_fingerprint(tmp_path):
+    """A whole polygon of 24 vertices named a folder of over 255 bytes: every run of the cell was "not run: its
+    folder cannot be written (File name too long)", which no fixing of folders could cure."""
+    ring = [[round(0.2 * np.cos(k * np.pi / 12), 4), round(0.2 * np.sin(k * np.pi / 12), 4)] for k in range(24)]
+    shapes = [{"shape": "polygon", "vertices": ring, "mass": mass} for mass in (0.3, 0.4)]
+    text = TINY_STUDY.replace("seeds: 1..2", "seeds: [1]").replace("time_limit_s: 4", "time_limit_s: 1")
+    study = write(tmp_path / "s.yaml", text + f"overrides: {{object: {json.dumps(shapes)}}}\n")
+    cells = sorted({run.cell for run in expand(load_study_file(study))})
+    assert len(cells) == 2 and all(len(cell) <= 255 for cell in cells)
+    assert cells[0].startswith("lab-6@object=shape=polygon,vertices=0.2,0,") and "~" in cells[0]
+    assert main(["study", str(study), "--out", str(tmp_path / "out"), "--workers", "1", "--no-figures"]) == 0
+    assert sorted(results_in(tmp_path / "out")) == [f"{cell}/seed-1" for cell in cells]
+
+
 def test_the_summarys_overrides_column_writes_lists_and_mappings_as_json_without_spaces():
     """A whole-mapping override used to appear as a dict's repr, whose spaces broke the column's
     space-separated key=value pairs."""

@@ -32,6 +32,9 @@ MAX_SEEDS = 100_000
 STUDY_KEYS = ("name", "scenarios", "seeds", "reps", "overrides", "time_limit_s")
 SEED_RANGE = re.compile(r"^\s*(\d+)\s*\.\.\s*(\d+)\s*$")
 SAFE_NAME = re.compile(r"^[A-Za-z0-9_.+-]+$")
+# A cell's folder name at most (ASCII, so bytes too): what the usual file systems allow a name. A name that fits
+# is kept as it is, so the folders of studies run before this still resume.
+MAX_CELL_NAME = 255
 
 
 @dataclass
@@ -378,7 +381,17 @@ def overrides_text(chosen: Dict[str, Any]) -> str:
 def cell_name(scenario_name: str, chosen: Dict[str, Any]) -> str:
     """``scenario`` or ``scenario@key=value@key=value``: readable, and safe as a folder name."""
     parts = [scenario_name] + [f"{key}={value_text(value)}" for key, value in chosen.items()]
-    return "@".join(re.sub(r"[^A-Za-z0-9_.,+=-]", "_", part) for part in parts)
+    return fit_folder_name("@".join(re.sub(r"[^A-Za-z0-9_.,+=-]", "_", part) for part in parts))
+
+
+def fit_folder_name(name: str) -> str:
+    """``name``, or when it is longer than ``MAX_CELL_NAME`` its start, ``~`` and a fingerprint of the whole name:
+    a long override (a whole object with a few dozen vertices) named a folder that no run of its cell could
+    make ("File name too long"). The cell's overrides stay in full in result.json, summary.csv and report.md."""
+    if len(name) <= MAX_CELL_NAME:
+        return name
+    digest = hashlib.sha1(name.encode("utf-8")).hexdigest()[:12]
+    return f"{name[:MAX_CELL_NAME - len(digest) - 1]}~{digest}"
 
 
 def value_text(value: Any) -> str:
