@@ -133,4 +133,29 @@ def is_run_result(data: Any) -> bool:
     if not isinstance(data.get("seed"), int) or isinstance(data.get("seed"), bool):
         return False
     ended = isinstance(data.get("stop_reason"), str)
-    return ended or (data.get("failed") is True and isinstance(data.get("error"), str))
+    return (ended or (data.get("failed") is True and isinstance(data.get("error"), str))) and has_run_shape(data)
+
+
+def has_run_shape(data: Dict[str, Any]) -> bool:
+    """The records the aggregation reads into have the shape a run writes them in: a hand-edited result.json
+    with a list for ``study``, a string for a waypoint's ``index`` or a number for ``warnings`` crashed
+    ``khepri study report`` (and the study's own report) with a traceback, rather than being listed as not a
+    run's result."""
+    study = data.get("study")
+    if study is not None:
+        if not isinstance(study, dict) or not isinstance(study.get("overrides") or {}, dict):
+            return False
+        if not all(isinstance(study.get(key), (str, type(None))) for key in ("behaviour_sha1", "scenario_sha1")):
+            return False
+        limit = study.get("time_limit_s")
+        if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, float))):
+            return False
+    waypoints = data.get("waypoints")
+    if waypoints is not None and not (isinstance(waypoints, list) and all(map(is_waypoint_record, waypoints))):
+        return False
+    return isinstance(data.get("warnings") or [], list)
+
+
+def is_waypoint_record(record: Any) -> bool:
+    index = record.get("index", 0) if isinstance(record, dict) else None
+    return isinstance(index, int) and not isinstance(index, bool)
