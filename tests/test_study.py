@@ -1005,6 +1005,24 @@ def test_a_dask_address_that_never_answers_as_dask_is_an_error_not_a_hang(tmp_pa
         listener.close()
 
 
+def test_a_dask_address_where_nothing_listens_is_refused_at_once_and_says_so():
+    """Dask retried a refused connection for its whole 30 s timeout, then said only "Timed out trying to connect".
+    (A scheduler started just before the study still has 10 s to listen: see the lost-scheduler test.)"""
+    import socket
+
+    from onboard.config import ConfigError
+    from sim_backend.study.executors import connect_to_scheduler
+
+    with socket.socket() as probe:       # a free port, closed again: nothing listens there
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    started = time.monotonic()
+    refused = f"nothing listens on port {port} of 127.0.0.1 \\(connection refused for 10 s\\)"
+    with pytest.raises(ConfigError, match=refused):
+        connect_to_scheduler(f"tcp://127.0.0.1:{port}")
+    assert time.monotonic() - started < 20
+
+
 def test_a_dask_scheduler_that_cannot_be_reached_is_said_before_the_folder_is_made(tmp_path, capsys, monkeypatch):
     import socket
 

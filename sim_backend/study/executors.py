@@ -10,6 +10,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import socket
 import threading
 import time
 from collections import deque
@@ -193,6 +194,11 @@ def stop_workers(pool: ProcessPoolExecutor) -> None:
     pool.shutdown(wait=False, cancel_futures=True)
 
 
+# How long a scheduler's port may refuse connections before the address is refused: long enough for a scheduler
+# started just before the study to listen, far shorter than Dask's 30 s of retries.
+REFUSED_FOR_S = 10.0
+
+
 def connect_to_scheduler(address: str, timeout_s: float = 30.0):
     """A Dask ``Client`` of the scheduler at ``address``, or a ConfigError naming it within about ``timeout_s``,
     whatever answers there: Dask's own timeout does not cover a server that accepts the connection and then
@@ -204,6 +210,10 @@ def connect_to_scheduler(address: str, timeout_s: float = 30.0):
 
     def connect() -> None:
         try:
+            reason = unreachable_reason(address, min(REFUSED_FOR_S, timeout_s))
+            if reason:
+                outcome["reason"] = reason
+                return
             outcome["client"] = Client(address, timeout=f"{timeout_s:g}s")
         except Exception as err:              # noqa: BLE001 - every way of failing is "cannot use that address"
             outcome["error"] = err
@@ -215,9 +225,39 @@ def connect_to_scheduler(address: str, timeout_s: float = 30.0):
     if "client" in outcome:
         return outcome["client"]
     error = outcome.get("error")
-    reason = f"{type(error).__name__}: {error}" if error is not None else \
-        f"no Dask answer within {waited_s:g} s (is it a Dask scheduler's address?)"
+    reason = outcome.get("reason") or (f"{type(error).__name__}: {error}" if error is not None else
+                                       f"no Dask answer within {waited_s:g} s (is it a Dask scheduler's address?)")
     raise ConfigError("--executor", f"cannot use the Dask scheduler {address}: {reason}")
+
+
+def unreachable_reason(address: str, refused_for_s: float = 10.0) -> Optional[str]:
+    """Why nothing can answer at a TCP ``address`` (its host name unknown, or its port refusing connections for
+    ``refused_for_s``: a scheduler started just before the study takes a few seconds to listen), or None when
+    that cannot be told soon. Dask retries both until its timeout and then says only "Timed out trying to
+    connect ... after 30 s": a mistyped port or host name cost half a minute and hid which it was."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    scheme, location = parse_address(address)
+    if scheme != "tcp":
+        return None
+    host, port = parse_host_port(location)
+    try:
+        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as err:
+        # Only "no such name" is an answer; a resolver that failed this time (EAI_AGAIN) may yet answer.
+        return f"unknown host {host!r} ({err.strerror})" if err.errno == socket.EAI_NONAME else None
+    deadline = time.monotonic() + refused_for_s
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=5.0).close()
+            return None
+        except ConnectionRefusedError:
+            if time.monotonic() >= deadline:
+                return (f"nothing listens on port {port} of {host} (connection refused for {refused_for_s:g} s): "
+                        f"is the scheduler running there?")
+            time.sleep(0.25)
+        except OSError:
+            return None           # unreachable or slow: Dask's own timeout says so
 
 
 def dask_setup(worker: Any) -> None:
