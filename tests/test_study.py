@@ -1187,6 +1187,20 @@ def test_a_scenario_file_named_without_yaml_is_found_beside_the_study_wherever_i
         load_study_file(folder / "t.yaml")
 
 
+def test_a_scenario_file_written_relative_to_the_current_folder_is_said_to_be_relative_to_the_study(tmp_path,
+                                                                                                  monkeypatch, capsys):
+    """`scenarios: [study/scen/a.yaml]` run from the study's parent said only "no such file: study/study/scen/a.yaml",
+    as if the file were gone."""
+    (tmp_path / "study/scen").mkdir(parents=True)
+    (tmp_path / "study/scen/a.yaml").write_text("robots: {count: 4}\nobject: {shape: circle, radius: 0.2}\n")
+    (tmp_path / "study/s.yaml").write_text("scenarios: [study/scen/a.yaml]\nreps: 1\n")
+    monkeypatch.chdir(tmp_path)
+    assert main(["study", "study/s.yaml", "--dry-run"]) == 2
+    assert capsys.readouterr().err == ("khepri: error: scenarios[0]: no such file: study/study/scen/a.yaml (a scenario "
+                                       "file is relative to the study file: for study/scen/a.yaml in the current "
+                                       "folder, write scen/a.yaml)\n")
+
+
 def test_a_study_takes_whole_numbers_written_as_floats_as_scenario_files_do():
     spec = parse_study({"scenarios": ["lab-6"], "reps": 2.0})
     assert spec.seeds == [1, 2] and all(type(seed) is int for seed in spec.seeds)

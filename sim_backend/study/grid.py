@@ -13,6 +13,7 @@ import inspect
 import itertools
 import json
 import math
+import os
 import re
 from collections import Counter
 from dataclasses import dataclass, field
@@ -166,10 +167,23 @@ def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
         if is_file and not is_yaml and "/" not in item and item in builtin_names():
             raise ConfigError(f"scenarios[{i}]", f"{item!r} is both a built-in scenario and a file beside the "
                                                  f"study: write ./{item} for the file, or rename the file")
+        if is_file and not beside.exists():
+            check_not_relative_to_cwd(f"scenarios[{i}]", item, base_dir)
         names.append(str(beside.resolve()) if is_file else item)
     if len(set(names)) != len(names):
         raise ConfigError("scenarios", "lists a scenario twice")
     return names
+
+
+def check_not_relative_to_cwd(where: str, item: str, base_dir: Path) -> None:
+    """A scenario file missing beside the study but found from the current folder was written relative to the
+    current folder: say so, as "no such file: <study folder>/<item>" alone read as if the file were gone."""
+    here = Path(item)
+    if here.is_absolute() or not here.is_file():
+        return
+    relative = Path(os.path.relpath(here.resolve(), base_dir.resolve())).as_posix()
+    raise ConfigError(where, f"no such file: {base_dir / item} (a scenario file is relative to the study file: "
+                             f"for {item} in the current folder, write {relative})")
 
 
 def parse_seeds(data: Dict[str, Any]) -> List[int]:
