@@ -423,6 +423,23 @@ def test_a_dask_local_cluster_gives_the_same_results_as_the_local_pool(local_stu
     assert "--executor dask" in json.loads((tmp_path / "study.json").read_text())["commands"][0]
 
 
+def test_a_dask_local_cluster_beside_another_on_port_8787_says_nothing_of_it(tmp_path, recwarn):
+    """Without a dashboard the LocalCluster's scheduler still served HTTP on port 8787; beside a Dask scheduler (or
+    another study) Dask warned "Port 8787 is already in use. Perhaps you already have a cluster running?"."""
+    import socket
+
+    study = write(tmp_path / "tiny.yaml", TINY_STUDY.replace("seeds: 1..2", "seeds: [1]"))
+    with socket.socket() as taken:
+        try:
+            taken.bind(("", 8787))
+            taken.listen()
+        except OSError:
+            pass                             # something else holds it already: as good
+        assert main(["study", str(study), "--executor", "dask", "--workers", "1", "--out", str(tmp_path / "o"),
+                     "--no-figures"]) == 0
+    assert not [w for w in recwarn if "8787" in str(w.message)]
+
+
 def die_on_seed_1(spec, out_root):
     """The first run's worker process dies (no exception, no result); the others are ordinary runs."""
     if spec.seed == 1:

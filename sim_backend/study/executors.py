@@ -324,9 +324,13 @@ class DaskExecutor:
             client, self.client = self.client, None
             return client, None
         # One thread per worker: the simulator is pure Python, threads would only contend for the GIL.
-        # The preload makes its workers ignore Ctrl-C (see dask_setup).
+        # The preload makes its workers ignore Ctrl-C (see dask_setup). Without a dashboard the scheduler still
+        # serves a few HTTP routes, on port 8787 unless told otherwise: beside a Dask scheduler or another study
+        # that port is taken, and Dask printed "UserWarning: Port 8787 is already in use. Perhaps you already have
+        # a cluster running?" in the middle of the study. Any free loopback port will do.
         cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR, preload=[__name__])
+                               dashboard_address=None, silence_logs=logging.ERROR, preload=[__name__],
+                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
         try:
             return Client(cluster, timeout="30s"), cluster
         except OSError as err:
