@@ -99,6 +99,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     folder = args.folder
     if folder is None:
         raise ConfigError("study report", "give the study folder: khepri study report DIR")
+    if folder.is_file():       # said `no such folder` of a file that is there
+        raise ConfigError("study report", f"{folder} is a file: give the study's folder (its --out)")
     if not folder.is_dir():
         raise ConfigError("study report", f"no such folder: {folder}")
     if not (folder / "study.json").is_file() and not any(folder.glob("*/seed-*/result.json")):

@@ -813,6 +813,9 @@ def test_study_report_reaggregates_a_folder_without_running(known_study, capsys)
     assert len(load_results(known_study).cells) == 2
     assert main(["study", "report", str(known_study / "missing")]) == 2
     assert "study report: no such folder" in capsys.readouterr().err
+    (known_study / "notes.txt").write_text("a file, not a study")
+    assert main(["study", "report", str(known_study / "notes.txt")]) == 2
+    assert "notes.txt is a file: give the study's folder" in capsys.readouterr().err
     (known_study / "empty").mkdir()
     assert main(["study", "report", str(known_study / "empty")]) == 2
     assert "holds no study" in capsys.readouterr().err
