@@ -175,10 +175,7 @@ class KheperaIV(Driver):
     def _open_robot(self) -> None:
         lib = self.library
         lib.call("kh4_init", 0, None)
-        self._dspic = lib.functions["knet_open"](DSPIC_DEVICE, KNET_BUS_I2C, 0, None)
-        if not self._dspic:
-            raise LibkheperaError(f"{lib.path}: knet_open could not open {DSPIC_DEVICE.decode()} "
-                                  "(is this a KheperaIV, and is no other program using it?)")
+        self._dspic = open_dspic(lib)
         lib.call("kh4_ConfigurePID", *MOTOR_PID, self._dspic)
         lib.call("kh4_SetSpeedProfile", *SPEED_PROFILE, self._dspic)
         lib.call("kh4_SetMode", KH4_REG_SPEED_PROFILE, self._dspic)
@@ -342,9 +339,7 @@ def stop_robot(library_path: str) -> None:
         lib.call("kh4_init", 0, None)
     except LibkheperaError:
         pass            # knet_open says whether the robot can be reached; try it all the same
-    dspic = lib.functions["knet_open"](DSPIC_DEVICE, KNET_BUS_I2C, 0, None)
-    if not dspic:
-        raise LibkheperaError(f"{lib.path}: knet_open could not open {DSPIC_DEVICE.decode()}")
+    dspic = open_dspic(lib)
     try:
         try:
             _retried(STOP_ATTEMPTS, lambda: lib.call("kh4_set_speed", 0, 0, dspic))
@@ -352,6 +347,15 @@ def stop_robot(library_path: str) -> None:
             _retried(STOP_ATTEMPTS, lambda: lib.call("kh4_SetMode", KH4_REG_IDLE, dspic))
     finally:
         lib.functions["knet_close"](dspic)
+
+
+def open_dspic(lib: Libkhepera) -> Any:
+    """The dsPic's knet handle (after kh4_init), or LibkheperaError saying why it may not open."""
+    dspic = lib.functions["knet_open"](DSPIC_DEVICE, KNET_BUS_I2C, 0, None)
+    if not dspic:
+        raise LibkheperaError(f"{lib.path}: knet_open could not open {DSPIC_DEVICE.decode()} "
+                              "(is this a KheperaIV, and is no other program using it?)")
+    return dspic
 
 
 def _retried(attempts: int, call: Callable[[], Any]) -> None:
