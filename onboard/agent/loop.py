@@ -30,7 +30,7 @@ from onboard.behaviour import (
     plain_json,
     telemetry_of,
 )
-from onboard.config import ConfigError
+from onboard.config import ConfigError, check_range
 from onboard.drivers import Driver, DriverError
 from onboard.hal import RobotSpec
 from onboard.protocol import IDLE_TELEMETRY_HZ, ProtocolError
@@ -102,10 +102,7 @@ def run_params(params: Any) -> Dict[str, Any]:
 def run_control_hz(value: Any) -> float:
     """``run.control_hz`` as the hub's config allows it, (0, MAX_CONTROL_HZ]: 0 or less, or a huge rate, made the
     loop step the behaviour as fast as it could, every step a deadline miss."""
-    hz = positive_number("run.control_hz", value)
-    if hz > MAX_CONTROL_HZ:
-        raise ConfigError("run.control_hz", f"must be <= {MAX_CONTROL_HZ:g} (got {hz:g})")
-    return hz
+    return check_range("run.control_hz", positive_number("run.control_hz", value), high=MAX_CONTROL_HZ)
 
 
 def run_id_text(value: Any) -> None:
