@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from onboard.config import ConfigError, check_range, from_mapping, join
-from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_ROBOT_ID
+from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
 
 SOURCE_TYPES = ("sim", "motioncapture", "replay")
@@ -184,7 +184,7 @@ class RunConfig:
     autostart: bool = False          # start as soon as the hub is up (SIL)
 
     def validate(self, where: str) -> None:
-        check_range(join(where, "control_hz"), self.control_hz, 0.0, 100.0, low_open=True)
+        check_range(join(where, "control_hz"), self.control_hz, 0.0, MAX_CONTROL_HZ, low_open=True)
 
 
 @dataclass

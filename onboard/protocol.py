@@ -61,6 +61,8 @@ FRAME_BINARY_FIELDS = ("v", "type", "seq", "mode", "hub_t", "pose", "pose_age_s"
 MODE_CODES = {mode: code for code, mode in enumerate(MODES)}
 # An agent sends telemetry once per loop step: at the run's control_hz, and at this rate while it has no run.
 IDLE_TELEMETRY_HZ = 10.0
+# The fastest control_hz a run may loop at: the hub's config accepts no more, and an agent refuses a start above it.
+MAX_CONTROL_HZ = 100.0
 
 
 def encode(message: Dict[str, Any], max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:

@@ -33,7 +33,7 @@ from onboard.behaviour import (
 from onboard.config import ConfigError, check_range
 from onboard.drivers import Driver, DriverError
 from onboard.hal import RobotSpec
-from onboard.protocol import IDLE_TELEMETRY_HZ, ProtocolError
+from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, ProtocolError
 
 from .devices import AgentClock, HubState, apply_frame, make_robot
 from .link import HubLink
@@ -43,7 +43,6 @@ SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is sai
 HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
 RESET_AFTER_S = 2.0       # this long without a frame: reopen the socket (a connection can be stuck for good)
 WAITING_LOG_S = 10.0      # while the hub stays silent, say so this often
-MAX_CONTROL_HZ = 100.0    # the fastest run.control_hz the hub's config accepts
 
 
 @dataclass
