@@ -67,9 +67,10 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
         found.append("sensors.pose_dropout: 1 loses every pose: no robot ever knows where it is, so none moves "
                      "with purpose")
     if world.geometry is not None and spacing is not None:
-        found += _cage_fits(world.geometry, spacing, spec.radius_m)
-    if world.geometry is not None and spacing is not None and scenario.object is not None:
-        found += _small_cage_turns(scenario, world.geometry, spacing, spec.radius_m)
+        hull = object_hull(world.geometry)      # once: the ring and the faces below are both read off it
+        found += _cage_fits(hull, spacing, spec.radius_m)
+        if scenario.object is not None:
+            found += _small_cage_turns(scenario, hull, spacing, spec.radius_m)
     if world.geometry is not None and scenario.arena.walls is not None:
         needed = CAGE_GAP_M + 2.0 * spec.radius_m + spec.proximity_range_m + WALL_MARGIN_M
         found += _room_to_walls(scenario, world.geometry, needed)
@@ -128,11 +129,11 @@ def _faults(scenario: Any) -> List[str]:
     return found
 
 
-def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[str]:
+def _cage_fits(hull: np.ndarray, spacing: float, robot_radius: float) -> List[str]:
     """The ring the cage lies on (the object's convex hull grown by a robot's radius and its gap) must hold
     MIN_CAGE robots I_d apart; the behaviour only ever widens I_d (the `grow` levels), never narrows it."""
-    ring = _cage_ring(geometry, robot_radius)
-    cornered = bool(_face_normals(geometry))
+    ring = _cage_ring(hull, robot_radius)
+    cornered = bool(_face_normals(hull))
     if ring >= CORNERED_RING * spacing or (ring >= RING_SLACK * MIN_CAGE * spacing and not cornered):
         return []
     fitting = 4 if cornered else MIN_CAGE      # the spacing suggested leaves a ring of this many spacings
@@ -148,14 +149,14 @@ def _cage_fits(geometry: Geometry, spacing: float, robot_radius: float) -> List[
             f"params.inter_robot_distance_m to {math.floor(100 * ring / fitting) / 100:.2f} m or less"]
 
 
-def _small_cage_turns(scenario: Any, geometry: Geometry, spacing: float, robot_radius: float) -> List[str]:
+def _small_cage_turns(scenario: Any, hull: np.ndarray, spacing: float, robot_radius: float) -> List[str]:
     """A small cage often misses the object turning: on a leg that runs across its faces (the object turns
     towards pushing a face flat) and on a turn the path asks for. Said once per leg, naming the waypoint."""
-    ring = _cage_ring(geometry, robot_radius)
+    ring = _cage_ring(hull, robot_radius)
     members = min(scenario.robots.count, int(ring // spacing))
     if members >= SMALL_CAGE_MEMBERS or members < MIN_CAGE:
         return []
-    normals = _face_normals(geometry)
+    normals = _face_normals(hull)
     cage = (f"a cage of about {members} robots (its ring is {ring:.2f} m, params.inter_robot_distance_m "
             f"{spacing:g} m)")
     advice = ("often does not see the object turn, and the run ends off in yaw (docs/behaviour.md section 8). "
@@ -192,10 +193,9 @@ def judges_yaw(obj: Any) -> bool:
     return obj is None or obj.shape != "circle"
 
 
-def _face_normals(geometry: Geometry) -> List[float]:
+def _face_normals(hull: np.ndarray) -> List[float]:
     """Outward normal angles (degrees, object frame) of the hull's long edges: the directions a push along
     which keeps a face square to it. Empty for a round object: no edge is long."""
-    hull = _convex_hull(np.vstack(geometry.outline_polygons()))
     edges = np.roll(hull, -1, axis=0) - hull
     lengths = np.hypot(edges[:, 0], edges[:, 1])
     long = lengths >= FACE_SHARE * lengths.sum()
@@ -232,15 +232,22 @@ def _room_to_walls(scenario: Any, geometry: Geometry, needed: float) -> List[str
     return found
 
 
-def _cage_ring(geometry: Geometry, robot_radius: float) -> float:
+def _cage_ring(hull: np.ndarray, robot_radius: float) -> float:
     """The length of the ring the cage lies on: the convex hull grown by a robot's radius and its gap."""
-    return hull_perimeter(geometry) + 2.0 * math.pi * (robot_radius + CAGE_GAP_M)
+    return _perimeter(hull) + 2.0 * math.pi * (robot_radius + CAGE_GAP_M)
+
+
+def object_hull(geometry: Geometry) -> np.ndarray:
+    """The convex hull of the object's outline (circles included as polygons), counter-clockwise."""
+    return _convex_hull(np.vstack(geometry.outline_polygons()))
 
 
 def hull_perimeter(geometry: Geometry) -> float:
-    """Perimeter of the convex hull of the object's outline (circles included as polygons)."""
-    points = np.vstack(geometry.outline_polygons())
-    hull = _convex_hull(points)
+    """Perimeter of the convex hull of the object's outline."""
+    return _perimeter(object_hull(geometry))
+
+
+def _perimeter(hull: np.ndarray) -> float:
     return float(np.sum(np.hypot(*(np.roll(hull, -1, axis=0) - hull).T)))
 
 
