@@ -49,8 +49,6 @@ def add_study(groups) -> None:
 
 
 def cmd_study(args: argparse.Namespace) -> int:
-    from sim_backend.study.report import write_study_outputs
-
     if args.target == "report":
         return cmd_report(args)
     if args.folder is not None:
@@ -66,11 +64,20 @@ def cmd_study(args: argparse.Namespace) -> int:
     if args.dry_run:
         return print_dry_run(runs, out, args.retry_failed)
     from khepri_cli.sim_commands import require_out_folder
-    from sim_backend.study.driver import run_study
+    from sim_backend.study.driver import study_lock
 
     executor = make_executor(choice, workers)
     executor.prepare()          # a Dask scheduler that cannot be reached: said before the folder is touched
     require_out_folder(out)
+    # One study at a time per folder, through to its report: a second would run every unfinished run again.
+    with study_lock(out):
+        return run_and_report(args, spec, runs, out, executor)
+
+
+def run_and_report(args: argparse.Namespace, spec, runs, out: Path, executor) -> int:
+    from sim_backend.study.driver import run_study
+    from sim_backend.study.report import write_study_outputs
+
     print(f"study {spec.name}: {counted(len(runs), 'run')} on {executor.describe()}, writing to {out}")
     # `kill` (SIGTERM) ends a study like Ctrl-C: workers stopped, finished runs kept, resumable. Without
     # this the driver died alone and its pool's workers ran on, orphaned, until their runs finished.

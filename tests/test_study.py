@@ -392,6 +392,63 @@ def test_a_worker_that_ran_another_version_of_the_code_is_said_during_the_run(tm
                         "): the study mixes code versions; give every worker the same commit"]     # once, not per run
 
 
+# What a running study does to its folder, written out (not through khepri's code, which this test checks).
+HOLD_THE_LOCK = """
+import fcntl, os, sys, time
+with open(os.path.join(sys.argv[1], "study.lock"), "w") as lock:
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    lock.write(f"{os.getpid()}\\n")
+    lock.flush()
+    print("locked", flush=True)
+    time.sleep(60)
+"""
+
+
+def test_a_second_study_into_the_same_folder_is_refused_while_the_first_runs(tmp_path, capsys):
+    """Both ran every unfinished run. The lock is the kernel's (flock): one killed outright leaves none behind."""
+    import subprocess
+    import sys
+
+    study = write(tmp_path / "tiny.yaml", "name: tiny\nscenarios: [lab-6]\nseeds: [1]\ntime_limit_s: 1\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_THE_LOCK, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "locked\n"
+        assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 2
+        assert capsys.readouterr().err == (
+            f"khepri: error: --out: {out} is in use by another study (pid {holder.pid}, holding {out / 'study.lock'}): "
+            f"wait for it to end, or give another --out\n")
+        assert not (out / "lab-6").exists() and not (out / "study.json").exists()
+    finally:
+        holder.kill()        # as a crash would: no chance to clean anything up
+        holder.wait()
+        holder.stdout.close()
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
+    assert "ran 1 run (0 failed)" in capsys.readouterr().out
+    assert (out / "study.lock").read_text() == f"{os.getpid()}\n"     # the pid a second study would name
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0   # resumes
+    assert "ran 0 runs (0 failed), skipped 1 finished" in capsys.readouterr().out
+
+
+def test_a_folder_whose_file_system_has_no_locks_runs_its_study_unlocked_and_says_so(tmp_path, monkeypatch, capsys):
+    """flock's ENOLCK (NFS without its lock service) had no file name: the command ended in a traceback."""
+    import errno
+    import fcntl
+
+    from sim_backend.study.driver import study_lock
+
+    def no_locks(*args):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with study_lock(tmp_path):
+        pass
+    assert capsys.readouterr().err == (f"khepri: warning: --out: cannot lock {tmp_path / 'study.lock'} (No locks "
+                                       f"available): a second study started into {tmp_path} meanwhile would not be "
+                                       "refused\n")
+
+
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o027, 0o640)])
 def test_a_result_the_driver_writes_has_the_umasks_permissions(tmp_path, umask, mode):
     """write_result's temporary file came from mkstemp, so its result.json was 0600: the rest of the lab could

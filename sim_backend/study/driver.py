@@ -6,6 +6,8 @@ again.
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import sys
@@ -13,15 +15,16 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Set, TextIO, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Set, TextIO, Tuple
 
-from onboard.config import to_mapping
+from onboard.config import ConfigError, to_mapping
 
 from .grid import RunSpec, StudySpec
 from .text import counted
 from .worker import RESULT_FILE, failed_result, read_result, write_result
 
 STUDY_FILE = "study.json"
+LOCK_FILE = "study.lock"          # flock'ed by the command running the study; holds its pid
 UNWRITABLE_KEY = "unwritable"     # study.json: run folder -> why its result.json could not be written
 
 
@@ -100,6 +103,48 @@ def longest_first(runs: List[RunSpec]) -> List[RunSpec]:
     """The runs, those that may take longest first (stable within equals), so that a pool of workers does
     not finish the short runs together and then wait for three 100-robot runs on one worker each."""
     return sorted(runs, key=expected_cost, reverse=True)
+
+
+@contextlib.contextmanager
+def study_lock(out_dir: Path) -> Iterator[None]:
+    """Hold ``<out_dir>/study.lock`` while a study runs into ``out_dir``; ConfigError naming --out and the holder's
+    pid if another process holds it. Two studies in one folder would both run every run not yet finished.
+
+    An OS lock (flock), not a file's existence: the kernel drops it when its holder ends, however it ends
+    (``kill -9`` included), so a crashed study leaves nothing to clean before the resume. The file itself stays."""
+    path = out_dir / LOCK_FILE
+    try:
+        handle = open(path, "a+", encoding="utf-8")     # not "w": that would empty the holder's pid before we know
+    except OSError as err:
+        raise ConfigError("--out", f"cannot open the lock file {path}: {err.strerror or err}") from None
+    with handle:
+        if lock_exclusively(handle, path, out_dir):
+            handle.truncate(0)
+            handle.write(f"{os.getpid()}\n")
+            handle.flush()
+        yield     # the lock goes with the file's closing
+
+
+def lock_exclusively(handle: TextIO, path: Path, out_dir: Path) -> bool:
+    """Take the lock (True); ConfigError if another study holds it; False, said, on a file system without locks."""
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise ConfigError("--out", f"{out_dir} is in use by another study ({lock_holder_text(handle)}, "
+                                   f"holding {path}): wait for it to end, or give another --out") from None
+    except OSError as err:   # e.g. ENOLCK, NFS without its lock service: run unlocked, as before there were locks
+        print(f"khepri: warning: --out: cannot lock {path} ({err.strerror or err}): a second study started into "
+              f"{out_dir} meanwhile would not be refused", file=sys.stderr)
+        return False
+    return True
+
+
+def lock_holder_text(handle: TextIO) -> str:
+    """``pid N`` from the lock file, read by a process that did not get the lock."""
+    handle.seek(0)
+    pid = handle.read().strip()
+    # Empty: the holder took the lock a moment ago and has not written its pid yet.
+    return f"pid {pid}" if pid.isdigit() else "pid not yet written"
 
 
 def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, retry_failed: bool = False,
