@@ -42,6 +42,14 @@ def check_range(where: str, value: float, low: float = -math.inf, high: float = 
     return value
 
 
+def check_boolean(where: str, value: Any) -> bool:
+    """A true or false as it is; anything else refused naming ``where``. Not ``bool(value)``: "yes", "false", "0"
+    and 1 would all switch the setting on."""
+    if isinstance(value, bool):
+        return value
+    raise ConfigError(where, f"must be true or false (got {value!r})")
+
+
 def _number(value: float) -> str:
     """An integer as written (100000000000, not 1e+11); a float in its shortest form."""
     return str(value) if isinstance(value, int) else f"{value:g}"
@@ -91,9 +99,7 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     if dataclasses.is_dataclass(tp):
         return from_mapping(tp, value, where)
     if tp is bool:
-        if isinstance(value, bool):
-            return value
-        raise ConfigError(where, f"must be true or false (got {value!r})")
+        return check_boolean(where, value)
     if tp is int:
         number = as_integer(value)
         if number is None:

@@ -482,10 +482,15 @@ def test_a_robot_without_the_agents_packages_is_told_which_in_one_line():
     ("control_hz", 1e9, "run.control_hz: must be <= 100"),
     ("params", [1, 2], "run.params: must be a mapping"),
     ("run_id", ["r1"], "run.run_id: must be a string"),
+    ("lockstep", "yes", "run.lockstep: must be true or false (got 'yes')"),
+    ("lockstep", "false", "run.lockstep: must be true or false (got 'false')"),
+    ("lockstep", 1, "run.lockstep: must be true or false (got 1)"),
 ])
 def test_a_start_with_malformed_run_settings_is_refused_not_crashed(scripted, field, value, problem):
     """The hub's `start` is input like any frame: a list for `spec` raised AttributeError out of the agent's loop,
-    and a control_hz <= 0 or huge had the behaviour stepped as fast as the loop went, every step a miss."""
+    and a control_hz <= 0 or huge had the behaviour stepped as fast as the loop went, every step a miss. A
+    lockstep of "yes", "false" or 1 was taken as true: the agent waited for frames to step, on a hub pacing by
+    the wall clock."""
     said = []
     link = HubLink(0, scripted.endpoint)
     try:

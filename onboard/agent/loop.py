@@ -30,7 +30,7 @@ from onboard.behaviour import (
     plain_json,
     telemetry_of,
 )
-from onboard.config import ConfigError, check_range
+from onboard.config import ConfigError, check_boolean, check_range
 from onboard.drivers import Driver, DriverError
 from onboard.hal import RobotSpec
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, ProtocolError
@@ -266,6 +266,7 @@ class Agent:
             spec = run_spec(run.get("spec"))
             period = 1.0 / run_control_hz(run.get("control_hz", 10.0))
             run_id_text(run.get("run_id"))
+            check_boolean("run.lockstep", run.get("lockstep", False))    # _lockstep() reads it at every tick
         except (ConfigError, TypeError, ValueError) as err:
             self.error = f"cannot start the run: {err}"
             run_id = run.get("run_id")
