@@ -485,6 +485,8 @@ def test_a_robot_without_the_agents_packages_is_told_which_in_one_line():
     ("lockstep", "yes", "run.lockstep: must be true or false (got 'yes')"),
     ("lockstep", "false", "run.lockstep: must be true or false (got 'false')"),
     ("lockstep", 1, "run.lockstep: must be true or false (got 1)"),
+    ("clock", "Hub", "run.clock: must be local or hub (got 'Hub')"),
+    ("clock", True, "run.clock: must be local or hub (got True)"),
 ])
 def test_a_start_with_malformed_run_settings_is_refused_not_crashed(scripted, field, value, problem):
     """The hub's `start` is input like any frame: a list for `spec` raised AttributeError out of the agent's loop,

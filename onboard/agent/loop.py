@@ -111,6 +111,14 @@ def run_id_text(value: Any) -> None:
         raise ConfigError("run.run_id", f"must be a string (got {value!r:.40})")
 
 
+def run_uses_hub_clock(value: Any) -> bool:
+    """``run.clock``: ``hub`` (the frames' simulated time) or ``local``. Compared with "hub" alone, a "Hub" or a
+    true ran a lockstep run on the robot's own clock, its behaviour's time apart from the simulation's."""
+    if value not in ("local", "hub"):
+        raise ConfigError("run.clock", f"must be local or hub (got {value!r:.40})")
+    return value == "hub"
+
+
 def positive_number(where: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value < math.inf:
         raise ConfigError(where, f"must be a number > 0 (got {value!r:.40})")
@@ -267,6 +275,7 @@ class Agent:
             period = 1.0 / run_control_hz(run.get("control_hz", 10.0))
             run_id_text(run.get("run_id"))
             check_boolean("run.lockstep", run.get("lockstep", False))    # _lockstep() reads it at every tick
+            hub_clock = run_uses_hub_clock(run.get("clock", "local"))
         except (ConfigError, TypeError, ValueError) as err:
             self.error = f"cannot start the run: {err}"
             run_id = run.get("run_id")
@@ -275,7 +284,7 @@ class Agent:
             return
         self.error = None
         self.run, self.period = run, period
-        self.clock.restart(run.get("clock") == "hub")
+        self.clock.restart(hub_clock)
         seed = run.get("seed")
         if isinstance(seed, int) and not isinstance(seed, bool):
             # As the simulator seeds `random` for its behaviours: a run with a seed repeats, agent by agent.
