@@ -70,6 +70,11 @@ def parse_yaml(text: str, where: str) -> Any:
         mark = getattr(err, "problem_mark", None)
         at = f"{where}:{mark.line + 1}" if mark else where
         raise ConfigError(at, f"not valid YAML ({getattr(err, 'problem', None) or err})") from None
+    except RecursionError:
+        # PyYAML reads each level of lists or mappings with a few nested calls: a file nested some hundreds
+        # deep (valid YAML or JSON) exhausts Python's stack, and only "maximum recursion depth exceeded" was said.
+        raise ConfigError(where, "lists or mappings nested too deeply to read (hundreds of levels, one inside "
+                                 "another)") from None
 
 
 def read_yaml(path: Path, field: str = "") -> Any:

@@ -203,6 +203,17 @@ def test_a_missing_or_unparsable_calibration_file_is_refused_before_the_robot_is
     assert not stub_log.exists()
 
 
+def test_a_calibration_file_nested_thousands_deep_is_refused_naming_it(stub_library, stub_log, tmp_path):
+    """It gave "cannot open the KheperaIV: maximum recursion depth exceeded" (a RecursionError is a RuntimeError),
+    as if the hardware had failed, and named no file."""
+    for name, text in (("deep.json", "[" * 5000 + "]" * 5000), ("deep.yaml", "proximity: " + "[" * 5000 + "]" * 5000)):
+        deep = write_yaml(tmp_path / name, text)
+        with pytest.raises(ConfigError, match="nested too deeply") as caught:
+            KheperaIV(library_path=str(stub_library), calibration_path=deep)
+        assert caught.value.field == name
+    assert not stub_log.exists()
+
+
 # --- encoders and battery -----------------------------------------------------------------------------------
 def test_encoders_give_signed_metres_per_wheel_since_the_driver_opened(stub_library, stub_log, monkeypatch):
     monkeypatch.setenv("KH4_STUB_POSITION", "5000 -3000")

@@ -45,6 +45,17 @@ def test_a_folder_or_a_file_that_is_not_text_is_named(tmp_path):
         load_scenario(str(tmp_path / "empty.yaml"))
 
 
+@pytest.mark.parametrize("text", ["[" * 5000 + "]" * 5000, "a: " + "{a: " * 5000 + "1" + "}" * 5000,
+                                  "".join("  " * i + f"k{i}:\n" for i in range(3000)) + "  " * 3000 + "1\n"],
+                         ids=["json-lists", "flow-mappings", "block-mappings"])
+def test_a_file_nested_thousands_deep_is_refused_naming_it(text):
+    """PyYAML recurses once per level: it ended in Python's 'maximum recursion depth exceeded', naming nothing."""
+    with pytest.raises(ConfigError) as caught:
+        parse_yaml(text, "deep.yaml")
+    assert caught.value.field == "deep.yaml"
+    assert caught.value.problem.startswith("lists or mappings nested too deeply to read")
+
+
 @pytest.mark.parametrize("path", sorted(p.relative_to(ROOT) for folder in ("sim_backend", "hub", "docs", "calibration")
                                         for p in (ROOT / folder).rglob("*.y*ml")), ids=str)
 def test_every_yaml_file_we_ship_reads_the_same_as_before(path):
