@@ -1,7 +1,6 @@
 """From a validated :class:`LabConfig` to a ready :class:`Hub`: source, robot list, run, sensing, keys, log."""
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
@@ -9,7 +8,7 @@ from typing import Any, Callable, Dict, List, Optional
 import zmq
 
 from onboard.behaviour import build_params, get_behaviour
-from onboard.config import ConfigError
+from onboard.config import ConfigError, folder_not_file
 from onboard.hal import RobotSpec
 
 from .config import LabConfig, check_watchdog
@@ -185,15 +184,13 @@ def record_path(config: LabConfig, now: Optional[float] = None) -> Path:
     earlier run's, the one being replayed, or one another hub is still writing)."""
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
     text = str(config.record).replace("{time}", stamp)
-    if text.endswith(("/", os.sep)):     # Path() drops the slash: a folder not made yet became a file of its name
-        raise ConfigError("record", f"{text} names a folder: give the log's file name, e.g. "
-                                    f"{Path(text) / 'run-{time}.mcap'}")
+    folder = folder_not_file(text)
+    if folder:
+        raise ConfigError("record", f"{folder}: give the log's file name, e.g. {Path(text) / 'run-{time}.mcap'}")
     path = Path(text)
     if config.source.type == "replay" and path.exists() and path.resolve() == Path(config.source.file).resolve():
         raise ConfigError("record", f"{path} is the log being replayed (source.file): recording would erase it; "
                           "name another file")
-    if path.is_dir():
-        raise ConfigError("record", f"{path} is a folder: give the log's file name, e.g. {path / 'run-{time}.mcap'}")
     if path.exists() or path.is_symlink():
         raise ConfigError("record", f"{path} exists (an earlier run's log, or one a hub is writing): the hub does "
                           "not write over a log. Remove it, name another file, or put {time} in the name "

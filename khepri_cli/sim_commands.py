@@ -43,7 +43,8 @@ def add_sim(groups) -> None:
     run.add_argument("--wall-limit", type=float, metavar="S",
                      help="stop the run after S seconds of wall-clock time (a behaviour that hangs), keeping "
                           "what was recorded")
-    run.add_argument("--video", type=Path, metavar="FILE", help="also write an animation (.gif, or .mp4 with ffmpeg)")
+    # Kept as typed (not type=Path, which drops a trailing slash): video_problem refuses `out.gif/`.
+    run.add_argument("--video", metavar="FILE", help="also write an animation (.gif, or .mp4 with ffmpeg)")
     run.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
     run.set_defaults(func=cmd_run)
 
@@ -111,7 +112,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     interrupted = result.get("stop_reason") == "interrupted"
-    files = write_run(sim, result, out, video=None if interrupted else args.video, plot=not args.no_plot)
+    video = Path(args.video) if args.video is not None and not interrupted else None
+    files = write_run(sim, result, out, video=video, plot=not args.no_plot)
     print_summary(result)
     for name, path in files.items():
         print(f"  {name}: {path}")
@@ -165,11 +167,15 @@ def out_folder_problem(out: Path, files: Sequence[str] = ()) -> Optional[str]:
     return None
 
 
-def video_problem(path: Path):
-    """Check the video target before a long run, not after it."""
+def video_problem(text: str) -> Optional[str]:
+    """Check the video target, as typed, before a long run, not after it."""
+    from onboard.config import folder_not_file
+
+    folder = folder_not_file(text)
+    if folder:
+        return f"{folder}; give a file name ending in .gif or .mp4"
+    path = Path(text)
     suffix = path.suffix.lower()
-    if path.is_dir():
-        return f"{path} is a folder; give a file name ending in .gif or .mp4"
     if suffix not in (".gif", ".mp4"):
         return f"unsupported file type {path.suffix!r} (use .gif or .mp4)"
     if suffix == ".mp4":

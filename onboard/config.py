@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import typing
+from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Type, TypeVar
 
 from .tracebacks import describe
@@ -40,6 +42,17 @@ def check_range(where: str, value: float, low: float = -math.inf, high: float = 
     if value > high:
         raise ConfigError(where, f"must be <= {_number(high)} (got {_number(value)})")
     return value
+
+
+def folder_not_file(text: str) -> Optional[str]:
+    """Why the path ``text``, given for a file to write, names a folder ("X names a folder", "X is a folder"), or
+    None. Checked on the text as typed: ``Path`` drops a trailing separator, so ``out.gif/``, a folder that does
+    not exist yet, became the file ``out.gif``."""
+    if text.endswith(("/", os.sep)):
+        return f"{text} names a folder"
+    if Path(text).is_dir():
+        return f"{text} is a folder"
+    return None
 
 
 def check_boolean(where: str, value: Any) -> bool:

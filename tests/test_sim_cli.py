@@ -169,6 +169,11 @@ def test_a_video_that_cannot_be_written_is_refused_before_the_run(tmp_path, caps
     (tmp_path / "videos").mkdir()                             # a folder without a suffix: not "type ''"
     assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", str(tmp_path / "videos")]) == 2
     assert f"--video: {tmp_path / 'videos'} is a folder; give a file name" in capsys.readouterr().err
+    slashed = f"{tmp_path / 'clips' / 'run.gif'}/"        # a folder not made yet: was written as the file run.gif
+    assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", slashed, "--time-limit", "1"]) == 2
+    assert f"khepri: error: --video: {slashed} names a folder; give a file name ending in .gif or .mp4" in \
+        capsys.readouterr().err
+    assert not (tmp_path / "clips").exists() and not (out / "result.json").exists()
     readonly = "/sys/khepri-run.gif"                           # sysfs: read-only, even for root
     assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", readonly]) == 2
     assert f"--video: cannot write {readonly}" in capsys.readouterr().err
