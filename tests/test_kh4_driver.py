@@ -4,6 +4,7 @@ The stub has libkhepera's function names and C prototypes, logs every call with 
 scripted sensor values, so these tests check what would reach a robot: ctypes signatures, hardware units,
 the IR index mapping, calibration, encoder conversion, and that the wheels are stopped on every way out.
 """
+import io
 import os
 import shutil
 import signal
@@ -19,6 +20,7 @@ import pytest
 from onboard.config import ConfigError
 from onboard.drivers.calibration import load_calibration
 from onboard.drivers.kh4 import SENSOR_FAILURES_TOLERATED, KheperaIV, LibkheperaError
+from onboard.drivers.kh4_guard import guard
 from onboard.hal import WheelOdometry
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -470,6 +472,25 @@ def test_the_guard_stops_the_wheels_though_setting_up_the_motors_fails(stub_libr
     first_guard_call = [name for name, _ in logged].index("kh4_init", 1)
     assert ("kh4_set_speed", {"left": "0", "right": "0", "dev": "ok"}) in logged[first_guard_call:]
     assert ("kh4_SetMode", {"mode": "0", "dev": "ok"}) in logged[first_guard_call:]
+
+
+@pytest.mark.parametrize("failing, code, said", [
+    ("kh4_SetMode", 0, "they are stopped now, but the motors could not be set idle ({lib}: kh4_SetMode failed "
+                       "with code -4)"),
+    ("kh4_set_speed", 0, "they are stopped now, by setting the motors idle only (the zero-speed command failed: "
+                         "{lib}: kh4_set_speed failed with code -4)"),
+    ("kh4_set_speed,kh4_SetMode", 1, "and they could not be stopped: the zero-speed command failed ({lib}: "
+                                     "kh4_set_speed failed with code -4), and so did setting the motors idle ({lib}: "
+                                     "kh4_SetMode failed with code -4)"),
+    ("knet_open", 1, "and they could not be stopped: {lib}: knet_open could not open Khepera4:dsPic"),
+])
+def test_the_guard_says_which_of_its_calls_failed(stub_library, stub_log, monkeypatch, capsys, failing, code, said):
+    """Zero speeds and idle motors each stop the wheels: the guard said "they could not be stopped" when only the
+    idling failed, after zero speeds had passed."""
+    monkeypatch.setenv("KH4_STUB_FAIL", failing)
+    assert guard(str(stub_library), 4242, io.BytesIO(b"")) == code       # the agent died without a word
+    assert capsys.readouterr().err.startswith("kh4 wheel guard: agent 4242 ended without stopping the wheels"
+                                              + ("; " if code == 0 else ", ") + said.format(lib=stub_library))
 
 
 def test_the_guard_leaves_the_wheels_alone_after_an_orderly_exit(stub_library, stub_log, tmp_path):

@@ -329,11 +329,14 @@ class KheperaIV(Driver):
         return int.from_bytes(buffer.raw[10:12], "little") * BATTERY_V_PER_COUNT
 
 
-def stop_robot(library_path: str) -> None:
+def stop_robot(library_path: str) -> Optional[str]:
     """Open the dsPic only to stop it: zero speeds (retried), then the motors idle and the dsPic closed, each tried
     whatever the one before did. The wheel guard's way in: opening a :class:`KheperaIV` configures the motors
     and reads the encoders first, so one bus error there (a glitch the driver tolerates elsewhere) left a dead
-    agent's last speed on the wheels."""
+    agent's last speed on the wheels.
+
+    None when both passed; what failed when the wheels stopped all the same (see :func:`_stop_and_idle`).
+    LibkheperaError when they may still turn: the dsPic would not open, or neither call passed."""
     lib = Libkhepera(library_path)
     try:
         lib.call("kh4_init", 0, None)
@@ -341,12 +344,33 @@ def stop_robot(library_path: str) -> None:
         pass            # knet_open says whether the robot can be reached; try it all the same
     dspic = open_dspic(lib)
     try:
-        try:
-            _retried(STOP_ATTEMPTS, lambda: lib.call("kh4_set_speed", 0, 0, dspic))
-        finally:        # unpowered motors stop the wheels too, when the speed command would not pass
-            _retried(STOP_ATTEMPTS, lambda: lib.call("kh4_SetMode", KH4_REG_IDLE, dspic))
+        return _stop_and_idle(lib, dspic)
     finally:
         lib.functions["knet_close"](dspic)
+
+
+def _stop_and_idle(lib: Libkhepera, dspic: Any) -> Optional[str]:
+    """Zero speeds, then the motors idle, the second tried whatever the first did: either stops the wheels
+    (unpowered motors stop them too). Said apart, since "could not be stopped" of a robot whose zero speeds
+    passed, and only its idling failed, sent someone to a robot that was standing still."""
+    speed = _failure(lambda: _retried(STOP_ATTEMPTS, lambda: lib.call("kh4_set_speed", 0, 0, dspic)))
+    idle = _failure(lambda: _retried(STOP_ATTEMPTS, lambda: lib.call("kh4_SetMode", KH4_REG_IDLE, dspic)))
+    if speed and idle:
+        raise LibkheperaError(f"the zero-speed command failed ({speed}), and so did setting the motors idle ({idle})")
+    if speed:
+        return f"by setting the motors idle only (the zero-speed command failed: {speed})"
+    if idle:
+        return f"but the motors could not be set idle ({idle})"
+    return None
+
+
+def _failure(call: Callable[[], Any]) -> Optional[str]:
+    """What ``call()`` raised as LibkheperaError, or None if it passed."""
+    try:
+        call()
+    except LibkheperaError as err:
+        return str(err)
+    return None
 
 
 def open_dspic(lib: Libkhepera) -> Any:

@@ -65,14 +65,15 @@ def guard(library_path: str, parent_pid: int, stream: IO[bytes]) -> int:
     if said.endswith(CLEAN):
         return 0
     try:
-        stop_robot(library_path)      # opens the dsPic, stops, idles, releases; no motor set-up to fail first
+        # Opens the dsPic, stops, idles, releases; no motor set-up to fail first.
+        partly = stop_robot(library_path)
     except (LibkheperaError, OSError) as err:
         print(f"kh4 wheel guard: agent {parent_pid} ended without stopping the wheels, and they could not be "
               f"stopped: {err}",
               file=sys.stderr, flush=True)
         return 1
-    print(f"kh4 wheel guard: agent {parent_pid} ended without stopping the wheels; they are stopped now",
-          file=sys.stderr, flush=True)
+    print(f"kh4 wheel guard: agent {parent_pid} ended without stopping the wheels; they are stopped now"
+          + (f", {partly}" if partly else ""), file=sys.stderr, flush=True)
     return 0
 
 

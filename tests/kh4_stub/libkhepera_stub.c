@@ -12,8 +12,9 @@
  *                         separated by spaces or commas; missing values are 0.
  *   KH4_STUB_POSITION     "left right" encoder counts returned by kh4_get_position.
  *   KH4_STUB_BATTERY      battery voltage in the DS2781's counts of 9.76 mV (bytes 10-11).
- *   KH4_STUB_FAIL         name of one function that fails (negative code, or NULL for knet_open).
- *   KH4_STUB_FAIL_TIMES   if set, how many more calls of that function fail; the stub counts it down, so
+ *   KH4_STUB_FAIL         name of the function that fails (negative code, or NULL for knet_open), or several
+ *                         names separated by commas.
+ *   KH4_STUB_FAIL_TIMES   if set, how many more calls of those functions fail; the stub counts it down, so
  *                         a glitch of one call is "1" (unset: every call fails).
  *
  * Every function that takes the dsPic handle logs dev=ok only if it got the very pointer knet_open
@@ -61,10 +62,25 @@ static const char *handle_label(const knet_dev_t *dev)
     return dev == &the_dspic ? "ok" : "bad";
 }
 
+/* Whether `function` is one of the comma-separated names in `list`. */
+static int listed(const char *list, const char *function)
+{
+    size_t length = strlen(function);
+    for (const char *name = list;; name++) {
+        if (strncmp(name, function, length) == 0 && (name[length] == ',' || name[length] == '\0')) {
+            return 1;
+        }
+        name = strchr(name, ',');
+        if (name == NULL) {
+            return 0;
+        }
+    }
+}
+
 static int scripted_to_fail(const char *function)
 {
     const char *failing = getenv("KH4_STUB_FAIL");
-    if (failing == NULL || strcmp(failing, function) != 0) {
+    if (failing == NULL || !listed(failing, function)) {
         return 0;
     }
     const char *times = getenv("KH4_STUB_FAIL_TIMES");
