@@ -365,6 +365,26 @@ def test_close_idles_the_motors_even_when_the_stop_fails(stub_library, stub_log,
     assert calls(stub_log)[-2:] == [("kh4_SetMode", {"mode": "0", "dev": "ok"}), ("knet_close", {"dev": "ok"})]
 
 
+@pytest.mark.parametrize("failing, said", [
+    ("kh4_SetMode", "kh4: at exit, the wheels are stopped, but the motors could not be set idle ({lib}: kh4_SetMode "
+                    "failed with code -4)"),
+    ("kh4_set_speed", "kh4: at exit, the wheels are stopped, by setting the motors idle only (the zero-speed command "
+                      "failed: {lib}: kh4_set_speed failed with code -4)"),
+    ("kh4_set_speed,kh4_SetMode", "kh4: cannot stop the wheels at exit: the zero-speed command failed ({lib}: "
+                                  "kh4_set_speed failed with code -4), and so did setting the motors idle ({lib}: "
+                                  "kh4_SetMode failed with code -4)"),
+])
+def test_closing_at_exit_says_which_of_its_calls_failed(stub_library, stub_log, monkeypatch, capsys, failing, said):
+    """Zero speeds and idle motors each stop the wheels: "cannot stop the wheels at exit" was said when only the
+    idling failed, after zero speeds had passed."""
+    driver = KheperaIV(library_path=str(stub_library))
+    driver.set_wheel_speeds(0.2, 0.2)
+    monkeypatch.setenv("KH4_STUB_FAIL", failing)
+    driver._stop_at_exit()                                 # what atexit runs
+    assert capsys.readouterr().err == said.format(lib=stub_library) + "\n"
+    assert driver.closed
+
+
 # --- stopping on every way out ------------------------------------------------------------------------------
 def test_close_stops_the_wheels_idles_the_motors_and_later_stops_are_harmless(stub_library, stub_log):
     driver = KheperaIV(library_path=str(stub_library))

@@ -76,6 +76,10 @@ class LibkheperaError(DriverError):
     """libkhepera could not be loaded, lacks a function, or a call returned an error code."""
 
 
+class WheelsStoppedPartly(LibkheperaError):
+    """Closing stopped the wheels, by one of its two ways (zero speeds, idle motors); the other failed."""
+
+
 def resolve_library_path(library_path: Optional[str] = None) -> str:
     """The argument, else $KHEPRI_LIBKHEPERA, else "libkhepera.so" (found by the dynamic loader)."""
     return library_path or os.environ.get(LIBRARY_ENV) or DEFAULT_LIBRARY
@@ -191,10 +195,9 @@ class KheperaIV(Driver):
                 return
             atexit.unregister(self._stop_at_exit)
             try:
-                try:
-                    self.stop()
-                finally:    # idle even when the stop failed: unpowered motors are the other way to stop them
-                    self.library.call("kh4_SetMode", KH4_REG_IDLE, self._dspic)
+                partly = _stop_and_idle(self.library, self._dspic)   # raises if neither passed
+                if partly:     # the guard, not released, tries both again after us
+                    raise WheelsStoppedPartly(f"the wheels are stopped, {partly}")
                 if self.guard is not None:
                     self.guard.release()      # stopped in order: the guard has nothing left to do
             finally:
@@ -215,6 +218,8 @@ class KheperaIV(Driver):
     def _stop_at_exit(self) -> None:
         try:
             self.close()
+        except WheelsStoppedPartly as err:     # not "cannot stop the wheels": they stand still
+            print(f"kh4: at exit, {err}", file=sys.stderr)
         except DriverError as err:      # one line, not a traceback; the wheel guard tries again after us
             print(f"kh4: cannot stop the wheels at exit: {err}", file=sys.stderr)
 
@@ -395,6 +400,6 @@ def _retried(attempts: int, call: Callable[[], Any]) -> None:
 
 __all__ = [
     "KH4_SPEED_TO_MM_S", "KH4_PULSE_TO_MM", "HARDWARE_IR_NAMES", "HAL_TO_HARDWARE_IR", "LIBRARY_ENV",
-    "CALIBRATION_ENV", "DEFAULT_LIBRARY", "LibkheperaError", "Libkhepera", "KheperaIV", "resolve_library_path",
-    "resolve_calibration", "hardware_to_hal_order", "stop_robot",
+    "CALIBRATION_ENV", "DEFAULT_LIBRARY", "LibkheperaError", "WheelsStoppedPartly", "Libkhepera", "KheperaIV",
+    "resolve_library_path", "resolve_calibration", "hardware_to_hal_order", "stop_robot",
 ]
