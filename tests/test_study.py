@@ -50,6 +50,7 @@ class Crashing(Behaviour):
             raise RuntimeError("a deliberate bug, 1 s in")
 """
 GOOD, CRASHING = "lab-6@behaviour=transport", "lab-6@behaviour=crashing"
+DEEP_JSON = "[" * 100_000 + "]" * 100_000      # valid JSON, but past Python's recursion limit: RecursionError
 
 
 def write(path: Path, text: str) -> Path:
@@ -889,6 +890,13 @@ def test_a_hand_edited_result_of_another_shape_is_listed_not_a_traceback(known_s
     assert "paper-25-straight/seed-1/result.json" in load_results(known_study).unreadable
 
 
+def test_a_result_nested_past_pythons_recursion_limit_is_listed_not_a_traceback(known_study, capsys):
+    """json.loads raises RecursionError, not ValueError, for it: `study report` ended in a traceback."""
+    write(known_study / "paper-25-straight/seed-1/result.json", DEEP_JSON)
+    assert main(["study", "report", str(known_study), "--no-figures"]) == 1   # the folder has a failed run
+    assert "paper-25-straight/seed-1/result.json" in load_results(known_study).unreadable
+
+
 # --- the paper's data and the progress line ------------------------------------------------------------
 
 def test_the_papers_csv_gives_the_medians_its_readme_quotes():
@@ -1116,7 +1124,8 @@ def test_a_dask_scheduler_that_cannot_be_reached_is_said_before_the_folder_is_ma
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("damaged", ["[1, 2]", '{"commands": "khepri study x"}', '{"name": "tr'])
+@pytest.mark.parametrize("damaged", ["[1, 2]", '{"commands": "khepri study x"}', '{"name": "tr', DEEP_JSON],
+                         ids=["list", "commands", "cut", "deep"])
 def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_path, damaged):
     from sim_backend.study.driver import read_study, record_study
 

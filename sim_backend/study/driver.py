@@ -278,7 +278,7 @@ def write_study_json(out_dir: Path, data: Dict[str, Any]) -> None:
 def read_study(out_dir: Path) -> Dict[str, Any]:
     try:
         data = json.loads((out_dir / STUDY_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):      # RecursionError: nested past Python's limit
         return {}
     return data if isinstance(data, dict) else {}
 

@@ -120,7 +120,7 @@ def read_result(run_dir: Path) -> Dict[str, Any]:
     as not done): valid JSON is not enough, it must say which run it is and how it ended."""
     try:
         data = json.loads((run_dir / RESULT_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):      # RecursionError: nested past Python's limit
         return {}
     return data if is_run_result(data) else {}
 
