@@ -188,7 +188,7 @@ class Uplink:
 
 def silence_line(robot: RobotLink, quiet_s: float) -> str:
     """Why a robot went quiet, as far as the hub knows: an agent that said goodbye (its last telemetry's mode is
-    ``exiting``: stopped with Ctrl-C or SIGTERM, or crashed) left; any other just stopped talking."""
+    ``exiting``: stopped with Ctrl-C, SIGTERM or SIGHUP, or crashed) left; any other just stopped talking."""
     if (robot.telemetry or {}).get("mode") == "exiting":
         return f"hub: robot {robot.id}'s agent has exited (its last message said so)"
     return (f"hub: robot {robot.id} went silent: no message from its agent at {robot.peer or '?'} for {quiet_s:g} s "

@@ -1,5 +1,7 @@
 """The onboard agent, as a real process (or the real Agent class in a thread) against a scripted hub socket."""
 import argparse
+import os
+import select
 import signal
 import subprocess
 import sys
@@ -104,16 +106,90 @@ def test_estop_stops_the_wheels_before_the_acknowledgement(scripted, agent_proce
     assert not [m for m in scripted.received if wheels_after(scripted, t1, moving=True)(m)]
 
 
-def test_sigterm_stops_the_wheels_before_exit(scripted, agent_process):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_sigterm_and_sighup_stop_the_wheels_before_exit_and_tell_the_hub(scripted, agent_process, sig):
+    """SIGHUP (the ssh session the agent was started from closing) killed the agent with its wheels turning."""
     start_run(scripted)
     t0 = time.monotonic()
     feed(scripted, 0.5, neighbours=FAR_NEIGHBOUR)
     scripted.wait_for(wheels_after(scripted, t0, moving=True))
-    agent_process.send_signal(signal.SIGTERM)
+    agent_process.send_signal(sig)
     assert agent_process.wait(timeout=5.0) == 0
     scripted.pump(0.2)
     wheels = [m for m in scripted.received if m["type"] == "wheels"]
     assert (wheels[-1]["left"], wheels[-1]["right"]) == (0.0, 0.0)
+    assert scripted.received[-1]["type"] == "telemetry" and scripted.received[-1]["mode"] == "exiting"
+
+
+def spawn_agent_on_a_terminal(endpoint: str, ignore_sighup: bool = False):
+    """An agent started by hand in a terminal (a pseudo-terminal here, as sshd gives): its own session, with
+    the terminal as its controlling one, so that closing the terminal's other end hangs it up as an ssh
+    session dropping does: SIGHUP, and every later write to it fails (EIO). The process and that other end."""
+    import fcntl
+    import pty
+    import termios
+
+    from hub.harness import ROOT
+
+    def take_the_terminal():
+        fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+        if ignore_sighup:                            # as `nohup` does
+            signal.signal(signal.SIGHUP, signal.SIG_IGN)
+
+    terminal, its_side = pty.openpty()
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    command = [sys.executable, "-m", "onboard.agent", "--id", "0", "--hub", endpoint, "--driver", "sim"]
+    process = subprocess.Popen(command, stdin=its_side, stdout=its_side, stderr=its_side, env=env,
+                               start_new_session=True, preexec_fn=take_the_terminal)
+    os.close(its_side)
+    return process, terminal
+
+
+def read_terminal(terminal: int) -> bytes:
+    said = b""
+    while select.select([terminal], [], [], 0)[0]:
+        said += os.read(terminal, 4096)
+    return said
+
+
+def test_closing_the_agents_terminal_stops_its_wheels_and_it_leaves_cleanly(scripted):
+    """The terminal hung up: the agent must stop its wheels and tell the hub, as for SIGTERM, and its lines to
+    the dead terminal (EIO) must neither cut that short nor fail its exit."""
+    process, terminal = spawn_agent_on_a_terminal(scripted.endpoint)
+    try:
+        scripted.wait_for(lambda m: m["type"] == "hello")
+        start_run(scripted)
+        t0 = time.monotonic()
+        feed(scripted, 0.5, neighbours=FAR_NEIGHBOUR)
+        scripted.wait_for(wheels_after(scripted, t0, moving=True))
+        assert b"run r1: aggregate" in read_terminal(terminal)
+        os.close(terminal)                 # the terminal closes: SIGHUP to the agent, its console gone
+        terminal = None
+        assert process.wait(timeout=5.0) == 0
+        scripted.pump(0.2)
+        wheels = [m for m in scripted.received if m["type"] == "wheels"]
+        assert (wheels[-1]["left"], wheels[-1]["right"]) == (0.0, 0.0)
+        assert scripted.received[-1]["type"] == "telemetry" and scripted.received[-1]["mode"] == "exiting"
+    finally:
+        if terminal is not None:
+            os.close(terminal)
+        stop_processes([process])
+
+
+def test_an_agent_started_with_nohup_outlives_its_terminal(scripted):
+    """SIGHUP ignored at start (`nohup khepri agent ...`) is the user's wish to keep the agent running."""
+    process, terminal = spawn_agent_on_a_terminal(scripted.endpoint, ignore_sighup=True)
+    try:
+        scripted.wait_for(lambda m: m["type"] == "hello")
+        read_terminal(terminal)
+        process.send_signal(signal.SIGHUP)
+        t0 = time.monotonic()
+        feed(scripted, 0.5)
+        assert process.poll() is None
+        scripted.wait_for(lambda m: m["type"] == "telemetry" and m["_at"] > t0 and m["mode"] == "run")
+    finally:
+        os.close(terminal)
+        assert stop_processes([process]) == [0]
 
 
 def test_lockstep_agent_answers_each_frame_once_on_the_hub_clock(scripted, agent_process):

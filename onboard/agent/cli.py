@@ -18,6 +18,8 @@ from onboard.drivers import Driver, DriverError
 from onboard.plugins import import_user_modules
 from onboard.protocol import MAX_ROBOT_ID
 
+from .console import flush_quietly, say
+
 if TYPE_CHECKING:
     from .link import HubLink
 
@@ -83,6 +85,7 @@ def run_agent(args: argparse.Namespace) -> int:
         agent.serve()
     finally:
         link.close()
+        flush_quietly()        # a terminal closed under us (SIGHUP) must not fail the exit after a clean stop
     return 0
 
 
@@ -147,7 +150,7 @@ def _logger(quiet: bool):
     def log(line: str) -> None:
         if quiet and not any(word in line for word in ("error", "stop", "hold", "estop", "no frame", "cannot")):
             return
-        print(line, file=sys.stderr, flush=True)
+        say(line)          # a line to a closed terminal is dropped: it must not stop the agent's way out
     return log
 
 
@@ -159,14 +162,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         return run_agent(args)
     except ConfigError as err:
-        print(f"agent: error: {err}", file=sys.stderr)
+        say(f"agent: error: {err}")
         return 2
     except BehaviourError as err:      # already logged with its traceback; the wheels are stopped
         what = "the driver failed" if isinstance(err.exc, DriverError) else "the behaviour crashed"
-        print(f"agent: error: {what}: {err}", file=sys.stderr)
+        say(f"agent: error: {what}: {err}")
         return 1
     except DriverError as err:         # the robot's hardware, outside any behaviour call (a stop that failed)
-        print(f"agent: error: the driver failed: {err}", file=sys.stderr)
+        say(f"agent: error: the driver failed: {err}")
         return 1
     except KeyboardInterrupt:
         return 130

@@ -5,7 +5,7 @@ Safety rules, in order of precedence:
 - the hub's mode: ``estop`` and ``hold`` stop the wheels at once and pause the behaviour; ``idle`` has none;
 - the watchdog: no frame from the hub for ``watchdog_s`` (0.25 s) -> wheels stopped, behaviour held, until
   frames return;
-- leaving for any reason (SIGINT, SIGTERM, an exception in the behaviour) stops the wheels first;
+- leaving for any reason (SIGINT, SIGTERM, SIGHUP, an exception in the behaviour) stops the wheels first;
 - wheel commands pass only in ``run`` mode with live frames, from whatever thread they come, and a step that
   runs longer than the watchdog has the wheels stopped by a thread of its own (``safety.py``).
 
@@ -43,6 +43,9 @@ SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is sai
 HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
 RESET_AFTER_S = 2.0       # this long without a frame: reopen the socket (a connection can be stuck for good)
 WAITING_LOG_S = 10.0      # while the hub stays silent, say so this often
+# Each ends the agent as Ctrl-C does: wheels stopped, the hub told. SIGHUP is the terminal or ssh session the
+# agent was started from closing, which otherwise killed it on the spot with its wheels turning.
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
 @dataclass
@@ -146,6 +149,7 @@ class Agent:
         self.last_reset = time.monotonic()
         self.last_waiting_log = -math.inf
         self.stop_requested = False
+        self.stop_signal: Optional[int] = None     # the signal that asked the agent to leave, said on the way out
         self.slow_step_said_at = -math.inf
         self.watchdog_said = False        # the watchdog's trip was logged (so its end is logged too)
         self.step_watchdog = StepWatchdog(self.driver, watchdog_s, lambda: self.stop_requested, log, robot_id)
@@ -168,6 +172,12 @@ class Agent:
                 farewell["error"] = self.error[:200]
             self.link.send(farewell)
             self._restore_signal_handlers(previous)
+            self._say_why_leaving()
+
+    def _say_why_leaving(self) -> None:
+        """Said last, once the wheels are stopped and the hub told: after SIGHUP the console may be gone."""
+        if self.stop_signal is not None:
+            self.log(f"agent {self.robot_id}: {signal.Signals(self.stop_signal).name}: wheels stopped, leaving")
 
     def _stop_wheels_on_the_way_out(self) -> None:
         """Stop the wheels as the agent leaves; a driver that cannot (the bus is gone) is said in one line and
@@ -407,11 +417,14 @@ class Agent:
     def _install_signal_handlers(self) -> List[Any]:
         def request_stop(signum, frame):
             # The loop wakes within 50 ms and stops the wheels on its way out (see serve); stopping here
-            # could interrupt the driver or the socket in the middle of a call.
+            # could interrupt the driver or the socket in the middle of a call, and so could a log line.
             self.stop_requested = True
+            self.stop_signal = signum
 
         previous = []
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
+            if sig == getattr(signal, "SIGHUP", None) and signal.getsignal(sig) == signal.SIG_IGN:
+                continue                    # `nohup khepri agent ...`: meant to outlive its terminal
             try:
                 previous.append((sig, signal.signal(sig, request_stop)))
             except ValueError:              # not the main thread (tests run agents in threads too)

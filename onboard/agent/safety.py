@@ -11,7 +11,7 @@ around that were found by trying it:
 watchdog may both call it), and wheel commands pass only while the gate is open, which the agent keeps so
 only in ``run`` mode with live hub frames. :class:`StepWatchdog` is a thread that closes the gate and stops
 the wheels once a step has run longer than the watchdog, and ends the process if a stop was asked for (SIGINT,
-SIGTERM) and the step still has not returned a second later.
+SIGTERM, SIGHUP) and the step still has not returned a second later.
 """
 from __future__ import annotations
 

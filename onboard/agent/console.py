@@ -1,0 +1,56 @@
+"""The agent's console lines, which must never stop the agent.
+
+An agent started by hand over ssh leaves when its terminal closes (SIGHUP), and from then on a write to that
+terminal fails (EIO; a closed pipe, EPIPE). A failing line in the middle of the agent's way out would skip
+what comes after it: the wheels' stop, the hub's last word. So a line that cannot be written is dropped, and
+the stream is pointed at /dev/null, so that later lines and the interpreter's flush at exit write nowhere
+instead of failing again (a flush that fails at exit turns exit code 0 into 120).
+"""
+from __future__ import annotations
+
+import os
+import sys
+from typing import Optional, TextIO
+
+
+def say(line: str, stream: Optional[TextIO] = None) -> None:
+    """Print ``line`` to ``stream`` (stderr), flushed; if the console is gone, drop it and silence the stream."""
+    stream = sys.stderr if stream is None else stream
+    try:
+        print(line, file=stream, flush=True)
+    except BlockingIOError:                # a non-blocking stream that is full for now: this line only is lost
+        pass
+    except (OSError, ValueError):          # ValueError: the stream was closed
+        silence(stream)
+
+
+def flush_quietly() -> None:
+    """Flush stdout and stderr now, silencing a dead one, so that the interpreter's own flush at exit finds
+    nothing to fail on (a behaviour's print() leaves lines in stdout's buffer)."""
+    for stream in (sys.stdout, sys.stderr):
+        if stream is None:
+            continue
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            silence(stream)
+
+
+def silence(stream: TextIO) -> None:
+    """Point ``stream``'s file descriptor at /dev/null and drop what its buffer still holds for the dead
+    console. A stream without a descriptor (a test's capture) is left as it is."""
+    try:
+        fd = stream.fileno()
+        devnull = os.open(os.devnull, os.O_WRONLY)
+    except (OSError, ValueError, AttributeError):
+        return
+    try:
+        os.dup2(devnull, fd)
+    except OSError:
+        pass
+    finally:
+        os.close(devnull)
+    try:
+        stream.flush()                     # the kept bytes now go to /dev/null
+    except (OSError, ValueError):
+        pass
