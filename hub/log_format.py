@@ -37,6 +37,19 @@ class LogError(ConfigError):
     """A log cannot be written or read. ``str(err)`` is one line naming the file or the topic."""
 
 
+class ForeignChannelWarning(UserWarning):
+    """A log's channel whose messages are not JSON (protobuf, ros2msg, ... : another tool wrote it, or merged it
+    into a hub's log): readers skip it, and say so once per channel."""
+
+
+JSON_ENCODING = "json"      # the MCAP message encoding of every channel the hub writes
+
+
+def is_json_channel(message_encoding: str) -> bool:
+    """Whether a channel's messages are JSON, which is all that :func:`hub.recording.read_log` decodes."""
+    return message_encoding.lower() == JSON_ENCODING
+
+
 def robot_topic(robot_id: Any, kind: str) -> str:
     """``/robot/<id>/<kind>``, e.g. ``robot_topic(3, "frame") == "/robot/3/frame"``."""
     return f"/robot/{robot_id}/{kind}"

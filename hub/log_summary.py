@@ -9,6 +9,7 @@ import io
 import json
 import math
 import struct
+import warnings
 import zlib
 from collections import Counter
 from dataclasses import dataclass
@@ -28,9 +29,11 @@ from hub.log_format import (
     MCAP_MAGIC,
     MOCAP_POSES,
     USER_METADATA,
+    ForeignChannelWarning,
     LogError,
     LogRecord,
     PathLike,
+    is_json_channel,
     metadata_from_text,
     split_robot_topic,
 )
@@ -47,7 +50,8 @@ class LogReader:
     stopped otherwise, and ``readable_bytes`` is how much of the file was read. ``metadata`` holds the MCAP
     metadata records seen (name -> {key: text}). A damaged record whose length still fits the file (a chunk
     that fails its CRC or does not decompress, a bit flipped on disk) is skipped and said in ``damaged``: the
-    records after it are read, as they are intact.
+    records after it are read, as they are intact. ``foreign`` holds the channels whose messages are not JSON
+    (topic -> message encoding: another tool's protobuf or ros2msg, say), which ``records()`` skips.
     """
 
     def __init__(self, path: PathLike):
@@ -59,14 +63,34 @@ class LogReader:
         self.channels: Dict[int, Channel] = {}
         self.metadata: Dict[str, Dict[str, str]] = {}
         self.damaged: List[str] = []       # what was skipped, one line each
+        self.foreign: Dict[str, str] = {}  # channels records() skips, said once each: topic -> message encoding
         self._lost_channels: set = set()
         self._summary: Any = None          # the summary section, once needed: False if there is none
 
     def records(self, topics: Optional[Iterable[str]] = None) -> Iterator[LogRecord]:
+        """The decoded messages of the JSON channels. A channel in another encoding (a foreign tool's, in a
+        merged file) is skipped with one ForeignChannelWarning, not a LogError that ended the whole read:
+        ``khepri log info --check`` calls such a file sound, and what it counts is what this yields."""
         wanted = None if topics is None else {topics} if isinstance(topics, str) else set(topics)
         for topic, message in self.messages():
-            if wanted is None or topic in wanted:
-                yield LogRecord(topic, message.log_time / 1e9, self._decode(topic, message))
+            if wanted is not None and topic not in wanted:
+                continue
+            if self.is_foreign(message):
+                self._say_foreign(topic, self.channels[message.channel_id].message_encoding)
+                continue
+            yield LogRecord(topic, message.log_time / 1e9, self._decode(topic, message))
+
+    def is_foreign(self, message: Message) -> bool:
+        """Whether a message that ``messages()`` gave is on a channel that is not JSON."""
+        return not is_json_channel(self.channels[message.channel_id].message_encoding)
+
+    def _say_foreign(self, topic: str, encoding: str) -> None:
+        if topic in self.foreign:
+            return
+        self.foreign[topic] = encoding
+        warnings.warn(f"{self.path}: {topic}: message encoding {encoding!r}, not JSON: its messages are skipped "
+                      "(a channel another tool wrote; `khepri log info` lists such channels)",
+                      ForeignChannelWarning, stacklevel=3)
 
     def messages(self) -> Iterator[Tuple[str, Message]]:
         """``(topic, raw MCAP message)`` pairs, without decoding the JSON (cheap, for counting)."""
@@ -221,10 +245,10 @@ class LogSummary:
     truncated: bool               # the file has no footer (a killed hub) or stops at a damaged record
     stop_reason: str              # why reading stopped early; "" for a complete file
     readable_bytes: int           # bytes up to the last complete record
-    start_s: Optional[float]      # earliest message stamp, None without messages
+    start_s: Optional[float]      # earliest message stamp (any channel's), None without messages
     end_s: Optional[float]        # latest message stamp: for a truncated file, what was recovered up to
     duration_s: float
-    message_count: int
+    message_count: int            # messages of the JSON channels: what read_log yields
     topic_counts: Dict[str, int]  # topic -> messages, numbers in order (/robot/2 before /robot/10)
     robots: List[RobotId]         # ids seen in /robot/<id>/... topics, numeric ids as int, sorted
     drops: Dict[str, int]         # reason -> frames dropped (from /hub/drops)
@@ -236,6 +260,9 @@ class LogSummary:
     # log, whose wall-clock duration says nothing of how much it simulated. None without a simulated clock.
     sim_start_s: Optional[float] = None
     sim_end_s: Optional[float] = None
+    # Channels that are not JSON (another tool's, e.g. protobuf in a merged file): topic -> {"encoding",
+    # "messages"}. read_log and the replay skip them; they are not damage, and not in topic_counts.
+    foreign_topics: Dict[str, Dict[str, Any]] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -246,6 +273,8 @@ class _Tally:
     counts: Counter = dataclasses.field(default_factory=Counter)
     drops: Counter = dataclasses.field(default_factory=Counter)
     drops_by_sender: Counter = dataclasses.field(default_factory=Counter)
+    foreign: Counter = dataclasses.field(default_factory=Counter)     # non-JSON channels' topic -> messages
+    foreign_encodings: Dict[str, str] = dataclasses.field(default_factory=dict)
     start_ns: Optional[int] = None
     end_ns: Optional[int] = None
     first_poses: Optional[bytes] = None    # the raw first and last /mocap/poses messages, for their clock_s
@@ -256,6 +285,14 @@ class _Tally:
         if self.first_poses is None:
             self.first_poses = data
         self.last_poses = data
+
+    def add_count(self, channel: Channel, count: int) -> None:
+        """JSON channels are counted as read_log yields them; the others apart, as it skips them."""
+        if is_json_channel(channel.message_encoding):
+            self.counts[channel.topic] += count
+        else:
+            self.foreign[channel.topic] += count
+            self.foreign_encodings[channel.topic] = channel.message_encoding
 
     def add_drops(self, payload: Any) -> None:
         if not isinstance(payload, dict):
@@ -316,7 +353,7 @@ def _summary_from_index(reader: LogReader) -> LogSummary:
         stats = index.statistics
         for channel_id, count in stats.channel_message_counts.items():
             if count:
-                tally.counts[index.channels[channel_id].topic] += count
+                tally.add_count(index.channels[channel_id], count)
         if stats.message_count:
             tally.start_ns, tally.end_ns = stats.message_start_time, stats.message_end_time
         for _schema, _channel, message in indexed.iter_messages(topics=[HUB_DROPS], log_time_order=False):
@@ -338,7 +375,7 @@ def _summary_from_index(reader: LogReader) -> LogSummary:
 def _summary_from_records(reader: LogReader) -> LogSummary:
     tally = _Tally()
     for topic, message in reader.messages():
-        tally.counts[topic] += 1
+        tally.add_count(reader.channels[message.channel_id], 1)
         stamp = message.log_time
         if tally.start_ns is None or stamp < tally.start_ns:
             tally.start_ns = stamp
@@ -368,7 +405,9 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         drops_by_sender=dict(sorted(tally.drops_by_sender.items())),
         metadata=metadata_from_text(metadata.get(USER_METADATA, {})),
         format_version=int(version) if version.isdigit() else None, damaged_records=list(reader.damaged),
-        sim_start_s=sim_start_s, sim_end_s=sim_end_s)
+        sim_start_s=sim_start_s, sim_end_s=sim_end_s,
+        foreign_topics={topic: {"encoding": tally.foreign_encodings[topic], "messages": count}
+                        for topic, count in sorted(tally.foreign.items(), key=lambda item: natural_key(item[0]))})
 
 
 def _clock_s(poses: Optional[bytes]) -> Optional[float]:

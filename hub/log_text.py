@@ -25,13 +25,26 @@ def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
     lines.append(f"robots:    {len(summary.robots)} ({robots})" if summary.robots else "robots:    none")
     if summary.start_s is not None:
         lines.append(f"messages:  {summary.message_count}")
-        rows = summary.topic_counts.items() if all_topics else _grouped_topic_counts(summary.topic_counts)
-        width = max(len(topic) for topic, _ in rows)
-        lines += [f"  {topic:<{width}}  {count:>10}" for topic, count in rows]
+        rows = list(summary.topic_counts.items() if all_topics else _grouped_topic_counts(summary.topic_counts))
+        if rows:            # none when every channel is foreign
+            width = max(len(topic) for topic, _ in rows)
+            lines += [f"  {topic:<{width}}  {count:>10}" for topic, count in rows]
+    lines += _foreign_lines(summary)
     lines.append(f"drops:     {_drops_text(summary)}")
     for key, value in summary.metadata.items():
         lines.append(f"metadata:  {key} = {json.dumps(value)}")
     return "\n".join(lines)
+
+
+def _foreign_lines(summary: LogSummary) -> List[str]:
+    """Channels that are not JSON, which read_log and the replay skip: said, as they are not in the counts."""
+    if not summary.foreign_topics:
+        return []
+    rows = summary.foreign_topics.items()
+    width = max(len(topic) for topic in summary.foreign_topics)
+    return ([f"foreign:   {len(summary.foreign_topics)} channel(s) not JSON, skipped by read_log and the replay:"]
+            + [f"  {topic:<{width}}  {row['messages']:>10}  ({row['encoding'] or 'no encoding'})"
+               for topic, row in rows])
 
 
 def _status(summary: LogSummary) -> str:

@@ -35,6 +35,7 @@ from .log_format import (
     ROBOT_TOPIC_KINDS,
     SCHEMAS,
     USER_METADATA,
+    ForeignChannelWarning,
     LogError,
     LogRecord,
     PathLike,
@@ -52,8 +53,9 @@ from .log_summary import summarise as summarise_log
 # module offers the format's names (hub.log_format) and the BackgroundRecorder, which live in modules of their own.
 __all__ = [
     "CONTROL", "FORMAT_METADATA", "HUB_DROPS", "HUB_STATUS", "LIBRARY", "LOG_FORMAT_VERSION", "MCAP_MAGIC",
-    "MOCAP_POSES", "ROBOT_TOPIC_KINDS", "SCHEMAS", "USER_METADATA", "BackgroundRecorder", "LogError", "LogRecord",
-    "PathLike", "Recorder", "metadata_from_text", "read_log", "robot_topic", "split_robot_topic", "summarise",
+    "MOCAP_POSES", "ROBOT_TOPIC_KINDS", "SCHEMAS", "USER_METADATA", "BackgroundRecorder", "ForeignChannelWarning",
+    "LogError", "LogRecord", "PathLike", "Recorder", "metadata_from_text", "read_log", "robot_topic",
+    "split_robot_topic", "summarise",
 ]
 
 # Stamps are wall-clock seconds (time.time()). Before 2001 means a monotonic or simulated clock slipped in, which
@@ -248,7 +250,8 @@ def read_log(path: PathLike, topics: Optional[Iterable[str]] = None) -> Iterator
     """The messages of a log in the order the hub wrote them, optionally only those on ``topics``.
 
     A truncated file (a killed hub) yields every message up to the first record the file cuts short. Missing,
-    empty and non-MCAP files raise :class:`LogError` at once, before iteration.
+    empty and non-MCAP files raise :class:`LogError` at once, before iteration. A channel that is not JSON
+    (another tool's protobuf or ros2msg) is skipped, with one :class:`ForeignChannelWarning` per channel.
     """
     return LogReader(path).records(topics)
 

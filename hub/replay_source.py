@@ -22,7 +22,7 @@ class ReplaySource(PoseSource):
 
     def __init__(self, path: str, rate: float = 1.0, log: Callable[[str], None] = print):
         from hub.log_summary import LogReader
-        from hub.recording import LogError
+        from hub.recording import MOCAP_POSES, LogError
 
         self.description = f"replay {path}"
         self.not_the_real_robots = "a replay's poses come from a recording"
@@ -44,6 +44,11 @@ class ReplaySource(PoseSource):
             if self.reader.stop_reason:           # a hub log cut short before its first poses, not another file
                 raise ConfigError("source.file", f"{path} holds no /mocap/poses records: it is truncated "
                                                  f"({self.reader.stop_reason})")
+            foreign = self.reader.foreign.get(MOCAP_POSES)
+            if foreign is not None:
+                raise ConfigError("source.file", f"{path} holds no /mocap/poses records the replay can read: that "
+                                                 f"channel's message encoding is {foreign!r}, not JSON (another "
+                                                 "tool's log, not a khepri hub recording?)")
             raise ConfigError("source.file", f"{path} holds no /mocap/poses records (not a khepri hub recording?)")
 
     def never_placed(self, ids: List[int]) -> List[int]:
@@ -54,10 +59,11 @@ class ReplaySource(PoseSource):
 
         missing = set(ids)
         try:
-            for topic, message in LogReader(self.path).messages():
+            reader = LogReader(self.path)
+            for topic, message in reader.messages():
                 if not missing:
                     break
-                if topic == MOCAP_POSES:
+                if topic == MOCAP_POSES and not reader.is_foreign(message):
                     try:
                         missing.difference_update(poses_from_record(message.data)[0])
                     except (KeyError, TypeError, ValueError, AttributeError):
@@ -71,9 +77,13 @@ class ReplaySource(PoseSource):
 
         count = 0
         for topic, message in self.reader.messages():
-            if topic == MOCAP_POSES:
-                yield count, message
-                count += 1
+            if topic != MOCAP_POSES:
+                continue
+            if self.reader.is_foreign(message):      # another tool's channel of that name, not the hub's poses
+                self.reader.foreign[topic] = self.reader.channels[message.channel_id].message_encoding
+                continue
+            yield count, message
+            count += 1
 
     def _fetch(self) -> None:
         from hub.recording import LogError

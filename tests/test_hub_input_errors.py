@@ -391,18 +391,19 @@ def test_one_outage_is_not_taken_for_sparse_frames():
 T0 = 1_770_000_000.0
 
 
-def raw_log(path, messages):
-    """An MCAP file with JSON channels written by the mcap library itself: ``(topic, bytes, stamp_s)``."""
+def raw_log(path, messages, encoding="json"):
+    """An MCAP file with channels of ``encoding`` (JSON by default) written by the mcap library itself:
+    ``(topic, bytes, stamp_s)``."""
     from mcap.writer import Writer
 
     with open(path, "wb") as file:
         writer = Writer(file)
         writer.start()
-        schema = writer.register_schema("any", "jsonschema", b"{}")
+        schema = writer.register_schema("any", "jsonschema" if encoding == "json" else encoding, b"{}")
         channels = {}
         for sequence, (topic, data, stamp) in enumerate(messages):
             if topic not in channels:
-                channels[topic] = writer.register_channel(topic, "json", schema)
+                channels[topic] = writer.register_channel(topic, encoding, schema)
             ns = int(stamp * 1e9)
             writer.add_message(channels[topic], log_time=ns, data=data, publish_time=ns, sequence=sequence)
         writer.finish()
@@ -441,6 +442,20 @@ def test_a_log_cut_short_before_its_first_poses_is_called_truncated(tmp_path, ke
         build_hub(replay_config(path), log=lambda line: None)
     assert str(info.value).startswith(f"source.file: {path} holds no /mocap/poses records: it is truncated (the "
                                       "file ends inside ")
+
+
+def test_another_tools_mocap_poses_channel_is_named_with_its_encoding(tmp_path):
+    """A /mocap/poses channel in protobuf is not the hub's poses: the replay says so at start, as read_log and
+    `khepri log info` skip such channels, instead of one `not JSON` skip line per record."""
+    from hub.factory import build_hub
+
+    path = raw_log(tmp_path / "other.mcap", [("/mocap/poses", b"\x08\x96\x01", T0 + 0.01 * k) for k in range(5)],
+                   encoding="protobuf")
+    with pytest.raises(ConfigError) as info:
+        build_hub(replay_config(path), log=lambda line: None)
+    assert str(info.value) == (f"source.file: {path} holds no /mocap/poses records the replay can read: that "
+                               "channel's message encoding is 'protobuf', not JSON (another tool's log, not a khepri "
+                               "hub recording?)")
 
 
 def test_a_missing_replay_file_is_named_once(tmp_path):

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,7 @@ from hub.recording import (
     HUB_STATUS,
     MOCAP_POSES,
     ROBOT_TOPIC_KINDS,
+    ForeignChannelWarning,
     LogError,
     Recorder,
     read_log,
@@ -348,6 +350,71 @@ def test_unreadable_files_give_one_clear_error(tmp_path, content, problem):
 def run_khepri(*args):
     return subprocess.run([*KHEPRI, "log", "info", *map(str, args)], capture_output=True, text=True, timeout=60,
                           env=ENV)
+
+
+def foreign_log(path, channels):
+    """An MCAP file another tool wrote, with the mcap library: ``{topic: (message encoding, schema encoding,
+    [message bytes])}``, one message of each channel after another."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as file:
+        writer = Writer(file)
+        writer.start(profile="ros2", library="another-tool")
+        ids = {}
+        for topic, (encoding, schema_encoding, _) in channels.items():
+            schema_data = b"{}" if encoding == "json" else b"\x0a\x00"
+            schema = writer.register_schema(f"{topic}.Type", schema_encoding, schema_data)
+            ids[topic] = writer.register_channel(topic, encoding, schema)
+        sequence = 0
+        for k in range(max(len(messages) for _, _, messages in channels.values())):
+            for topic, (_, _, messages) in channels.items():
+                if k < len(messages):
+                    stamp = int((T0 + 0.01 * sequence) * 1e9)
+                    writer.add_message(ids[topic], log_time=stamp, data=messages[k], publish_time=stamp,
+                                       sequence=sequence)
+                    sequence += 1
+        writer.finish()
+    return path
+
+
+def test_a_foreign_channel_is_skipped_by_read_log_and_listed_by_log_info(tmp_path):
+    """read_log raised `/camera: message 0 is not a JSON object` on a file with another tool's protobuf channel,
+    which `log info --check` called sound (exit 0). Now read_log skips such channels, saying so once each, and
+    log info counts what read_log yields and lists the foreign channels apart."""
+    poses = [json.dumps({"bodies": {"1": [0.1 * k, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}}).encode() for k in range(3)]
+    path = foreign_log(tmp_path / "merged.mcap", {
+        MOCAP_POSES: ("json", "jsonschema", poses),
+        "/camera": ("protobuf", "protobuf", [b"\x08\x96\x01"] * 4),
+        "/tf": ("ros2msg", "ros2msg", [b"\x00\x01\x00\x00"] * 2)})
+    with pytest.warns(ForeignChannelWarning) as said:
+        records = list(read_log(path))
+    assert [r.payload for r in records] == [json.loads(p) for p in poses]
+    assert sorted(str(w.message) for w in said) == [       # once per channel, not once per message
+        f"{path}: /camera: message encoding 'protobuf', not JSON: its messages are skipped (a channel another tool "
+        "wrote; `khepri log info` lists such channels)",
+        f"{path}: /tf: message encoding 'ros2msg', not JSON: its messages are skipped (a channel another tool "
+        "wrote; `khepri log info` lists such channels)"]
+    foreign = {"/camera": {"encoding": "protobuf", "messages": 4}, "/tf": {"encoding": "ros2msg", "messages": 2}}
+    for summary in (summarise(path), summarise(path, use_index=False)):
+        assert summary.topic_counts == {MOCAP_POSES: 3} and summary.message_count == len(records)
+        assert summary.foreign_topics == foreign and summary.damaged_records == []
+    checked = run_khepri(path, "--check")
+    assert checked.returncode == 0 and checked.stderr == ""
+    assert "foreign:   2 channel(s) not JSON, skipped by read_log and the replay:" in checked.stdout
+    assert "/camera           4  (protobuf)" in checked.stdout and "messages:  3\n" in checked.stdout
+    assert json.loads(run_khepri(path, "--json").stdout)["foreign_topics"] == foreign
+
+
+def test_a_log_of_only_foreign_channels_reads_as_empty_not_as_an_error(tmp_path):
+    path = foreign_log(tmp_path / "ros.mcap", {"/scan": ("ros2msg", "ros2msg", [b"\x00\x01\x00\x00"] * 3)})
+    with pytest.warns(ForeignChannelWarning, match="/scan: message encoding 'ros2msg'"):
+        assert list(read_log(path)) == []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert list(read_log(path, topics=[MOCAP_POSES])) == []     # a channel not asked for is not said
+    info = run_khepri(path, "--check")
+    assert info.returncode == 0 and info.stderr == ""
+    assert "messages:  0\nforeign:   1 channel(s) not JSON" in info.stdout and "/scan  " in info.stdout
 
 
 def test_cli_log_info_prints_the_summary_and_json(tmp_path):
