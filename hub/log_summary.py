@@ -263,6 +263,9 @@ class LogSummary:
     # Channels that are not JSON (another tool's, e.g. protobuf in a merged file): topic -> {"encoding",
     # "messages"}. read_log and the replay skip them; they are not damage, and not in topic_counts.
     foreign_topics: Dict[str, Dict[str, Any]] = dataclasses.field(default_factory=dict)
+    # Only with check_payloads (log info --check): messages of JSON channels that are not JSON objects, which
+    # read_log stops at with a LogError; one line per topic. Empty otherwise, as they were not decoded.
+    refused_messages: List[str] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -304,12 +307,16 @@ class _Tally:
         self.drops_by_sender["unknown" if sender is None else str(sender)] += count
 
 
-def summarise(path: PathLike, *, use_index: bool = True) -> LogSummary:
+def summarise(path: PathLike, *, use_index: bool = True, check_payloads: bool = False) -> LogSummary:
     """Summarise a log. A complete file is summarised from its index (fast); a truncated one by reading it all.
 
     ``use_index=False`` always reads every record (the two give the same summary for a complete file).
+    ``check_payloads`` (``khepri log info --check``) reads every record and also decodes every JSON message,
+    listing in ``damaged_records`` those that ``read_log`` refuses (not a JSON object); it costs the decoding.
     """
     reader = LogReader(path)
+    if check_payloads:
+        return _summary_from_records(reader, check_payloads=True)
     if use_index and _ends_with_footer(reader.path, reader.file_bytes) \
             and _summary_crc_holds(reader.path, reader.file_bytes):
         try:
@@ -372,10 +379,13 @@ def _summary_from_index(reader: LogReader) -> LogSummary:
     return _build_summary(reader, tally, metadata)
 
 
-def _summary_from_records(reader: LogReader) -> LogSummary:
+def _summary_from_records(reader: LogReader, check_payloads: bool = False) -> LogSummary:
     tally = _Tally()
+    refused = _RefusedPayloads()
     for topic, message in reader.messages():
         tally.add_count(reader.channels[message.channel_id], 1)
+        if check_payloads and not reader.is_foreign(message):
+            refused.check(topic, message)
         stamp = message.log_time
         if tally.start_ns is None or stamp < tally.start_ns:
             tally.start_ns = stamp
@@ -385,7 +395,29 @@ def _summary_from_records(reader: LogReader) -> LogSummary:
             tally.add_drops(_json_or_none(message.data))
         elif topic == MOCAP_POSES:
             tally.add_poses(message.data)
-    return _build_summary(reader, tally, reader.metadata)
+    summary = _build_summary(reader, tally, reader.metadata)
+    summary.refused_messages = refused.lines()
+    return summary
+
+
+class _RefusedPayloads:
+    """Messages of JSON channels that are not JSON objects, which read_log refuses (LogError): without this, a
+    file that read_log cannot read to the end passed ``--check``. One line per topic, not one per message."""
+
+    def __init__(self) -> None:
+        self.first: Dict[str, int] = {}       # topic -> the first such message's sequence
+        self.count: Counter = Counter()
+
+    def check(self, topic: str, message: Message) -> None:
+        if isinstance(_json_or_none(message.data), dict):
+            return
+        self.first.setdefault(topic, message.sequence)
+        self.count[topic] += 1
+
+    def lines(self) -> List[str]:
+        return [f"{topic}: message {sequence} is not a JSON object"
+                + (f", and {self.count[topic] - 1} more on that topic" if self.count[topic] > 1 else "")
+                for topic, sequence in self.first.items()]
 
 
 def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[str, str]]) -> LogSummary:

@@ -48,9 +48,11 @@ def _foreign_lines(summary: LogSummary) -> List[str]:
 
 
 def _status(summary: LogSummary) -> str:
-    damaged = summary.damaged_records
+    damaged, refused = summary.damaged_records, summary.refused_messages
     skipped = (f"; DAMAGED, skipped {len(damaged)}: {damaged[0]}" + (" ..." if len(damaged) > 1 else "")
                if damaged else "")
+    skipped += (f"; read_log STOPS with an error at {refused[0]}" + (" ..." if len(refused) > 1 else "")
+                if refused else "")
     if not summary.truncated:
         return "complete" + skipped
     recovered = f"recovered up to {_clock(summary.end_s)}" if summary.end_s is not None else "no message recovered"

@@ -17,9 +17,9 @@ def add_log(groups) -> None:
     info.add_argument("file", metavar="FILE", help="an .mcap log written by the hub")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.add_argument("--check", action="store_true",
-                      help="read every record and check every chunk's CRC, also in a complete log (slower; by "
-                           "default a complete log is summarised from its index); exit code 1 when the log is "
-                           "truncated or has damaged records")
+                      help="read every record, check every chunk's CRC and decode every JSON message, also in a "
+                           "complete log (slower; by default a complete log is summarised from its index); exit "
+                           "code 1 when the log is truncated, has damaged records, or has messages read_log refuses")
     info.add_argument("--all-topics", action="store_true",
                       help="list every robot's topics (default: one line per kind, e.g. /robot/*/frame)")
     info.set_defaults(func=cmd_info)
@@ -34,10 +34,10 @@ def cmd_info(args: argparse.Namespace) -> int:
         raise ConfigError("FILE", "an empty path: name the .mcap log")
 
     # LogError (a ConfigError) naming the file for missing, empty or non-MCAP files
-    summary = summarise(Path(args.file), use_index=not args.check)
+    summary = summarise(Path(args.file), use_index=not args.check, check_payloads=args.check)
     if args.json:
         print(json.dumps(summary.to_dict(), indent=2))
     else:
         print(format_summary(summary, all_topics=args.all_topics))
     # With --check a script can tell a sound log from a damaged one by the exit code, not only by reading.
-    return 1 if args.check and (summary.truncated or summary.damaged_records) else 0
+    return 1 if args.check and (summary.truncated or summary.damaged_records or summary.refused_messages) else 0

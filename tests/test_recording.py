@@ -417,6 +417,24 @@ def test_a_log_of_only_foreign_channels_reads_as_empty_not_as_an_error(tmp_path)
     assert "messages:  0\nforeign:   1 channel(s) not JSON" in info.stdout and "/scan  " in info.stdout
 
 
+def test_log_info_check_finds_the_json_messages_read_log_refuses(tmp_path):
+    """A JSON channel with messages that are not JSON objects (another tool's arrays, numbers): read_log stops at
+    the first with a LogError, while `log info --check` called the file sound (exit 0)."""
+    path = foreign_log(tmp_path / "arrays.mcap", {MOCAP_POSES: ("json", "jsonschema", [b'{"bodies": {}}'] * 2),
+                                                  "/foo": ("json", "jsonschema", [b"[1, 2]", b"7", b'{"a": 1}'])})
+    with pytest.raises(LogError, match="/foo: message 1 is not a JSON object"):
+        list(read_log(path))
+    checked = run_khepri(path, "--check")
+    assert checked.returncode == 1 and checked.stderr == ""
+    assert ("status:    complete; read_log STOPS with an error at /foo: message 1 is not a JSON object, and 1 more "
+            "on that topic\n") in checked.stdout
+    summary = summarise(path, check_payloads=True)
+    assert summary.refused_messages == ["/foo: message 1 is not a JSON object, and 1 more on that topic"]
+    assert summarise(path).refused_messages == []              # not decoded without --check: nothing said
+    sound = write_log(tmp_path / "sound.mcap", every_topic_records())
+    assert run_khepri(sound, "--check").returncode == 0
+
+
 def test_cli_log_info_prints_the_summary_and_json(tmp_path):
     path = write_log(tmp_path / "cli.mcap", every_topic_records(), metadata={"lab": "L1"})
     text = run_khepri(path)
