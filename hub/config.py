@@ -118,7 +118,7 @@ MIN_DOWNLINK_HZ = 10.0
 
 @dataclass
 class NetworkConfig:
-    bind: str = "*"                 # interface to listen on ("*" = all, "127.0.0.1" = this PC only)
+    bind: str = "*"                 # interface to listen on ("*" = all IPv4, "localhost" = both loopbacks)
     robot_port: int = 5560          # agents' DEALER sockets connect here (0: any free port)
     control_port: int = 5561        # khepri ctl connects here (0: any free port)
     downlink_hz: float = 20.0       # frames per second to each robot (latest data; spread over robots)

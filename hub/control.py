@@ -7,7 +7,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import zmq
 
-from onboard.agent.link import use_ipv6
+from onboard.agent.link import endpoint_candidates, family_hint, use_ipv6
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
 from .security import apply_client_keys
@@ -33,8 +33,7 @@ def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, ti
         apply_client_keys(sock, keys)
     try:
         try:
-            use_ipv6(sock, endpoint)
-            sock.connect(endpoint)
+            connect_any(sock, endpoint)
         except zmq.ZMQError as err:
             raise BadEndpoint(f"cannot connect to {endpoint!r}: {(err.strerror or str(err)).split(' (addr=')[0]}") \
                 from None
@@ -51,6 +50,18 @@ def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, ti
     if not reply["ok"]:
         raise ControlError(f"the hub refused {cmd}: {reply.get('error', 'no reason given')}")
     return reply
+
+
+def connect_any(sock: zmq.Socket, endpoint: str) -> None:
+    """Connect to every address ``endpoint`` stands for (localhost: both loopbacks). IMMEDIATE makes the request
+    wait for whichever connects, instead of queueing it for an address where no hub listens; a hub on both
+    gets one request on one connection, and answers on that one."""
+    addresses = endpoint_candidates(endpoint)
+    if len(addresses) > 1:
+        sock.immediate = 1
+    for address in addresses:         # IPv4 first: the IPV6 option, once on, stays on for the later ones
+        use_ipv6(sock, address)
+        sock.connect(address)
 
 
 def refusals_after_start(endpoint: str, keys: Optional[Dict[str, bytes]] = None, timeout_s: float = 2.0,
@@ -88,7 +99,7 @@ def _await_reply(sock: zmq.Socket, nonce: int, timeout_s: float, endpoint: str) 
 def _no_answer(endpoint: str, timeout_s: float) -> str:
     return (f"no answer from the hub at {endpoint} within {timeout_s:g} s (is it running, and is that its "
             "control port, the one it printed after `listening control`? A secure hub needs --keys with an "
-            "operator key it lists; a hub run with --insecure needs no keys)")
+            f"operator key it lists; a hub run with --insecure needs no keys) {family_hint(endpoint)}").rstrip()
 
 
 def status_table(status: Dict[str, Any]) -> str:

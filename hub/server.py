@@ -10,6 +10,7 @@ requests in ``hub/control_service.py``.
 """
 from __future__ import annotations
 
+import errno
 import math
 import time
 from dataclasses import dataclass, field
@@ -18,7 +19,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import numpy as np
 import zmq
 
-from onboard.agent.link import tcp_host, use_ipv6
+from onboard.agent.link import endpoint_candidates, tcp_host, use_ipv6
 from onboard.config import ConfigError
 from onboard.protocol import MAX_MESSAGE_BYTES
 
@@ -122,19 +123,19 @@ class Hub(Downlink, Uplink):
         if self.keyring is not None:
             self.authenticator = HubAuthenticator(self.context, self.keyring, log=self.log)
             self.authenticator.start()
-        self.robot_socket = self._router(ROBOT_DOMAIN, net.robot_port, "robot_port")
+        self.robot_socket, robot_addresses = self._router(ROBOT_DOMAIN, net.robot_port, "robot_port")
         self.robot_socket.sndhwm = DOWNLINK_HWM
-        self.control_socket = self._router(OPERATOR_DOMAIN, net.control_port, "control_port")
+        self.control_socket, control_addresses = self._router(OPERATOR_DOMAIN, net.control_port, "control_port")
         if self.keyring is not None:      # peers dropped before ZAP (no keys, another hub's key): said, not silent
             self.handshake_watches = [HandshakeWatch(self.context, sock, domain, self.keyring, self.log)
                                       for sock, domain in ((self.robot_socket, ROBOT_DOMAIN),
                                                            (self.control_socket, OPERATOR_DOMAIN))]
-        for role, sock in (("robots", self.robot_socket), ("control", self.control_socket)):
-            self.endpoints[role] = sock.getsockopt_string(zmq.LAST_ENDPOINT)
-            self.log(f"listening {role} {self.endpoints[role]}")
+        for role, addresses in (("robots", robot_addresses), ("control", control_addresses)):
+            self.endpoints[role] = addresses[0]
+            self.log(f"listening {role} {' and '.join(addresses)}")   # one line per role: tools count them
         return self.endpoints
 
-    def _router(self, domain: str, port: int, port_field: str) -> zmq.Socket:
+    def _router(self, domain: str, port: int, port_field: str) -> Tuple[zmq.Socket, List[str]]:
         sock = self.context.socket(zmq.ROUTER)
         sock.linger = 0
         sock.router_mandatory = 1      # a full or vanished peer raises instead of dropping silently
@@ -143,14 +144,11 @@ class Hub(Downlink, Uplink):
         if self.keyring is not None:
             make_curve_server(sock, self.keyring, domain)
         bind = self.config.network.bind
-        endpoint = f"tcp://{tcp_host(bind)}:{port if port else '*'}"
-        use_ipv6(sock, endpoint)
         try:
-            sock.bind(endpoint)
+            return sock, bind_every(sock, f"tcp://{tcp_host(bind)}:{port if port else '*'}")
         except zmq.ZMQError as err:
             sock.close(0)          # nothing half-open: the caller closes the sockets bound before this one
             raise bind_error(err, bind, port, port_field) from None
-        return sock
 
     def close(self) -> None:
         if self.robot_socket is not None:
@@ -402,6 +400,30 @@ def poses_record(frame: PoseFrame) -> Dict[str, Any]:
 def format_ids(ids: List[int], limit: int = 10) -> str:
     shown = ", ".join(map(str, ids[:limit]))
     return shown + (f" and {len(ids) - limit} more" if len(ids) > limit else "")
+
+
+# A loopback this PC does not have (a container without IPv6): ZeroMQ says "No such device" or "Cannot assign".
+NO_SUCH_ADDRESS = (errno.EADDRNOTAVAIL, errno.ENODEV)
+
+
+def bind_every(sock: zmq.Socket, endpoint: str) -> List[str]:
+    """Bind every address ``endpoint`` stands for (``localhost``: 127.0.0.1 and ::1, so that agents and ``ctl``
+    reach the hub as localhost, 127.0.0.1 or ::1 alike), all on the port the first one got; the bound
+    endpoints. A loopback this PC lacks is left out, as long as one is bound; ZMQError otherwise."""
+    bound: List[str] = []
+    addresses = endpoint_candidates(endpoint)
+    for k, address in enumerate(addresses):
+        if bound:
+            address = f"{address.rpartition(':')[0]}:{bound[0].rpartition(':')[2]}"    # port 0: the one picked
+        use_ipv6(sock, address)
+        try:
+            sock.bind(address)
+        except zmq.ZMQError as err:
+            if err.errno in NO_SUCH_ADDRESS and (bound or k + 1 < len(addresses)):
+                continue
+            raise
+        bound.append(sock.getsockopt_string(zmq.LAST_ENDPOINT))
+    return bound
 
 
 def bind_error(err: zmq.ZMQError, bind: str, port: int, port_field: str) -> ConfigError:

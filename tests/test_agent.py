@@ -541,6 +541,70 @@ def test_a_hub_on_an_ipv6_address_serves_a_real_agent_and_ctl(tmp_path, make_sce
         assert request(hub.endpoints["control"], "status")["ok"]
 
 
+def start_ipv6_lab(bind, robots, make_scenario):
+    from hub.config import parse_config
+    from hub.harness import HubThread
+
+    config = parse_config({"source": {"type": "sim"}, "security": {"insecure": True},
+                           "network": {"bind": bind, "robot_port": 0, "control_port": 0}})
+    return HubThread(config, scenario=make_scenario(robots={"count": robots}, arena={"walls": [-2.0, -2.0, 2.0, 2.0]}))
+
+
+def ctl_status(host, control_endpoint, *options):
+    port = control_endpoint.rsplit(":", 1)[1]
+    return subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "status", "--hub", host, "--port", port,
+                           *options], capture_output=True, text=True, timeout=60)
+
+
+def test_localhost_stands_for_both_loopbacks_and_every_other_address_for_itself():
+    from onboard.agent.link import endpoint_candidates
+
+    both = ["tcp://127.0.0.1:5560", "tcp://[::1]:5560"]
+    assert endpoint_candidates("tcp://localhost:5560") == endpoint_candidates("tcp://LocalHost.:5560") == both
+    assert endpoint_candidates("tcp://localhost:*") == ["tcp://127.0.0.1:*", "tcp://[::1]:*"]    # the hub's bind
+    for alone in ("tcp://127.0.0.1:5560", "tcp://[::1]:5560", "tcp://labpc:5560", "tcp://eth0;localhost:5560",
+                  "ipc:///tmp/hub"):
+        assert endpoint_candidates(alone) == [alone]
+
+
+@pytest.mark.skipif(not ipv6_loopback_available(), reason="this machine has no IPv6 loopback")
+@pytest.mark.parametrize("bind, hosts", [("::1", ["localhost"]), ("localhost", ["::1", "127.0.0.1", "localhost"])])
+def test_localhost_and_either_loopback_reach_the_hub_whichever_family_it_listens_on(tmp_path, make_scenario,
+                                                                                    bind, hosts):
+    """ZeroMQ resolves `localhost` to IPv4 only: a hub on ::1 was never reached by an agent or ctl given --hub
+    localhost, and a hub given bind: localhost listened on 127.0.0.1 alone, never reached as ::1."""
+    from hub.harness import spawn_agent, stop_processes
+
+    with start_ipv6_lab(bind, len(hosts), make_scenario) as hub:
+        if bind == "localhost":
+            port = hub.endpoints["robots"].rsplit(":", 1)[1]
+            assert hub.lines[0] == f"listening robots tcp://127.0.0.1:{port} and tcp://[::1]:{port}"
+        port = hub.endpoints["robots"].rsplit(":", 1)[1]
+        agents = [spawn_agent(host, i, tmp_path / f"agent{i}.log", extra=["--port", port])
+                  for i, host in enumerate(hosts)]
+        try:
+            hub.wait_until(lambda s: all(robot["connected"] for robot in s["robots"]))
+            time.sleep(0.5)       # an agent on two connections at once would flip between them: it is on one
+            status = hub.wait_until(lambda s: all(robot["connected"] for robot in s["robots"]))
+            assert "duplicate robot" not in status["drops"]
+        finally:
+            stop_processes(agents)
+        for host in hosts:
+            ctl = ctl_status(host, hub.endpoints["control"])
+            assert ctl.returncode == 0 and "robot  connected" in ctl.stdout, (host, ctl.stderr)
+
+
+@pytest.mark.skipif(not ipv6_loopback_available(), reason="this machine has no IPv6 loopback")
+def test_ctl_at_the_other_family_than_the_hub_says_why_nothing_answers(make_scenario):
+    """A hub on 127.0.0.1 cannot be reached at ::1: the timeout's message says so, and what tries both."""
+    with start_ipv6_lab("127.0.0.1", 1, make_scenario) as hub:
+        ctl = ctl_status("::1", hub.endpoints["control"], "--timeout", "0.5")
+    assert ctl.returncode == 1
+    assert ctl.stderr.rstrip().endswith("needs no keys) A hub listening on IPv4 only (network.bind * or an IPv4 "
+                                        "address such as 127.0.0.1) is never reached at an IPv6 address (--hub "
+                                        "localhost tries 127.0.0.1 and ::1).")
+
+
 def test_a_robot_without_the_agents_packages_is_told_which_in_one_line():
     """`python3 -m onboard.agent` on a robot without pyzmq ended in a ModuleNotFoundError traceback."""
     blocked = "import sys, runpy; sys.modules['zmq'] = None; sys.argv = ['agent', '--id', '0', '--driver', 'sim']; " \

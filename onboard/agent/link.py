@@ -83,6 +83,37 @@ def tcp_host(host: str) -> str:
     return host if literal is None else f"[{literal}]"
 
 
+LOOPBACK_ADDRESSES = ("127.0.0.1", "[::1]")   # what `localhost` stands for, in the order tried
+
+
+def endpoint_candidates(endpoint: str) -> List[str]:
+    """The addresses that stand for ``endpoint``, in the order to try them: for ``localhost``, both loopbacks
+    (IPv4 first, as ZeroMQ resolved it), else ``endpoint`` alone. ZeroMQ resolves a name to one family only
+    (IPv4, unless its IPV6 option is on), so a hub listening on ::1 was never reached as localhost, and a hub
+    told to listen on localhost was never reached as ::1, whichever way this PC's resolver answers."""
+    if not endpoint.startswith("tcp://") or ";" in endpoint:     # tcp://eth0;host:port names an interface too
+        return [endpoint]
+    host, colon, port = endpoint[len("tcp://"):].rpartition(":")
+    if not colon or host.lower().rstrip(".") != "localhost":
+        return [endpoint]
+    return [f"tcp://{address}:{port}" for address in LOOPBACK_ADDRESSES]
+
+
+def family_hint(endpoint: str) -> str:
+    """For an address of one IP family, a sentence on a hub listening on the other one, which looks from here
+    like no hub at all, for ever; "" for a name (``localhost`` tries both loopbacks) or an interface address."""
+    if not endpoint.startswith("tcp://") or ";" in endpoint:
+        return ""
+    host = unbracket(endpoint[len("tcp://"):].rpartition(":")[0])
+    both = " (--hub localhost tries 127.0.0.1 and ::1)"
+    if ipv6_literal(host) is not None:
+        return ("A hub listening on IPv4 only (network.bind * or an IPv4 address such as 127.0.0.1) is never "
+                f"reached at an IPv6 address{both if ipv6_literal(host) == '::1' else ''}.")
+    if host == "127.0.0.1":
+        return f"A hub listening on ::1 only is never reached at 127.0.0.1{both}."
+    return ""
+
+
 def use_ipv6(socket: zmq.Socket, endpoint: str) -> None:
     """ZeroMQ reaches an IPv6 address only with its IPV6 option on; it is off by default, and an address such as
     tcp://[::1]:5560 then fails with "No such device". Turned on for such addresses only, so the IPv4 setups
@@ -152,6 +183,11 @@ class HubLink:
         # agent's own reconnect (a new socket after a silence, or ZeroMQ's after a dropped TCP connection) from a
         # second agent with the same --id, which keeps its own token.
         self.instance = os.urandom(8).hex()
+        # One address at a time (localhost: 127.0.0.1, then ::1): connected to both, a hub listening on both
+        # (:: or localhost) would get this agent's messages over two connections, each taking the robot over
+        # from the other. One that never answered gives way to the next at each reset (2 s of silence).
+        self.addresses = endpoint_candidates(endpoint)
+        self.address = self.addresses[0]
         self._open()
 
     def _open(self) -> None:
@@ -169,14 +205,17 @@ class HubLink:
             self.socket.curve_publickey = self.keys["public"]
             self.socket.curve_secretkey = self.keys["secret"]
             self.socket.curve_serverkey = self.keys["server"]
-        use_ipv6(self.socket, self.endpoint)
-        self.socket.connect(self.endpoint)
+        use_ipv6(self.socket, self.address)
+        self.socket.connect(self.address)
         self.heard = False                 # the hub has spoken on this socket (see unsent)
         self.poller = zmq.Poller()
         self.poller.register(self.socket, zmq.POLLIN)
 
     def reset(self) -> None:
-        """A fresh socket and connection (the hub learns the new one from the next hello)."""
+        """A fresh socket and connection (the hub learns the new one from the next hello), to the next address
+        if the hub never spoke on this one."""
+        if not self.heard:
+            self.address = self.addresses[(self.addresses.index(self.address) + 1) % len(self.addresses)]
         self.socket.close(0)
         self.resets += 1
         self._open()

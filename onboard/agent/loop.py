@@ -36,7 +36,7 @@ from onboard.hal import RobotSpec
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, ProtocolError
 
 from .devices import AgentClock, HubState, apply_frame, make_robot
-from .link import HubLink
+from .link import HubLink, family_hint
 from .safety import GuardedDriver, StepWatchdog
 
 SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is said at most this often
@@ -216,7 +216,7 @@ class Agent:
         self.log(f"agent {self.robot_id}: no frame from the hub at {self.link.endpoint} {since}; still trying "
                  f"(is the hub running, is another agent already connected as robot {self.robot_id}, are --hub and "
                  f"--port the host and robots port it printed when it started, is robot {self.robot_id} in the hub's "
-                 f"lab{key}?)")
+                 f"lab{key}?) {family_hint(self.link.endpoint)}".rstrip())
 
     def _lockstep(self) -> bool:
         return bool(self.run and self.run.get("lockstep"))
