@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from typing import Any, Deque, Dict, FrozenSet, Optional, Tuple
+from typing import Any, Deque, Dict, FrozenSet, Optional, Set, Tuple
 
 import numpy as np
 
@@ -55,6 +55,7 @@ class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase,
         self.settle_window: Deque[Tuple[float, Vec]] = deque(maxlen=AVERAGE_SETTLE_STEPS)   # _settled_on_average
         self.spawned: Optional[str] = None       # the task this robot opened for its successor
         self.spawned_times: Dict[Tuple[str, int], float] = {}   # (tid, epoch) -> when this robot opened it
+        self.tips_seen_apart: Set[int] = set()   # opposite tips seen on the other side of the object (caging)
         self.on_its_way_since: Dict[Tuple[str, int, int], float] = {}   # (tid, epoch, robot) -> first seen so
         self.path: list = []
         self.estimated_at = 0.0

@@ -6,6 +6,7 @@ module readable. See docs/behaviour.md sections 2 and 3.
 """
 from __future__ import annotations
 
+import math
 from typing import List, Optional
 
 from . import control as c
@@ -44,6 +45,9 @@ HEAD_START_STOP_M = 0.6
 # object ends that.
 SHOVE_ADVANCE_M = 0.12
 SHOVE_LOST_S = 1.0
+# Two branch tips whose IR directions to the object differ by more than this sit on opposite sides of it
+# (_closure_distance).
+OPPOSITE_TIPS_DEG = 150.0
 
 
 class CagingPhases:
@@ -419,6 +423,30 @@ class CagingPhases:
                 return k + 1 == len(slots) or self._breaks_chain(slots[k + 1][1], me)
         return False
 
+    def _closure_distance(self, tip: int) -> float:
+        """d_T, the paper's closure distance; ours, while robots remain, a tighter one for tips on opposite
+        sides of the object. Their gap leaves a whole end of it open: a 1.0 x 0.3 m box caged by 5 robots
+        with its end in the gap had nobody behind it when the path turned along its length (docs/behaviour.md
+        section 3). Once the swarm is out of robots (I_d grows) the paper's d_T applies again."""
+        p = self.params
+        factor = p.closure_factor
+        if self.board.grow_level() == 0 and self._tips_face_apart(tip):
+            factor = min(factor, p.end_gap_closure_factor)
+        return factor * self._spacing()
+
+    def _tips_face_apart(self, tip: int) -> bool:
+        """Once seen, for good: a tip near a corner sees the object obliquely, and one such reading must not
+        let the pair close a gap that spans the object's end (it did, 2 s after 20 readings said so)."""
+        if tip in self.tips_seen_apart:
+            return True
+        mine, theirs = self._contact_normal(), self.board.contact_normal(tip)
+        if mine is None or theirs is None:
+            return False
+        if abs(math.remainder(mine - theirs, 2.0 * math.pi)) > math.radians(OPPOSITE_TIPS_DEG):
+            self.tips_seen_apart.add(tip)
+            return True
+        return False
+
     def _try_close(self) -> bool:
         """Proposition 1: the cage is closed when the two branch tips are within d_T."""
         if self.task is None or self.task.branch == "S" or "closed" in self.space:
@@ -429,7 +457,7 @@ class CagingPhases:
         if tip is None:
             return False
         vector = self._vector_to(tip)
-        if vector is None or c.norm(vector) > self.params.closure_factor * self._spacing():
+        if vector is None or c.norm(vector) > self._closure_distance(tip):
             return False
         if self._gap_crosses_object(vector) or not self._ring_encloses_estimate():
             return False

@@ -27,6 +27,9 @@ class TransportParams:
     inter_robot_distance_m: float = 0.45     # I_d: desired spacing of adjacent robots in the cage
     caging_tolerance_m: float = 0.05         # d_tol (caging): a caging target counts as reached within this
     closure_factor: float = 1.85             # d_T = closure_factor * I_d (Proposition 1)
+    # Ours: while robots remain (before I_d grows), two tips that see the object in opposite directions close
+    # only this close (times I_d): their gap leaves a whole end of the object open (caging.py:_closure_distance).
+    end_gap_closure_factor: float = 1.3
     k_t_caging: float = 30.0                 # K_t (caging): gain toward the caging target
     proximity_threshold: float = 0.7         # Prox. thres.: IR reading that means contact (~5 cm)
     # --- Pushing (Table 1, middle) ---
@@ -135,6 +138,7 @@ class TransportParams:
             for flag in IMPROVEMENT_FLAGS:
                 setattr(self, flag, False)
             self.small_cage_yaw = "edges"
+            self.end_gap_closure_factor = self.closure_factor
             self.settle_time_s = 0.0
             self.position_tolerance_m = self.push_tolerance_m
             self.rotation_tolerance_deg = self.orientation_tolerance_deg
@@ -146,6 +150,7 @@ class TransportParams:
 
     def _check(self, where: str) -> None:
         for name in ("safety_distance_m", "inter_robot_distance_m", "caging_tolerance_m", "closure_factor",
+                     "end_gap_closure_factor",
                      "push_tolerance_m", "orientation_tolerance_deg", "allocation_time_s", "cruise_speed_m_s",
                      "rebid_period_s", "formation_range_factor", "liveness_timeout_s", "attach_timeout_s",
                      "travel_speed_m_s", "travel_fast_beyond_m", "position_tolerance_m", "rotation_tolerance_deg",
