@@ -18,6 +18,7 @@ from ...localisation import PoseTracker
 from ...motion import vector_to_wheels
 from . import control as c
 from .caging import AVERAGE_SETTLE_STEPS, CagingPhases
+from .closure import ClosurePhase
 from .control import Vec
 from .estimation import ObjectEstimation
 from .estimator import ObjectFilter, ring_centroid, surrounds
@@ -38,7 +39,7 @@ REGROUP_STANDOFF_M = 1.0
 
 
 @register("transport")
-class Transport(CagingPhases, TransportPhases, ObjectEstimation, ReinforcePhase, Behaviour):
+class Transport(CagingPhases, ClosurePhase, TransportPhases, ObjectEstimation, ReinforcePhase, Behaviour):
     Params = TransportParams
 
     def __init__(self, robot, params: Optional[TransportParams] = None):
