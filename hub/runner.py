@@ -6,6 +6,7 @@ import sys
 from typing import Callable
 
 from onboard.config import ConfigError
+from onboard.console import flush_quietly, say
 
 from .config import LabConfig
 from .factory import build_hub
@@ -19,7 +20,9 @@ INSECURE_WARNING = """\
 
 
 def print_now(line: str) -> None:
-    print(line, flush=True)     # flushed: supervisors and tests read these lines through a pipe
+    """One hub line on stdout, flushed (supervisors and tests read them through a pipe). A terminal that is
+    gone (EIO after SIGHUP) drops it: a failing line would end the hub, or skip closing its log mid-shutdown."""
+    say(line, sys.stdout)
 
 
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
@@ -47,7 +50,7 @@ def check_servable(config: LabConfig) -> None:
 def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
     check_servable(config)
     if config.security.insecure:
-        print(INSECURE_WARNING, file=sys.stderr, flush=True)
+        say(INSECURE_WARNING)
     hub = build_hub(config, log=log)
     stop = {"requested": False}
 
@@ -70,4 +73,5 @@ def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     log("hub: stopped")
+    flush_quietly()          # nothing left for the exit's own flush to fail on, should the terminal be gone
     return 0

@@ -27,6 +27,7 @@ from .config import DEFAULT_WATCHDOG_S, min_watchdog_s, parse_config
 from .factory import build_hub
 from .harness import spawn_agent, stop_processes
 from .lockstep import UNRESPONSIVE_AFTER_STEPS, Lockstep
+from .runner import print_now
 from .security import init_keys
 from .sil_report import SilRecording, agents_total, sil_figures
 
@@ -58,7 +59,7 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
         hub_log.write(line + "\n")
         hub_log.flush()
         if options.log_to_console:
-            print(line, flush=True)
+            print_now(line)      # a closed terminal drops the line, and does not skip closing the hub and agents
 
     # The folder is this run's: an earlier run's log or results would pass for this one's should it end
     # early (and the hub never writes over a log), so they go, also with --no-record.

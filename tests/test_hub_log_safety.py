@@ -4,15 +4,19 @@ recording but not the lab run, and a closed terminal (SIGHUP) stops the hub as C
 processes on free ports; the full disk is a file size limit (RLIMIT_FSIZE)."""
 import json
 import os
+import re
+import select
 import signal
 import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable, Tuple
 
 import pytest
 import yaml
+import zmq
 
 from hub.config import parse_config
 from hub.control import request
@@ -20,6 +24,7 @@ from hub.factory import record_path
 from hub.harness import stop_processes
 from khepri_cli.main import main
 from onboard.config import ConfigError
+from onboard.protocol import decode, encode
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -144,6 +149,78 @@ def test_a_closed_terminal_stops_the_hub_as_ctrl_c_does(tmp_path):
         stop_processes([hub])
     assert "hub: stopped" in (tmp_path / "hub.log").read_text()
     assert log_info(log)["truncated"] is False       # closed properly: footer and summary written
+
+
+
+def start_hub_on_a_terminal(tmp_path: Path, record: Path, controlling: bool) -> Tuple[subprocess.Popen, int, str]:
+    """A hub whose stdout and stderr are a pty (a hub started by hand over ssh), and the robots endpoint it
+    said there. ``controlling``: the pty is its controlling terminal, so closing it sends the hub SIGHUP."""
+    import fcntl
+    import pty
+    import termios
+
+    def take_the_terminal():
+        if controlling:
+            fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+
+    terminal, its_side = pty.openpty()
+    command = ["-m", "khepri_cli.main", "hub", "--config", str(lab_config(tmp_path, record))]
+    hub = subprocess.Popen([sys.executable, *command], stdin=its_side, stdout=its_side, stderr=its_side, env=ENV,
+                           start_new_session=True, preexec_fn=take_the_terminal)
+    os.close(its_side)
+    said = read_terminal_until(terminal, hub, lambda text: text.count("listening ") >= 2)
+    return hub, terminal, re.search(r"listening robots (tcp://\S+)", said).group(1)
+
+
+def read_terminal_until(terminal: int, hub: subprocess.Popen, done: Callable[[str], bool]) -> str:
+    said, deadline = "", time.monotonic() + 30
+    while not done(said):
+        assert hub.poll() is None and time.monotonic() < deadline, said
+        if select.select([terminal], [], [], 0.1)[0]:
+            said += os.read(terminal, 4096).decode(errors="replace")
+    return said
+
+
+@pytest.mark.parametrize("stop", ["SIGHUP", "SIGTERM"])
+def test_a_hub_whose_terminal_is_gone_stops_cleanly_and_closes_its_log(tmp_path, stop):
+    """Its lines to the dead terminal fail (EIO): `hub: stopped` turned exit code 0 into 1, and a line said while
+    the hub stopped (here a robot answering its stop with garbage) skipped closing the log, which lost its footer.
+    SIGHUP: the terminal closing hangs up the hub; SIGTERM: `kill` once the hub's terminal is gone."""
+    log = tmp_path / "run.mcap"
+    hub, terminal, robots = start_hub_on_a_terminal(tmp_path, log, controlling=stop == "SIGHUP")
+    robot = zmq.Context.instance().socket(zmq.DEALER)
+    robot.linger = 0
+    robot.connect(robots)
+    try:
+        robot.send(encode({"type": "hello", "id": 0, "driver": "sim"}))
+        # The whole line, its end too: closing the terminal while the hub still writes it is another test.
+        read_terminal_until(terminal, hub, lambda text: "robot 0 connected from 127.0.0.1\r\n" in text)
+        os.close(terminal)               # the terminal goes: every later line to it fails with EIO
+        terminal = None
+        if stop == "SIGTERM":
+            hub.send_signal(signal.SIGTERM)
+        answer_the_hubs_stop_with_garbage(robot)
+        code = hub.wait(timeout=15)
+    finally:
+        robot.close(0)
+        if terminal is not None:
+            os.close(terminal)
+        stop_processes([hub])
+    info = log_info(log)
+    assert (code, info["truncated"]) == (0, False), info         # footer and summary written
+    assert info["drops"] == {"bad message": 1}, info
+
+
+def answer_the_hubs_stop_with_garbage(robot: zmq.Socket) -> None:
+    """While the hub waits for the robots to acknowledge its shutdown stop: a drop it says on the console."""
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        if robot.poll(100):
+            message = decode(robot.recv(), "hub")
+            if message["type"] == "command" and message["cmd"] == "stop":
+                robot.send(b"not json")
+                return
+    raise AssertionError("the hub sent no stop")
 
 
 def test_agents_end_with_the_process_that_started_them(tmp_path):

@@ -18,7 +18,7 @@ from onboard.drivers import Driver, DriverError
 from onboard.plugins import import_user_modules
 from onboard.protocol import MAX_ROBOT_ID
 
-from .console import flush_quietly, say
+from ..console import flush_quietly, say
 
 if TYPE_CHECKING:
     from .link import HubLink

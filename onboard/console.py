@@ -1,10 +1,11 @@
-"""The agent's console lines, which must never stop the agent.
+"""Console lines of a long-running process (an agent, the hub), which must never stop it.
 
-An agent started by hand over ssh leaves when its terminal closes (SIGHUP), and from then on a write to that
-terminal fails (EIO; a closed pipe, EPIPE). A failing line in the middle of the agent's way out would skip
-what comes after it: the wheels' stop, the hub's last word. So a line that cannot be written is dropped, and
-the stream is pointed at /dev/null, so that later lines and the interpreter's flush at exit write nowhere
-instead of failing again (a flush that fails at exit turns exit code 0 into 120).
+An agent or a hub started by hand over ssh leaves when its terminal closes (SIGHUP), and from then on a write
+to that terminal fails (EIO; a closed pipe, EPIPE). A failing line in the middle of the way out would skip
+what comes after it: an agent's wheel stop and its last word to the hub, the hub's stop to the robots and its
+log's footer. So a line that cannot be written is dropped, and the stream is pointed at /dev/null, so that
+later lines and the interpreter's flush at exit write nowhere instead of failing again (a flush that fails at
+exit turns exit code 0 into 120).
 """
 from __future__ import annotations
 
