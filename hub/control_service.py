@@ -5,13 +5,13 @@ run ``hold`` (wheels stopped, behaviours paused) until the next ``start`` resume
 """
 from __future__ import annotations
 
-import json
 import time
 import uuid
 from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
 
 import zmq
 
+from onboard.jsontext import parse_json
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
 from .links import frame_sender
@@ -177,8 +177,8 @@ def refusal(err: ProtocolError) -> str:
 def request_nonce(data: bytes) -> Optional[int]:
     """The nonce of a request that failed validation, when it has a usable one, so its refusal is matched."""
     try:
-        nonce = json.loads(data).get("nonce")
-    except (ValueError, AttributeError, RecursionError):    # not JSON, not an object, nested past the limit
+        nonce = parse_json(data).get("nonce")
+    except (ValueError, AttributeError):    # not JSON (nested past the recursion limit too), not an object
         return None
     return nonce if type(nonce) is int and 0 <= nonce < 1 << 53 else None
 

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Dict, Optional, Tuple, Union
 
 from onboard.config import ConfigError
+from onboard.jsontext import parse_json
 
 LOG_FORMAT_VERSION = 1
 LIBRARY = f"khepri-recorder/{LOG_FORMAT_VERSION}"
@@ -141,7 +142,7 @@ def metadata_from_text(text: Dict[str, str]) -> Dict[str, Any]:
     values = {}
     for key, value in text.items():
         try:
-            values[key] = json.loads(value)
+            values[key] = parse_json(value)
         except ValueError:
             values[key] = value
     return values

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import json
 import math
 import struct
 import warnings
@@ -37,6 +36,7 @@ from hub.log_format import (
     metadata_from_text,
     split_robot_topic,
 )
+from onboard.jsontext import parse_json
 from onboard.sorting import natural_key
 
 FOOTER_RECORD_BYTES = 1 + 8 + 20   # opcode, length, summary_start, summary_offset_start, summary_crc
@@ -111,7 +111,7 @@ class LogReader:
 
     def _decode(self, topic: str, message: Message) -> dict:
         try:
-            payload = json.loads(message.data)
+            payload = parse_json(message.data)
         except ValueError:
             payload = None
         if not isinstance(payload, dict):
@@ -453,7 +453,7 @@ def _clock_s(poses: Optional[bytes]) -> Optional[float]:
 
 def _json_or_none(data: bytes) -> Any:
     try:
-        return json.loads(data)
+        return parse_json(data)
     except ValueError:
         return None
 

@@ -8,6 +8,7 @@ from typing import Any, Callable, List, Optional, Tuple
 import numpy as np
 
 from onboard.config import ConfigError
+from onboard.jsontext import parse_json
 from onboard.protocol import MAX_ROBOT_ID
 
 from .sources import PoseFrame, PoseSource, pose_from_mocap
@@ -156,10 +157,8 @@ def poses_from_record(data: bytes) -> Tuple[List[int], np.ndarray, Optional[floa
     """Robot ids, world poses and sim clock of one recorded ``/mocap/poses`` message (its JSON bytes):
     ``{"bodies": {"<id>": [x, y, z, qx, qy, qz, qw], ...}, "clock_s": ...}``. ValueError, KeyError or
     TypeError for anything else, whose text names the field (the replay's skip line shows it)."""
-    import json
-
     try:
-        payload = json.loads(data)
+        payload = parse_json(data)
     except ValueError as err:
         raise ValueError(f"not JSON ({err})") from None
     if not isinstance(payload, dict):

@@ -20,6 +20,7 @@ from typing import Any, Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
+from .jsontext import parse_json
 from .protocol_schema import (  # noqa: F401  (re-exported: the protocol's names live here for its users)
     COMMANDS,
     CONTROL_COMMANDS,
@@ -251,8 +252,8 @@ def _json_object(data: bytes, field: str, unreadable: str) -> Tuple[Dict[str, An
         return float(name)
 
     try:
-        value = json.loads(data, parse_constant=constant)
-    except (UnicodeDecodeError, ValueError, RecursionError):
+        value = parse_json(data, parse_constant=constant)
+    except ValueError:                         # not UTF-8, not JSON, or nested past the recursion limit
         fail(field, f"{unreadable} ({short(bytes(data[:40]))})")
     if not isinstance(value, dict):
         fail(field, f"must be a JSON object (got {short(value)})")

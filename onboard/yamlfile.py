@@ -14,6 +14,7 @@ from typing import Any
 import yaml
 
 from .config import ConfigError
+from .jsontext import NESTED_TOO_DEEPLY
 
 _INT = "tag:yaml.org,2002:int"
 _FLOAT = "tag:yaml.org,2002:float"
@@ -73,8 +74,7 @@ def parse_yaml(text: str, where: str) -> Any:
     except RecursionError:
         # PyYAML reads each level of lists or mappings with a few nested calls: a file nested some hundreds
         # deep (valid YAML or JSON) exhausts Python's stack, and only "maximum recursion depth exceeded" was said.
-        raise ConfigError(where, "lists or mappings nested too deeply to read (hundreds of levels, one inside "
-                                 "another)") from None
+        raise ConfigError(where, NESTED_TOO_DEEPLY) from None
 
 
 def read_yaml(path: Path, field: str = "") -> Any:

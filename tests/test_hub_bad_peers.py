@@ -71,6 +71,25 @@ def test_a_message_in_too_many_frames_names_its_sender():
     assert line.startswith("hub: dropped malformed message: 2 frames from peer at 127.0.0.1, expected 1"), line
 
 
+def test_a_message_nested_past_pythons_recursion_limit_is_counted_and_dropped_naming_its_sender():
+    """json.loads raises RecursionError, not ValueError, for it: uncaught, it would end the hub's loop."""
+    nested = b"[" * 30_000 + b"]" * 30_000          # within the hub's 64 kB message size limit
+    with HubThread(parse_config(SIM)) as hub:
+        robot, operator = dealer(hub.endpoints["robots"]), dealer(hub.endpoints["control"])
+        try:
+            robot.send(b'{"v": 2, "type": "hello", "id": 0, "driver": "test", "x": ' + nested + b"}")
+            line = wait_for_line(hub, "dropped bad message")
+            operator.send(b'{"v": 2, "type": "request", "cmd": "status", "nonce": 4, "x": ' + nested + b"}")
+            assert operator.poll(3000), "no reply to a request nested past the recursion limit"
+            reply = decode(operator.recv(), "hub", accept=("reply",))
+        finally:
+            robot.close(0)
+            operator.close(0)
+        assert hub.status()["drops"] == {"bad message": 1, "bad control message": 1}     # and it serves on
+    assert line.startswith("hub: dropped bad message: from peer at 127.0.0.1: not a JSON message or a binary frame")
+    assert reply["ok"] is False and "not a JSON message" in reply["error"] and "nonce" not in reply
+
+
 def test_drops_a_burst_hid_are_said_when_its_second_is_over():
     """'+N more' was said only with the sender's next drop, which may never come."""
     lines = []

@@ -419,6 +419,9 @@ def pose_bytes(x):
     return json.dumps({"bodies": {"0": [x, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}}).encode()
 
 
+DEEP_JSON = b"[" * 100_000 + b"]" * 100_000     # valid JSON, but past Python's recursion limit: RecursionError
+
+
 @pytest.mark.parametrize("messages", [[], [("/camera/image", b'{"w": 640}', T0)],
                                       [("/hub/status", b'{"mode": "idle"}', T0)]])
 def test_a_log_without_mocap_poses_is_refused_at_start(tmp_path, messages):
@@ -484,8 +487,37 @@ def test_malformed_pose_records_are_skipped_and_the_replay_goes_on(tmp_path):
     assert hub.hub.source.skipped == len(bad)
 
 
+def test_a_pose_record_nested_past_pythons_recursion_limit_is_skipped_and_the_replay_goes_on(tmp_path):
+    """json.loads raises RecursionError, not ValueError, for it: the hub ended in a traceback at start (looking
+    for the lab's robots in the log), and the replay's thread would have died on it."""
+    messages = [("/mocap/poses", DEEP_JSON, T0)]
+    messages += [("/mocap/poses", pose_bytes(0.01 * k), T0 + 0.1 + 0.01 * k) for k in range(300)]    # 3 s at 10x
+    config = tmp_path / "replay.yaml"
+    config.write_text(yaml.safe_dump({"source": {"type": "replay", "file": str(raw_log(tmp_path / "deep.mcap",
+                                                                                        messages))},
+                                      "robots": [0], "network": NETWORK, "run": {"behaviour": "aggregate"}}))
+    hub = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "hub", "--config", str(config), "--insecure"],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    try:
+        output = ""
+        while "hub: replay: skipping" not in output:
+            line = hub.stdout.readline()
+            assert line, output                    # the hub ended before it said the skip
+            output += line
+        hub.send_signal(signal.SIGINT)
+        assert hub.wait(timeout=15) == 0
+        output += hub.stdout.read()
+    finally:
+        hub.kill()
+        hub.stdout.close()
+    assert "hub: replay: skipping /mocap/poses record 0 (0.000 s into the log): not JSON (lists or mappings nested " \
+           "too deeply to read: hundreds of levels, one inside another)" in output, output
+    assert "Traceback" not in output and "hub: stopped" in output
+
+
 @pytest.mark.parametrize("data, problem", [
     (b"not json", "not JSON (Expecting value: line 1 column 1 (char 0))"),
+    (DEEP_JSON, "not JSON (lists or mappings nested too deeply to read: hundreds of levels, one inside another)"),
     (b'{"no bodies": 1}', "bodies: must be a mapping of robot id to [x, y, z, qx, qy, qz, qw] (got None)"),
     (b'{"bodies": [1, 2]}', "bodies: must be a mapping of robot id to [x, y, z, qx, qy, qz, qw] (got [1, 2])"),
     (b'{"bodies": {"1.5": [0, 0, 0, 0, 0, 0, 1]}}', "bodies: '1.5' is not a robot id 0..999999"),

@@ -352,10 +352,13 @@ def run_khepri(*args):
                           env=ENV)
 
 
-def foreign_log(path, channels):
+def foreign_log(path, channels, metadata=None):
     """An MCAP file another tool wrote, with the mcap library: ``{topic: (message encoding, schema encoding,
-    [message bytes])}``, one message of each channel after another."""
+    [message bytes])}``, one message of each channel after another; ``metadata`` as the hub's metadata record
+    (its values JSON text)."""
     from mcap.writer import Writer
+
+    from hub.log_format import USER_METADATA
 
     with open(path, "wb") as file:
         writer = Writer(file)
@@ -373,6 +376,8 @@ def foreign_log(path, channels):
                     writer.add_message(ids[topic], log_time=stamp, data=messages[k], publish_time=stamp,
                                        sequence=sequence)
                     sequence += 1
+        if metadata is not None:
+            writer.add_metadata(USER_METADATA, metadata)
         writer.finish()
     return path
 
@@ -433,6 +438,30 @@ def test_log_info_check_finds_the_json_messages_read_log_refuses(tmp_path):
     assert summarise(path).refused_messages == []              # not decoded without --check: nothing said
     sound = write_log(tmp_path / "sound.mcap", every_topic_records())
     assert run_khepri(sound, "--check").returncode == 0
+
+
+DEEP_JSON = b"[" * 100_000 + b"]" * 100_000     # valid JSON, but past Python's recursion limit: RecursionError
+
+
+def test_json_nested_past_pythons_recursion_limit_is_unreadable_json_not_a_traceback(tmp_path):
+    """json.loads raises RecursionError, not ValueError, for it: `log info` (a last pose record's clock, a drops
+    record, the metadata) and `--check` ended in a traceback, and read_log raised it instead of a LogError."""
+    poses = [json.dumps({"bodies": {"1": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}, "clock_s": 0.5}).encode()] * 2
+    path = foreign_log(tmp_path / "deep.mcap", {MOCAP_POSES: ("json", "jsonschema", poses + [DEEP_JSON]),
+                                                HUB_DROPS: ("json", "jsonschema", [DEEP_JSON])},
+                       metadata={"lab": '"L1"', "deep": DEEP_JSON.decode()})
+    with pytest.raises(LogError, match="/hub/drops: message 1 is not a JSON object"):
+        list(read_log(path))
+    summary = summarise(path)
+    assert summary.metadata == {"lab": "L1", "deep": DEEP_JSON.decode()}   # kept as the text, as any non-JSON
+    assert (summary.sim_start_s, summary.sim_end_s, summary.drops) == (None, None, {})
+    assert summarise(path, check_payloads=True).refused_messages == [
+        "/hub/drops: message 1 is not a JSON object", "/mocap/poses: message 3 is not a JSON object"]
+    for options in ([], ["--json"], ["--check"]):
+        info = run_khepri(path, *options)
+        assert info.returncode == (1 if options == ["--check"] else 0) and info.stderr == "", info.stderr[-300:]
+    assert "status:    complete; read_log STOPS with an error at /hub/drops: message 1 is not a JSON object ..." \
+        in info.stdout
 
 
 def test_cli_log_info_prints_the_summary_and_json(tmp_path):

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Sequence, Set, TextIO, Tuple
 
 from onboard.config import ConfigError, to_mapping
+from onboard.jsontext import parse_json
 
 from .grid import RunSpec, StudySpec
 from .text import counted
@@ -277,8 +278,8 @@ def write_study_json(out_dir: Path, data: Dict[str, Any]) -> None:
 
 def read_study(out_dir: Path) -> Dict[str, Any]:
     try:
-        data = json.loads((out_dir / STUDY_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):      # RecursionError: nested past Python's limit
+        data = parse_json((out_dir / STUDY_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):      # ValueError: not JSON, or nested past Python's limit
         return {}
     return data if isinstance(data, dict) else {}
 

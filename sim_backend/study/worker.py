@@ -15,6 +15,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Dict
 
+from onboard.jsontext import parse_json
 from onboard.plugins import import_user_modules
 
 from .grid import RunSpec
@@ -119,8 +120,8 @@ def read_result(run_dir: Path) -> Dict[str, Any]:
     """A run's result.json, or {} when it is missing, unreadable or not a run's result (then the run counts
     as not done): valid JSON is not enough, it must say which run it is and how it ended."""
     try:
-        data = json.loads((run_dir / RESULT_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):      # RecursionError: nested past Python's limit
+        data = parse_json((run_dir / RESULT_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):      # ValueError: not JSON, or nested past Python's limit
         return {}
     return data if is_run_result(data) else {}
 
