@@ -90,7 +90,11 @@ def cmd_hub(args: argparse.Namespace) -> int:
 
 
 def is_loopback(host: str) -> bool:
-    return host == "localhost" or host == "::1" or host.startswith("127.")
+    """localhost, 127.x.x.x, or ::1 however written: bare, in brackets as in a URL ([::1], as the hub writes its
+    own addresses), or in full; the hub binds each of them."""
+    from onboard.agent.link import ipv6_literal
+
+    return host == "localhost" or host.startswith("127.") or ipv6_literal(host) == "::1"
 
 
 # --- agent ----------------------------------------------------------------------------------------------------

@@ -4,6 +4,7 @@ test runs cannot collide; the default ports are checked without binding them."""
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -43,12 +44,61 @@ def test_the_demo_hub_and_the_clients_agree_on_the_default_ports():
     assert (DEFAULT_ROBOT_PORT, DEFAULT_CONTROL_PORT) == (network.robot_port, network.control_port)
 
 
-@pytest.mark.parametrize("bind", ["0.0.0.0", "192.168.1.20", "*"])
+@pytest.mark.parametrize("bind", ["0.0.0.0", "192.168.1.20", "*", "::", "[::]", "[fe80::1]"])
 def test_the_insecure_demo_hub_refuses_to_listen_beyond_loopback(bind, capsys):
     from khepri_cli.main import main
 
     assert main(["hub", "--demo", "--bind", bind]) == 2
     assert capsys.readouterr().err.startswith("khepri: error: --bind: --demo runs without encryption")
+
+
+# The demo hub on free ports (its own are the defaults, 5560 and 5561, which a running lab may hold).
+DEMO_ON_FREE_PORTS = """
+import sys
+import hub.config
+demo_config = hub.config.demo_config
+def on_free_ports():
+    config = demo_config()
+    config.network.robot_port = config.network.control_port = 0
+    return config
+hub.config.demo_config = on_free_ports
+from khepri_cli.main import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def ipv6_loopback_available() -> bool:
+    import zmq
+
+    probe = zmq.Context.instance().socket(zmq.ROUTER)
+    probe.ipv6 = True
+    try:
+        probe.bind("tcp://[::1]:*")
+        return True
+    except zmq.ZMQError:
+        return False
+    finally:
+        probe.close(0)
+
+
+@pytest.mark.skipif(not ipv6_loopback_available(), reason="this machine has no IPv6 loopback")
+@pytest.mark.parametrize("bind", ["[::1]", "::1"])
+def test_the_demo_hub_listens_on_the_ipv6_loopback_written_either_way(bind, tmp_path):
+    """--bind [::1], as in a URL (and as the hub itself writes it), was refused as beyond loopback; ::1 was not."""
+    log_path = tmp_path / "hub.log"
+    with open(log_path, "w") as log:
+        hub = subprocess.Popen([sys.executable, "-c", DEMO_ON_FREE_PORTS, "hub", "--demo", "--bind", bind],
+                               stdout=log, stderr=subprocess.STDOUT, env=ENV, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while log_path.read_text().count("listening ") < 2:
+            assert hub.poll() is None and time.monotonic() < deadline, log_path.read_text()
+            time.sleep(0.1)
+        hub.send_signal(signal.SIGINT)
+        assert hub.wait(timeout=15) == 0
+    finally:
+        stop_processes([hub])
+    assert re.search(r"listening robots tcp://\[::1\]:\d+\n", log_path.read_text()), log_path.read_text()
 
 
 def hub_ports(log_path: Path, hub: subprocess.Popen) -> dict:
