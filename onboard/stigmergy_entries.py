@@ -79,6 +79,10 @@ def _rank(value: Any, field: Optional[str]) -> Tuple[int, Any]:
     return (1, 0)
 
 
+#: Lists or mappings inside one another in an entry's value beyond this are malformed (_too_deep).
+MAX_VALUE_DEPTH = 64
+
+
 def _parse(raw: Any) -> Optional[Tuple[str, Any, int, int]]:
     """``[key, value, timestamp, writer]`` checked field by field, or None if malformed."""
     if not isinstance(raw, (list, tuple)) or len(raw) != 4:
@@ -87,7 +91,22 @@ def _parse(raw: Any) -> Optional[Tuple[str, Any, int, int]]:
     # ``type(...) is int`` also refuses True/False, which Python counts as ints.
     if type(key) is not str or type(timestamp) is not int or type(writer) is not int or timestamp < 0:
         return None
+    if _too_deep(value):
+        return None
     return key, value, timestamp, writer
+
+
+def _too_deep(value: Any, limit: int = MAX_VALUE_DEPTH) -> bool:
+    """Whether ``value`` nests lists or mappings more than ``limit`` deep, found level by level, without
+    recursion. Comparing, encoding or copying such a value recurses, and fails with RecursionError some
+    hundreds of levels down, wherever the stack then is: a peer's entry 950 deep raised it out of merge."""
+    level = [value]
+    for _ in range(limit):
+        level = [child for item in level if type(item) in (list, dict)
+                 for child in (item.values() if type(item) is dict else item)]
+        if not level:
+            return False
+    return any(type(item) in (list, dict) for item in level)
 
 
 def _same(a: Any, b: Any) -> bool:

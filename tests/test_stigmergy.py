@@ -118,6 +118,33 @@ def test_malformed_input_is_skipped_and_counted():
     assert space.last_rejected_sender == 5
 
 
+def nested(depth: int, leaf=1):
+    value = leaf
+    for _ in range(depth):
+        value = [value]
+    return value
+
+
+def test_a_value_nested_too_deeply_is_refused_however_deep_the_caller_stands():
+    """Valid JSON, hundreds of lists deep: comparing or encoding it recursed and raised RecursionError out
+    of merge (which never raises on bad input) once the call stood some frames deep, as a behaviour's step
+    does. Deeper than MAX_VALUE_DEPTH is malformed; as deep is kept."""
+    from onboard.stigmergy_entries import MAX_VALUE_DEPTH
+
+    space = TupleSpace(owner=0)
+
+    def merge_from_a_deep_stack(entries, frames=40):
+        return space.merge(entries, sender=3) if frames == 0 else merge_from_a_deep_stack(entries, frames - 1)
+
+    as_deep = json.loads(json.dumps(nested(MAX_VALUE_DEPTH)))
+    assert merge_from_a_deep_stack([["k", as_deep, 1, 1]]) == ["k"] and space.rejected == 0
+    for depth in (MAX_VALUE_DEPTH + 1, 900, 950):
+        entries = json.loads(json.dumps([["k", nested(depth), 1, 1], ["j", {"a": nested(depth)}, 1, 1]]))
+        assert merge_from_a_deep_stack(entries) == []
+    assert space.rejected == 6 and space.last_rejected_sender == 3
+    assert space.get("k") == as_deep and space.get("j") is None
+
+
 def test_a_bad_entry_does_not_spoil_the_good_ones_in_its_message():
     space = TupleSpace(owner=0)
     changed = space.merge([[1, "v", 1, 1], ["a", 1, 1, 1], ["b", 1, 1, False], ["c", {1, 2}, 1, 1], ("d", 2, 1, 1)],
