@@ -6,7 +6,7 @@ import sys
 from typing import Callable
 
 from onboard.config import ConfigError
-from onboard.console import flush_quietly, say
+from onboard.console import flush_quietly, say, stop_signals
 
 from .config import LabConfig
 from .factory import build_hub
@@ -23,9 +23,6 @@ def print_now(line: str) -> None:
     """One hub line on stdout, flushed (supervisors and tests read them through a pipe). A terminal that is
     gone (EIO after SIGHUP) drops it: a failing line would end the hub, or skip closing its log mid-shutdown."""
     say(line, sys.stdout)
-
-
-STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
 def discard_log(hub) -> None:
@@ -57,8 +54,7 @@ def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
     def request_stop(signum, frame):
         stop["requested"] = True
 
-    # SIGHUP: the terminal closed or the SSH session dropped. Stop as for Ctrl-C: agents told, log closed.
-    previous = {sig: signal.signal(sig, request_stop) for sig in STOP_SIGNALS}
+    previous = {sig: signal.signal(sig, request_stop) for sig in stop_signals()}
     served = False
     try:
         hub.bind()

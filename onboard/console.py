@@ -10,8 +10,20 @@ exit turns exit code 0 into 120).
 from __future__ import annotations
 
 import os
+import signal
 import sys
-from typing import Optional, TextIO
+from typing import Optional, TextIO, Tuple
+
+
+def stop_signals() -> Tuple[int, ...]:
+    """The signals that end an agent or the hub as Ctrl-C does (wheels stopped, robots told, log closed):
+    SIGINT, SIGTERM, and SIGHUP, the terminal or ssh session it was started from closing, which would otherwise
+    kill it on the spot. Not SIGHUP when it is ignored already: `nohup khepri ...` is meant to outlive its
+    terminal. Ask before installing the handlers (afterwards SIGHUP is no longer ignored)."""
+    names = ["SIGINT", "SIGTERM"]
+    if hasattr(signal, "SIGHUP") and signal.getsignal(signal.SIGHUP) != signal.SIG_IGN:
+        names.append("SIGHUP")
+    return tuple(getattr(signal, name) for name in names if hasattr(signal, name))
 
 
 def say(line: str, stream: Optional[TextIO] = None) -> None:

@@ -48,9 +48,10 @@ def lab_config(tmp_path: Path, record: Path, robot_port: int = 0) -> Path:
     return config
 
 
-def start_hub(tmp_path: Path, *command: str) -> subprocess.Popen:
+def start_hub(tmp_path: Path, *command: str, **popen) -> subprocess.Popen:
     log = open(tmp_path / "hub.log", "w")
-    hub = subprocess.Popen([sys.executable, *command], stdout=log, stderr=subprocess.STDOUT, env=ENV, text=True)
+    hub = subprocess.Popen([sys.executable, *command], stdout=log, stderr=subprocess.STDOUT, env=ENV, text=True,
+                           **popen)
     deadline = time.monotonic() + 30
     while (tmp_path / "hub.log").read_text().count("listening ") < 2:
         assert hub.poll() is None and time.monotonic() < deadline, (tmp_path / "hub.log").read_text()
@@ -150,6 +151,23 @@ def test_a_closed_terminal_stops_the_hub_as_ctrl_c_does(tmp_path):
     assert "hub: stopped" in (tmp_path / "hub.log").read_text()
     assert log_info(log)["truncated"] is False       # closed properly: footer and summary written
 
+
+
+def test_a_hub_started_with_nohup_outlives_its_terminal(tmp_path):
+    """SIGHUP ignored at start (`nohup khepri hub ...`) is the user's wish to keep the hub running, as for the
+    agent; it used to stop the hub all the same."""
+    log = tmp_path / "run.mcap"
+    hub = start_hub(tmp_path, "-m", "khepri_cli.main", "hub", "--config", str(lab_config(tmp_path, log)),
+                    preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    try:
+        hub.send_signal(signal.SIGHUP)
+        time.sleep(1.0)
+        assert hub.poll() is None, "the hub stopped on SIGHUP under nohup"
+        hub.send_signal(signal.SIGTERM)
+        assert hub.wait(timeout=15) == 0
+    finally:
+        stop_processes([hub])
+    assert log_info(log)["truncated"] is False
 
 
 def start_hub_on_a_terminal(tmp_path: Path, record: Path, controlling: bool) -> Tuple[subprocess.Popen, int, str]:

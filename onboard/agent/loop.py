@@ -31,6 +31,7 @@ from onboard.behaviour import (
     telemetry_of,
 )
 from onboard.config import ConfigError, check_boolean, check_range
+from onboard.console import stop_signals
 from onboard.drivers import Driver, DriverError
 from onboard.hal import RobotSpec
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, ProtocolError
@@ -43,9 +44,6 @@ SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is sai
 HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
 RESET_AFTER_S = 2.0       # this long without a frame: reopen the socket (a connection can be stuck for good)
 WAITING_LOG_S = 10.0      # while the hub stays silent, say so this often
-# Each ends the agent as Ctrl-C does: wheels stopped, the hub told. SIGHUP is the terminal or ssh session the
-# agent was started from closing, which otherwise killed it on the spot with its wheels turning.
-STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
 @dataclass
@@ -422,9 +420,7 @@ class Agent:
             self.stop_signal = signum
 
         previous = []
-        for sig in STOP_SIGNALS:
-            if sig == getattr(signal, "SIGHUP", None) and signal.getsignal(sig) == signal.SIG_IGN:
-                continue                    # `nohup khepri agent ...`: meant to outlive its terminal
+        for sig in stop_signals():          # each ends the agent as Ctrl-C does: wheels stopped, hub told
             try:
                 previous.append((sig, signal.signal(sig, request_stop)))
             except ValueError:              # not the main thread (tests run agents in threads too)
