@@ -10,6 +10,7 @@ from typing import Any, List, Optional
 
 from onboard.behaviour import BehaviourError
 from onboard.config import ConfigError
+from onboard.console import say
 from onboard.drivers import DriverError
 from onboard.plugins import import_user_modules
 from sim_backend.metrics import EvaluatorError
@@ -83,7 +84,7 @@ class PatientInterrupts:
         if self.count == 1:
             raise KeyboardInterrupt
         if self.count == 2:
-            print("khepri: stopping; press Ctrl-C again to quit at once", file=sys.stderr)
+            say("khepri: stopping; press Ctrl-C again to quit at once")
             return
         os._exit(130)
 
@@ -112,24 +113,24 @@ def _run(argv: Optional[List[str]]) -> int:
     try:
         if args.imports:
             for warning in import_user_modules(args.imports):
-                print(f"khepri: warning: --import {warning}", file=sys.stderr)
+                say(f"khepri: warning: --import {warning}")
         code = int(args.func(args) or 0)
         sys.stdout.flush()          # buffered output meets a closed pipe here, inside main(), not at exit
         return code
     except ConfigError as err:
-        print(f"khepri: error: {err}", file=sys.stderr)
+        say(f"khepri: error: {err}")
         return 2
     except BehaviourError as err:     # the user's behaviour raised (before a run could start, or in an agent)
         what = "the robot's driver failed" if isinstance(err.exc, DriverError) else "the behaviour failed"
-        print(f"khepri: error: {what}: {err}", file=sys.stderr)
-        print("\n".join(err.lines), file=sys.stderr)
+        say(f"khepri: error: {what}: {err}")
+        say("\n".join(err.lines))
         return 1
     except EvaluatorError as err:     # a user's evaluator raised before the run could start (__init__, warnings)
-        print(f"khepri: error: the evaluator failed: {err}", file=sys.stderr)
-        print("\n".join(err.lines), file=sys.stderr)
+        say(f"khepri: error: the evaluator failed: {err}")
+        say("\n".join(err.lines))
         return 1
     except DriverError as err:        # an agent's robot hardware, outside any behaviour call
-        print(f"khepri: error: the robot's driver failed: {err}", file=sys.stderr)
+        say(f"khepri: error: the robot's driver failed: {err}")
         return 1
     except OSError as err:
         # A path the user gave that cannot be read or written (--record, keys folder, a full or read-only
@@ -137,10 +138,10 @@ def _run(argv: Optional[List[str]]) -> int:
         # Set KHEPRI_DEBUG=1 for the traceback in any case.
         if os.environ.get("KHEPRI_DEBUG") or err.filename is None:
             raise
-        print(f"khepri: error: {err.strerror or err}: {err.filename}", file=sys.stderr)
+        say(f"khepri: error: {err.strerror or err}: {err.filename}")
         return 2
     except KeyboardInterrupt:
-        print("khepri: interrupted", file=sys.stderr)
+        say("khepri: interrupted")
         return 130
 
 

@@ -284,6 +284,15 @@ def test_output_into_a_closed_pipe_ends_quietly(unbuffered):
     assert "Traceback" not in stderr and "BrokenPipeError" not in stderr, stderr
 
 
+def test_an_error_said_to_a_terminal_that_is_gone_keeps_its_exit_code():
+    """A hub or agent erring once its terminal is gone (the ssh session dropped): `khepri: error: ...` failed
+    (EPIPE here, EIO on a pty) and the interpreter ended with a traceback and exit code 1, not the error's 2."""
+    run = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "sim", "run", "no-such-scenario"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=ENV)
+    run.stderr.close()             # gone before the error is said
+    assert run.wait(timeout=60) == 2
+
+
 @pytest.mark.parametrize("command", [("agent", "--id", "1", "--driver", "sim"), ("ctl", "status")])
 def test_a_hub_host_name_that_does_not_resolve_is_an_error_naming_it(command):
     """ZeroMQ resolves a host name only while connecting, and says nothing when it cannot: a typo in --hub made
