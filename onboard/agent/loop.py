@@ -30,14 +30,14 @@ from onboard.behaviour import (
     plain_json,
     telemetry_of,
 )
-from onboard.config import ConfigError, check_boolean, check_range
+from onboard.config import ConfigError, check_boolean
 from onboard.console import stop_signals
 from onboard.drivers import Driver, DriverError
-from onboard.hal import RobotSpec
-from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, ProtocolError
+from onboard.protocol import IDLE_TELEMETRY_HZ, ProtocolError
 
 from .devices import AgentClock, HubState, apply_frame, make_robot
 from .link import HubLink, family_hint
+from .run_start import run_control_hz, run_id_text, run_params, run_spec, run_uses_hub_clock
 from .safety import GuardedDriver, StepWatchdog
 
 SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is said at most this often
@@ -76,54 +76,6 @@ class LoopStats:
         mean = self.total_step_s / self.steps if self.steps else 0.0
         return {"hz": round(self.hz, 2), "steps": self.steps, "misses": self.misses,
                 "mean_ms": round(mean * 1000.0, 3), "max_ms": round(self.max_step_s * 1000.0, 3)}
-
-
-def run_spec(spec: Any) -> RobotSpec:
-    """The ``start`` command's ``run.spec``: a mapping of positive numbers, unknown names ignored. Checked here
-    because the hub's command is input: a list crashed the agent, and a speed limit of 0 or less turned the HAL's
-    clamp off."""
-    if spec is None:
-        return RobotSpec()
-    if not isinstance(spec, dict):
-        raise ConfigError("run.spec", f"must be a mapping (got {spec!r:.40})")
-    values = {}
-    for name, value in spec.items():
-        if name in RobotSpec.__dataclass_fields__:
-            values[name] = positive_number(f"run.spec.{name}", value)
-    return RobotSpec(**values)
-
-
-def run_params(params: Any) -> Dict[str, Any]:
-    if params is not None and not isinstance(params, dict):
-        raise ConfigError("run.params", f"must be a mapping (got {params!r:.40})")
-    return params or {}
-
-
-def run_control_hz(value: Any) -> float:
-    """``run.control_hz`` as the hub's config allows it, (0, MAX_CONTROL_HZ]: 0 or less, or a huge rate, made the
-    loop step the behaviour as fast as it could, every step a deadline miss."""
-    return check_range("run.control_hz", positive_number("run.control_hz", value), high=MAX_CONTROL_HZ)
-
-
-def run_id_text(value: Any) -> None:
-    """A run id the agent can echo: its telemetry names the run, and the hub drops telemetry whose run_id is not
-    a string, so the robot would look silent."""
-    if value is not None and not isinstance(value, str):
-        raise ConfigError("run.run_id", f"must be a string (got {value!r:.40})")
-
-
-def run_uses_hub_clock(value: Any) -> bool:
-    """``run.clock``: ``hub`` (the frames' simulated time) or ``local``. Compared with "hub" alone, a "Hub" or a
-    true ran a lockstep run on the robot's own clock, its behaviour's time apart from the simulation's."""
-    if value not in ("local", "hub"):
-        raise ConfigError("run.clock", f"must be local or hub (got {value!r:.40})")
-    return value == "hub"
-
-
-def positive_number(where: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value < math.inf:
-        raise ConfigError(where, f"must be a number > 0 (got {value!r:.40})")
-    return float(value)
 
 
 class Agent:
