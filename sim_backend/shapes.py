@@ -13,7 +13,8 @@ import numpy as np
 import pymunk.autogeometry
 from matplotlib.path import Path as MplPath
 
-from .scenario import ObjectPart, ObjectSpec, polygon_area
+from .outline import polygon_area
+from .scenario import ObjectPart, ObjectSpec
 
 Point = Tuple[float, float]
 CIRCLE_OUTLINE_SEGMENTS = 32
