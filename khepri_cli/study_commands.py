@@ -117,7 +117,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def study_grid(args: argparse.Namespace):
     from khepri_cli.sim_commands import check_time_limit
-    from sim_backend.study.grid import check_reps, expand, load_study_file, paper_study, restrict
+    from sim_backend.study.grid import expand, restrict
+    from sim_backend.study.study_file import check_reps, load_study_file, paper_study
 
     if args.reps is not None:
         check_reps("--reps", args.reps)

@@ -18,8 +18,9 @@ from sim_backend.study import paper_reference as paper
 from sim_backend.study.aggregate import load_results
 from sim_backend.study.driver import StudyProgress, longest_first, run_study
 from sim_backend.study.executors import WORKER_DIED, LocalExecutor
-from sim_backend.study.grid import behaviour_code_sha1, expand, load_study_file, paper_study, parse_study
+from sim_backend.study.grid import behaviour_code_sha1, expand
 from sim_backend.study.report import FIGURE_FILES, write_study_outputs
+from sim_backend.study.study_file import load_study_file, paper_study, parse_study
 from sim_backend.study.worker import execute_run
 
 # Small and fast: lab-6 (6 robots) and a failing cell, a few simulated seconds each.

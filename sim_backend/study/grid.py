@@ -2,7 +2,8 @@
 
 A run is identified by (scenario, overrides, seed). Scenario and overrides make its *cell* (the folder
 ``<out>/<cell>/``), the seed its run folder ``seed-<n>/``. Each run carries its full scenario mapping, so
-a worker on another machine needs neither the study file nor the scenario file.
+a worker on another machine needs neither the study file nor the scenario file. Reading and checking the
+study file (or the paper's grid) into a StudySpec is ``study_file.py``'s.
 """
 from __future__ import annotations
 
@@ -12,8 +13,6 @@ import hashlib
 import inspect
 import itertools
 import json
-import math
-import os
 import re
 from collections import Counter
 from dataclasses import dataclass, field
@@ -21,18 +20,9 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from onboard.behaviour import get_behaviour
-from onboard.config import ConfigError, as_integer, to_mapping
-from onboard.yamlfile import read_yaml
-from sim_backend.scenario import builtin_names, load_scenario, parse_scenario
+from onboard.config import ConfigError, to_mapping
+from sim_backend.scenario import load_scenario, parse_scenario
 
-from .paper_reference import paper_scenarios
-
-# Far more runs than any machine finishes (a 1-second lab-6 run each would take a day), and a bound before a
-# typo such as `reps: 1000000000` makes a list that fills the memory.
-MAX_SEEDS = 100_000
-STUDY_KEYS = ("name", "scenarios", "seeds", "reps", "overrides", "time_limit_s")
-SEED_RANGE = re.compile(r"^\s*(\d+)\s*\.\.\s*(\d+)\s*$")
-SAFE_NAME = re.compile(r"^[A-Za-z0-9_.+-]+$")
 # A cell's folder name at most (ASCII, so bytes too): what the usual file systems allow a name. A name that fits
 # is kept as it is, so the folders of studies run before this still resume.
 MAX_CELL_NAME = 255
@@ -104,152 +94,6 @@ def behaviour_code_sha1(name: str) -> str:
         except OSError:
             return ""
     return digest.hexdigest()[:16]
-
-
-def paper_study(reps: int) -> StudySpec:
-    check_reps("--reps", reps)
-    return StudySpec(name="paper", scenarios=paper_scenarios(), seeds=list(range(1, reps + 1)))
-
-
-def check_reps(where: str, value: Any) -> int:
-    reps = as_integer(value)        # 2.0 as 2, as scenario files take it
-    if reps is None or reps < 1:
-        raise ConfigError(where, f"must be an integer >= 1 (got {value!r})")
-    if reps > MAX_SEEDS:
-        raise ConfigError(where, f"must be at most {MAX_SEEDS} (got {reps})")
-    return reps
-
-
-def load_study_file(path: Path, reps: Optional[int] = None) -> StudySpec:
-    """A study file; ``reps`` (``--reps``) replaces its seeds, or gives them when the file has none."""
-    data = read_yaml(path, "study")
-    if data is None:
-        raise ConfigError(path.name, "the file is empty (a study needs at least its scenarios)")
-    if reps is not None and isinstance(data, dict):
-        data = {key: value for key, value in data.items() if key not in ("seeds", "reps")}
-        data["reps"] = reps
-    return parse_study(data, base_dir=path.parent, default_name=path.stem)
-
-
-def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "study") -> StudySpec:
-    """Validate a study mapping; every problem is a ConfigError naming the field."""
-    if not isinstance(data, dict):
-        raise ConfigError("", f"a study file must be a mapping of keys (got {type(data).__name__})")
-    unknown = [key for key in data if key not in STUDY_KEYS]
-    if unknown:
-        raise ConfigError(str(unknown[0]), f"unknown key (known: {', '.join(STUDY_KEYS)})")
-    name = data.get("name", default_name)
-    if not isinstance(name, str) or not SAFE_NAME.match(name):
-        raise ConfigError("name", f"must be a name of letters, digits and _.+- (got {name!r})")
-    spec = StudySpec(name=name, scenarios=parse_scenario_list(data.get("scenarios"), base_dir),
-                     seeds=parse_seeds(data), overrides=parse_overrides(data.get("overrides")),
-                     time_limit_s=parse_time_limit("time_limit_s", data.get("time_limit_s")))
-    if spec.time_limit_s is not None and "time_limit_s" in spec.overrides:
-        # The study's limit replaces every run's, so the cells would differ in name only.
-        raise ConfigError("overrides.time_limit_s", "the study's time_limit_s replaces it in every run: give "
-                                                    "one or the other")
-    expand(spec)   # builds and validates every cell's scenario now, before anything runs
-    return spec
-
-
-def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
-    if not isinstance(value, list) or not value:
-        raise ConfigError("scenarios", f"must be a non-empty list of scenario names or files (got {value!r})")
-    names = []
-    for i, item in enumerate(value):
-        if not isinstance(item, str) or not item.strip():
-            raise ConfigError(f"scenarios[{i}]", f"must be a scenario name or file (got {item!r})")
-        # Files are relative to the study file, so a study folder can be moved as a whole; so is a file named
-        # without .yaml (it used to be looked up in the current folder, so the study meant something else
-        # depending on where it was run from).
-        beside, is_yaml = base_dir / item, item.endswith((".yaml", ".yml"))
-        is_file = is_yaml or beside.is_file()
-        if is_file and not is_yaml and "/" not in item and item in builtin_names():
-            raise ConfigError(f"scenarios[{i}]", f"{item!r} is both a built-in scenario and a file beside the "
-                                                 f"study: write ./{item} for the file, or rename the file")
-        if is_file and not beside.exists():
-            check_not_relative_to_cwd(f"scenarios[{i}]", item, base_dir)
-        names.append(str(beside.resolve()) if is_file else item)
-    if len(set(names)) != len(names):
-        raise ConfigError("scenarios", "lists a scenario twice")
-    return names
-
-
-def check_not_relative_to_cwd(where: str, item: str, base_dir: Path) -> None:
-    """A scenario file missing beside the study but found from the current folder was written relative to the
-    current folder: say so, as "no such file: <study folder>/<item>" alone read as if the file were gone."""
-    here = Path(item)
-    if here.is_absolute() or not here.is_file():
-        return
-    relative = Path(os.path.relpath(here.resolve(), base_dir.resolve())).as_posix()
-    raise ConfigError(where, f"no such file: {base_dir / item} (a scenario file is relative to the study file: "
-                             f"for {item} in the current folder, write {relative})")
-
-
-def parse_seeds(data: Dict[str, Any]) -> List[int]:
-    if ("seeds" in data) == ("reps" in data):
-        raise ConfigError("seeds", "give either seeds (a list, or 'first..last') or reps (seeds 1..reps)")
-    if "reps" in data:
-        return list(range(1, check_reps("reps", data["reps"]) + 1))
-    value = data["seeds"]
-    if isinstance(value, str):
-        match = SEED_RANGE.match(value)
-        if not match or int(match.group(2)) < int(match.group(1)):
-            raise ConfigError("seeds", f"a range must read 'first..last' with first <= last (got {value!r})")
-        if int(match.group(2)) - int(match.group(1)) >= MAX_SEEDS:
-            raise ConfigError("seeds", f"a range may hold at most {MAX_SEEDS} seeds (got {value!r})")
-        return list(range(int(match.group(1)), int(match.group(2)) + 1))
-    if not isinstance(value, list) or not value:
-        raise ConfigError("seeds", f"must be a non-empty list of integers or 'first..last' (got {value!r})")
-    seeds = [as_integer(seed) for seed in value]
-    for i, seed in enumerate(seeds):
-        if seed is None or seed < 0:
-            raise ConfigError(f"seeds[{i}]", f"must be an integer >= 0 (got {value[i]!r})")
-    if len(set(seeds)) != len(seeds):
-        raise ConfigError("seeds", "lists a seed twice")
-    return seeds
-
-
-def parse_overrides(value: Any) -> Dict[str, List[Any]]:
-    if value is None:
-        return {}
-    if not isinstance(value, dict):
-        raise ConfigError("overrides", f"must be a mapping of scenario key -> list of values (got {value!r})")
-    overrides = {}
-    for key, values in value.items():
-        where = f"overrides.{key}"
-        if not isinstance(key, str) or not all(part.strip() for part in key.split(".")):
-            raise ConfigError(where, "the key must be a dotted scenario key, e.g. params.inter_robot_distance_m")
-        if key in ("name", "seed"):
-            raise ConfigError(where, "cannot be overridden (the study sets names and seeds)")
-        values = values if isinstance(values, list) else [values]
-        if not values:
-            raise ConfigError(where, "must list at least one value")
-        repeated = [v for k, v in enumerate(values) if v in values[:k]]    # 0 and 0.0 make the same cell
-        if repeated:
-            raise ConfigError(where, f"lists the value {repeated[0]!r} twice")
-        overrides[key] = values
-    check_nested_overrides(overrides)
-    return overrides
-
-
-def check_nested_overrides(overrides: Dict[str, List[Any]]) -> None:
-    """Refuse a key overridden inside another that is overridden whole (``object.mass`` and ``object``): the
-    one applied last wins, so cells were labelled with masses that never ran."""
-    for key in overrides:
-        for outer in overrides:
-            if key != outer and key.startswith(outer + "."):
-                raise ConfigError(f"overrides.{key}", f"lies inside overrides.{outer}, which replaces all of {outer}: "
-                                  f"one of them would be lost; put {key[len(outer) + 1:]} into each value of "
-                                  f"overrides.{outer} instead")
-
-
-def parse_time_limit(where: str, value: Any) -> Optional[float]:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
-        raise ConfigError(where, f"must be a number of seconds > 0 (got {value!r})")
-    return float(value)
 
 
 def restrict(spec: StudySpec, names: Sequence[str]) -> StudySpec:
