@@ -2,7 +2,7 @@
 process pool or a Dask cluster, resumable, aggregated into summary.csv, report.md and figures next to the
 paper's numbers. See docs/study.md.
 
-Modules: ``grid`` (what to run), ``worker`` (one run), ``executors`` (where), ``driver`` (resume, progress),
-``aggregate`` (statistics, summary.csv), ``report`` (report.md), ``figures`` (PNG), ``paper_reference``
-(the paper's data in ``data/``).
+Modules: ``study_file`` (reading a study file), ``grid`` (what to run), ``worker`` (one run), ``executors``
+(where), ``driver`` (resume, progress), ``aggregate`` (statistics, summary.csv), ``report`` (report.md),
+``figures`` (PNG), ``paper_reference`` (the paper's data in ``data/``).
 """
