@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import inspect
+import json
 import math
 import traceback
 from typing import Any, Callable, Dict, List, Mapping, Optional, Type
@@ -93,8 +94,14 @@ _PLAIN_SCALARS = frozenset((str, int, bool, type(None)))
 
 
 def is_plain_json(values: Any) -> bool:
-    """Whether a dict's or list's values are all plain JSON already: what ``plain_json`` would leave as is."""
-    for item in (values.values() if type(values) is dict else values):
+    """Whether a dict's or list's values (and a dict's keys) are all plain JSON already: what ``plain_json``
+    would leave as is."""
+    if type(values) is dict:
+        for key in values:
+            if type(key) is not str:            # JSON makes it a string: plain_json does so now
+                return False
+        values = values.values()
+    for item in values:
         kind = type(item)
         if kind is float:
             if item - item != 0.0:              # NaN or infinity (math.isfinite costs a call per value)
@@ -107,18 +114,31 @@ def is_plain_json(values: Any) -> bool:
     return True
 
 
-def plain_json(value: Any) -> Any:
+def plain_json(value: Any, where: str = "telemetry") -> Any:
     """A behaviour's telemetry as plain JSON values, as the hub gets it from an agent: numpy numbers and
-    arrays become Python ones, tuples lists, and NaN or infinity (which JSON cannot carry) None."""
+    arrays become Python ones, tuples lists, NaN or infinity (which JSON cannot carry) None, and dict keys
+    the strings JSON makes of them (``{3: x}`` arrives as ``{"3": x}``, so an evaluator must not see ``3``
+    in ``sim run`` and ``"3"`` in ``sil``)."""
     if isinstance(value, dict):
-        return {key: plain_json(item) for key, item in value.items()}
+        return {_json_key(key, where): plain_json(item, f"{where}[{key!r}]") for key, item in value.items()}
     if isinstance(value, (list, tuple)):
-        return [plain_json(item) for item in value]
+        return [plain_json(item, f"{where}[{index}]") for index, item in enumerate(value)]
     if hasattr(value, "tolist"):            # numpy arrays and scalars, without importing numpy here
-        return plain_json(value.tolist())
+        return plain_json(value.tolist(), where)
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
+
+
+def _json_key(key: Any, where: str) -> Any:
+    """The key a receiver of the JSON gets: json.dumps writes 3 as "3", True as "true", None as "null"."""
+    if isinstance(key, str):
+        return str(key)
+    if hasattr(key, "tolist"):
+        key = key.tolist()
+    if key is None or isinstance(key, (int, float)):
+        return json.dumps(key)
+    return key              # the wire refuses it (check_telemetry_fits_the_wire in the simulator)
 
 
 class BehaviourError(RuntimeError):

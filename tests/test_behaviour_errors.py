@@ -74,6 +74,8 @@ class Buggy(Behaviour):
             return [1, 2]
         if self.params.bug == "set" and self.robot.clock.now() > 0.5:
             return {"state": "ok", "neighbours": {1, 2}}       # a set: fine in Python, not on the wire
+        if self.params.bug == "intkey_telemetry":
+            return {"state": "ok", "heard": {self.robot.id: 1.5, None: np.int64(2)}}   # JSON writes keys as str
         return {"state": "ok", "seen": len(self.params.seen), "numpy": np.float32(1.5), "x": math.nan}
 
     @property
@@ -222,6 +224,22 @@ def test_telemetry_the_wire_cannot_carry_fails_in_simulation_too(buggy, capsys):
     assert "robot 0, telemetry(): ValueError: the hub could not be sent this telemetry" in err
     assert "not JSON serializable" in err
     assert run("sim", "run", buggy("none"), "--no-plot", "--out", "none") == 0   # numpy and NaN are fine
+
+
+def test_an_evaluator_gets_telemetry_keys_as_the_strings_sil_delivers(buggy):
+    """`{robot_id: x}` in telemetry reached `sim run`'s evaluator with int keys and sil's (over JSON) with
+    str keys, so an evaluator that worked in one raised KeyError in the other."""
+    from onboard.behaviour import is_plain_json
+    from onboard.plugins import import_user_modules
+    from sim_backend.scenario import load_scenario
+
+    assert not is_plain_json({1: "a"}) and not is_plain_json({"a": {None: 1}})
+    import_user_modules(["buggy_behaviour"])
+    sim = Simulation(load_scenario(buggy("intkey_telemetry")))
+    sim.run(time_limit_s=0.3)
+    assert [t["heard"] for t in sim.telemetry] == [{"0": 1.5, "null": 2}, {"1": 1.5, "null": 2},
+                                                  {"2": 1.5, "null": 2}]
+    assert json.loads(json.dumps(sim.telemetry)) == sim.telemetry          # what the wire would deliver
 
 
 def test_a_behaviour_cannot_reach_other_robots_through_its_params_or_sensor_columns(buggy, capsys):
