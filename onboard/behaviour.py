@@ -87,7 +87,13 @@ def telemetry_of(behaviour: Behaviour, robot_id: int) -> Dict[str, Any]:
         raise BehaviourError(robot_id, "finished", exc) from exc
     # The check first: most telemetry is plain already, and copying every robot's every step costs the
     # simulator several times as much as looking.
-    return data if is_plain_json(data) else plain_json(data)
+    if is_plain_json(data):
+        return data
+    try:
+        return plain_json(data)
+    except TypeError as exc:    # a value JSON has no form for: name its field here, in sim run as on a robot
+        # A fresh exception, without plain_json's frames: the line to point at is the user's return, not ours.
+        raise BehaviourError(robot_id, "telemetry()", TypeError(str(exc))) from None
 
 
 _PLAIN_SCALARS = frozenset((str, int, bool, type(None)))
@@ -118,7 +124,8 @@ def plain_json(value: Any, where: str = "telemetry") -> Any:
     """A behaviour's telemetry as plain JSON values, as the hub gets it from an agent: numpy numbers and
     arrays become Python ones, tuples lists, NaN or infinity (which JSON cannot carry) None, and dict keys
     the strings JSON makes of them (``{3: x}`` arrives as ``{"3": x}``, so an evaluator must not see ``3``
-    in ``sim run`` and ``"3"`` in ``sil``)."""
+    in ``sim run`` and ``"3"`` in ``sil``). TypeError names the first value JSON has no form for
+    (``telemetry['seen']``), which the wire would refuse far from the cause."""
     if isinstance(value, dict):
         return {_json_key(key, where): plain_json(item, f"{where}[{key!r}]") for key, item in value.items()}
     if isinstance(value, (list, tuple)):
@@ -127,10 +134,14 @@ def plain_json(value: Any, where: str = "telemetry") -> Any:
         return plain_json(value.tolist(), where)
     if isinstance(value, float) and not math.isfinite(value):
         return None
-    return value
+    if value is None or isinstance(value, (str, int, float)):
+        return value
+    # Short: an agent's error line to the hub keeps 200 characters, the robot and the call before this.
+    raise TypeError(f"{where} is {_a(type(value).__name__)}, which JSON cannot carry: send dicts, lists, "
+                    f"strings, numbers, booleans or None")
 
 
-def _json_key(key: Any, where: str) -> Any:
+def _json_key(key: Any, where: str) -> str:
     """The key a receiver of the JSON gets: json.dumps writes 3 as "3", True as "true", None as "null"."""
     if isinstance(key, str):
         return str(key)
@@ -138,7 +149,12 @@ def _json_key(key: Any, where: str) -> Any:
         key = key.tolist()
     if key is None or isinstance(key, (int, float)):
         return json.dumps(key)
-    return key              # the wire refuses it (check_telemetry_fits_the_wire in the simulator)
+    raise TypeError(f"{where} has the key {key!r}, {_a(type(key).__name__)}, which JSON cannot carry: use a "
+                    f"string")
+
+
+def _a(noun: str) -> str:
+    return f"an {noun}" if noun[:1].lower() in "aeiou" else f"a {noun}"
 
 
 class BehaviourError(RuntimeError):

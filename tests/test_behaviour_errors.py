@@ -221,9 +221,19 @@ def test_telemetry_the_wire_cannot_carry_fails_in_simulation_too(buggy, capsys):
     """A set in telemetry ran fine in sim run and study, then stopped every agent at t = 0 in sil."""
     assert run("sim", "run", buggy("set"), "--no-plot", "--out", "set") == 1
     err = capsys.readouterr().err
-    assert "robot 0, telemetry(): ValueError: the hub could not be sent this telemetry" in err
-    assert "not JSON serializable" in err
+    assert "robot 0, telemetry(): TypeError: telemetry['neighbours'] is a set, which JSON cannot carry" in err
+    assert "behaviour.py" not in err                  # not a line of khepri's own: the user's code is not in it
     assert run("sim", "run", buggy("none"), "--no-plot", "--out", "none") == 0   # numpy and NaN are fine
+
+
+def test_sil_names_the_telemetry_field_the_wire_cannot_carry_as_sim_run_does(buggy, tmp_path, capsys):
+    """sil said only `agent 0: telemetry() cannot be sent: cannot encode: Object of type set is not JSON
+    serializable`: not which field, and not as the crash `sim run` reported for the same telemetry."""
+    assert run("sil", buggy("set"), "--no-plot", "--no-record", "--out", "sil-set") == 1
+    err = capsys.readouterr().err
+    assert "agent 0: behaviour crashed: robot 0, telemetry(): TypeError: telemetry['neighbours'] is a set, which " \
+        "JSON cannot carry: send dicts, lists, strings, numbers, booleans or None (at t = " in err   # whole, not cut
+    assert json.loads((tmp_path / "sil-set" / "result.json").read_text())["stop_reason"] == "crashed"
 
 
 def test_an_evaluator_gets_telemetry_keys_as_the_strings_sil_delivers(buggy):

@@ -65,7 +65,8 @@ def assert_empty_trajectory(npz) -> None:
 
 @pytest.mark.parametrize("bug, call", [("step_at_0", "robot 1, step(): RuntimeError: deliberate crash at "
                                                       "crashy_behaviour.py:19"),
-                                       ("telemetry_at_0", "robot 0, telemetry(): ValueError: the hub could not")])
+                                       ("telemetry_at_0", "robot 0, telemetry(): TypeError: telemetry['seen'] "
+                                                          "is a set")])
 def test_a_crash_at_the_first_step_is_reported_with_its_plot_and_video(crashy, tmp_path, capsys, bug, call):
     """Plotting the run's zero samples raised IndexError in plots.py, so khepri's own traceback came out
     instead of the summary and the crash report."""
