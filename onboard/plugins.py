@@ -17,6 +17,8 @@ from .tracebacks import describe
 
 #: What a robot does not have: a behaviour's module that imports these runs in simulation and fails on a robot.
 NOT_ON_ROBOTS = ("sim_backend", "hub", "khepri_cli", "pymunk", "matplotlib")
+#: What a robot has besides the standard library (docs/lab.md, "Setting up a robot"), by import name.
+ON_ROBOTS = ("onboard", "numpy", "zmq", "yaml", "filterpy")
 
 
 def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) -> List[str]:
@@ -56,11 +58,40 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
             warnings.append(f"{name}: registers the behaviour {', '.join(registered)} and imports "
                             f"{', '.join(missing)}: it runs in simulation but will fail on a robot, which has only "
                             "onboard/ (put an evaluator in a module of its own)")
+        extra = packages_robots_lack(loaded, base) if registered else []
+        if extra:
+            warnings.append(f"{name}: registers the behaviour {', '.join(registered)} and imports "
+                            f"{', '.join(extra)}, which a robot does not have (it has the standard library, numpy, "
+                            "pyzmq, pyyaml and filterpy): it runs in simulation but will fail on a robot unless "
+                            "installed there too")
     return warnings
+
+
+def packages_robots_lack(module: Any, base: str) -> List[str]:
+    """Third-party packages the module's file imports that are not on a robot: the lab PC's (``mcap``, ``dask``,
+    ``scipy``, ...) install with khepri, so a behaviour that uses one runs in ``sim run`` and ``sil`` and fails
+    only on the robot. Modules beside it (a helper copied along) and its own package are fine."""
+    stdlib = getattr(sys, "stdlib_module_names", None)      # Python >= 3.10; without it, say nothing
+    path = getattr(module, "__file__", None)
+    if stdlib is None or not path:
+        return []
+    own = (module.__name__.split(".")[0], "__future__", *ON_ROBOTS, *NOT_ON_ROBOTS)   # the last: warned above
+    folders = (Path(path).parent, Path(base))
+    return [top for top in _top_level_imports(path)
+            if top not in stdlib and top not in own and not any(_is_beside(top, f) for f in folders)]
+
+
+def _is_beside(top: str, folder: Path) -> bool:
+    return (folder / f"{top}.py").is_file() or (folder / top).is_dir()
 
 
 def imports_robots_lack(path: Optional[str]) -> List[str]:
     """The packages of :data:`NOT_ON_ROBOTS` that the file at ``path`` imports, at any depth of its code."""
+    return [top for top in _top_level_imports(path) if top in NOT_ON_ROBOTS]
+
+
+def _top_level_imports(path: Optional[str]) -> List[str]:
+    """The top-level names of every absolute import in the file at ``path``, at any depth of its code, sorted."""
     if not path:
         return []
     try:
@@ -75,7 +106,7 @@ def imports_robots_lack(path: Optional[str]) -> List[str]:
             names = [node.module]
         else:
             continue
-        found.update(n.split(".")[0] for n in names if n.split(".")[0] in NOT_ON_ROBOTS)
+        found.update(n.split(".")[0] for n in names)
     return sorted(found)
 
 

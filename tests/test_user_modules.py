@@ -247,3 +247,22 @@ def test_a_behaviour_module_that_imports_the_simulator_is_warned_about(tmp_path,
     assert main(["--import", str(tmp_path / "peeking_cli.py"), "sim", "list"]) == 0
     assert "khepri: warning: --import " + str(tmp_path / "peeking_cli.py") + ": registers the behaviour " \
         "peeking-cli and imports hub:" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(sys.version_info < (3, 10), reason="needs sys.stdlib_module_names")
+def test_a_behaviour_module_that_imports_a_lab_pc_package_is_warned_about(tmp_path, capsys):
+    """A behaviour importing mcap, dask or scipy (installed with khepri on the lab PC) ran in `sim run` and `sil`
+    without a word and failed only on a robot, which has the standard library, numpy, pyzmq, pyyaml and
+    filterpy. Its own helper module beside it, and what a robot has, are fine."""
+    (tmp_path / "pc_helper.py").write_text("GAIN = 2\n")
+    (tmp_path / "pc_only.py").write_text(DRIVE_BEHAVIOUR.format(name="pc-only") + "\nimport json\nimport numpy\n"
+                                         "import filterpy\nimport pc_helper\nfrom zmq import Context\n\n\n"
+                                         "def later():\n    import mcap.reader\n    return mcap\n")
+    try:
+        warnings = import_user_modules(["pc_only"], str(tmp_path))
+    finally:
+        sys.modules.pop("pc_only", None)
+        sys.modules.pop("pc_helper", None)
+    assert warnings == ["pc_only: registers the behaviour pc-only and imports mcap, which a robot does not have "
+                        "(it has the standard library, numpy, pyzmq, pyyaml and filterpy): it runs in simulation "
+                        "but will fail on a robot unless installed there too"]
