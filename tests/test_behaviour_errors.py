@@ -209,7 +209,8 @@ def test_the_agents_radio_checks_a_payload_as_the_simulators_does():
     assert sent[0]["payload"] == {"xy": [0.25, 1.5], "tags": ["a"], "nested": {"k": [0.5]}}
     for bad, words in [({"a": {1, 2}}, "radio payload['a'] is a set"),
                        ({"a": [0.0, math.inf]}, "radio payload['a'][1] is inf"),
-                       ({"a": {2: 1}}, "has the key 2 (int)")]:
+                       ({"a": {2: 1}}, "has the key 2 (int)"),
+                       ({"a": object()}, "radio payload['a'] is an object, which")]:
         with pytest.raises(RadioPayloadError, match=words.replace("[", r"\[").replace("(", r"\(").replace(")", r"\)")):
             radio.broadcast(bad)
     with pytest.raises(TypeError, match="robot 4: radio payload must be a mapping, got list"):

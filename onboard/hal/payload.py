@@ -49,5 +49,7 @@ def _plain(value: Any, where: str) -> Any:
         return [_plain(item, f"{where}[{index}]") for index, item in enumerate(value)]
     if hasattr(value, "tolist") and hasattr(value, "dtype"):     # numpy, without importing it here
         return _plain(value.tolist(), where)
-    raise RadioPayloadError(f"radio {where} is a {type(value).__name__}, which JSON cannot carry; send dicts "
+    kind = type(value).__name__
+    article = "an" if kind[:1].lower() in "aeiou" else "a"     # `is an object`, `is a set`
+    raise RadioPayloadError(f"radio {where} is {article} {kind}, which JSON cannot carry; send dicts "
                             f"with string keys, lists, strings, numbers, booleans or None")
