@@ -56,6 +56,8 @@ class Buggy(Behaviour):
                                     if message.payload == {"xy": [0.25, 1.5], "n": 7, "t": [1, 2]})
         if self.params.bug == "nanwheels" and late:
             self.robot.wheels.set_speeds(math.nan, 0.1)
+        if self.params.bug == "strwheels" and late:
+            self.robot.wheels.set_speeds(0.1, "fast")
         if self.params.bug == "columns":
             self.robot.range_and_bearing.neighbours().ids[:] = 0
         if self.params.bug == "hang" and self.robot.id == 1 and late:
@@ -180,7 +182,12 @@ def test_an_error_raised_by_the_hal_points_at_the_behaviours_call(buggy, capsys)
     """The line shown was the HAL's check (hal.py), not the behaviour's call that passed the NaN."""
     assert run("sim", "run", buggy("nanwheels"), "--no-plot", "--out", "nanwheels") == 1
     err = capsys.readouterr().err
-    assert "step(): ValueError: wheel speeds must be finite (got nan, 0.1) at buggy_behaviour.py:" in err
+    assert "step(): ValueError: set_speeds(left_m_s=nan): wheel speeds must be finite numbers (m/s) at " \
+           "buggy_behaviour.py:" in err
+    # Not Python's "must be real number, not str", which named neither the call nor the wheel.
+    assert run("sim", "run", buggy("strwheels"), "--no-plot", "--out", "strwheels") == 1
+    assert "step(): ValueError: set_speeds(right_m_s='fast'): wheel speeds must be finite numbers (m/s) at " \
+           "buggy_behaviour.py:" in capsys.readouterr().err
     assert run("sim", "run", buggy("nan"), "--no-plot", "--out", "nan") == 1      # a broadcast the wire refuses
     assert "which JSON cannot carry; send None or leave it out at buggy_behaviour.py:" in capsys.readouterr().err
 

@@ -12,7 +12,7 @@ from typing import Any, Callable, Deque, Dict, List, Mapping, Optional
 
 from onboard import hal
 from onboard.drivers import Driver
-from onboard.hal import Message, Neighbours, Pose, ProximityReading, RobotSpec, WheelOdometry, clamp_wheel_speeds
+from onboard.hal import Message, Neighbours, Pose, ProximityReading, RobotSpec, WheelOdometry, commanded_wheel_speeds
 from onboard.hal.payload import plain_payload
 
 INBOX_LIMIT = hal.Radio.INBOX_LIMIT    # relayed messages kept between two behaviour steps; the oldest go first
@@ -135,9 +135,7 @@ class DriverWheels(hal.DifferentialSteering):
         self.left = self.right = 0.0
 
     def set_speeds(self, left_m_s: float, right_m_s: float) -> None:
-        if not (math.isfinite(left_m_s) and math.isfinite(right_m_s)):
-            raise ValueError(f"wheel speeds must be finite (got {left_m_s}, {right_m_s})")
-        self.left, self.right = clamp_wheel_speeds(float(left_m_s), float(right_m_s), self.spec.max_wheel_speed_m_s)
+        self.left, self.right = commanded_wheel_speeds(left_m_s, right_m_s, self.spec.max_wheel_speed_m_s)
         self.driver.set_wheel_speeds(self.left, self.right)
 
 

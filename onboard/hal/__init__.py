@@ -9,6 +9,7 @@ from .devices import (
     RangeAndBearingSensor,
     Robot,
     clamp_wheel_speeds,
+    commanded_wheel_speeds,
 )
 from .records import (
     PROXIMITY_ANGLES_RAD,
@@ -25,6 +26,7 @@ from .records import (
 
 __all__ = [
     "Clock", "DifferentialSteering", "Odometry", "Positioning", "ProximitySensor", "Radio",
-    "RangeAndBearingSensor", "Robot", "clamp_wheel_speeds", "PROXIMITY_ANGLES_RAD", "PROXIMITY_SENSOR_COUNT",
+    "RangeAndBearingSensor", "Robot", "clamp_wheel_speeds", "commanded_wheel_speeds",
+    "PROXIMITY_ANGLES_RAD", "PROXIMITY_SENSOR_COUNT",
     "Message", "Neighbour", "Neighbours", "Pose", "ProximityReading", "RobotSpec", "WheelOdometry", "wrap_angle",
 ]

@@ -5,6 +5,7 @@ no object pose. Each interface is deliberately tiny so that a real implementatio
 """
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, List, Mapping, Optional
@@ -82,6 +83,26 @@ class Robot:
     positioning: Positioning
     clock: Clock
     spec: RobotSpec
+
+
+def commanded_wheel_speeds(left_m_s: Any, right_m_s: Any, limit: float) -> tuple:
+    """What a behaviour's ``set_speeds(left_m_s, right_m_s)`` drives: both numbers, clamped together
+    (clamp_wheel_speeds). Anything else is refused naming the argument: a NaN would reach the motors, and
+    Python's own "must be real number, not str" named neither the call nor the wheel."""
+    try:
+        if math.isfinite(left_m_s) and math.isfinite(right_m_s):
+            return clamp_wheel_speeds(float(left_m_s), float(right_m_s), limit)
+    except TypeError:
+        pass
+    bad, value = ("left_m_s", left_m_s) if not _finite_number(left_m_s) else ("right_m_s", right_m_s)
+    raise ValueError(f"set_speeds({bad}={value!r}): wheel speeds must be finite numbers (m/s)")
+
+
+def _finite_number(value: Any) -> bool:
+    try:
+        return math.isfinite(value)
+    except TypeError:
+        return False
 
 
 def clamp_wheel_speeds(left: float, right: float, limit: float) -> tuple:
