@@ -10,8 +10,30 @@ def pytest_configure(config):
     """A shell that starts the suite in the background (`make test &`, nohup, some CI runners) makes it ignore
     SIGINT, and so every process it starts. The Ctrl-C tests send SIGINT to this process and to hubs and
     agents: give it Python's own handler, as a terminal's foreground job has (children get the default)."""
+    config.addinivalue_line("markers", "ipv6_loopback: needs the IPv6 loopback (::1); skipped where there is none")
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def pytest_collection_modifyitems(config, items):
+    needing = [item for item in items if item.get_closest_marker("ipv6_loopback")]
+    if needing and not ipv6_loopback_available():
+        for item in needing:
+            item.add_marker(pytest.mark.skip(reason="this machine has no IPv6 loopback"))
+
+
+def ipv6_loopback_available() -> bool:
+    import zmq
+
+    probe = zmq.Context.instance().socket(zmq.ROUTER)
+    probe.ipv6 = True
+    try:
+        probe.bind("tcp://[::1]:*")
+        return True
+    except zmq.ZMQError:
+        return False
+    finally:
+        probe.close(0)
 
 
 @pytest.fixture

@@ -10,7 +10,6 @@ import time
 
 import numpy as np
 import pytest
-import zmq
 
 from hub.harness import ScriptedHub, spawn_agent, stop_processes
 from onboard.agent.devices import AgentClock, HubState, apply_frame
@@ -492,18 +491,6 @@ def test_a_whole_hub_address_and_a_port_are_refused_together():
     assert ctl.returncode == 2 and "--port: 'tcp://127.0.0.1:1' is a whole address" in ctl.stderr
 
 
-def ipv6_loopback_available() -> bool:
-    probe = zmq.Context.instance().socket(zmq.ROUTER)
-    probe.ipv6 = True
-    try:
-        probe.bind("tcp://[::1]:*")
-        return True
-    except zmq.ZMQError:
-        return False
-    finally:
-        probe.close(0)
-
-
 def test_an_ipv6_address_is_written_in_brackets_and_a_port_beside_it_refused():
     from onboard.agent.link import hub_endpoint
     from onboard.config import ConfigError
@@ -514,7 +501,7 @@ def test_an_ipv6_address_is_written_in_brackets_and_a_port_beside_it_refused():
         hub_endpoint("[::1]:5000", 5560)
 
 
-@pytest.mark.skipif(not ipv6_loopback_available(), reason="this machine has no IPv6 loopback")
+@pytest.mark.ipv6_loopback
 def test_a_hub_on_an_ipv6_address_serves_a_real_agent_and_ctl(tmp_path, make_scenario):
     """A lab on IPv6: ZeroMQ needs its IPV6 option on both ends, and without it the hub could not bind ::1
     ("No such device") and an agent given --hub ::1 made tcp://::1:5560, which never connects."""
@@ -567,7 +554,7 @@ def test_localhost_stands_for_both_loopbacks_and_every_other_address_for_itself(
         assert endpoint_candidates(alone) == [alone]
 
 
-@pytest.mark.skipif(not ipv6_loopback_available(), reason="this machine has no IPv6 loopback")
+@pytest.mark.ipv6_loopback
 @pytest.mark.parametrize("bind, hosts", [("::1", ["localhost"]), ("localhost", ["::1", "127.0.0.1", "localhost"])])
 def test_localhost_and_either_loopback_reach_the_hub_whichever_family_it_listens_on(tmp_path, make_scenario,
                                                                                     bind, hosts):
@@ -594,7 +581,7 @@ def test_localhost_and_either_loopback_reach_the_hub_whichever_family_it_listens
             assert ctl.returncode == 0 and "robot  connected" in ctl.stdout, (host, ctl.stderr)
 
 
-@pytest.mark.skipif(not ipv6_loopback_available(), reason="this machine has no IPv6 loopback")
+@pytest.mark.ipv6_loopback
 def test_ctl_at_the_other_family_than_the_hub_says_why_nothing_answers(make_scenario):
     """A hub on 127.0.0.1 cannot be reached at ::1: the timeout's message says so, and what tries both."""
     with start_ipv6_lab("127.0.0.1", 1, make_scenario) as hub:
@@ -612,7 +599,6 @@ def test_a_robot_without_the_agents_packages_is_told_which_in_one_line():
     done = subprocess.run([sys.executable, "-c", blocked], capture_output=True, text=True, timeout=60)
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert done.stderr.startswith("agent: error: import of zmq halted; None in sys.modules: the agent needs Python")
-
 
 
 @pytest.mark.parametrize("field, value, problem", [

@@ -67,21 +67,7 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
-def ipv6_loopback_available() -> bool:
-    import zmq
-
-    probe = zmq.Context.instance().socket(zmq.ROUTER)
-    probe.ipv6 = True
-    try:
-        probe.bind("tcp://[::1]:*")
-        return True
-    except zmq.ZMQError:
-        return False
-    finally:
-        probe.close(0)
-
-
-@pytest.mark.skipif(not ipv6_loopback_available(), reason="this machine has no IPv6 loopback")
+@pytest.mark.ipv6_loopback
 @pytest.mark.parametrize("bind", ["[::1]", "::1"])
 def test_the_demo_hub_listens_on_the_ipv6_loopback_written_either_way(bind, tmp_path):
     """--bind [::1], as in a URL (and as the hub itself writes it), was refused as beyond loopback; ::1 was not."""
