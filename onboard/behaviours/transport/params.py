@@ -28,7 +28,7 @@ class TransportParams:
     caging_tolerance_m: float = 0.05         # d_tol (caging): a caging target counts as reached within this
     closure_factor: float = 1.85             # d_T = closure_factor * I_d (Proposition 1)
     # Ours: while robots remain (before I_d grows), two tips that see the object in opposite directions close
-    # only this close (times I_d): their gap leaves a whole end of the object open (caging.py:_closure_distance).
+    # only this close (times I_d): their gap leaves a whole end of the object open (closure.py:_closure_distance).
     end_gap_closure_factor: float = 1.3
     k_t_caging: float = 30.0                 # K_t (caging): gain toward the caging target
     proximity_threshold: float = 0.7         # Prox. thres.: IR reading that means contact (~5 cm)
