@@ -94,6 +94,9 @@ def telemetry_of(behaviour: Behaviour, robot_id: int) -> Dict[str, Any]:
     except TypeError as exc:    # a value JSON has no form for: name its field here, in sim run as on a robot
         # A fresh exception, without plain_json's frames: the line to point at is the user's return, not ours.
         raise BehaviourError(robot_id, "telemetry()", TypeError(str(exc))) from None
+    except RecursionError:      # plain_json's walk is recursive, as are JSON's encoders
+        raise BehaviourError(robot_id, "telemetry()", TypeError(
+            "telemetry nests lists or mappings hundreds of levels deep, which JSON cannot carry")) from None
 
 
 _PLAIN_SCALARS = frozenset((str, int, bool, type(None)))

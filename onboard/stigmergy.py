@@ -28,6 +28,7 @@ from typing import Any, Dict, Iterable, List, Optional, Tuple
 # from here too (behaviours write `from onboard.stigmergy import TupleSpace, lowest_field`).
 from .stigmergy_entries import (
     _ZEROS,
+    MAX_VALUE_DEPTH,
     ConflictRule,
     Entry,
     Gossip,
@@ -38,6 +39,7 @@ from .stigmergy_entries import (
     _fingerprint,
     _parse,
     _same,
+    _too_deep,
     _wire,
     default_rule,
     lowest_field,
@@ -160,14 +162,23 @@ class TupleSpace:
         return len(self._entries)
 
     def put(self, key: str, value: Any) -> None:
-        """Local write. Raises TypeError/ValueError for a non-str key or a value JSON cannot encode."""
+        """Local write. Raises TypeError/ValueError for a non-str key, a value JSON cannot encode, or one nested
+        deeper than peers take (MAX_VALUE_DEPTH)."""
         if not isinstance(key, str):
             raise TypeError(f"key must be str, not {type(key).__name__}")
-        canonical = _canonical(value)
+        try:
+            canonical = _canonical(value)
+            decoded = json.loads(canonical)
+            too_deep = _too_deep(decoded)
+        except RecursionError:      # hundreds of levels deep: json's own limit
+            too_deep = True
+        if too_deep:                # every peer would refuse it (_parse): say so here, where it is written
+            raise ValueError(f"{key}: the value nests lists or mappings more than {MAX_VALUE_DEPTH} deep, and "
+                             "peers refuse such entries")
         current = self._entries.get(key)
         timestamp = (current.timestamp if current is not None else 0) + 1
         # Store a decoded copy: the caller may mutate its object later, and every replica holds the same JSON.
-        entry = _entry(json.loads(canonical), timestamp, self.owner)
+        entry = _entry(decoded, timestamp, self.owner)
         self._store(key, entry, _wire(key, canonical, timestamp, self.owner))
 
     def merge(self, entries: Any, sender: Optional[int] = None) -> List[str]:

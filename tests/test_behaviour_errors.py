@@ -22,6 +22,13 @@ import numpy as np
 from onboard.behaviour import Behaviour, register
 
 
+def nested(depth: int) -> list:
+    value = [(1,)]                      # a tuple, so that the value must be copied into plain JSON
+    for _ in range(depth):
+        value = [value]
+    return value
+
+
 @dataclass
 class BuggyParams:
     bug: str = "none"
@@ -58,6 +65,8 @@ class Buggy(Behaviour):
             self.robot.wheels.set_speeds(math.nan, 0.1)
         if self.params.bug == "strwheels" and late:
             self.robot.wheels.set_speeds(0.1, "fast")
+        if self.params.bug == "deep_broadcast" and late:
+            self.robot.radio.broadcast({"a": nested(600)})
         if self.params.bug == "columns":
             self.robot.range_and_bearing.neighbours().ids[:] = 0
         if self.params.bug == "hang" and self.robot.id == 1 and late:
@@ -74,6 +83,8 @@ class Buggy(Behaviour):
     def telemetry(self):
         if self.params.bug == "telemetry_list":
             return [1, 2]
+        if self.params.bug == "deep_telemetry" and self.robot.clock.now() > 0.5:
+            return {"a": nested(600)}
         if self.params.bug == "set" and self.robot.clock.now() > 0.5:
             return {"state": "ok", "neighbours": {1, 2}}       # a set: fine in Python, not on the wire
         if self.params.bug == "intkey_telemetry":
@@ -190,6 +201,18 @@ def test_an_error_raised_by_the_hal_points_at_the_behaviours_call(buggy, capsys)
            "buggy_behaviour.py:" in capsys.readouterr().err
     assert run("sim", "run", buggy("nan"), "--no-plot", "--out", "nan") == 1      # a broadcast the wire refuses
     assert "which JSON cannot carry; send None or leave it out at buggy_behaviour.py:" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("bug, said", [
+    ("deep_broadcast", "step(): RadioPayloadError: radio payload nests lists or mappings hundreds of levels deep"),
+    ("deep_telemetry", "telemetry(): TypeError: telemetry nests lists or mappings hundreds of levels deep"),
+])
+def test_a_payload_nested_hundreds_deep_is_the_behaviours_error_not_a_crash_of_the_run(buggy, capsys, bug, said):
+    """Copying it for the wire recursed: RecursionError ended the run as 'the run crashed', naming neither the
+    robot nor the call."""
+    assert run("sim", "run", buggy(bug), "--no-plot", "--out", bug) == 1
+    err = capsys.readouterr().err
+    assert said in err and "robot 0" in err, err
 
 
 def test_a_broadcast_names_the_field_json_would_change_and_takes_numpy(buggy, capsys):

@@ -145,6 +145,19 @@ def test_a_value_nested_too_deeply_is_refused_however_deep_the_caller_stands():
     assert space.get("k") == as_deep and space.get("j") is None
 
 
+def test_a_value_peers_would_refuse_for_its_depth_is_refused_where_it_is_written():
+    """Every peer refuses an entry nested deeper than MAX_VALUE_DEPTH, and counts it where nobody looks:
+    put raises, naming the key, so the writer learns its entry would stay its own."""
+    from onboard.stigmergy_entries import MAX_VALUE_DEPTH
+
+    space = TupleSpace(owner=0)
+    space.put("ok", nested(MAX_VALUE_DEPTH))
+    for depth in (MAX_VALUE_DEPTH + 1, 5000):             # 5000: past json's own recursion limit too
+        with pytest.raises(ValueError, match=f"deep: the value nests lists or mappings more than {MAX_VALUE_DEPTH}"):
+            space.put("deep", nested(depth))
+    assert space.get("deep") is None and space.get("ok") == nested(MAX_VALUE_DEPTH)
+
+
 def test_a_bad_entry_does_not_spoil_the_good_ones_in_its_message():
     space = TupleSpace(owner=0)
     changed = space.merge([[1, "v", 1, 1], ["a", 1, 1, 1], ["b", 1, 1, False], ["c", {1, 2}, 1, 1], ("d", 2, 1, 1)],

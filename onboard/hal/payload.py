@@ -21,7 +21,11 @@ def plain_payload(payload: Any) -> Dict[str, Any]:
     (TypeError if it is not a mapping at all)."""
     if not isinstance(payload, Mapping):
         raise TypeError(f"radio payload must be a mapping (a dict), got {type(payload).__name__}")
-    return _plain_mapping(payload, "payload")
+    try:
+        return _plain_mapping(payload, "payload")
+    except RecursionError:      # the walk below is recursive; so is every JSON encoder and decoder on the way
+        raise RadioPayloadError("radio payload nests lists or mappings hundreds of levels deep, which the wire "
+                                "cannot carry") from None
 
 
 def _plain_mapping(mapping: Mapping, where: str) -> Dict[str, Any]:
