@@ -629,3 +629,44 @@ def test_a_start_with_malformed_run_settings_is_refused_not_crashed(scripted, fi
     assert agent.run is None and agent.behaviour is None
     assert agent.error.startswith(f"cannot start the run: {problem}"), agent.error
     assert agent.refused_run_id == ("r1" if field != "run_id" else None)
+
+
+LISTENER = '''
+from onboard.behaviour import Behaviour, register
+
+
+@register("test-listener")
+class Listener(Behaviour):
+    def __init__(self, robot, params=None):
+        super().__init__(robot, params)
+        self.heard = []
+
+    def step(self):
+        self.heard += [m.payload["tag"] for m in self.robot.radio.receive()]
+
+    def telemetry(self):
+        return {"state": "listening", "heard": self.heard}
+'''
+
+
+def test_a_new_run_does_not_hear_what_was_relayed_after_the_last_one_ended(scripted, tmp_path):
+    """The hub delivers its relay queue in the frames after `stop`; the agent kept those messages and the next
+    run's behaviour took them as its own: in a lab, transport read the last run's closed cage and never caged."""
+    module = tmp_path / "listener.py"
+    module.write_text(LISTENER)
+    process = spawn_agent(scripted.endpoint, 0, tmp_path / "agent.log", extra=["--import", str(module)])
+    try:
+        scripted.wait_for(lambda m: m["type"] == "hello")
+        start_run(scripted, dict(RUN, run_id="r1", behaviour="test-listener"))
+        feed(scripted, 0.3, messages=[[1, 0.0, {"tag": "run 1"}]])
+        scripted.send({"type": "command", "cmd": "stop"})
+        scripted.wait_for(lambda m: m["type"] == "ack" and m["cmd"] == "stop")
+        feed(scripted, 0.2, mode="idle", messages=[[1, 0.0, {"tag": "after run 1"}]])
+        start_run(scripted, dict(RUN, run_id="r2", behaviour="test-listener"))
+        t0 = time.monotonic()
+        feed(scripted, 0.4)
+        telemetry = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["_at"] > t0
+                                      and m["run_id"] == "r2" and m["loop"]["steps"] >= 1)
+        assert telemetry["behaviour"]["heard"] == []
+    finally:
+        stop_processes([process])

@@ -245,6 +245,9 @@ class Agent:
         self.error = None
         self.run, self.period = run, period
         self.clock.restart(hub_clock)
+        # Messages relayed after the last run's last step (the hub's queue at `stop`) wait in the inbox; the
+        # new behaviour would take them as this run's (transport: the old cage "closed", no seed elected).
+        self.state.inbox.clear()
         seed = run.get("seed")
         if isinstance(seed, int) and not isinstance(seed, bool):
             # As the simulator seeds `random` for its behaviours: a run with a seed repeats, agent by agent.
