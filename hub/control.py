@@ -126,6 +126,9 @@ def _row(row: Dict[str, Any]) -> str:
     loop = "-" if row.get("loop_hz") is None else f"{row['loop_hz']:.1f}"
     misses = "-" if row.get("loop_misses") is None else str(row["loop_misses"])
     notes: List[str] = [n for n in (row.get("reason"), row.get("error")) if n]
+    if not row["connected"] and row["last_seen_s"] is not None:
+        # The state is what the agent said last, not what it does now: it may be dead, its wheels held.
+        notes.insert(0, f"silent for {row['last_seen_s']:.1f} s: state is its last report")
     if row.get("finished"):
         notes.insert(0, "finished")
     if row.get("estop_ack_ms") is not None:

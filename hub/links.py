@@ -50,9 +50,10 @@ class RobotLink:
         telemetry = self.telemetry or {}
         behaviour = telemetry.get("behaviour") or {}
         loop = telemetry.get("loop") or {}
+        connected = self.connected(now, timeout_s)
         return {
             "id": self.id,
-            "connected": self.connected(now, timeout_s),
+            "connected": connected,
             "last_seen_s": None if self.last_uplink == -math.inf else round(now - self.last_uplink, 3),
             "peer": self.peer,
             "driver": self.driver,
@@ -62,7 +63,8 @@ class RobotLink:
             "agent_mode": telemetry.get("mode"),
             "state": behaviour.get("state"),
             "finished": behaviour.get("finished"),     # the robot considers its job done (None: no run)
-            "loop_hz": loop.get("hz"),
+            # A silent agent's last rate would read as a loop still running (a SIGKILLed agent showed 10.0 Hz).
+            "loop_hz": loop.get("hz") if connected else None,
             "loop_misses": loop.get("misses"),
             "battery_v": telemetry.get("battery_v"),
             "frames_lost": telemetry.get("frames_lost"),

@@ -105,3 +105,21 @@ def test_status_before_any_agent_shows_robots_never_seen(three_robots):
         assert "never" in status_table(status)
         assert hub.lines[:2] == [f"listening robots {hub.endpoints['robots']}",
                                  f"listening control {hub.endpoints['control']}"]
+
+
+def test_a_killed_agent_shows_no_loop_rate_and_says_its_state_is_old(three_robots, tmp_path):
+    """A SIGKILLed agent's row kept `loop Hz 10.0`, mode `run` and its last state with no note: a dead robot
+    read as one still running its behaviour."""
+    with HubThread(lab_config(), scenario=three_robots) as hub:
+        agents = start_agents(hub, 3, tmp_path)
+        try:
+            hub.request("start")
+            hub.wait_until(lambda s: all(r["loop_hz"] for r in s["robots"]))
+            agents[1].kill()
+            status = hub.wait_until(lambda s: not s["robots"][1]["connected"])
+            assert status["robots"][1]["loop_hz"] is None
+            assert all(r["loop_hz"] for r in status["robots"] if r["id"] != 1)
+            row = status_table(status).splitlines()[2 + 1]
+            assert row.split()[6] == "-" and "state is its last report" in row, row
+        finally:
+            stop_processes(agents)
