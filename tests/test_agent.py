@@ -105,6 +105,19 @@ def test_estop_stops_the_wheels_before_the_acknowledgement(scripted, agent_proce
     assert not [m for m in scripted.received if wheels_after(scripted, t1, moving=True)(m)]
 
 
+def test_a_held_agent_reports_a_loop_rate_of_zero_not_its_last_runs(scripted, agent_process):
+    """`ctl status` showed `estop ... loop Hz 10.0` through an e-stop: the rate of the last stepping second."""
+    start_run(scripted)
+    feed(scripted, 1.5, neighbours=FAR_NEIGHBOUR)
+    stepping = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["loop"]["hz"] > 5.0)
+    assert stepping["mode"] == "run"
+    scripted.send({"type": "command", "cmd": "estop", "reason": "operator e-stop"})
+    t0 = time.monotonic()
+    feed(scripted, 2.5, mode="estop")
+    held = [m for m in scripted.received if m["type"] == "telemetry" and m["_at"] > t0]
+    assert held[-1]["mode"] == "estop" and held[-1]["loop"]["hz"] == 0.0, held[-1]["loop"]
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
 def test_sigterm_and_sighup_stop_the_wheels_before_exit_and_tell_the_hub(scripted, agent_process, sig):
     """SIGHUP (the ssh session the agent was started from closing) killed the agent with its wheels turning."""

@@ -72,6 +72,15 @@ class LoopStats:
             self.hz = self.window_steps / (finished - self.window_start) if self.window_start else 0.0
             self.window_start, self.window_steps = finished, 0
 
+    def idle(self, now: float) -> None:
+        """A tick without a step (idle, hold, e-stop, watchdog): the rate falls to what was stepped, so that a
+        held robot does not keep reporting the 10 Hz of its last run. A window with no step at all closes,
+        and the next step opens a fresh one, as at start-up."""
+        if self.window_start and now - self.window_start >= 1.0:
+            self.hz = self.window_steps / (now - self.window_start)
+            self.window_start = now if self.window_steps else 0.0
+            self.window_steps = 0
+
     def as_dict(self) -> Dict[str, Any]:
         mean = self.total_step_s / self.steps if self.steps else 0.0
         return {"hz": round(self.hz, 2), "steps": self.steps, "misses": self.misses,
@@ -324,6 +333,8 @@ class Agent:
             finished = time.monotonic()
             self.stats.record(started, finished, scheduled + self.period)
             self._say_if_slow(finished - started, finished)
+        else:
+            self.stats.idle(started)
         self.answered_seq = self.state.seq
         self.send_telemetry(stepped)
         finished = time.monotonic()
