@@ -29,6 +29,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Type
 
 from .config import ConfigError, from_mapping
 from .hal import Robot
+from .hal.payload import a_kind
 from .tracebacks import traceback_lines, where_in_users_code
 
 # What a behaviour's code may raise that is its own failure, reported as a BehaviourError naming the robot
@@ -140,7 +141,7 @@ def plain_json(value: Any, where: str = "telemetry") -> Any:
     if value is None or isinstance(value, (str, int, float)):
         return value
     # Short: an agent's error line to the hub keeps 200 characters, the robot and the call before this.
-    raise TypeError(f"{where} is {_a(type(value).__name__)}, which JSON cannot carry: send dicts, lists, "
+    raise TypeError(f"{where} is {a_kind(value)}, which JSON cannot carry: send dicts, lists, "
                     f"strings, numbers, booleans or None")
 
 
@@ -152,12 +153,8 @@ def _json_key(key: Any, where: str) -> str:
         key = key.tolist()
     if key is None or isinstance(key, (int, float)):
         return json.dumps(key)
-    raise TypeError(f"{where} has the key {key!r}, {_a(type(key).__name__)}, which JSON cannot carry: use a "
+    raise TypeError(f"{where} has the key {key!r}, {a_kind(key)}, which JSON cannot carry: use a "
                     f"string")
-
-
-def _a(noun: str) -> str:
-    return f"an {noun}" if noun[:1].lower() in "aeiou" else f"a {noun}"
 
 
 class BehaviourError(RuntimeError):

@@ -53,7 +53,11 @@ def _plain(value: Any, where: str) -> Any:
         return [_plain(item, f"{where}[{index}]") for index, item in enumerate(value)]
     if hasattr(value, "tolist") and hasattr(value, "dtype"):     # numpy, without importing it here
         return _plain(value.tolist(), where)
-    kind = type(value).__name__
-    article = "an" if kind[:1].lower() in "aeiou" else "a"     # `is an object`, `is a set`
-    raise RadioPayloadError(f"radio {where} is {article} {kind}, which JSON cannot carry; send dicts "
+    raise RadioPayloadError(f"radio {where} is {a_kind(value)}, which JSON cannot carry; send dicts "
                             f"with string keys, lists, strings, numbers, booleans or None")
+
+
+def a_kind(value: Any) -> str:
+    """``value``'s type with its article, for messages: "an object", "a set"."""
+    kind = type(value).__name__
+    return f"an {kind}" if kind[:1].lower() in "aeiou" else f"a {kind}"
