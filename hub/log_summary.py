@@ -110,10 +110,7 @@ class LogReader:
                 self.metadata[record.name] = record.metadata
 
     def _decode(self, topic: str, message: Message) -> dict:
-        try:
-            payload = parse_json(message.data)
-        except ValueError:
-            payload = None
+        payload = _json_or_none(message.data)
         if not isinstance(payload, dict):
             raise LogError(str(self.path), f"{topic}: message {message.sequence} is not a JSON object")
         return payload
@@ -312,7 +309,7 @@ def summarise(path: PathLike, *, use_index: bool = True, check_payloads: bool = 
 
     ``use_index=False`` always reads every record (the two give the same summary for a complete file).
     ``check_payloads`` (``khepri log info --check``) reads every record and also decodes every JSON message,
-    listing in ``damaged_records`` those that ``read_log`` refuses (not a JSON object); it costs the decoding.
+    listing in ``refused_messages`` those that ``read_log`` refuses (not a JSON object); it costs the decoding.
     """
     reader = LogReader(path)
     if check_payloads:
