@@ -9,6 +9,7 @@ import pytest
 from onboard.behaviour import build_params, get_behaviour
 from onboard.behaviours.transport import control as c
 from onboard.behaviours.transport.approach import first_travel, seed_heading
+from onboard.behaviours.transport.caged import ON_ITS_WAY_WAIT_S
 from onboard.behaviours.transport.estimator import (
     encloses,
     normal_displacement,
@@ -20,7 +21,6 @@ from onboard.behaviours.transport.estimator import (
 from onboard.behaviours.transport.params import IMPROVEMENT_FLAGS
 from onboard.behaviours.transport.perception import Percept
 from onboard.behaviours.transport.tasks import Task
-from onboard.behaviours.transport.transport import ON_ITS_WAY_WAIT_S
 from onboard.config import ConfigError
 from onboard.hal.ir_curve import ir_distance_m, ir_response
 from sim_backend.runner import Simulation

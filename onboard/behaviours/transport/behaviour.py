@@ -17,6 +17,7 @@ from ...hal.ir_curve import ir_distance_m
 from ...localisation import PoseTracker
 from ...motion import vector_to_wheels
 from . import control as c
+from .caged import CagedPhase
 from .caging import AVERAGE_SETTLE_STEPS, CagingPhases
 from .closure import ClosurePhase
 from .control import Vec
@@ -39,7 +40,7 @@ REGROUP_STANDOFF_M = 1.0
 
 
 @register("transport")
-class Transport(CagingPhases, ClosurePhase, TransportPhases, ObjectEstimation, ReinforcePhase, Behaviour):
+class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectEstimation, ReinforcePhase, Behaviour):
     Params = TransportParams
 
     def __init__(self, robot, params: Optional[TransportParams] = None):

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from . import control as c
 from .approach import first_travel, seed_heading
+from .caged import GAP_GAIN, GAP_READING
 from .control import Vec
 from .perception import nearest
 from .tasks import BRANCH_DIRECTION, Task, distance, task_id
-from .transport import GAP_GAIN, GAP_READING
 
 SETTLE_STEPS = 10          # a caging robot must hold its place this many steps to count as settled
 # ... or, with readings too noisy for that, hold it this many steps with a mean error within half d_tol and
