@@ -265,7 +265,16 @@ class LogSummary:
     refused_messages: List[str] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """Every field, for JSON. Not ``dataclasses.asdict``, which copies every value recursively, two frames
+        per level: a metadata value some 500 lists deep, which the reader parses, raised RecursionError. The
+        containers are copies; the metadata's values are the summary's own."""
+        data = {field.name: _copied(getattr(self, field.name)) for field in dataclasses.fields(self)}
+        data["foreign_topics"] = {topic: dict(row) for topic, row in self.foreign_topics.items()}
+        return data
+
+
+def _copied(value: Any) -> Any:
+    return dict(value) if isinstance(value, dict) else list(value) if isinstance(value, list) else value
 
 
 @dataclass

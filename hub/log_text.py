@@ -1,13 +1,39 @@
 """The text ``khepri log info`` prints for a :class:`~hub.log_summary.LogSummary`."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections import Counter
 from datetime import datetime
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 from hub.log_format import split_robot_topic
 from hub.log_summary import LogSummary
+from onboard.jsontext import dump_json
+
+#: What ``khepri log info`` prints in place of a metadata value it cannot print (see printable_metadata).
+UNPRINTABLE_NOTE = "(not shown: nested too deeply to print, hundreds of levels one inside another)"
+_SPARE_LEVELS = 10     # a value is checked this much deeper than it stands in the summary's JSON
+
+
+def printable_metadata(summary: LogSummary, *, indent: Optional[int] = None) -> Tuple[LogSummary, List[str]]:
+    """The summary with each metadata value that json cannot print (with ``indent``) replaced by
+    :data:`UNPRINTABLE_NOTE`, and those fields (``metadata.<key>``). The reader keeps any value json parses,
+    and json parses values nested deeper than it can print back (on Python 3.12 its encoder's limit is lower
+    than its parser's): printing the summary ended in a RecursionError traceback, the rest of it lost."""
+    shown: Dict[str, Any] = {}
+    unprintable: List[str] = []
+    for key, value in summary.metadata.items():
+        wrapped = value
+        for _ in range(_SPARE_LEVELS):
+            wrapped = [wrapped]
+        try:
+            dump_json(wrapped, indent=indent)
+            shown[key] = value
+        except ValueError:
+            shown[key] = UNPRINTABLE_NOTE
+            unprintable.append(f"metadata.{key}")
+    return (dataclasses.replace(summary, metadata=shown) if unprintable else summary), unprintable
 
 
 def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:

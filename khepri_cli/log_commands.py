@@ -27,17 +27,23 @@ def add_log(groups) -> None:
 
 def cmd_info(args: argparse.Namespace) -> int:
     from hub.log_summary import summarise
-    from hub.log_text import format_summary
+    from hub.log_text import format_summary, printable_metadata
     from onboard.config import ConfigError
+    from onboard.console import say
 
     if not args.file.strip():     # Path("") is ".", which would be reported as a folder
         raise ConfigError("FILE", "an empty path: name the .mcap log")
 
     # LogError (a ConfigError) naming the file for missing, empty or non-MCAP files
     summary = summarise(Path(args.file), use_index=not args.check, check_payloads=args.check)
+    summary, unprintable = printable_metadata(summary, indent=2 if args.json else None)
     if args.json:
         print(json.dumps(summary.to_dict(), indent=2))
     else:
         print(format_summary(summary, all_topics=args.all_topics))
+    for field in unprintable:
+        say(f"khepri: error: {field}: nested too deeply to print (hundreds of levels, one inside another); the "
+            "summary shows a note in its place")
     # With --check a script can tell a sound log from a damaged one by the exit code, not only by reading.
-    return 1 if args.check and (summary.truncated or summary.damaged_records or summary.refused_messages) else 0
+    unsound = args.check and (summary.truncated or summary.damaged_records or summary.refused_messages)
+    return 1 if unprintable or unsound else 0

@@ -20,3 +20,13 @@ def parse_json(text: Union[str, bytes, bytearray], **options: Any) -> Any:
         return json.loads(text, **options)
     except RecursionError:
         raise ValueError(NESTED_TOO_DEEPLY) from None
+
+
+def dump_json(value: Any, **options: Any) -> str:
+    """``json.dumps(value, **options)``, but a value nested past what the encoder can recurse raises ValueError
+    (:data:`NESTED_TOO_DEEPLY`), as for TypeError's unencodable values. json can parse values that it cannot
+    print back: on Python 3.12 its encoder's limit is lower than its parser's."""
+    try:
+        return json.dumps(value, **options)
+    except RecursionError:
+        raise ValueError(NESTED_TOO_DEEPLY) from None

@@ -464,6 +464,56 @@ def test_json_nested_past_pythons_recursion_limit_is_unreadable_json_not_a_trace
         in info.stdout
 
 
+def nested_list(depth):
+    """A list ``depth`` levels deep, built without recursion."""
+    value = []
+    for _ in range(depth - 1):
+        value = [value]
+    return value
+
+
+def test_log_info_json_prints_metadata_nested_hundreds_deep_in_full(tmp_path):
+    """A metadata value 600 lists deep (valid JSON, which the reader parses) ended `log info --json` in a
+    RecursionError traceback: LogSummary.to_dict used dataclasses.asdict, which copies every value recursively,
+    two frames per level. Now the summary is printed whole, that value included."""
+    deep = {"a": nested_list(600)}
+    path = write_log(tmp_path / "deep.mcap", every_topic_records(), metadata={"lab": "L1", "deep": deep})
+    summary = summarise(path)
+    assert summary.metadata == {"lab": "L1", "deep": deep} and summary.to_dict()["metadata"]["deep"] == deep
+    for options in (["--json"], ["--json", "--check"], []):
+        info = run_khepri(path, *options)
+        assert info.returncode == 0 and info.stderr == "", info.stderr[-300:]
+    parsed = json.loads(run_khepri(path, "--json").stdout)
+    assert parsed == json.loads(json.dumps(summary.to_dict())) and parsed["metadata"]["deep"] == deep
+
+
+@pytest.mark.parametrize("as_json", [True, False])
+def test_log_info_replaces_a_metadata_value_too_deep_to_print_by_a_note_naming_it(tmp_path, monkeypatch, capsys,
+                                                                                 as_json):
+    """A value json can parse but not print back (nearly as deep as Python's recursion limit allows; on Python
+    3.12 the C encoder's limit is lower than its parser's): one error line naming the field, exit 1, and the
+    summary printed with a note in that value's place and everything else kept, not a traceback."""
+    import dataclasses
+
+    import hub.log_summary
+    from hub.log_text import UNPRINTABLE_NOTE
+    from khepri_cli.main import main
+
+    path = write_log(tmp_path / "cli.mcap", every_topic_records(), metadata={"lab": "L1"})
+    sound = summarise(path)
+    deep = dataclasses.replace(sound, metadata={"lab": "L1", "deep": nested_list(100_000)})
+    monkeypatch.setattr(hub.log_summary, "summarise", lambda *args, **kwargs: deep)
+    capsys.readouterr()
+    assert main(["log", "info", str(path), *(["--json"] if as_json else [])]) == 1
+    out, err = capsys.readouterr()
+    assert err.count("\n") == 1 and err.startswith("khepri: error: metadata.deep: nested too deeply to print"), err
+    if as_json:
+        expected = dict(json.loads(json.dumps(sound.to_dict())), metadata={"lab": "L1", "deep": UNPRINTABLE_NOTE})
+        assert json.loads(out) == expected
+    else:
+        assert f'metadata:  lab = "L1"\nmetadata:  deep = "{UNPRINTABLE_NOTE}"' in out and "status:    complete" in out
+
+
 def test_cli_log_info_prints_the_summary_and_json(tmp_path):
     path = write_log(tmp_path / "cli.mcap", every_topic_records(), metadata={"lab": "L1"})
     text = run_khepri(path)
