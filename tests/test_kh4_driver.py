@@ -410,9 +410,12 @@ def terminate(signum, frame):          # what the agent does: turn SIGTERM into 
 
 signal.signal(signal.SIGTERM, terminate)
 driver = KheperaIV(library_path=sys.argv[1])
-if sys.argv[2] in ("sigkill", "guarded"):
+if sys.argv[2] in ("sigkill", "guarded", "idle-fails"):
     driver.start_guard()               # what the agent does with the kh4 driver
 driver.set_wheel_speeds(0.2, 0.2)
+if sys.argv[2] == "idle-fails":        # from now on, in this process only: its close() cannot idle the motors
+    import os
+    os.environ["KH4_STUB_FAIL"] = "kh4_SetMode"
 print("driving", flush=True)
 if sys.argv[2] == "raise":
     raise RuntimeError("a behaviour bug")
@@ -427,7 +430,7 @@ def run_child(stub_library: Path, stub_log: Path, tmp_path: Path, mode: str) -> 
     child = subprocess.Popen([sys.executable, str(script), str(stub_library), mode], env=env, cwd=tmp_path,
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert child.stdout.readline() == "driving\n"
-    if mode in ("sigterm", "guarded"):
+    if mode in ("sigterm", "guarded", "idle-fails"):
         child.send_signal(signal.SIGTERM)
     elif mode == "sigkill":
         child.send_signal(signal.SIGKILL)
@@ -511,6 +514,45 @@ def test_the_guard_says_which_of_its_calls_failed(stub_library, stub_log, monkey
     assert guard(str(stub_library), 4242, io.BytesIO(b"")) == code       # the agent died without a word
     assert capsys.readouterr().err.startswith("kh4 wheel guard: agent 4242 ended without stopping the wheels"
                                               + ("; " if code == 0 else ", ") + said.format(lib=stub_library))
+
+
+def test_the_guard_says_the_agent_stopped_the_wheels_when_only_idling_the_motors_failed(stub_library, stub_log,
+                                                                                         tmp_path):
+    """close() stopped the wheels and failed only to idle the motors (WheelsStoppedPartly): the guard, left armed,
+    tried both again, rightly, but said "agent N ended without stopping the wheels" of a robot standing still."""
+    finished = run_child(stub_library, stub_log, tmp_path, "idle-fails")
+    assert finished.returncode == 0, finished.stderr
+    lib = stub_library
+    assert f"kh4: at exit, the wheels are stopped, but the motors could not be set idle ({lib}: kh4_SetMode " \
+           "failed with code -4)\n" in finished.stderr
+    guard_lines = [line for line in finished.stderr.splitlines() if line.startswith("kh4 wheel guard:")]
+    assert len(guard_lines) == 1 and "without stopping" not in guard_lines[0], finished.stderr
+    assert guard_lines[0].endswith(f"stopped the wheels before it ended, but the motors could not be set idle "
+                                   f"({lib}: kh4_SetMode failed with code -4); the guard tried both again, and "
+                                   "both passed"), guard_lines[0]
+    logged = wait_for_calls(stub_log, lambda c: [name for name, _ in c].count("knet_close") == 2)
+    assert [name for name, _ in logged].count("kh4_init") == 2      # the guard still tried both again
+    assert logged[-2:] == [("kh4_SetMode", {"mode": "0", "dev": "ok"}), ("knet_close", {"dev": "ok"})]
+
+
+@pytest.mark.parametrize("failing, code, said", [
+    ("", 0, "the guard tried both again, and both passed"),
+    ("kh4_SetMode", 0, "the guard tried both again: the wheels are stopped, but the motors could not be set idle "
+                       "({lib}: kh4_SetMode failed with code -4)"),
+    ("kh4_set_speed,kh4_SetMode", 0, "the guard tried both again, and failed: the zero-speed command "
+                                     "failed ({lib}: kh4_set_speed failed with code -4), and so did setting the "
+                                     "motors idle ({lib}: kh4_SetMode failed with code -4)"),
+])
+def test_the_guard_says_what_the_agents_close_did_and_what_it_did_after(stub_library, stub_log, monkeypatch, capsys,
+                                                                         failing, code, said):
+    from onboard.drivers.kh4_guard import stopped_partly_note
+
+    monkeypatch.setenv("KH4_STUB_FAIL", failing)
+    note = stopped_partly_note("by setting the motors idle only (the zero-speed command failed: X)")
+    assert guard(str(stub_library), 4242, io.BytesIO(note)) == code
+    assert capsys.readouterr().err == (
+        "kh4 wheel guard: agent 4242 stopped the wheels before it ended, by setting the motors idle only (the "
+        f"zero-speed command failed: X); {said.format(lib=stub_library)}\n")
 
 
 def test_the_guard_leaves_the_wheels_alone_after_an_orderly_exit(stub_library, stub_log, tmp_path):

@@ -196,7 +196,9 @@ class KheperaIV(Driver):
             atexit.unregister(self._stop_at_exit)
             try:
                 partly = _stop_and_idle(self.library, self._dspic)   # raises if neither passed
-                if partly:     # the guard, not released, tries both again after us
+                if partly:     # the guard, not released, tries both again after us, told they stand still
+                    if self.guard is not None:
+                        self.guard.tell_stopped_partly(partly)
                     raise WheelsStoppedPartly(f"the wheels are stopped, {partly}")
                 if self.guard is not None:
                     self.guard.release()      # stopped in order: the guard has nothing left to do

@@ -7,7 +7,9 @@ So the agent starts this guard next to it. The guard holds the read end of a pip
 agent holds; when the agent dies, for whatever reason, the kernel closes its end and the guard's read
 returns. If the agent said ``clean`` first (it closed the driver, wheels stopped, motors idle), the guard
 just exits; otherwise it opens libkhepera itself (the dead process's hold on the I2C bus is gone with it),
-stops the wheels, idles the motors and exits.
+stops the wheels, idles the motors and exits. An agent whose close() stopped the wheels by one of the two
+ways only (``WheelsStoppedPartly``) says so first (``partly ...``): the guard still tries both again, but
+does not say the agent left the wheels turning.
 
 The guard runs in its own session, so a Ctrl-C in the agent's terminal does not reach it, and it needs
 nothing but this package and libkhepera.
@@ -22,6 +24,19 @@ import sys
 from typing import IO, List, Optional
 
 CLEAN = b"clean\n"
+PARTLY = b"partly "     # then what close() managed, as _stop_and_idle says it, and a newline
+
+
+def stopped_partly_note(partly: str) -> bytes:
+    """What the agent tells the guard when its close() stopped the wheels but one of its two calls failed."""
+    return PARTLY + " ".join(partly.split()).encode("utf-8", "replace") + b"\n"
+
+
+def _stopped_partly(said: bytes) -> Optional[str]:
+    """The agent's note from :func:`stopped_partly_note`, or None if it said none (or died writing it)."""
+    if not (said.startswith(PARTLY) and said.endswith(b"\n")):
+        return None
+    return said[len(PARTLY):-1].decode("utf-8", "replace")
 
 
 class WheelGuard:
@@ -49,6 +64,17 @@ class WheelGuard:
             pass            # the guard is gone already: nothing to tell
         self.pipe = None
 
+    def tell_stopped_partly(self, partly: str) -> None:
+        """The agent's close() stopped the wheels, ``partly`` (one of its two calls failed). The guard stays
+        armed: once the agent ends, it tries both again, and says the agent had stopped the wheels."""
+        if self.pipe is None:
+            return
+        try:
+            self.pipe.write(stopped_partly_note(partly))
+            self.pipe.flush()       # kept open: closing it would tell the guard the agent is gone
+        except OSError:
+            pass
+
 
 def _child_environment() -> dict:
     """This process's environment, with the folder holding ``onboard`` on the guard's import path."""
@@ -64,6 +90,9 @@ def guard(library_path: str, parent_pid: int, stream: IO[bytes]) -> int:
     said = stream.read()          # returns when the agent closes the pipe, or dies
     if said.endswith(CLEAN):
         return 0
+    agent_stopped = _stopped_partly(said)
+    if agent_stopped is not None:
+        return _guard_after_partial_stop(library_path, parent_pid, agent_stopped)
     try:
         # Opens the dsPic, stops, idles, releases; no motor set-up to fail first.
         partly = stop_robot(library_path)
@@ -74,6 +103,22 @@ def guard(library_path: str, parent_pid: int, stream: IO[bytes]) -> int:
         return 1
     print(f"kh4 wheel guard: agent {parent_pid} ended without stopping the wheels; they are stopped now"
           + (f", {partly}" if partly else ""), file=sys.stderr, flush=True)
+    return 0
+
+
+def _guard_after_partial_stop(library_path: str, parent_pid: int, agent_stopped: str) -> int:
+    """The agent stopped the wheels as it closed the driver, by one way only: try both again, and say what the
+    agent did, then what this did. The wheels stand still whatever this manages: exit code 0."""
+    from onboard.drivers.kh4 import LibkheperaError, stop_robot
+
+    try:
+        partly = stop_robot(library_path)
+        after = (f"the guard tried both again: the wheels are stopped, {partly}" if partly
+                 else "the guard tried both again, and both passed")
+    except (LibkheperaError, OSError) as err:
+        after = f"the guard tried both again, and failed: {err}"
+    print(f"kh4 wheel guard: agent {parent_pid} stopped the wheels before it ended, {agent_stopped}; {after}",
+          file=sys.stderr, flush=True)
     return 0
 
 
