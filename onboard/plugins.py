@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import ast
 import importlib
+import importlib.util
 import os
 import sys
+import sysconfig
 from pathlib import Path
 from typing import Any, Callable, Iterable, List, Optional
 
@@ -71,14 +73,49 @@ def packages_robots_lack(module: Any, base: str) -> List[str]:
     """Third-party packages the module's file imports that are not on a robot: the lab PC's (``mcap``, ``dask``,
     ``scipy``, ...) install with khepri, so a behaviour that uses one runs in ``sim run`` and ``sil`` and fails
     only on the robot. Modules beside it (a helper copied along) and its own package are fine."""
-    stdlib = getattr(sys, "stdlib_module_names", None)      # Python >= 3.10; without it, say nothing
     path = getattr(module, "__file__", None)
-    if stdlib is None or not path:
+    if not path:
         return []
     own = (module.__name__.split(".")[0], "__future__", *ON_ROBOTS, *NOT_ON_ROBOTS)   # the last: warned above
     folders = (Path(path).parent, Path(base))
     return [top for top in _top_level_imports(path)
-            if top not in stdlib and top not in own and not any(_is_beside(top, f) for f in folders)]
+            if top not in own and not any(_is_beside(top, f) for f in folders) and _is_standard(top) is False]
+
+
+def _is_standard(top: str) -> Optional[bool]:
+    """Whether the top-level module ``top`` is the standard library's. Python >= 3.10 lists them
+    (``sys.stdlib_module_names``); 3.9 does not, so there it is told by where this interpreter finds the module:
+    built into it, frozen, or in its standard library's folders (sysconfig's ``stdlib`` and ``platstdlib``, not
+    the site-packages inside them). None when 3.9 cannot find it at all: it would not run on the PC either."""
+    names = getattr(sys, "stdlib_module_names", None)
+    if names is not None:
+        return top in names
+    if top in sys.builtin_module_names:
+        return True
+    try:
+        spec = importlib.util.find_spec(top)   # a top-level name: imports nothing
+    except (ImportError, ValueError):          # ValueError: in sys.modules without a __spec__
+        return None
+    if spec is None:
+        return None
+    if spec.origin in ("built-in", "frozen"):
+        return True
+    places = [spec.origin] if spec.has_location and spec.origin else list(spec.submodule_search_locations or [])
+    return bool(places) and all(_in_standard_folders(Path(place)) for place in places)
+
+
+def _in_standard_folders(place: Path) -> bool:
+    paths = sysconfig.get_paths()
+    place = place.resolve()
+    standard = {Path(paths[key]).resolve() for key in ("stdlib", "platstdlib")}
+    installed = {Path(paths[key]).resolve() for key in ("purelib", "platlib")}
+    return (any(_within(place, folder) for folder in standard)
+            and not any(_within(place, folder) for folder in installed)
+            and not {"site-packages", "dist-packages"} & set(place.parts))
+
+
+def _within(place: Path, folder: Path) -> bool:
+    return place == folder or folder in place.parents
 
 
 def _is_beside(top: str, folder: Path) -> bool:

@@ -249,14 +249,21 @@ def test_a_behaviour_module_that_imports_the_simulator_is_warned_about(tmp_path,
         "peeking-cli and imports hub:" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(sys.version_info < (3, 10), reason="needs sys.stdlib_module_names")
-def test_a_behaviour_module_that_imports_a_lab_pc_package_is_warned_about(tmp_path, capsys):
+@pytest.mark.parametrize("stdlib_names", ["sys.stdlib_module_names", "without it, as on Python 3.9"])
+def test_a_behaviour_module_that_imports_a_lab_pc_package_is_warned_about(tmp_path, monkeypatch, stdlib_names):
     """A behaviour importing mcap, dask or scipy (installed with khepri on the lab PC) ran in `sim run` and `sil`
     without a word and failed only on a robot, which has the standard library, numpy, pyzmq, pyyaml and
-    filterpy. Its own helper module beside it, and what a robot has, are fine."""
+    filterpy. Its own helper module beside it, and what a robot has, are fine. Python 3.9 has no
+    sys.stdlib_module_names, and said nothing: the standard library is then told by where a module lives."""
+    if stdlib_names.startswith("without"):
+        monkeypatch.delattr(sys, "stdlib_module_names", raising=False)
+    elif not hasattr(sys, "stdlib_module_names"):
+        pytest.skip("Python 3.9 has no sys.stdlib_module_names")
     (tmp_path / "pc_helper.py").write_text("GAIN = 2\n")
     (tmp_path / "pc_only.py").write_text(DRIVE_BEHAVIOUR.format(name="pc-only") + "\nimport json\nimport numpy\n"
-                                         "import filterpy\nimport pc_helper\nfrom zmq import Context\n\n\n"
+                                         "import filterpy\nimport pc_helper\nfrom zmq import Context\n"
+                                         "import sys, math, _thread, asyncio, xml.dom, email.mime, sqlite3, "
+                                         "ctypes, zipimport\n\n\n"
                                          "def later():\n    import mcap.reader\n    return mcap\n")
     try:
         warnings = import_user_modules(["pc_only"], str(tmp_path))
