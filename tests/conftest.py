@@ -50,15 +50,20 @@ def make_scenario():
 
 @pytest.fixture(autouse=True)
 def restore_behaviour_registry():
-    """Behaviours that a test registers (a user's module it imports) do not outlive it: other tests list the
-    known behaviours."""
+    """Behaviours and evaluators that a test registers (a user's module it imports) do not outlive it: other
+    tests list the known behaviours, and look evaluators up by the behaviour's name. A test module registers
+    nothing as it is imported (tests/test_suite_isolation.py): what it needs, a fixture registers."""
     from onboard import behaviour
+    from sim_backend import metrics
 
     behaviour.behaviour_names()          # the built-ins first: they register once per process, when imported
-    before = dict(behaviour._REGISTRY)
+    metrics.evaluator_for("transport")   # the same for the built-in evaluators
+    before, evaluators = dict(behaviour._REGISTRY), dict(metrics._EVALUATORS)
     yield
     behaviour._REGISTRY.clear()
     behaviour._REGISTRY.update(before)
+    metrics._EVALUATORS.clear()
+    metrics._EVALUATORS.update(evaluators)
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ from hub.harness import ScriptedHub, spawn_agent, stop_processes
 from onboard.agent.devices import AgentClock, HubState, apply_frame
 from onboard.agent.link import HubLink
 from onboard.agent.loop import Agent
-from onboard.behaviour import Behaviour, register
+from onboard.behaviour import _REGISTRY, Behaviour, register
 from onboard.drivers.sim import SimDriver
 from onboard.protocol import DOWNLINK_TYPES, ProtocolError, encode
 from onboard.protocol import decode as decode_message
@@ -216,7 +216,6 @@ def test_lockstep_agent_answers_each_frame_once_on_the_hub_clock(scripted, agent
     assert len(steps) == len(set(steps))          # never two steps for one frame
 
 
-@register("test-explode")
 class Explode(Behaviour):
     def step(self) -> None:
         self.robot.wheels.set_speeds(0.2, 0.2)
@@ -224,7 +223,16 @@ class Explode(Behaviour):
             raise RuntimeError("behaviour bug")
 
 
-def test_an_exception_in_the_behaviour_stops_the_wheels_and_ends_the_agent(scripted):
+@pytest.fixture
+def explode():
+    """"test-explode", known only to the test that asks for it: registered as this module was imported, it was
+    among the known behaviours of every test the session ran after collecting this file."""
+    register("test-explode")(Explode)
+    yield "test-explode"
+    _REGISTRY.pop("test-explode", None)
+
+
+def test_an_exception_in_the_behaviour_stops_the_wheels_and_ends_the_agent(scripted, explode):
     link = HubLink(0, scripted.endpoint)
     agent = Agent(0, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=lambda line: None)
     failure = []
@@ -238,7 +246,7 @@ def test_an_exception_in_the_behaviour_stops_the_wheels_and_ends_the_agent(scrip
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
     scripted.wait_for(lambda m: m["type"] == "hello")
-    start_run(scripted, {**RUN, "behaviour": "test-explode"})
+    start_run(scripted, {**RUN, "behaviour": explode})
     deadline = time.monotonic() + 5.0
     while thread.is_alive() and time.monotonic() < deadline:
         scripted.frame()
