@@ -85,7 +85,7 @@ def _child_environment() -> dict:
 
 
 def guard(library_path: str, parent_pid: int, stream: IO[bytes]) -> int:
-    from onboard.drivers.kh4 import LibkheperaError, stop_robot  # loaded now: react at once
+    from onboard.drivers.libkhepera import LibkheperaError, stop_robot  # loaded now: react at once
 
     said = stream.read()          # returns when the agent closes the pipe, or dies
     if said.endswith(CLEAN):
@@ -109,7 +109,7 @@ def guard(library_path: str, parent_pid: int, stream: IO[bytes]) -> int:
 def _guard_after_partial_stop(library_path: str, parent_pid: int, agent_stopped: str) -> int:
     """The agent stopped the wheels as it closed the driver, by one way only: try both again, and say what the
     agent did, then what this did. The wheels stand still whatever this manages: exit code 0."""
-    from onboard.drivers.kh4 import LibkheperaError, stop_robot
+    from onboard.drivers.libkhepera import LibkheperaError, stop_robot
 
     try:
         partly = stop_robot(library_path)
