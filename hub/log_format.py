@@ -1,8 +1,8 @@
 """The khepri log format as its writer and its reader share it: names, topics, schemas, metadata and records.
 
 docs/recording.md documents the format for users. :mod:`hub.recording` writes it (and is where users import
-from); :mod:`hub.log_summary` reads it. Both take their vocabulary from here, so neither imports the other's
-machinery.
+from); :mod:`hub.log_reader` reads it and :mod:`hub.log_summary` summarises it. They take their vocabulary from
+here, so the writer and the readers do not import each other's machinery.
 
 - One MCAP channel per topic, message encoding ``json`` (compact UTF-8 JSON objects, :data:`compact_json`), and
   a ``jsonschema`` schema per kind of topic (all ``/robot/<id>/frame`` channels share one schema).

@@ -2,7 +2,7 @@
 
 The format is documented for users in docs/recording.md and named in :mod:`hub.log_format`. This module is
 where users import from: :class:`Recorder` writes logs, and the replay source, the replay tool and the live
-viewer read them through :func:`read_log` (or :class:`~hub.log_summary.LogReader`). The hub's loop records
+viewer read them through :func:`read_log` (or :class:`~hub.log_reader.LogReader`). The hub's loop records
 through :class:`~hub.background_recorder.BackgroundRecorder`, which wraps a Recorder.
 
 - ``log_time`` = ``publish_time`` = the hub clock (``time.time()``) in nanoseconds; ``sequence`` = write order.
@@ -46,7 +46,8 @@ from .log_format import (
     schema_name_for,
     split_robot_topic,
 )
-from .log_summary import LogReader, LogSummary
+from .log_reader import LogReader
+from .log_summary import LogSummary
 from .log_summary import summarise as summarise_log
 
 # Users import recording from here (docs/recording.md): besides its own Recorder, read_log and summarise, this

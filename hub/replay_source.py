@@ -22,7 +22,7 @@ class ReplaySource(PoseSource):
     hub recording, which is said at start."""
 
     def __init__(self, path: str, rate: float = 1.0, log: Callable[[str], None] = print):
-        from hub.log_summary import LogReader
+        from hub.log_reader import LogReader
         from hub.recording import MOCAP_POSES, LogError
 
         self.description = f"replay {path}"
@@ -55,7 +55,7 @@ class ReplaySource(PoseSource):
     def never_placed(self, ids: List[int]) -> List[int]:
         """Those of ``ids`` that no readable ``/mocap/poses`` record of the log places: the replay would hold
         them all along. Reads the log (a second reader) only until every one of ``ids`` has been seen."""
-        from hub.log_summary import LogReader
+        from hub.log_reader import LogReader
         from hub.recording import MOCAP_POSES, LogError
 
         missing = set(ids)
