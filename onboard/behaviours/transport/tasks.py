@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from ...stigmergy import TupleSpace, lowest_field
-from .heartbeat import DEFAULT_HEARTBEAT_RULE, HEARTBEAT_RULES, says_nothing_new
+from .liveness import Liveness
 
 BRANCH_DIRECTION = {"L": 1, "R": -1, "S": 0}   # L grows counter-clockwise around the object, R clockwise
 
@@ -61,8 +61,9 @@ def new_space(owner: int) -> TupleSpace:
                       relay_quorum=2, anti_entropy_period=10)
 
 
-class TaskBoard:
-    """Typed access to the tuple space, plus who is alive (from the pos/ heartbeats as this robot sees them)."""
+class TaskBoard(Liveness):
+    """Typed access to the tuple space, plus who is alive (from the pos/ heartbeats as this robot sees them, in
+    :class:`~onboard.behaviours.transport.liveness.Liveness`)."""
 
     def __init__(self, space: TupleSpace, liveness_timeout_s: float):
         self.space = space
@@ -209,7 +210,7 @@ class TaskBoard:
     def take(self, task: Task, robot: int, amount: float) -> None:
         self.space.put(f"owner/{task.tid}", {"robot": robot, "bid": round(amount, 4), "epoch": task.epoch})
 
-    # --- members and heartbeats ---------------------------------------------------------------------
+    # --- members (their heartbeats: Liveness) -------------------------------------------------------
     def join_cage(self, robot: int, task: Task) -> None:
         self.space.put(f"member/{robot}", {"tid": task.tid, "branch": task.branch, "index": task.index})
 
@@ -286,78 +287,10 @@ class TaskBoard:
             self._members = found
         return self._members
 
-    def heartbeat(self, robot: int, x: float, y: float, normal: Optional[float],
-                  surface: Optional[Tuple[float, float]] = None, now: Optional[float] = None,
-                  state: Optional[str] = None) -> None:
-        """Publish this robot's position, contact normal and the point of the object's surface its IR sees,
-        if one of them changed enough, the last heartbeat is getting old or the robot's ``state`` changed;
-        ``now`` defaults to the time given to the latest ``refresh_liveness``. What counts as enough, and
-        as old, depends on the state (HEARTBEAT_RULES)."""
-        now = self._now if now is None else now
-        key = f"pos/{robot}"
-        value = [round(x, 4), round(y, 4), None if normal is None else round(normal, 3),
-                 None if surface is None else [round(surface[0], 4), round(surface[1], 4)]]
-        held = self.space.get(key)
-        rule = HEARTBEAT_RULES.get(state, DEFAULT_HEARTBEAT_RULE)
-        if now is not None and self._beat_at is not None and now - self._beat_at < rule.period_s - 1e-9 \
-                and state == self._beat_state and isinstance(held, list) and len(held) == 4 \
-                and says_nothing_new(held, value, rule):
-            return
-        self.space.put(key, value)
-        self._beat_at, self._beat_state = now, state
-
-    def refresh_liveness(self, now: float) -> None:
-        self._now = now
-        # Only the heartbeats that changed since the last call: an unchanged entry has nothing newer to say.
-        for key in self.space.changed_keys("pos"):
-            entry = self.space.entry(key)
-            try:
-                rid = int(key[len("pos/"):])
-            except ValueError:
-                continue
-            seen = self._heartbeats.get(rid)
-            if seen is None or entry.timestamp > seen[0]:
-                self._heartbeats[rid] = (entry.timestamp, now)
-
-    def alive(self, robot: int, now: float, within: Optional[float] = None) -> bool:
-        """A heartbeat of ``robot`` arrived within the liveness timeout (or ``within`` seconds) of ``now``."""
-        seen = self._heartbeats.get(robot)
-        return seen is not None and now - seen[1] <= (self.timeout if within is None else within)
-
-    def last_heard(self, robot: int) -> Optional[float]:
-        """The local time ``robot``'s heartbeat last changed (None: never heard of it)."""
-        seen = self._heartbeats.get(robot)
-        return None if seen is None else seen[1]
-
-    def heard_of(self, robot: int) -> bool:
-        return robot in self._heartbeats
-
     def mission_robots(self) -> List[Any]:
         """The robots at work on the mission as far as this replica knows: cage members and task owners."""
         self._index_owners()
         return list(self._current_members()) + list(self._owned)
-
-    def position(self, robot: int) -> Optional[Tuple[float, float]]:
-        value = self.space.get(f"pos/{robot}")
-        if isinstance(value, list) and len(value) >= 2:
-            return (float(value[0]), float(value[1]))
-        return None
-
-    def surface_point(self, robot: int) -> Optional[Tuple[float, float]]:
-        """Where the robot's IR last saw the object's surface (world frame), if it saw it."""
-        value = self.space.get(f"pos/{robot}")
-        if isinstance(value, list) and len(value) >= 4 and isinstance(value[3], list) and len(value[3]) == 2:
-            try:
-                return (float(value[3][0]), float(value[3][1]))
-            except (TypeError, ValueError):
-                return None
-        return None
-
-    def contact_normal(self, robot: int) -> Optional[float]:
-        value = self.space.get(f"pos/{robot}")
-        if isinstance(value, list) and len(value) >= 3 and isinstance(value[2], (int, float)):
-            return float(value[2])
-        return None
 
     # --- cage-wide flags ------------------------------------------------------------------------------
     def grow_level(self) -> int:
