@@ -6,7 +6,7 @@ only a motion-capture reader runs beside it (``hub/sources.py``).
 
 This module holds the :class:`Hub`'s state, sockets, loop, pose handling and safety modes; what it sends is in
 ``hub/downlink.py`` and what it receives from robots in ``hub/uplink.py`` (mixins of the same class), operator
-requests in ``hub/control_service.py``.
+requests in ``hub/control_service.py``, and what it checks and says periodically in ``hub/housekeeping.py``.
 """
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ from .background_recorder import BackgroundRecorder
 from .config import LabConfig
 from .control_service import ControlService
 from .downlink import Downlink
+from .housekeeping import MOCAP_SILENT_S, NO_POSE_YET_WARNING_S, Housekeeping
 from .links import VIRTUAL_DRIVERS, DropLog, RateMeter, RobotLink, SparseFrames
 from .relay import RadioRelay
 from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HandshakeWatch, HubAuthenticator, KeyRing, make_curve_server
@@ -39,9 +40,6 @@ UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting
 # The longest the hub reads one socket before it sends the frames due: a flood of messages (a fuzzer, a
 # misbehaving peer) must not hold back the frames the agents' 0.3 s watchdogs wait for.
 READ_SLICE_S = 0.02
-MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
-NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
-NO_POSE_YET_REPEAT_S = 30.0    # ...and again this often while none does
 SHUTDOWN_ACK_WAIT_S = 0.3      # at shutdown, how long the hub waits for the agents to acknowledge its stop
 
 
@@ -65,7 +63,7 @@ class RunTemplate:
         return message
 
 
-class Hub(Downlink, Uplink):
+class Hub(Downlink, Uplink, Housekeeping):
     def __init__(self, config: LabConfig, source: PoseSource, robot_ids: List[int], run: RunTemplate,
                  sensing: SensingModel, relay_drop: float, seed=None, keyring: Optional[KeyRing] = None,
                  recorder=None, log: Callable[[str], None] = print, context: Optional[zmq.Context] = None):
@@ -324,59 +322,6 @@ class Hub(Downlink, Uplink):
             return "hold", "outside the geofence"
         return "run", ""
 
-    # --- periodic ---------------------------------------------------------------------------------------
-    def housekeeping(self, now: float) -> None:
-        self.resend_unacknowledged(now)
-        if not self.run.lockstep:       # in lockstep the hub paces the frames itself: none is ever late
-            self._expire_stale_poses(now)
-        self._warn_if_no_pose_yet(now)
-        self.say_silent_robots(now)
-        self.drops.flush(now)
-        silent = now - self.last_frame_stamp > MOCAP_SILENT_S and self.last_frame_stamp > -math.inf
-        if silent != self.mocap_silent:
-            self.mocap_silent = silent
-            self.log("hub: no motion-capture frame for 1 s: robots without a pose are held" if silent
-                     else "hub: motion capture is back")
-        if self.recorder is not None and now >= self._next_status_record:
-            self._next_status_record = now + 1.0
-            self.recorder.write("/hub/status", self.control.status(now))
-        self._say_when_finished(now)
-
-    def _say_when_finished(self, now: float) -> None:
-        """Once per run, when every connected robot says its job is done (the behaviour's ``finished``, which
-        ends a simulated run): said, not acted on; ending a lab run is the operator's ``ctl stop``."""
-        if self.mode != "run" or self.run_id is None or self._finished_said == self.run_id:
-            return
-        connected = [r for r in self.robots.values() if r.connected(now, self.config.watchdog_s)]
-        runs = [((r.telemetry or {}).get("behaviour") or {}) for r in connected]
-        if connected and all(r.run_id == self.run_id for r in connected) and all(b.get("finished") for b in runs):
-            self._finished_said = self.run_id
-            self.log(f"hub: run {self.run_id}: every connected robot ({len(connected)}) reports its job finished; "
-                     "`khepri ctl stop` ends the run")
-
-    def _expire_stale_poses(self, now: float) -> None:
-        """Bodies not seen for ``source.stale_s`` lose their pose, and their robots are held, also when no
-        frame comes at all (motion capture stopped, the replay ended). Presence used to be recomputed only
-        when a frame arrived, so without frames every robot ran on, for ever, on its last pose."""
-        stale = self.sensors.present & (now - self.seen_at > self.stale_s)
-        if stale.any():
-            present = self.sensors.present & ~stale
-            self.sensors.update(self.poses, present)
-            self._check_geofence(present)
-
-    def _warn_if_no_pose_yet(self, now: float) -> None:
-        """A source that never delivers (no server, wrong host, a log without poses) is said from the start,
-        not only once frames stop after a first one. Lockstep frames wait for the agents: nothing to say."""
-        if self.placed_a_robot or self.run.lockstep or now < self._next_no_pose_warning:
-            return
-        self._next_no_pose_warning = now + NO_POSE_YET_REPEAT_S
-        after, source = f"{now - self.started_at:.0f} s", self.source.description
-        if self.last_frame_stamp == -math.inf:
-            self.log(f"hub: no motion-capture frame yet after {after} from {source}")
-        else:
-            self.log(f"hub: the frames from {source} hold none of this lab's robots yet after {after} "
-                     f"(check source.bodies and robots; this lab's robots: {format_ids(self.ids)})")
-
     def _recording_failed(self, error: BaseException) -> None:
         self.log(f"hub: RECORDING STOPPED: {error}; the run goes on without a log (ctl status says so)")
 
@@ -395,11 +340,6 @@ def poses_record(frame: PoseFrame) -> Dict[str, Any]:
         bodies[str(rid)] = [round(x, 5) + 0.0, round(y, 5) + 0.0, 0.0, 0.0, 0.0,
                             round(math.sin(yaw / 2.0), 6) + 0.0, round(math.cos(yaw / 2.0), 6) + 0.0]
     return {"bodies": bodies, "clock_s": frame.clock_s}
-
-
-def format_ids(ids: List[int], limit: int = 10) -> str:
-    shown = ", ".join(map(str, ids[:limit]))
-    return shown + (f" and {len(ids) - limit} more" if len(ids) > limit else "")
 
 
 # A loopback this PC does not have (a container without IPv6): ZeroMQ says "No such device" or "Cannot assign".
