@@ -1,6 +1,7 @@
 """``khepri ctl``'s side of the control socket: one request, one reply, and the status table."""
 from __future__ import annotations
 
+import math
 import random
 import time
 from typing import Any, Dict, List, Optional, Tuple
@@ -114,6 +115,9 @@ def status_table(status: Dict[str, Any]) -> str:
     lines.append(header)
     for row in status["robots"]:
         lines.append(_row(row))
+    # A newer hub's field (docs/protocol.md): an older hub's reply has none, and gets no such line.
+    if status.get("object"):
+        lines.append(object_text(status["object"]))
     drops = status.get("drops") or {}
     if drops:
         lines.append("dropped: " + ", ".join(f"{reason} {count}" for reason, count in sorted(drops.items())))
@@ -135,3 +139,24 @@ def _row(row: Dict[str, Any]) -> str:
         notes.append(f"e-stop acknowledged in {row['estop_ack_ms']:.1f} ms")
     return f"{row['id']:>5}  {'yes' if row['connected'] else 'no':9}  {seen:>9}  {row['mode']:7}  " \
            f"{str(row.get('state') or '-'):14.14}  {loop:>7}  {misses:>6}  {battery:>7}  {'; '.join(notes)}"
+
+
+def object_text(status: Optional[Dict[str, Any]]) -> str:
+    """'object at (0.01, 0.31) m, yaw -2.0°, waypoint 2 of 3 is 0.29 m away': ``ctl status``'s line."""
+    if not status:
+        return ""
+    x, y, yaw = status["pose"]
+    text = f"object at ({x:.2f}, {y:.2f}) m, yaw {_degrees(yaw)}°"
+    count, reached = status["waypoints"], status.get("reached")
+    if not count:
+        return text + ", no waypoints"
+    if reached is None or status.get("distance_m") is None:
+        return text + f", {count} waypoint{'s' if count != 1 else ''} (which are reached is not known)"
+    away = f"{status['distance_m']:.2f} m and {_degrees(status['yaw_error_rad'])}°"
+    if reached >= count:
+        return text + f", all {count} waypoints reached, {away} from the last"
+    return text + f", waypoint {status['target'] + 1} of {count} is {away} away ({reached} reached)"
+
+
+def _degrees(radians: float) -> str:
+    return f"{round(math.degrees(radians), 1) + 0.0:.1f}"     # + 0.0: never "-0.0"

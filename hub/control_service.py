@@ -15,6 +15,7 @@ from onboard.jsontext import parse_json
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
 from .links import frame_sender
+from .run_events import outcome_text, run_event
 
 if TYPE_CHECKING:
     from .server import Hub
@@ -107,6 +108,9 @@ class ControlService:
             for robot in hub.robots.values():
                 robot.estop_ack_s = None
             hub.send_command_to_all("start")
+            if hub.progress is not None:
+                hub.progress.start(hub.source.time_s)
+            run_event(hub, hub.run_id, "started", "start", sender)
             hub.log(f"hub: run {hub.run_id} started by {sender}: {hub.run.behaviour}")
         else:
             hub.log(f"hub: run {hub.run_id} resumed by {sender}")
@@ -134,7 +138,8 @@ class ControlService:
         hub._hold_sim_wheels(time.monotonic())
         if run_id is None:
             return True, nothing_done("nothing to stop: no run is going")
-        hub.log(f"hub: run {run_id} stopped by {sender}")
+        outcome = outcome_text(run_event(hub, run_id, "ended", "stop", sender))
+        hub.log(f"hub: run {run_id} stopped by {sender}" + (f": {outcome}" if outcome else ""))
         return True, {"note": f"run {run_id} ended; " + self._reach("told to stop")}
 
     def status(self, now: float) -> Dict[str, Any]:
@@ -154,6 +159,7 @@ class ControlService:
             "drops": dict(hub.drops.counts),
             "relay": hub.relay.stats.as_dict(),
             "robots": rows,
+            "object": hub.progress.status() if hub.progress is not None else None,   # sim source only
         }
 
 

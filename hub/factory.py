@@ -65,8 +65,13 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     except Exception:
         source.close()
         raise
+    progress = None
+    if config.source.type == "sim":       # the hub holds the world: it can tell how the object is doing
+        from .progress import RunProgress
+
+        progress = RunProgress(run.behaviour, scenario, source.world, log)
     return Hub(config, source, ids, run, sensing_model(config, scenario), relay_drop(config, scenario), seed=seed,
-               keyring=keyring, recorder=recorder, log=log, context=context)
+               keyring=keyring, recorder=recorder, log=log, context=context, progress=progress)
 
 
 def robot_ids(config: LabConfig, source: PoseSource):

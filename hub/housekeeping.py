@@ -1,5 +1,5 @@
 """The hub's periodic checks: stale poses, a source that places no robot, silent motion capture, the 1 Hz
-status record, and a run whose robots all report their job finished.
+status record, the run's progress (sim source), and a run whose robots all report their job finished.
 
 A mixin of :class:`~.server.Hub`, like :class:`~.downlink.Downlink` and :class:`~.uplink.Uplink`: the loop calls
 :meth:`Housekeeping.housekeeping` once each time round.
@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import math
 from typing import List
+
+from .run_events import follow_progress
 
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
 NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
@@ -30,6 +32,7 @@ class Housekeeping:
         if self.recorder is not None and now >= self._next_status_record:
             self._next_status_record = now + 1.0
             self.recorder.write("/hub/status", self.control.status(now))
+        follow_progress(self)
         self._say_when_finished(now)
 
     def _say_when_finished(self, now: float) -> None:

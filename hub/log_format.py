@@ -29,6 +29,7 @@ MOCAP_POSES = "/mocap/poses"
 CONTROL = "/control"
 HUB_DROPS = "/hub/drops"
 HUB_STATUS = "/hub/status"
+HUB_RUN = "/hub/run"
 ROBOT_TOPIC_KINDS = ("frame", "broadcast", "relay", "telemetry", "command", "wheels")
 
 PathLike = Union[str, Path]
@@ -99,10 +100,16 @@ SCHEMAS: Dict[str, dict] = {
          "count": {"type": "integer", "minimum": 1}},
         required=("reason", "count")),
     "khepri.HubStatus": _object_schema("khepri.HubStatus", "Periodic hub statistics."),
+    "khepri.HubRun": _object_schema(
+        "khepri.HubRun", "A run started, reached its last waypoint, or ended; with the sim source, the object's "
+                         "progress and the outcome.",
+        {"run_id": {"type": "string"}, "event": {"enum": ["started", "all waypoints reached", "ended"]},
+         "cause": {"type": "string"}, "by": {"type": "string"}},
+        required=("run_id", "event")),
     "khepri.Any": _object_schema("khepri.Any", "A JSON object on a topic khepri does not define."),
 }
 _FIXED_TOPIC_SCHEMAS = {MOCAP_POSES: "khepri.MocapPoses", CONTROL: "khepri.Control", HUB_DROPS: "khepri.HubDrops",
-                        HUB_STATUS: "khepri.HubStatus"}
+                        HUB_STATUS: "khepri.HubStatus", HUB_RUN: "khepri.HubRun"}
 _ROBOT_KIND_SCHEMAS = {"frame": "khepri.RobotFrame", "broadcast": "khepri.RobotBroadcast",
                        "relay": "khepri.RobotRelay", "telemetry": "khepri.RobotTelemetry",
                        "command": "khepri.RobotCommand", "wheels": "khepri.RobotWheels"}

@@ -17,6 +17,7 @@ from mcap.records import Channel, Message
 from hub.log_format import (
     FORMAT_METADATA,
     HUB_DROPS,
+    HUB_RUN,
     MOCAP_POSES,
     USER_METADATA,
     PathLike,
@@ -59,6 +60,10 @@ class LogSummary:
     # Only with check_payloads (log info --check): messages of JSON channels that are not JSON objects, which
     # read_log stops at with a LogError; one line per topic. Empty otherwise, as they were not decoded.
     refused_messages: List[str] = dataclasses.field(default_factory=list)
+    # The runs of the hub, in the order they started, from /hub/run: run_id, behaviour, started_s, started_by,
+    # arrived_s (all waypoints reached), ended_s, ended_by, end_cause (ctl stop, signal), outcome, failures
+    # and object (the sim source's progress at the end). A run the log has no end of has ended_s None.
+    runs: List[Dict[str, Any]] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         """Every field, for JSON. Not ``dataclasses.asdict``, which copies every value recursively, two frames
@@ -84,6 +89,25 @@ class _Tally:
     end_ns: Optional[int] = None
     first_poses: Optional[bytes] = None    # the raw first and last /mocap/poses messages, for their clock_s
     last_poses: Optional[bytes] = None
+    runs: Dict[str, Dict[str, Any]] = dataclasses.field(default_factory=dict)     # run id -> LogSummary.runs row
+
+    def add_run(self, payload: Any, stamp_s: float) -> None:
+        """One /hub/run record: a run's start, its arrival at the last waypoint, or its end."""
+        if not isinstance(payload, dict) or not isinstance(payload.get("run_id"), str):
+            return
+        run = self.runs.setdefault(payload["run_id"], {
+            "run_id": payload["run_id"], "behaviour": payload.get("behaviour"), "started_s": None,
+            "started_by": None, "arrived_s": None, "ended_s": None, "ended_by": None, "end_cause": None,
+            "outcome": None, "failures": [], "object": None})
+        event, by = payload.get("event"), payload.get("by")
+        if event == "started":
+            run.update(started_s=stamp_s, started_by=by)
+        elif event in ("all waypoints reached", "ended"):
+            run.update({key: payload[key] for key in ("outcome", "failures", "object") if key in payload})
+            if event == "ended":
+                run.update(ended_s=stamp_s, ended_by=by, end_cause=payload.get("cause"))
+            else:
+                run["arrived_s"] = stamp_s
 
     def add_poses(self, data: bytes) -> None:
         """Only kept: decoding every pose record would cost a long log's walk more than the walk."""
@@ -143,6 +167,8 @@ def _summary_from_index(reader: LogReader) -> LogSummary:
             tally.start_ns, tally.end_ns = stats.message_start_time, stats.message_end_time
         for _schema, _channel, message in indexed.iter_messages(topics=[HUB_DROPS], log_time_order=False):
             tally.add_drops(json_or_none(message.data))
+        for _schema, _channel, message in indexed.iter_messages(topics=[HUB_RUN]):
+            tally.add_run(json_or_none(message.data), message.log_time / 1e9)
         # The first and the last pose record: a chunk at each end, not the whole file.
         for reverse in (False, True):
             found = next(indexed.iter_messages(topics=[MOCAP_POSES], reverse=reverse), None)
@@ -173,6 +199,8 @@ def _summary_from_records(reader: LogReader, check_payloads: bool = False) -> Lo
             tally.add_drops(json_or_none(message.data))
         elif topic == MOCAP_POSES:
             tally.add_poses(message.data)
+        elif topic == HUB_RUN:
+            tally.add_run(json_or_none(message.data), message.log_time / 1e9)
     summary = _build_summary(reader, tally, reader.metadata)
     summary.refused_messages = refused.lines()
     return summary
@@ -217,7 +245,8 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         format_version=int(version) if version.isdigit() else None, damaged_records=list(reader.damaged),
         sim_start_s=sim_start_s, sim_end_s=sim_end_s,
         foreign_topics={topic: {"encoding": tally.foreign_encodings[topic], "messages": count}
-                        for topic, count in sorted(tally.foreign.items(), key=lambda item: natural_key(item[0]))})
+                        for topic, count in sorted(tally.foreign.items(), key=lambda item: natural_key(item[0]))},
+        runs=list(tally.runs.values()))
 
 
 def _clock_s(poses: Optional[bytes]) -> Optional[float]:

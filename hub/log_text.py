@@ -9,6 +9,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 from hub.log_format import split_robot_topic
 from hub.log_summary import LogSummary
+from hub.run_events import outcome_text
 from onboard.jsontext import dump_json
 
 #: What ``khepri log info`` prints in place of a metadata value it cannot print (see printable_metadata).
@@ -56,6 +57,7 @@ def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
             width = max(len(topic) for topic, _ in rows)
             lines += [f"  {topic:<{width}}  {count:>10}" for topic, count in rows]
     lines += _foreign_lines(summary)
+    lines += [f"run:       {_run_text(run)}" for run in summary.runs]
     lines.append(f"drops:     {_drops_text(summary)}")
     for key, value in summary.metadata.items():
         lines.append(f"metadata:  {key} = {json.dumps(value)}")
@@ -71,6 +73,27 @@ def _foreign_lines(summary: LogSummary) -> List[str]:
     return ([f"foreign:   {len(summary.foreign_topics)} channel(s) not JSON, skipped by read_log and the replay:"]
             + [f"  {topic:<{width}}  {row['messages']:>10}  ({row['encoding'] or 'no encoding'})"
                for topic, row in rows])
+
+
+def _run_text(run: Dict[str, Any]) -> str:
+    """'3f2a... (transport): started 20:26:41 by operator at 127.0.0.1; ended 20:27:40 by SIGTERM: not completed
+    (cage did not close); object at ...': a run as its /hub/run records tell it."""
+    said = [f"started {_time(run['started_s'])} by {run['started_by']}"] if run.get("started_s") else []
+    if run.get("arrived_s"):
+        said.append(f"all waypoints reached {_time(run['arrived_s'])}")
+    if run.get("ended_s"):
+        how = "stopped" if run.get("end_cause") == "stop" else "ended"      # else by a signal, named
+        said.append(f"{how} {_time(run['ended_s'])} by {run.get('ended_by')}")
+    else:
+        said.append("no end in the log (the hub was killed, or is still running)")
+    outcome = outcome_text(run)       # a row has a /hub/run record's outcome, failures and object
+    if outcome:
+        said[-1] += f": {outcome}"
+    return f"{run['run_id']} ({run.get('behaviour') or '?'}): {'; '.join(said)}"
+
+
+def _time(stamp_s: float) -> str:
+    return datetime.fromtimestamp(stamp_s).astimezone().strftime("%H:%M:%S")
 
 
 def _status(summary: LogSummary) -> str:

@@ -14,7 +14,7 @@ import errno
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import zmq
@@ -34,6 +34,9 @@ from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HandshakeWatch, HubAuthenti
 from .sensors import SensingModel, VirtualSensors
 from .sources import PoseFrame, PoseSource
 from .uplink import Uplink
+
+if TYPE_CHECKING:
+    from .progress import RunProgress
 
 DOWNLINK_HWM = 8          # frames queued per robot; older data is useless, a full queue drops (latest-only)
 UPLINK_SLICE = 16         # uplink messages read between two looks for a waiting pose frame and at the clock
@@ -66,7 +69,8 @@ class RunTemplate:
 class Hub(Downlink, Uplink, Housekeeping):
     def __init__(self, config: LabConfig, source: PoseSource, robot_ids: List[int], run: RunTemplate,
                  sensing: SensingModel, relay_drop: float, seed=None, keyring: Optional[KeyRing] = None,
-                 recorder=None, log: Callable[[str], None] = print, context: Optional[zmq.Context] = None):
+                 recorder=None, log: Callable[[str], None] = print, context: Optional[zmq.Context] = None,
+                 progress: Optional[RunProgress] = None):
         if recorder is not None and not isinstance(recorder, BackgroundRecorder):
             # The loop only queues; a thread of its own writes. A write that fails (a full disk) ends the
             # recording, not the lab run: the robots keep being served, and the operator is told.
@@ -96,6 +100,8 @@ class Hub(Downlink, Uplink, Housekeeping):
         self.mocap_silent = False
         self.sparse_frames = SparseFrames(self.stale_s, MOCAP_SILENT_S)
         self._finished_said: Optional[str] = None    # the run whose end was said
+        self.progress = progress          # the sim source's object and waypoints (hub/progress.py), else None
+        self.arrival_said: Optional[str] = None      # the run whose arrival at its last waypoint was said
         self.placed_a_robot = False       # some frame has held a pose for one of this lab's robots
         self.mode = "idle"
         self.run_id: Optional[str] = None

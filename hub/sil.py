@@ -190,6 +190,8 @@ class SilSession:
         self.source = hub.source
         self.limit_s = limit_s
         self.evaluator = make_evaluator(scenario.behaviour, scenario, self.source.world)
+        if hub.progress is not None:      # the hub's console and log tell the run's progress from this one
+            hub.progress.attach(self.evaluator)
         behaviour_cls = get_behaviour(scenario.behaviour)       # the agents build these same params
         self.warnings = evaluator_call(self.evaluator, "warnings",
                                        build_params(behaviour_cls, mission_params(behaviour_cls, scenario)))

@@ -6,12 +6,14 @@ the evaluators. Each returns the behaviour-specific part of result.json.
 """
 from __future__ import annotations
 
+import math
 import traceback
-from typing import Any, Callable, Dict, List, Optional, Type
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Type
 
 import numpy as np
 
 from onboard.behaviour import USER_CODE_ERRORS
+from onboard.geometry import wrap
 from onboard.plugins import OTHER_REGISTRIES
 from onboard.tracebacks import traceback_lines, where_in_users_code
 
@@ -37,6 +39,18 @@ class Evaluator:
 
     def result(self) -> Dict[str, Any]:
         return {}
+
+    def waypoints_reached(self) -> Optional[int]:
+        """How many of the scenario's waypoints the run has reached so far, by this evaluator's rule (the hub's
+        `ctl status` shows it); None when it does not judge waypoints."""
+        return None
+
+
+def waypoint_error(truth: Sequence[float], target: Sequence[float]) -> Tuple[float, float]:
+    """The object's distance (m) and absolute yaw difference (rad) from a waypoint ``[x, y, yaw_deg]``, given its
+    true pose ``[x, y, yaw_rad]``: result.json's ``position_error_m`` and ``orientation_error_rad``."""
+    return (float(math.hypot(truth[0] - target[0], truth[1] - target[1])),
+            float(abs(wrap(truth[2] - math.radians(target[2])))))
 
 
 class EvaluatorError(RuntimeError):

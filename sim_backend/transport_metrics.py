@@ -11,9 +11,8 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from onboard.behaviours.transport.params import TransportParams
-from onboard.geometry import wrap
 
-from .metrics import Evaluator, register_evaluator
+from .metrics import Evaluator, register_evaluator, waypoint_error
 from .transport_preflight import floor_friction_n, judges_yaw, push_force_n, transport_warnings
 
 SPACING_SAMPLE_PERIOD_S = 1.0
@@ -94,15 +93,19 @@ class TransportEvaluator(Evaluator):
         est_error = float(np.mean([math.hypot(e[0] - truth[0], e[1] - truth[1]) for e in estimates])) \
             if estimates else None
         steps = self.phase_steps
+        position_error, orientation_error = waypoint_error(truth, target)
         return {
             "index": k,
             "reached_s": round(time_s, 2),
-            "position_error_m": float(math.hypot(truth[0] - target[0], truth[1] - target[1])),
-            "orientation_error_rad": float(abs(wrap(truth[2] - math.radians(target[2])))),
+            "position_error_m": position_error,
+            "orientation_error_rad": orientation_error,
             "centroid_estimation_error_m": est_error,
             "effective_pushers": round(len(self.pushers.get(k, [])) / max(1, steps.get(("push", k), 1)), 2),
             "effective_rotators": round(len(self.rotators.get(k, [])) / max(1, steps.get(("rotate", k), 1)), 2),
         }
+
+    def waypoints_reached(self) -> Optional[int]:
+        return len(self.reached) if self.scenario.path else None
 
     def _adjacent_distances(self, live: List[int]) -> List[float]:
         """Distances between neighbours around the cage, in angular order about the true centroid."""
@@ -176,13 +179,13 @@ class TransportEvaluator(Evaluator):
             within = all(w["position_error_m"] <= d_tol and (not judge_yaw or w["orientation_error_rad"] <= yaw_tol)
                          for w in waypoints)
             truth = self.world.object_pose()
-            final = scenario.path[-1]
+            final_position_error, final_orientation_error = waypoint_error(truth, scenario.path[-1])
             out.update({
                 "completed": bool(caged and done and within),
                 "time_to_complete_s": round(waypoints[-1]["reached_s"] - self.closed_at, 2) if done and caged else None,
                 "waypoints": waypoints,
-                "final_position_error_m": float(math.hypot(truth[0] - final[0], truth[1] - final[1])),
-                "final_orientation_error_rad": float(abs(wrap(truth[2] - math.radians(final[2])))),
+                "final_position_error_m": final_position_error,
+                "final_orientation_error_rad": final_orientation_error,
                 "cage_spacing_m": {"mean": float(np.mean(self.spacings)) if self.spacings else None,
                                    "std": float(np.std(self.spacings)) if self.spacings else None},
             })

@@ -40,6 +40,11 @@ def test_sil_lab6_cages_and_reaches_every_waypoint(tmp_path, name):
     topics = {record.topic for record in read_log(tmp_path / "hub.mcap")}
     assert {"/mocap/poses", "/robot/0/frame", "/robot/5/telemetry", "/robot/3/broadcast", "/robot/1/command",
             "/control"} <= topics
+    # The hub tells the run's outcome from sil's own evaluator, in its log and on its console (hub.log).
+    runs = summarise(tmp_path / "hub.mcap").runs
+    assert [(r["outcome"], r["end_cause"], r["ended_by"]) for r in runs] == [("completed", "stop", "sil")]
+    assert runs[0]["arrived_s"] is not None and runs[0]["object"]["reached"] == len(scenario.path)
+    assert f"hub: run {runs[0]['run_id']} stopped by sil: completed; object at (" in (tmp_path / "hub.log").read_text()
 
 
 def test_a_clean_short_run_reports_no_drop(tmp_path):

@@ -1,0 +1,50 @@
+"""A run's start, its arrival at the last waypoint and its end, said on the hub's console and recorded on
+``/hub/run`` (docs/recording.md), with the object's progress and the outcome when the hub knows them (the
+``sim`` source: ``hub/progress.py``).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Dict
+
+from .control import object_text
+from .log_format import HUB_RUN
+
+if TYPE_CHECKING:
+    from .server import Hub
+
+
+def follow_progress(hub: Hub) -> None:
+    """Each new control step of a run: the evaluator sees it, and the arrival at the last waypoint is said once."""
+    progress = hub.progress
+    if progress is None or hub.mode != "run" or hub.run_id is None:
+        return
+    if not progress.follow(hub):
+        return
+    count = len(progress.scenario.path)
+    if count and hub.arrival_said != hub.run_id and progress.reached() == count:
+        hub.arrival_said = hub.run_id
+        event = run_event(hub, hub.run_id, "all waypoints reached", "waypoints", "the swarm")
+        hub.log(f"hub: run {hub.run_id}: all {count} waypoints reached: {outcome_text(event)}; "
+                "`khepri ctl stop` ends the run")
+
+
+def run_event(hub: Hub, run_id: str, event: str, cause: str, by: str) -> Dict[str, Any]:
+    """The ``/hub/run`` record of a run's ``started``, ``all waypoints reached`` or ``ended``, with the object's
+    progress and (but at the start) the outcome when the hub knows them; recorded when the hub records."""
+    record: Dict[str, Any] = {"run_id": run_id, "event": event, "cause": cause, "by": by,
+                              "behaviour": hub.run.behaviour}
+    if hub.progress is not None:
+        record["object"] = hub.progress.status()
+        if event != "started":
+            record.update(hub.progress.verdict())
+    if hub.recorder is not None:
+        hub.recorder.write(HUB_RUN, record)
+    return record
+
+
+def outcome_text(record: Dict[str, Any]) -> str:
+    """'completed; object at ...' or 'not completed (reached 1 of 3 waypoints); object at ...' from a ``/hub/run``
+    record; '' when the hub knows neither (motion capture)."""
+    outcome, failures = record.get("outcome"), record.get("failures") or []
+    said = f"{outcome} ({failures[0]})" if outcome == "not completed" and failures else outcome
+    return "; ".join(part for part in (said, object_text(record.get("object"))) if part)

@@ -1,0 +1,111 @@
+"""How a run is going and how it ended, as a hub with the sim source tells the operator: `ctl status` shows the
+object, the waypoint it heads for and the distance to it; a stop, and the arrival at the last waypoint, say the
+outcome on the hub's console and in its log (/hub/run, `khepri log info`). The same evaluator as result.json's."""
+import json
+import re
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from test_hub_cli import hub_ports, khepri, spawn, wait_until_connected
+
+from hub.config import parse_config
+from hub.control import status_table
+from hub.factory import build_hub
+from hub.harness import stop_processes
+from hub.recording import HUB_RUN, read_log
+
+NETWORK = {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}
+OBJECT_AT = r"object at \(-?\d+\.\d\d, -?\d+\.\d\d\) m, yaw -?\d+\.\d°"
+
+
+def test_ctl_status_shows_the_objects_progress_and_ctl_stop_says_how_the_run_ended(tmp_path):
+    """`khepri hub` on lab-6 with an agent joined by hand: the object's pose, waypoint and distance only
+    appeared in `khepri sil`'s result.json; the hub never said how its run went or how it ended."""
+    log = tmp_path / "run.mcap"
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump({"source": {"type": "sim", "scenario": "lab-6"}, "network": NETWORK,
+                                      "record": str(log)}))
+    hub_log = open(tmp_path / "hub.log", "w")
+    hub = spawn("hub", "--config", str(config), "--insecure", log=hub_log)
+    agent = None
+    try:
+        ports = hub_ports(tmp_path / "hub.log", hub)
+        control, robots = ports["control"], ports["robots"]
+        agent = spawn("agent", "--id", "0", "--driver", "sim", "--port", robots, log=open(tmp_path / "agent.log", "w"))
+        wait_until_connected(0, control)
+        assert khepri("ctl", "start", "--port", control).returncode == 0
+        time.sleep(1.0)           # a few control steps of robot 0's telemetry reach the evaluator
+        table = khepri("ctl", "status", "--port", control).stdout.splitlines()
+        assert re.fullmatch(OBJECT_AT + r", waypoint 1 of 3 is 0\.\d\d m and \d+\.\d° away \(0 reached\)",
+                            table[-1]), table
+        status = json.loads(khepri("ctl", "status", "--json", "--port", control).stdout)
+        thing = status["object"]
+        assert (thing["waypoints"], thing["reached"], thing["target"]) == (3, 0, 0), thing
+        assert thing["distance_m"] == pytest.approx(0.3, abs=0.05) and len(thing["pose"]) == 3
+        # An older hub's reply has no such field: ctl prints the table without its line.
+        older = {key: value for key, value in status.items() if key != "object"}
+        assert not [line for line in status_table(older).splitlines() if line.startswith("object")]
+        stop = khepri("ctl", "stop", "--port", control)
+        assert stop.returncode == 0, stop.stderr
+    finally:
+        codes = stop_processes([p for p in (agent, hub) if p is not None])
+        hub_log.close()
+    assert codes == [0] * len(codes)
+    lines = (tmp_path / "hub.log").read_text().splitlines()
+    run_id = status["run_id"]
+    said = [line for line in lines if line.startswith(f"hub: run {run_id} stopped by ")]
+    assert len(said) == 1 and re.fullmatch(
+        rf"hub: run {run_id} stopped by operator at 127\.0\.0\.1: not completed \(cage did not close\); "
+        + OBJECT_AT + r", waypoint 1 of 3 is .* away \(0 reached\)", said[0]), lines
+    info = khepri("log", "info", str(log), "--json")
+    runs = json.loads(info.stdout)["runs"]
+    assert [(r["run_id"], r["end_cause"], r["ended_by"], r["outcome"]) for r in runs] == \
+        [(run_id, "stop", "operator at 127.0.0.1", "not completed")]
+    assert runs[0]["failures"][0] == "cage did not close" and runs[0]["object"]["waypoints"] == 3
+    text = khepri("log", "info", str(log)).stdout
+    assert re.search(rf"^run: +{run_id} \(transport\): started \d\d:\d\d:\d\d by operator at 127\.0\.0\.1; "
+                     r"stopped \d\d:\d\d:\d\d by operator at 127\.0\.0\.1: not completed \(cage did not close\); "
+                     + OBJECT_AT, text, re.M), text
+
+
+def test_the_arrival_at_the_last_waypoint_is_said_once_with_the_outcome(tmp_path):
+    """The swarm's telemetry (as the agents send it) takes the evaluator through the three waypoints while the
+    object is put on each: the hub says the run completed, once, and records it."""
+    log = tmp_path / "run.mcap"
+    lines = []
+    hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True},
+                                  "record": str(log)}), log=lines.append)
+    source, box = hub.source, hub.source.world.object_body
+    try:
+        hub.control.execute("start")
+
+        def step(state, waypoint, closed=False, at=None):
+            source.advance(source.substeps_per_control)
+            if at is not None:
+                box.position, box.angle = at, 0.0
+            for robot in hub.robots.values():
+                robot.run_id = hub.run_id
+                robot.telemetry = {"mode": "run", "run_id": hub.run_id, "behaviour": {
+                    "state": state, "member": True, "closed": closed, "waypoint": waypoint, "finished": False}}
+            hub.housekeeping(time.monotonic())
+
+        step("caged", 0, closed=True)
+        step("push", 1, at=(0.0, 0.3))
+        assert hub.control.status(time.monotonic())["object"]["reached"] == 1
+        assert status_table(hub.control.status(time.monotonic())).splitlines()[-1] == \
+            "object at (0.00, 0.30) m, yaw 0.0°, waypoint 2 of 3 is 0.30 m and 0.0° away (1 reached)"
+        step("push", 2, at=(0.0, 0.6))
+        assert not [line for line in lines if "waypoints reached" in line]
+        step("done", 2, at=(0.0, 0.9))
+        step("done", 2)
+        said = [line for line in lines if "waypoints reached" in line]
+        assert said == [f"hub: run {hub.run_id}: all 3 waypoints reached: completed; object at (0.00, 0.90) m, "
+                        "yaw 0.0°, all 3 waypoints reached, 0.00 m and 0.0° from the last; `khepri ctl stop` ends "
+                        "the run"], lines
+        assert hub.mode == "run"          # said, not acted on: ending a lab run is the operator's
+    finally:
+        hub.close()
+    events = [(r.payload["event"], r.payload.get("outcome")) for r in read_log(Path(log), topics=[HUB_RUN])]
+    assert events == [("started", None), ("all waypoints reached", "completed")]
