@@ -48,3 +48,16 @@ def outcome_text(record: Dict[str, Any]) -> str:
     outcome, failures = record.get("outcome"), record.get("failures") or []
     said = f"{outcome} ({failures[0]})" if outcome == "not completed" and failures else outcome
     return "; ".join(part for part in (said, object_text(record.get("object"))) if part)
+
+
+def end_by_signal(hub: Hub, name: str) -> str:
+    """A hub stopped by SIGINT, SIGTERM or SIGHUP ends its run with it: said, naming the run and the signal, and
+    recorded as the run's ``ended`` record among the log's closing ones. The words its last line, ``hub: stopped``,
+    ends with."""
+    run_id = hub.run_id
+    if run_id is None:
+        return f" by {name} (no run was going)"
+    outcome = outcome_text(run_event(hub, run_id, "ended", "signal", name))
+    hub.log(f"hub: {name}: run {run_id} ended by the signal" + (f": {outcome}" if outcome else ""))
+    hub.mode, hub.run_id = "idle", None
+    return f" by {name}; run {run_id} ended"

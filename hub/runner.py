@@ -1,4 +1,5 @@
-"""Running a hub process: bind, serve until SIGINT/SIGTERM, tell the robots to stop, close the log."""
+"""Running a hub process: bind, serve until SIGINT/SIGTERM, say which run the signal ended, tell the robots to
+stop, close the log."""
 from __future__ import annotations
 
 import signal
@@ -10,6 +11,7 @@ from onboard.console import flush_quietly, say, stop_signals
 
 from .config import LabConfig
 from .factory import build_hub
+from .run_events import end_by_signal
 
 INSECURE_WARNING = """\
 ************************************************************************
@@ -49,25 +51,29 @@ def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
     if config.security.insecure:
         say(INSECURE_WARNING)
     hub = build_hub(config, log=log)
-    stop = {"requested": False}
+    stop = {"requested": False, "signal": None}
 
     def request_stop(signum, frame):
         stop["requested"] = True
+        stop["signal"] = signal.Signals(signum).name
 
     previous = {sig: signal.signal(sig, request_stop) for sig in stop_signals()}
     served = False
+    said = ""
     try:
         hub.bind()
         served = True
         if config.run.autostart:
             hub.control.execute("start", "config (run.autostart)")
         hub.serve(lambda: stop["requested"])
+        if stop["signal"] is not None:     # before close: the log is still open, and the agents not yet told
+            said = end_by_signal(hub, stop["signal"])
     finally:
         hub.close()
         if not served:
             discard_log(hub)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    log("hub: stopped")
+    log(f"hub: stopped{said}")
     flush_quietly()          # nothing left for the exit's own flush to fail on, should the terminal be gone
     return 0

@@ -153,6 +153,34 @@ def test_a_closed_terminal_stops_the_hub_as_ctrl_c_does(tmp_path):
 
 
 
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGINT])
+def test_a_hub_stopped_by_a_signal_mid_run_names_the_run_it_ended(tmp_path, stop):
+    """Its last lines said `hub: stopped`, and its log nothing of the run it cut short: which run, and that a
+    signal, not an operator, ended it."""
+    log = tmp_path / "run.mcap"
+    hub = start_hub(tmp_path, "-m", "khepri_cli.main", "hub", "--config", str(lab_config(tmp_path, log)))
+    try:
+        control = control_endpoint(tmp_path)
+        assert request(control, "start", timeout_s=5.0)["ok"]
+        run_id = request(control, "status", timeout_s=5.0)["status"]["run_id"]
+        hub.send_signal(stop)
+        assert hub.wait(timeout=15) == 0
+    finally:
+        stop_processes([hub])
+    name = stop.name
+    lines = (tmp_path / "hub.log").read_text().splitlines()
+    assert lines[-1] == f"hub: stopped by {name}; run {run_id} ended", lines
+    assert lines[-2].startswith(f"hub: {name}: run {run_id} ended by the signal: not completed (cage did not "
+                                "close); object at ("), lines
+    summary = log_info(log)
+    assert summary["truncated"] is False
+    assert [(r["run_id"], r["end_cause"], r["ended_by"]) for r in summary["runs"]] == [(run_id, "signal", name)]
+    text = subprocess.run([sys.executable, "-m", "khepri_cli.main", "log", "info", str(log)], capture_output=True,
+                          text=True, env=ENV, timeout=60).stdout
+    assert re.search(rf"^run: +{run_id} \(transport\): started .*; ended \d\d:\d\d:\d\d by {name}: not completed",
+                     text, re.M), text
+
+
 def test_a_hub_started_with_nohup_outlives_its_terminal(tmp_path):
     """SIGHUP ignored at start (`nohup khepri hub ...`) is the user's wish to keep the hub running, as for the
     agent; it used to stop the hub all the same."""
