@@ -115,9 +115,11 @@ def status_table(status: Dict[str, Any]) -> str:
     lines.append(header)
     for row in status["robots"]:
         lines.append(_row(row))
-    # A newer hub's field (docs/protocol.md): an older hub's reply has none, and gets no such line.
+    # Newer hubs' fields (docs/protocol.md): an older hub's reply has none of them, and gets no such line.
     if status.get("object"):
         lines.append(object_text(status["object"]))
+    if status.get("replay"):
+        lines.append(replay_text(status["replay"]))
     drops = status.get("drops") or {}
     if drops:
         lines.append("dropped: " + ", ".join(f"{reason} {count}" for reason, count in sorted(drops.items())))
@@ -160,3 +162,16 @@ def object_text(status: Optional[Dict[str, Any]]) -> str:
 
 def _degrees(radians: float) -> str:
     return f"{round(math.degrees(radians), 1) + 0.0:.1f}"     # + 0.0: never "-0.0"
+
+
+def replay_text(replay: Dict[str, Any]) -> str:
+    """'replay: 12.3 s of 60.0 s played (20 %) at 1x': how far a replay source has got."""
+    played, total, percent = replay["played_s"], replay.get("total_s"), replay.get("percent")
+    rate = f" at {replay['rate']:g}x" if replay.get("rate") is not None else ""
+    if total is not None:
+        text = f"{played:.1f} s of {total:.1f} s played ({percent:.0f} %){rate}"
+    elif percent is not None:
+        text = f"{played:.1f} s played{rate}, {percent:.0f} % of the file (a log cut short: its length is not known)"
+    else:
+        text = f"{played:.1f} s played{rate}"
+    return f"replay: {'ended: ' if replay.get('ended') else ''}{text}"

@@ -160,6 +160,7 @@ class ControlService:
             "relay": hub.relay.stats.as_dict(),
             "robots": rows,
             "object": hub.progress.status() if hub.progress is not None else None,   # sim source only
+            "replay": hub.source.progress(),          # replay source only
         }
 
 

@@ -250,3 +250,22 @@ def json_or_none(data: bytes) -> Any:
         return parse_json(data)
     except ValueError:
         return None
+
+
+def last_indexed_stamp(path: PathLike, topic: str) -> Optional[float]:
+    """The stamp (s since 1970) of the last message on ``topic`` (a JSON channel), from a complete log's index, which
+    takes a chunk or two to read; None for a log without a sound index (a killed hub's: only reading the whole
+    file would tell) or without such a message."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if not (ends_with_footer(path, size) and summary_crc_holds(path, size)):
+            return None
+        with open(path, "rb") as file:
+            for _schema, channel, message in SeekingReader(file).iter_messages(topics=[topic], reverse=True):
+                if is_json_channel(channel.message_encoding):
+                    return message.log_time / 1e9
+    except Exception:  # noqa: BLE001 - a damaged index: the stamp is not known, as without one
+        return None
+    return None
+

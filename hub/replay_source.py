@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Callable, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -22,7 +22,7 @@ class ReplaySource(PoseSource):
     hub recording, which is said at start."""
 
     def __init__(self, path: str, rate: float = 1.0, log: Callable[[str], None] = print):
-        from hub.log_reader import LogReader
+        from hub.log_reader import LogReader, last_indexed_stamp
         from hub.recording import MOCAP_POSES, LogError
 
         self.description = f"replay {path}"
@@ -35,6 +35,7 @@ class ReplaySource(PoseSource):
         self.records = self._pose_messages()
         self.pending: Optional[Tuple[int, Any]] = None     # (position among the pose records, MCAP message)
         self.first_stamp: Optional[float] = None
+        self.played_stamp: Optional[float] = None      # the log stamp of the last pose record played
         self.started_at: Optional[float] = None
         self.finished = False
         self.skipped = 0
@@ -51,6 +52,10 @@ class ReplaySource(PoseSource):
                                                  f"channel's message encoding is {foreign!r}, not JSON (another "
                                                  "tool's log, not a khepri hub recording?)")
             raise ConfigError("source.file", f"{path} holds no /mocap/poses records (not a khepri hub recording?)")
+        last = last_indexed_stamp(path, MOCAP_POSES)
+        # The log time the replay spans, for `ctl status`: known from a complete log's index; not from a log cut
+        # short, whose end only reading it all would find.
+        self.total_s = None if last is None else max(0.0, last - self._stamp(self.pending[1]))
 
     def never_placed(self, ids: List[int]) -> List[int]:
         """Those of ``ids`` that no readable ``/mocap/poses`` record of the log places: the replay would hold
@@ -122,6 +127,7 @@ class ReplaySource(PoseSource):
             frame = self._to_frame(*self.pending, now)
             if frame is not None:
                 out.append(frame)
+            self.played_stamp = self._stamp(self.pending[1])
             self._fetch()
         return out[-1:]   # latest-only: a late hub skips to the newest frame
 
@@ -144,6 +150,19 @@ class ReplaySource(PoseSource):
         self._skips_unsaid = 0
         into = self._stamp(message) - self.first_stamp
         self.log(f"hub: replay: skipping /mocap/poses record {index} ({into:.3f} s into the log): {reason}{more}")
+
+    def progress(self) -> Dict[str, Any]:
+        """How far the replay has got, in log time: ``played_s`` of ``total_s`` (None for a log cut short), and
+        ``percent`` of that, or for a log cut short of the file's bytes read."""
+        played = 0.0 if self.played_stamp is None else self.played_stamp - self.first_stamp
+        if self.finished:
+            percent = 100.0
+        elif self.total_s is not None:
+            percent = 100.0 * played / self.total_s if self.total_s > 0 else 0.0
+        else:
+            percent = 100.0 * self.reader.readable_bytes / max(1, self.reader.file_bytes)
+        return {"played_s": round(played, 3), "total_s": None if self.total_s is None else round(self.total_s, 3),
+                "percent": round(min(percent, 100.0), 1), "rate": self.rate, "ended": self.finished}
 
     def next_due(self, now: float) -> float:
         if self.pending is None:

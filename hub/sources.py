@@ -66,6 +66,10 @@ class PoseSource:
         """Seconds until the source wants to be polled again without a wake-up."""
         return 0.05
 
+    def progress(self) -> Optional[Dict[str, Any]]:
+        """How far a source that ends has got (a replay: ``ctl status``'s ``replay``); None for one that does not."""
+        return None
+
     def close(self) -> None:
         pass
 

@@ -8,6 +8,7 @@ import pytest
 import zmq
 
 from hub.config import parse_config
+from hub.control import status_table
 from hub.factory import build_hub
 from hub.harness import HubThread
 from hub.recording import Recorder, read_log
@@ -332,6 +333,39 @@ def test_a_slowed_replay_keeps_the_robots_tracked_between_its_frames(tmp_path):
         assert held and not any(held)
     finally:
         hub.close()
+
+
+def test_ctl_status_shows_how_far_the_replay_has_got(tmp_path):
+    """With the replay source `ctl status` said nothing of where in the log the replay was, or that it had ended:
+    only the hub's console did, at the end."""
+    log, cut = tmp_path / "run.mcap", tmp_path / "cut.mcap"
+    with Recorder(log) as recorder:
+        for k in range(21):
+            poses = np.array([[0.01 * k, 0.0, 0.0], [0.01 * k, 1.0, 0.0]])
+            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0, 1], poses)), stamp_s=1.7e9 + 0.1 * k)
+        recorder.flush()
+        cut.write_bytes(log.read_bytes())       # what a killed hub leaves: no index, no footer
+
+    def replay(path):
+        config = parse_config({"source": {"type": "replay", "file": str(path)}, "robots": [0, 1], "network": NETWORK,
+                               "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+        with HubThread(config) as hub:
+            early = hub.status()
+            return early, hub.wait_until(lambda status: status["replay"]["ended"], timeout_s=15.0)
+
+    early, ended = replay(log)
+    assert early["object"] is None
+    going = early["replay"]
+    assert going["total_s"] == 2.0 and going["played_s"] < 2.0 and not going["ended"] and going["rate"] == 1.0
+    assert status_table(early).splitlines()[-1] == \
+        f"replay: {going['played_s']:.1f} s of 2.0 s played ({going['percent']:.0f} %) at 1x"
+    assert ended["replay"] == {"played_s": 2.0, "total_s": 2.0, "percent": 100.0, "rate": 1.0, "ended": True}
+    assert status_table(ended).splitlines()[-1] == "replay: ended: 2.0 s of 2.0 s played (100 %) at 1x"
+
+    early, ended = replay(cut)              # its length is not known without reading it all: the file's share
+    assert early["replay"]["total_s"] is None and 0 < early["replay"]["percent"] <= 100
+    assert status_table(early).splitlines()[-1].endswith("% of the file (a log cut short: its length is not known)")
+    assert ended["replay"]["played_s"] == 2.0 and ended["replay"]["percent"] == 100.0
 
 
 def test_an_unknown_sim_scenario_names_the_lab_configs_field():
