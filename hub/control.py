@@ -148,7 +148,7 @@ def object_text(status: Optional[Dict[str, Any]]) -> str:
     if not status:
         return ""
     x, y, yaw = status["pose"]
-    text = f"object at ({x:.2f}, {y:.2f}) m, yaw {_degrees(yaw)}°"
+    text = f"object at ({round(x, 2) + 0.0:.2f}, {round(y, 2) + 0.0:.2f}) m, yaw {_degrees(yaw)}°"   # no "-0.00"
     count, reached = status["waypoints"], status.get("reached")
     if not count:
         return text + ", no waypoints"

@@ -98,7 +98,7 @@ def test_the_arrival_at_the_last_waypoint_is_said_once_with_the_outcome(tmp_path
             "object at (0.00, 0.30) m, yaw 0.0°, waypoint 2 of 3 is 0.30 m and 0.0° away (1 reached)"
         step("push", 2, at=(0.0, 0.6))
         assert not [line for line in lines if "waypoints reached" in line]
-        step("done", 2, at=(0.0, 0.9))
+        step("done", 2, at=(-0.001, 0.9))       # shown as 0.00, not -0.00
         step("done", 2)
         said = [line for line in lines if "waypoints reached" in line]
         assert said == [f"hub: run {hub.run_id}: all 3 waypoints reached: completed; object at (0.00, 0.90) m, "
