@@ -1,10 +1,12 @@
 """Closure of the cage (docs/behaviour.md section 3): the paper's d_T, and ours for two tips on opposite sides
-of the object, which would leave a whole end of it open."""
+of the object, which would leave a whole end of it open; and a robot attaching on the wrong side of its
+predecessor, which would slide round the object through the branch."""
 import math
 
 import pytest
 
 from onboard.behaviours.transport.perception import Percept
+from onboard.behaviours.transport.tasks import Task
 from sim_backend.runner import Simulation
 from sim_backend.scenario import load_scenario, parse_scenario
 
@@ -69,3 +71,39 @@ def test_a_long_box_is_caged_at_both_ends():
     along = [math.cos(yaw) * (x - ox) + math.sin(yaw) * (y - oy)
              for x, y, _ in (sim.world.robot_poses()[i] for i in members)]
     assert max(along) > 0.5 and min(along) < -0.5, f"members along the box: {sorted(along)}"
+
+
+def _attaching(transport, monkeypatch, errors):
+    """``transport`` attaching for slot L2 behind robot 5, touching the object, whose distance error to robot 5
+    is each of ``errors`` in turn (one per call of _on_attach)."""
+    transport.task = Task("L2", 0.6, 0.3, "L", 2, 5, 0)
+    transport.board.put_task(transport.task)
+    transport.state, transport.attach_since, transport.closest_error = "attach", 0.0, math.inf
+    monkeypatch.setattr(transport, "_still_mine", lambda: True)
+    readings = iter(errors)
+    monkeypatch.setattr(transport, "_predecessor_error", lambda: next(readings))
+
+
+def test_an_attaching_robot_sliding_the_wrong_way_gives_its_slot_back(tip, monkeypatch):
+    """Touching the object behind its predecessor, a robot slides ever farther from it round the object (in
+    paper-25 with fast travel, for 300 s through the branch's members). Once its distance error grows a whole
+    I_d past the smallest it had, it gives the slot back, as attach_timeout_s would 120 s later."""
+    spacing = tip._spacing()
+    _attaching(tip, monkeypatch, [0.3, 0.1, 0.1 + 0.5 * spacing, 0.1 + 1.1 * spacing])
+    for now in (1.0, 1.1, 1.2):
+        tip._on_attach(now)
+        assert tip.state == "attach"
+    tip._on_attach(1.3)
+    assert tip.state == "idle" and tip.task is None
+    assert tip.board.task("L2").epoch == 1 and "L2" in tip.given_back
+
+
+def test_in_the_faithful_profile_an_attaching_robot_keeps_sliding(monkeypatch):
+    faithful = Simulation(load_scenario("lab-6").with_overrides(params={"profile": "faithful"}), seed=1)
+    robot = faithful.behaviours[0]
+    robot.percept = Percept(0.0, 0.3, 0.0, {}, (0.0, -1.0), 0.9, (0.0, 0.0))
+    spacing = robot._spacing()
+    _attaching(robot, monkeypatch, [0.1, 0.1 + 2.0 * spacing])
+    robot._on_attach(1.0)
+    robot._on_attach(1.1)
+    assert robot.state == "attach" and robot.task is not None

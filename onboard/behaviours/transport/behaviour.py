@@ -87,6 +87,7 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
         self.progress: Tuple[float, float] = (math.inf, 0.0)   # travel: (best distance to target, when)
         self.seed_still: Tuple[Optional[Vec], float] = (None, 0.0)   # seed: (where it last moved 2 cm, when)
         self.attach_since = 0.0                  # when this robot last went from travel to attach
+        self.closest_error = math.inf            # attach: smallest |error| to the predecessor while touching
         self.approach_from: Optional[Vec] = None   # attach: where this robot was at the last step (_shoving)
         self.shove_advance = 0.0                 # attach: how far it drove toward the object without touching it
         self.shoving_object = False              # attach: pressed on the object below the contact reading

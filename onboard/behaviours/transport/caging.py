@@ -6,6 +6,8 @@ module readable. See docs/behaviour.md sections 2 and 3.
 """
 from __future__ import annotations
 
+import math
+
 from . import control as c
 from .approach import first_travel, seed_heading
 from .caged import GAP_GAIN, GAP_READING
@@ -40,6 +42,9 @@ HEAD_START_STOP_M = 0.6
 # object ends that.
 SHOVE_ADVANCE_M = 0.12
 SHOVE_LOST_S = 1.0
+# An attaching robot whose distance error to its predecessor has grown this many I_d past the smallest it had
+# while touching the object is sliding the wrong way round it (_sliding_the_wrong_way).
+WRONG_WAY_SPACINGS = 1.0
 
 
 class CagingPhases:
@@ -93,6 +98,7 @@ class CagingPhases:
             self.state = "attach"
             self.attach_since = now
             self.approach_from, self.shove_advance, self.shoving_object = None, 0.0, False
+            self.closest_error = math.inf
             self._maybe_pipeline(now)
             return
         self._travel_toward(to_target, self.task.branch, remaining)
@@ -157,6 +163,12 @@ class CagingPhases:
         error = self._predecessor_error()
         contact = percept.in_contact(p.proximity_threshold)
         shoving = self._shoving(now, contact)
+        if (contact or shoving) and self._sliding_the_wrong_way(error):
+            if not self._branch_grew_past():
+                self._give_back(now)
+                return
+            self._hold()        # blocks nothing there; sliding on would shove the members round the object
+            return
         if contact or shoving:
             # u = perp(x_o): slide along the object until the predecessor is I_d away. No push inward: the
             # object must not move while the cage forms.
@@ -181,6 +193,20 @@ class CagingPhases:
             self._hold()
         else:
             self._drive(u, speed_scale=0.6)
+
+    def _sliding_the_wrong_way(self, error: float) -> bool:
+        """Ours: this attaching robot touches the object behind its predecessor (between it and the branch's
+        start), so sliding along the branch's direction takes it ever farther from its predecessor, round the
+        object. Seen when a pipelined successor reached the object while its predecessor was still sliding to
+        its own place, past it: in paper-25 with travel_speed_m_s 0.2 it slid for 300 s round the 2 m box,
+        and the members opened after it settled interleaved with the branch (docs/behaviour.md section 5,
+        travel_fast_beyond_m). Measured as the distance error growing WRONG_WAY_SPACINGS I_d past the
+        smallest it had while touching; a robot in a notch, whose predecessor is across it, comes nearer
+        as it slides and never trips it. Off with an endless attach_timeout_s (the faithful profile)."""
+        if not math.isfinite(self.params.attach_timeout_s):
+            return False
+        self.closest_error = min(self.closest_error, abs(error))
+        return abs(error) > self.closest_error + WRONG_WAY_SPACINGS * self._spacing()
 
     def _settled_on_average(self, error: float, touching: bool) -> bool:
         """Ours: settled although single readings stray. With a noisy range-and-bearing sensor (a range error
