@@ -48,6 +48,16 @@ def make_scenario():
     return build
 
 
+@pytest.fixture(autouse=True, scope="session")
+def hangup_as_a_terminal_would():
+    """`nohup make test` starts the suite with SIGHUP ignored, and every hub and agent a test starts inherits
+    that: they keep running on SIGHUP, as they should under nohup, and the tests of what a closed terminal does
+    failed. The tests of nohup itself ignore it in their child explicitly."""
+    previous = signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    yield
+    signal.signal(signal.SIGHUP, previous)
+
+
 @pytest.fixture(autouse=True)
 def restore_behaviour_registry():
     """Behaviours and evaluators that a test registers (a user's module it imports) do not outlive it: other
