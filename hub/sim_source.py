@@ -6,6 +6,8 @@ supplies IR and encoder readings for agents that use the ``sim`` driver -- with 
 
 Two pacings: real time (a frame every ``1 / frame_hz`` s of wall time, physics in between) and lockstep
 (the hub calls :meth:`advance` once per control step, when every agent has answered).
+
+A new run can begin in the world the scenario builds (:meth:`restart`, ``source.reset_each_run``: hub/new_run.py).
 """
 from __future__ import annotations
 
@@ -27,22 +29,44 @@ class SimSource(PoseSource):
     def __init__(self, scenario: Scenario, seed: Optional[int] = None, frame_hz: float = 50.0):
         self.scenario = scenario
         self.seed = scenario.seed if seed is None else seed
-        # Same stream layout as the simulator: stream 0 places the robots, so SIL starts where sim starts.
-        streams = np.random.SeedSequence(self.seed).spawn(5)
-        self.world = World(scenario, np.random.default_rng(streams[0]))
-        self.rng_ir = np.random.default_rng(streams[1])
-        self.hub_seed = streams[4]       # for the hub's virtual sensors and relay
+        self.hub_seed = np.random.SeedSequence(self.seed).spawn(5)[4]    # for the hub's virtual sensors and relay
         self.description = f"sim {scenario.name} (seed {self.seed})"
+        self.steps = 0                   # physics substeps done: the simulated clock, which no restart turns back
+        self._build(0.0)
         self.count = len(self.world.robots)
         self.control_period = 1.0 / scenario.physics.control_hz
         self.dt = scenario.physics.dt_s
         self.substeps_per_control = int(round(self.control_period / self.dt))
         self.substeps_per_frame = max(1, int(round(1.0 / (frame_hz * self.dt))))
         self.ir = ProximityModel(self.world.spec.radius_m, self.world.spec.proximity_range_m)
-        self.faults = sorted((f.at_s, f.robot) for f in scenario.faults)
-        self.killed: List[int] = []
-        self.steps = 0                   # physics substeps done
         self.next_frame_at: Optional[float] = None
+
+    def _build(self, start_s: float) -> None:
+        """The scenario's world at its start, as ``khepri sim run`` builds it for this seed, with the faults due
+        that many seconds after ``start_s`` (the simulated time this world starts at)."""
+        # Same stream layout as the simulator: stream 0 places the robots, so SIL starts where sim starts.
+        streams = np.random.SeedSequence(self.seed).spawn(5)
+        self.world = World(self.scenario, np.random.default_rng(streams[0]))
+        self.rng_ir = np.random.default_rng(streams[1])
+        self.faults = sorted((start_s + f.at_s, f.robot) for f in self.scenario.faults)
+        self.killed: List[int] = []
+        self.built_at_step = self.steps
+
+    @property
+    def pristine(self) -> bool:
+        """Whether the world is as built: physics has not stepped since (nothing has moved; only a fault due at the
+        start can have fired, as it would in a new world)."""
+        return self.steps == self.built_at_step
+
+    def restart(self, now: float) -> PoseFrame:
+        """Back to the scenario's start for a new run: the world built again for the same seed (robots, object,
+        their velocities, odometry, IR noise) and the faults counted from now. The simulated clock runs on, as
+        the hub's log and the agents' frames want it. The first frame of the new world, stamped ``now``; in real
+        time it stands for the frame due now."""
+        self._build(self.time_s)
+        if self.next_frame_at is not None:
+            self.next_frame_at = now + self.substeps_per_frame * self.dt
+        return self.snapshot(now)
 
     @property
     def time_s(self) -> float:
