@@ -18,7 +18,7 @@ DEFAULT_WATCHDOG_S = 0.3
 # The source fields each type reads (``type``, ``seed`` and ``stale_s`` are every type's: the seed also seeds the
 # agents' ``random``): a field of another type would be ignored without a word, e.g. a Vicon hostname under a
 # sim source, which then runs the simulation.
-SOURCE_FIELDS = {"sim": ("scenario", "lockstep", "frame_hz"),
+SOURCE_FIELDS = {"sim": ("scenario", "lockstep", "frame_hz", "reset_each_run"),
                  "motioncapture": ("system", "options", "bodies", "up_axis", "connect_timeout_s"),
                  "replay": ("file", "rate")}
 UP_AXES = ("z", "y")
@@ -34,6 +34,7 @@ class SourceConfig:
     seed: Optional[int] = None              # sim: overrides the scenario's seed
     lockstep: bool = False                  # sim: advance physics only when every agent answered
     frame_hz: float = 50.0                  # sim, real time: pose frames per second (physics in between)
+    reset_each_run: bool = True             # sim: each run starts at the scenario's start (false: where the last ended)
     system: str = "mock"                    # motioncapture: the library's backend name
     options: Dict[str, Any] = field(default_factory=dict)   # motioncapture: passed to connect(), as strings
     # motioncapture: rigid body name -> robot id (checked by check_robot_id, whose message names the range)

@@ -15,6 +15,7 @@ from onboard.jsontext import parse_json
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
 from .links import frame_sender
+from .new_run import prepare_new_run
 from .run_events import outcome_text, run_event
 
 if TYPE_CHECKING:
@@ -107,11 +108,13 @@ class ControlService:
             hub.estop_at = None             # a new run: the last e-stop's acknowledgement times are history
             for robot in hub.robots.values():
                 robot.estop_ack_s = None
+            reset = prepare_new_run(hub)       # before the agents hear of the run: its first frames are its own
             hub.send_command_to_all("start")
             if hub.progress is not None:
-                hub.progress.start(hub.source.time_s)
+                hub.progress.start(hub.source.time_s, hub.source.world)
             run_event(hub, hub.run_id, "started", "start", sender)
-            hub.log(f"hub: run {hub.run_id} started by {sender}: {hub.run.behaviour}")
+            hub.log(f"hub: run {hub.run_id} started by {sender}: {hub.run.behaviour}"
+                    + ("; the world is back at the scenario's start" if reset else ""))
         else:
             hub.log(f"hub: run {hub.run_id} resumed by {sender}")
         hub.mode = "run"

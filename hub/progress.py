@@ -31,9 +31,12 @@ class RunProgress:
         """Read ``evaluator``, which its owner feeds (``khepri sil``'s session), instead of one of the hub's."""
         self.evaluator, self.attached = evaluator, True
 
-    def start(self, clock_s: float) -> None:
-        """A new run: a fresh evaluator, its clock at 0 (the world is not reset between runs: docs/lab.md)."""
+    def start(self, clock_s: float, world: Any = None) -> None:
+        """A new run: a fresh evaluator, its clock at 0, on ``world`` when the run has a new one (the sim source
+        sets the world back to the scenario's start for each run, unless told not to: hub/new_run.py)."""
         self.start_s = clock_s
+        if world is not None:
+            self.world = world
         if self.attached:
             return
         try:

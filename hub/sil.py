@@ -72,7 +72,8 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
         keys = Path(key_dir)
         init_keys(keys, list(range(scenario.robots.count)), ["sil"])
         config = parse_config({
-            "source": {"type": "sim", "lockstep": not options.realtime},
+            # One run, on the world the session's evaluator and recording hold: never rebuilt under them.
+            "source": {"type": "sim", "lockstep": not options.realtime, "reset_each_run": False},
             "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0},
             "security": {"keys": str(keys)},
             "record": str(out / "hub.mcap") if options.record else None,

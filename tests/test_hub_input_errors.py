@@ -154,6 +154,7 @@ def test_a_numeric_body_name_matches_the_sdks_string_name():
     ({"options": {"hostname": "192.168.10.2"}}, "options", "motioncapture"),     # type: sim by default
     ({"type": "replay", "file": "run.mcap", "scenario": "lab-6"}, "scenario", "sim"),
     ({"type": "motioncapture", "bodies": {"kh0": 0}, "rate": 2.0}, "rate", "replay"),
+    ({"type": "replay", "file": "run.mcap", "reset_each_run": False}, "reset_each_run", "sim"),
 ])
 def test_a_source_field_of_another_source_type_is_refused(source, field, kind):
     """A Vicon hostname under a sim source was ignored: the hub ran the simulation as if nothing were wrong."""
@@ -161,7 +162,7 @@ def test_a_source_field_of_another_source_type_is_refused(source, field, kind):
         parse_config({"source": source})
     assert info.value.field == f"source.{field}"
     own = source.get("type", "sim")
-    accepted = {"sim": "scenario, lockstep, frame_hz", "replay": "file, rate",
+    accepted = {"sim": "scenario, lockstep, frame_hz, reset_each_run", "replay": "file, rate",
                 "motioncapture": "system, options, bodies, up_axis, connect_timeout_s"}[own]
     assert f"is for a {kind} source" in str(info.value)
     assert f"a {own} source takes type, seed, stale_s, {accepted}" in str(info.value)
@@ -170,6 +171,20 @@ def test_a_source_field_of_another_source_type_is_refused(source, field, kind):
 def test_the_fields_every_source_type_reads_are_taken_by_each():
     assert parse_config({"source": {"type": "replay", "file": "run.mcap", "seed": 3, "stale_s": 0.5}})
     assert parse_config({"source": {"type": "sim", "seed": 3, "stale_s": 0.5, "frame_hz": 20}})
+
+
+@pytest.mark.parametrize("value", ["sometimes", "false", 0, None, [True]])
+def test_reset_each_run_must_be_true_or_false(tmp_path, value):
+    """Not Python's truth: "false" would keep resetting, 0 would stop it, without a word either way."""
+    assert parse_config({"source": {"type": "sim"}}).source.reset_each_run is True
+    assert parse_config({"source": {"type": "sim", "reset_each_run": False}}).source.reset_each_run is False
+    with pytest.raises(ConfigError) as info:
+        parse_config(sim_config(source={"type": "sim", "reset_each_run": value}))
+    assert str(info.value) == f"source.reset_each_run: must be true or false (got {value!r})"
+    if value == "sometimes":          # on the command line: one line naming the field, exit code 2
+        config = tmp_path / "lab.yaml"
+        config.write_text(yaml.safe_dump(sim_config(source={"type": "sim", "reset_each_run": value})))
+        one_error_line(khepri("hub", "--config", str(config)), "source.reset_each_run")
 
 
 def test_run_control_hz_under_a_sim_source_is_refused_rather_than_ignored():
