@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ast
 import importlib
+import importlib.machinery
 import importlib.util
 import os
 import sys
@@ -83,25 +84,34 @@ def packages_robots_lack(module: Any, base: str) -> List[str]:
 
 
 def _is_standard(top: str) -> Optional[bool]:
-    """Whether the top-level module ``top`` is the standard library's. Python >= 3.10 lists them
-    (``sys.stdlib_module_names``); 3.9 does not, so there it is told by where this interpreter finds the module:
-    built into it, frozen, or in its standard library's folders (sysconfig's ``stdlib`` and ``platstdlib``, not
-    the site-packages inside them). None when 3.9 cannot find it at all: it would not run on the PC either."""
-    names = getattr(sys, "stdlib_module_names", None)
-    if names is not None:
-        return top in names
-    if top in sys.builtin_module_names:
+    """Whether the top-level module ``top`` is the standard library's. None when Python 3.9, which does not list
+    the standard library, cannot find the module at all: it would not run on the PC either."""
+    if _standard_name(top):
         return True
+    if hasattr(sys, "stdlib_module_names"):
+        return False
     try:
         spec = importlib.util.find_spec(top)   # a top-level name: imports nothing
     except (ImportError, ValueError):          # ValueError: in sys.modules without a __spec__
         return None
-    if spec is None:
-        return None
-    if spec.origin in ("built-in", "frozen"):
+    return None if spec is None else False
+
+
+def _standard_name(top: str) -> bool:
+    """Whether ``top`` is a standard library module's name, whatever else sys.path holds. Python >= 3.10 lists
+    them (``sys.stdlib_module_names``); 3.9 does not, so there it is told by where this interpreter has the
+    module: built into it, frozen, or in its standard library's folders (sysconfig's ``stdlib`` and
+    ``platstdlib``, with lib-dynload, not the site-packages inside them), not in the user's folder before them."""
+    names = getattr(sys, "stdlib_module_names", None)
+    if names is not None:
+        return top in names
+    if top in sys.builtin_module_names or importlib.machinery.FrozenImporter.find_spec(top) is not None:
         return True
-    places = [spec.origin] if spec.has_location and spec.origin else list(spec.submodule_search_locations or [])
-    return bool(places) and all(_in_standard_folders(Path(place)) for place in places)
+    folders = [entry for entry in sys.path if entry and _in_standard_folders(Path(entry))]
+    try:
+        return importlib.machinery.PathFinder.find_spec(top, folders) is not None   # imports nothing
+    except (ImportError, ValueError):
+        return False
 
 
 def _in_standard_folders(place: Path) -> bool:
@@ -156,7 +166,7 @@ def _check_name_is_free(path: Path) -> None:
         if where is None or Path(where).resolve() != path.resolve():
             raise ConfigError("--import", f"{path}: the module name {path.stem!r} is taken by "
                                           f"{where or 'a built-in module'}; rename the file")
-    elif path.stem in getattr(sys, "stdlib_module_names", ()):
+    elif _standard_name(path.stem):
         raise ConfigError("--import", f"{path}: {path.stem!r} is a standard library module's name; rename the file")
 
 
@@ -166,7 +176,7 @@ def _check_not_shadowed(name: str, loaded: Any, base: str) -> None:
     where = getattr(loaded, "__file__", None)
     if name.endswith(".py") or not local.is_file() or (where and Path(where).resolve() == local.resolve()):
         return
-    stdlib = name.split(".")[0] in getattr(sys, "stdlib_module_names", ())
+    stdlib = _standard_name(name.split(".")[0])
     raise ConfigError("--import", f"{name!r} imports {where or 'a built-in module'}"
                                   f"{' (the standard library)' if stdlib else ''}, not {local}; rename {local.name}")
 

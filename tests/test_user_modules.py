@@ -207,6 +207,26 @@ def test_a_module_name_that_imports_something_else_or_registers_nothing_is_said(
                         '(@register("name") above a Behaviour class)']
     assert import_user_modules(["no_register"], str(tmp_path)) == []      # imported already: nothing new to say
 
+@pytest.mark.parametrize("stdlib_names", ["sys.stdlib_module_names", "without it, as on Python 3.9"])
+def test_a_standard_library_name_is_told_on_every_python(tmp_path, monkeypatch, stdlib_names):
+    """Python 3.9 has no sys.stdlib_module_names: `--import random` beside the user's random.py did not say that
+    it was the standard library's, and a file named like a standard module not loaded yet (tabnanny.py) was
+    imported under that name, in place of the standard library's."""
+    if stdlib_names.startswith("without"):
+        monkeypatch.delattr(sys, "stdlib_module_names", raising=False)
+    elif not hasattr(sys, "stdlib_module_names"):
+        pytest.skip("Python 3.9 has no sys.stdlib_module_names")
+    monkeypatch.setattr(sys, "path", list(sys.path))      # import_user_modules puts tmp_path first
+    (tmp_path / "random.py").write_text(DRIVE_BEHAVIOUR.format(name="not-random-at-all"))
+    with pytest.raises(ConfigError, match=r"'random' imports .*random\.py \(the standard library\), not "):
+        import_user_modules(["random"], str(tmp_path))
+    assert "tabnanny" not in sys.modules
+    (tmp_path / "tabnanny.py").write_text(DRIVE_BEHAVIOUR.format(name="not-tabnanny"))
+    with pytest.raises(ConfigError, match=r"tabnanny\.py: 'tabnanny' is a standard library module's name; rename"):
+        import_user_modules([str(tmp_path / "tabnanny.py")], str(tmp_path))
+    assert "tabnanny" not in sys.modules
+
+
 def test_a_bug_in_a_params_validate_is_one_line_with_its_place(tmp_path):
     module = tmp_path / "typo_params.py"
     module.write_text(DRIVE_BEHAVIOUR.replace("speed_m_s: float = 0.1", "speed_m_s: float = 0.1\n\n"
