@@ -39,6 +39,14 @@ time_limit_s: 3
 """
 
 
+@pytest.fixture(autouse=True)
+def restore_sys_path(monkeypatch):
+    """import_user_modules puts the user's folder first on sys.path, as it must in the process it runs in. A test's
+    folder left there (one holds a random.py) was inherited by later tests' study workers, which imported it in
+    place of the standard library's random and died: test_behaviour_errors failed when run after this file."""
+    monkeypatch.setattr(sys, "path", list(sys.path))
+
+
 def test_a_module_name_a_file_path_and_what_goes_wrong(tmp_path, monkeypatch):
     (tmp_path / "lab").mkdir()
     (tmp_path / "lab" / "plugin_by_path.py").write_text("LOADED = True\n")
@@ -225,7 +233,6 @@ def test_a_standard_library_name_is_told_on_every_python(tmp_path, monkeypatch, 
         monkeypatch.delattr(sys, "stdlib_module_names", raising=False)
     elif not hasattr(sys, "stdlib_module_names"):
         pytest.skip("Python 3.9 has no sys.stdlib_module_names")
-    monkeypatch.setattr(sys, "path", list(sys.path))      # import_user_modules puts tmp_path first
     (tmp_path / "random.py").write_text(DRIVE_BEHAVIOUR.format(name="not-random-at-all"))
     with pytest.raises(ConfigError, match=r"'random' imports .*random\.py \(the standard library\), not "):
         import_user_modules(["random"], str(tmp_path))
