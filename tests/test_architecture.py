@@ -1,6 +1,10 @@
 """The architecture rules that keep behaviours portable to real robots."""
 import ast
+import io
+import tokenize
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 FORBIDDEN_IN_ONBOARD = {"sim_backend", "hub", "pymunk", "matplotlib", "khepri_cli", "calibration", "deploy"}
@@ -31,9 +35,9 @@ def test_the_check_itself_catches_a_forbidden_import(tmp_path):
 
 # What runs on a robot keeps to Python 3.9 (see README): its syntax, and the newer features that parse on 3.9 but
 # fail when the module runs there. CI need not have a 3.9 interpreter, so the check reads the code: the syntax
-# with ast's feature_version, and the newer standard library from the tables below. Code that uses them only on
-# a newer Python, under `if sys.version_info ...` or in a `try` that catches an older one's ImportError,
-# AttributeError, NameError or TypeError, is let be.
+# with ast's feature_version (and, on 3.12+, the f-strings it lets through), and the newer standard library from
+# the tables below. Code that uses them only on a newer Python, under `if sys.version_info ...` or in a `try`
+# that catches an older one's ImportError, AttributeError, NameError or TypeError, is let be.
 NEW_NAMES = {   # module: what it gained after 3.9
     "typing": {"TypeAlias", "ParamSpec", "ParamSpecArgs", "ParamSpecKwargs", "Concatenate", "TypeGuard",
                "is_typeddict", "Self", "Never", "LiteralString", "Required", "NotRequired", "Unpack", "TypeVarTuple",
@@ -91,6 +95,7 @@ def python39_problems(path: Path):
     module = _ModuleFacts(tree)
     problems = [(node.lineno, problem) for node in _unguarded_nodes(tree)
                 for problem in _python310_features(node, lazy_annotations, module)]
+    problems += list(_newer_fstrings(source))
     return [f"{path.name}:{line}: {problem}" for line, problem in sorted(problems)]
 
 
@@ -217,6 +222,42 @@ def _is_type(node):
     return isinstance(node, ast.Name) and node.id in TYPE_NAMES
 
 
+def _newer_fstrings(source):
+    """Python 3.12 lets an f-string's expressions reuse its quotes, hold backslashes and comments, and break lines
+    (PEP 701). ast.parse's feature_version lets those through, 3.9 cannot read them. 3.12's tokenizer shows an
+    f-string's parts; an older Python does not parse such code at all, so the parse above tells already."""
+    start = getattr(tokenize, "FSTRING_START", None)
+    if start is None:
+        return
+    opened = []   # the quotes of the f-strings the token is in
+    for token in tokenize.generate_tokens(io.StringIO(source).readline):
+        if token.type == tokenize.FSTRING_END:
+            opened.pop()
+            continue
+        if opened and not (token.type == tokenize.FSTRING_MIDDLE and len(opened) == 1):
+            quote = _quote(token.string) if token.type in (tokenize.STRING, start) else None
+            if quote and any(_closes(quote, outer) for outer in opened):
+                yield token.start[0], "an f-string's expression reusing its quotes is Python 3.12+"
+            elif "\\" in token.string:
+                yield token.start[0], "a backslash in an f-string's expression is Python 3.12+"
+            elif token.type == tokenize.COMMENT:
+                yield token.start[0], "a comment in an f-string's expression is Python 3.12+"
+            elif token.type in (tokenize.NL, tokenize.NEWLINE) and any(len(outer) == 1 for outer in opened):
+                yield token.start[0], "a line break in a one-line f-string's expression is Python 3.12+"
+        if token.type == start:
+            opened.append(_quote(token.string))
+
+
+def _quote(text):
+    body = text.lstrip("rRbBfFuU")
+    return body[:3] if body[:3] in ('"""', "'''") else body[:1]
+
+
+def _closes(quote, outer):
+    """Whether a string opened with ``quote`` inside an f-string opened with ``outer`` ended it on 3.9."""
+    return quote.startswith(outer) if len(outer) == 3 else quote[0] == outer
+
+
 def test_onboard_code_runs_on_python_3_9():
     offenders = [problem for path in sorted((ROOT / "onboard").rglob("*.py")) for problem in python39_problems(path)]
     assert offenders == []
@@ -294,6 +335,15 @@ def test_the_python_3_9_check_catches_newer_code(tmp_path):
     lazy = tmp_path / "lazy.py"
     lazy.write_text("from __future__ import annotations\ndef f(x: int | None) -> list[int] | None:\n    return None\n")
     assert python39_problems(lazy) == []
+
+
+@pytest.mark.skipif(not hasattr(tokenize, "FSTRING_START"), reason="older Pythons do not parse these at all")
+def test_the_python_3_9_check_catches_newer_fstrings(tmp_path):
+    newer = tmp_path / "fstrings.py"
+    newer.write_text('a = f"{d["k"]}"\nb = f"{chr(10).join(x)!r:>{w}}"\nc = f\'{"\\n".join(x)}\'\n'
+                     'd = f"{x # note\n}"\ne = f"""{x\n} {"y"}"""\nf = f"{f\'{x}\'}"\ng = f\'{f"{\'k\'}"}\'\n')
+    problems = python39_problems(newer)
+    assert [int(problem.split(":")[1]) for problem in problems] == [1, 3, 4, 4, 9], problems   # 4: # and line break
 
 
 def public_reach(root, depth=4):
