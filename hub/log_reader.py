@@ -59,26 +59,35 @@ class LogReader:
         """The decoded messages of the JSON channels. A channel in another encoding (a foreign tool's, in a
         merged file) is skipped with one ForeignChannelWarning, not a LogError that ended the whole read:
         ``khepri log info --check`` calls such a file sound, and what it counts is what this yields."""
+        for topic, message in self.json_messages(topics):
+            yield LogRecord(topic, message.log_time / 1e9, self._decode(topic, message))
+
+    def json_messages(self, topics: Optional[Iterable[str]] = None, *, warn: bool = True
+                      ) -> Iterator[Tuple[str, Message]]:
+        """``messages()`` of the JSON channels on ``topics`` (all when None), undecoded. A foreign channel's are
+        skipped and it goes into ``foreign``, said once with a ForeignChannelWarning unless ``warn`` is False (a
+        caller that refuses the file with its own error, as the replay does)."""
         wanted = None if topics is None else {topics} if isinstance(topics, str) else set(topics)
         for topic, message in self.messages():
             if wanted is not None and topic not in wanted:
                 continue
             if self.is_foreign(message):
-                self._say_foreign(topic, self.channels[message.channel_id].message_encoding)
+                self._note_foreign(topic, self.channels[message.channel_id].message_encoding, warn)
                 continue
-            yield LogRecord(topic, message.log_time / 1e9, self._decode(topic, message))
+            yield topic, message
 
     def is_foreign(self, message: Message) -> bool:
         """Whether a message that ``messages()`` gave is on a channel that is not JSON."""
         return not is_json_channel(self.channels[message.channel_id].message_encoding)
 
-    def _say_foreign(self, topic: str, encoding: str) -> None:
+    def _note_foreign(self, topic: str, encoding: str, warn: bool) -> None:
         if topic in self.foreign:
             return
         self.foreign[topic] = encoding
-        warnings.warn(f"{self.path}: {topic}: message encoding {encoding!r}, not JSON: its messages are skipped "
-                      "(a channel another tool wrote; `khepri log info` lists such channels)",
-                      ForeignChannelWarning, stacklevel=3)
+        if warn:
+            warnings.warn(f"{self.path}: {topic}: message encoding {encoding!r}, not JSON: its messages are skipped "
+                          "(a channel another tool wrote; `khepri log info` lists such channels)",
+                          ForeignChannelWarning, stacklevel=4)
 
     def messages(self) -> Iterator[Tuple[str, Message]]:
         """``(topic, raw MCAP message)`` pairs, without decoding the JSON (cheap, for counting)."""

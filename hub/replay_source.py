@@ -66,14 +66,13 @@ class ReplaySource(PoseSource):
         missing = set(ids)
         try:
             reader = LogReader(self.path)
-            for topic, message in reader.messages():
+            for _topic, message in reader.json_messages(MOCAP_POSES, warn=False):
                 if not missing:
                     break
-                if topic == MOCAP_POSES and not reader.is_foreign(message):
-                    try:
-                        missing.difference_update(poses_from_record(message.data)[0])
-                    except (KeyError, TypeError, ValueError, AttributeError):
-                        continue     # the replay skips it too, and says so when it gets there
+                try:
+                    missing.difference_update(poses_from_record(message.data)[0])
+                except (KeyError, TypeError, ValueError, AttributeError):
+                    continue     # the replay skips it too, and says so when it gets there
         except LogError:             # damaged beyond what the reader walks past: what was read is the log
             pass
         return sorted(missing)
@@ -81,15 +80,9 @@ class ReplaySource(PoseSource):
     def _pose_messages(self):
         from hub.recording import MOCAP_POSES
 
-        count = 0
-        for topic, message in self.reader.messages():
-            if topic != MOCAP_POSES:
-                continue
-            if self.reader.is_foreign(message):      # another tool's channel of that name, not the hub's poses
-                self.reader.foreign[topic] = self.reader.channels[message.channel_id].message_encoding
-                continue
+        # Another tool's channel of that name, not the hub's poses, is skipped: __init__ refuses such a file.
+        for count, (_topic, message) in enumerate(self.reader.json_messages(MOCAP_POSES, warn=False)):
             yield count, message
-            count += 1
 
     def _fetch(self) -> None:
         from hub.recording import LogError
