@@ -156,17 +156,15 @@ class CagingPhases:
     def _on_attach(self, now: float) -> None:
         if not self._still_mine():
             return
-        if now - self.attach_since > self.params.attach_timeout_s and not self._branch_grew_past():
-            self._give_back(now)
-            return
         p, percept = self.params, self.percept
         error = self._predecessor_error()
         contact = percept.in_contact(p.proximity_threshold)
         shoving = self._shoving(now, contact)
-        if (contact or shoving) and self._sliding_the_wrong_way(error):
-            if not self._branch_grew_past():
-                self._give_back(now)
-                return
+        wrong_way = (contact or shoving) and self._sliding_the_wrong_way(error)
+        if (wrong_way or now - self.attach_since > p.attach_timeout_s) and not self._branch_grew_past():
+            self._give_back(now)
+            return
+        if wrong_way:
             self._hold()        # blocks nothing there; sliding on would shove the members round the object
             return
         if contact or shoving:
