@@ -15,7 +15,7 @@ from onboard.drivers import DriverError
 from onboard.plugins import import_user_modules
 from sim_backend.metrics import EvaluatorError
 
-from . import lab_commands, log_commands, sim_commands, study_commands
+from . import bench_commands, lab_commands, log_commands, sim_commands, study_commands
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,8 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
                              ".py file's path, holding your behaviour")
     groups = parser.add_subparsers(dest="group", metavar="COMMAND", required=True)
     sim_commands.add_sim(groups)
-    bench_commands = sim_commands.add_bench(groups)
-    lab_commands.add_bench_hub(bench_commands)
+    benches = sim_commands.add_bench(groups)
+    bench_commands.add_lab_benches(benches)
     lab_commands.add_lab(groups)
     log_commands.add_log(groups)
     study_commands.add_study(groups)

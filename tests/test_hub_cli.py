@@ -2,6 +2,7 @@
 `khepri bench hub --json`. The hub binds free ports (port 0) and the clients read them from its log, so parallel
 test runs cannot collide; the default ports are checked without binding them."""
 import json
+import math
 import os
 import re
 import signal
@@ -252,7 +253,25 @@ def test_bench_hub_prints_the_three_figures():
     assert run.returncode == 0, run.stderr
     figures = json.loads(run.stdout)
     assert set(figures) >= {"latency_p50_ms", "latency_p99_ms", "hub_cpu_percent"}
-    assert 0 < figures["latency_p50_ms"] <= figures["latency_p99_ms"] < 100
+    # How fast is the benchmark's to say (docs/lab.md), not this test's: a busy CI machine once took a p99 of 210 ms.
+    assert 0 < figures["latency_p50_ms"] <= figures["latency_p99_ms"] < math.inf
+    assert 0 < figures["hub_cpu_percent"] < math.inf
+
+
+def test_bench_estop_prints_how_long_every_agent_took_to_stop():
+    run = khepri("bench", "estop", "--robots", "2", "--repeats", "1", "--json")
+    assert run.returncode == 0, run.stderr
+    figures = json.loads(run.stdout)
+    assert figures["robots"] == 2 and figures["repeats"] == 1
+    # The slowest agent's time includes the request's transit to the hub: never below the slowest acknowledgement.
+    assert 0 < figures["ack_ms_p50"] <= figures["ack_ms_max"] <= figures["worst_ms_max"] < math.inf
+
+
+@pytest.mark.parametrize("option, value, said", [("--robots", "0", "--robots"), ("--repeats", "0", "--repeats"),
+                                                 ("--robots", "101", "--robots")])
+def test_bench_estop_names_a_bad_option(option, value, said):
+    run = khepri("bench", "estop", option, value)
+    assert run.returncode == 2 and run.stderr.startswith(f"khepri: error: {said}"), run.stderr
 
 
 @pytest.mark.parametrize("unbuffered", ["", "1"])
