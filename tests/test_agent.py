@@ -691,3 +691,25 @@ def test_a_new_run_does_not_hear_what_was_relayed_after_the_last_one_ended(scrip
         assert telemetry["behaviour"]["heard"] == []
     finally:
         stop_processes([process])
+
+
+def test_loop_figures_count_the_current_run_only(scripted, tmp_path):
+    """`ctl status` showed a second run's loop steps and deadline misses added to the first run's: an operator
+    could not tell whether this run missed any."""
+    process = spawn_agent(scripted.endpoint, 0, tmp_path / "agent.log")
+    try:
+        scripted.wait_for(lambda m: m["type"] == "hello")
+        start_run(scripted, dict(RUN, run_id="r1"))
+        feed(scripted, 1.0)
+        first = [m for m in scripted.received if m["type"] == "telemetry" and m["run_id"] == "r1"][-1]
+        assert first["loop"]["steps"] >= 5, first["loop"]
+        scripted.send({"type": "command", "cmd": "stop"})
+        scripted.wait_for(lambda m: m["type"] == "ack" and m["cmd"] == "stop")
+        start_run(scripted, dict(RUN, run_id="r2"))
+        t0 = time.monotonic()
+        feed(scripted, 0.3)
+        second = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["_at"] > t0 and m["run_id"] == "r2"
+                                   and m["loop"]["steps"] >= 1)
+        assert second["loop"]["steps"] < first["loop"]["steps"], (first["loop"], second["loop"])
+    finally:
+        stop_processes([process])

@@ -253,6 +253,7 @@ class Agent:
             return
         self.error = None
         self.run, self.period = run, period
+        self.stats = LoopStats()          # status and SIL count this run's steps and misses, not the agent's life's
         self.clock.restart(hub_clock)
         # Messages relayed after the last run's last step (the hub's queue at `stop`) wait in the inbox; the
         # new behaviour would take them as this run's (transport: the old cage "closed", no seed elected).
