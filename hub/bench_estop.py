@@ -22,7 +22,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
 
@@ -72,7 +72,11 @@ def bench_scenario(robots: int):
                            "arena": {"walls": [-half - 1.0, -half - 1.0, half + 1.0, half + 1.0]}})
 
 
-def bench_estop(robots: int, repeats: int = 3, connect_timeout_s: float = 90.0) -> EstopBench:
+def bench_estop(robots: int, repeats: int = 3, connect_timeout_s: Optional[float] = None) -> EstopBench:
+    """``connect_timeout_s`` (default: 30 s plus 1 s per agent, as each starts an interpreter on this PC's
+    cores): how long the agents may take to connect; RuntimeError says how many did."""
+    if connect_timeout_s is None:
+        connect_timeout_s = 30.0 + 1.0 * robots
     config = parse_config({"source": {"type": "sim", "frame_hz": 20},
                            "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0},
                            "security": {"insecure": True}})
@@ -82,7 +86,7 @@ def bench_estop(robots: int, repeats: int = 3, connect_timeout_s: float = 90.0) 
         agents = [spawn_agent(hub.endpoints["robots"], i, Path(tmp) / f"agent-{i}.log", extra=["--quiet"])
                   for i in range(robots)]
         try:
-            hub.wait_until(lambda s: all(r["connected"] for r in s["robots"]), timeout_s=connect_timeout_s)
+            _wait_for_all(hub, "connected", lambda r: r["connected"], connect_timeout_s)
             for _ in range(repeats):
                 result.trials.append(_one_estop(hub))
         finally:
@@ -92,13 +96,26 @@ def bench_estop(robots: int, repeats: int = 3, connect_timeout_s: float = 90.0) 
 
 def _one_estop(hub: HubThread) -> EstopTrial:
     hub.request("start")           # the first time a new run; after a clear, the run resumes
-    hub.wait_until(lambda s: all(r["agent_mode"] == "run" for r in s["robots"]), timeout_s=30.0)
+    _wait_for_all(hub, "running the behaviour", lambda r: r["agent_mode"] == "run", 30.0)
     time.sleep(RUNNING_BEFORE_ESTOP_S)                 # running behaviours, not idle agents
     sent = time.monotonic()
     reply = hub.request("estop")
     transit_ms = (hub.hub.estop_at - sent) * 1000.0
-    status = hub.wait_until(lambda s: all(r["estop_ack_ms"] is not None for r in s["robots"]), timeout_s=10.0)
-    hub.wait_until(lambda s: all(r["agent_mode"] == "estop" for r in s["robots"]), timeout_s=5.0)
+    status = _wait_for_all(hub, "acknowledged the e-stop", lambda r: r["estop_ack_ms"] is not None, 10.0)
+    _wait_for_all(hub, "in e-stop", lambda r: r["agent_mode"] == "estop", 5.0)
     trial = EstopTrial(transit_ms, sorted(r["estop_ack_ms"] for r in status["robots"]), reply.get("note", ""))
     hub.request("clear")
     return trial
+
+
+def _wait_for_all(hub: HubThread, what: str, condition: Callable[[Dict[str, Any]], bool],
+                  timeout_s: float) -> Dict[str, Any]:
+    """The status once every robot's row meets ``condition``; else RuntimeError: how many did, and which not."""
+    try:
+        return hub.wait_until(lambda s: all(condition(r) for r in s["robots"]), timeout_s=timeout_s)
+    except TimeoutError:
+        rows = hub.status()["robots"]
+        late = [str(r["id"]) for r in rows if not condition(r)]
+        named = ", ".join(late[:10]) + (", ..." if len(late) > 10 else "")
+        raise RuntimeError(f"only {len(rows) - len(late)} of {len(rows)} agents {what} within {timeout_s:g} s "
+                           f"(not: robots {named})") from None
