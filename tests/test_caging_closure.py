@@ -107,16 +107,3 @@ def test_in_the_faithful_profile_an_attaching_robot_keeps_sliding(monkeypatch):
     robot._on_attach(1.0)
     robot._on_attach(1.1)
     assert robot.state == "attach" and robot.task is not None
-
-
-@pytest.mark.parametrize("seed", [14, 28])
-def test_the_light_lab_box_is_not_turned_while_the_cage_forms(seed):
-    """The robot attaching at R2 slid round a corner of the 0.3 kg box pressed against it and turned it 5.1°
-    (seed 14) and 5.6° (seed 28) clockwise before transport began. The cage cannot see such a turn (its yaw
-    reference is the mission's yaw), so the box went on 5° off to the end. A pressing robot now slides gently
-    and backs off (caging.py:_gentle_on_the_object)."""
-    sim = Simulation(load_scenario("lab-6"), seed=seed)
-    while not any(b.state == "push" for b in sim.behaviours):
-        assert sim.step_index * sim.period < 200.0, "no cage pushed within 200 s"
-        sim.step()
-    assert abs(math.degrees(sim.world.object_pose()[2])) < 1.0

@@ -22,10 +22,6 @@ SPACING_GAIN = 4.0
 # place (about 4.7 cm from it on the KheperaIV curve, inside the 0.7 contact threshold), and the gain.
 GAP_READING = 0.85
 GAP_GAIN = 3.0
-# ... and an attaching robot that presses on the object (reads it at PRESSING_READING or above) slides along it
-# at most PRESSING_SLIDE, against u_keep_gap's push out (caging.py:_gentle_on_the_object).
-PRESSING_READING = 0.97
-PRESSING_SLIDE = 0.3
 
 
 class CagedPhase:

@@ -10,7 +10,7 @@ import math
 
 from . import control as c
 from .approach import first_travel, seed_heading
-from .caged import GAP_GAIN, GAP_READING, PRESSING_READING, PRESSING_SLIDE
+from .caged import GAP_GAIN, GAP_READING
 from .control import Vec
 from .perception import nearest
 from .tasks import BRANCH_DIRECTION, Task, distance, task_id
@@ -175,8 +175,8 @@ class CagingPhases:
             # in the notches of irregular-box_rotation, whose predecessor is across the notch, never settle.)
             direction = BRANCH_DIRECTION[self.task.branch]
             u = c.u_distance_correction(percept.object_vector, error * direction, 4.0)
-            if p.keep_gap_while_caging:
-                u = self._gentle_on_the_object(u, contact)
+            if p.keep_gap_while_caging and (contact or percept.object_peak > GAP_READING):
+                u = c.add(u, c.u_keep_gap(percept.object_vector, percept.object_peak, GAP_READING, GAP_GAIN))
             settled = abs(error) < p.caging_tolerance_m
         else:
             toward = percept.object_vector if percept.object_peak > 0 else c.sub(self._centre_guess(), percept.position)
@@ -191,20 +191,6 @@ class CagingPhases:
             self._hold()
         else:
             self._drive(u, speed_scale=0.6)
-
-    def _gentle_on_the_object(self, slide: Vec, contact: bool) -> Vec:
-        """keep_gap_while_caging: the slide plus u_keep_gap, and a robot pressing on the object (its IR at
-        PRESSING_READING or above) slides at most PRESSING_SLIDE: _drive normalises u, so the slide's weight
-        against u_keep_gap (3 x (0.85 - 1) = 0.45 outward when pressed) is what matters, and the robot backs
-        off as it slides instead of sliding at full speed in contact. Sliding pressed round a corner of the
-        light lab box turned it 2-6 degrees clockwise in 11 of lab-6's seeds 1-40 (never after), and the cage
-        never sees a turn made before transport begins (its yaw reference is the mission's yaw)."""
-        percept = self.percept
-        if percept.object_peak >= PRESSING_READING and c.norm(slide) > PRESSING_SLIDE:
-            slide = c.scale(slide, PRESSING_SLIDE / c.norm(slide))
-        if contact or percept.object_peak > GAP_READING:
-            return c.add(slide, c.u_keep_gap(percept.object_vector, percept.object_peak, GAP_READING, GAP_GAIN))
-        return slide
 
     def _sliding_the_wrong_way(self, error: float) -> bool:
         """Ours: this attaching robot touches the object behind its predecessor (between it and the branch's
