@@ -267,7 +267,9 @@ class HandshakeWatch:
     peer address, socket and reason every HANDSHAKE_LOG_S at most (a peer retrying, or a flood, cannot fill the log),
     with how many were dropped meanwhile."""
 
-    EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_DISCONNECTED
+    # MONITOR_STOPPED: disable_monitor's last event, on which the reader ends (close()).
+    EVENTS = (zmq.EVENT_ACCEPTED | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_DISCONNECTED
+              | zmq.EVENT_MONITOR_STOPPED)
 
     def __init__(self, context: zmq.Context, sock: zmq.Socket, domain: str, ring: KeyRing,
                  log: Callable[[str], None] = print):
@@ -276,18 +278,26 @@ class HandshakeWatch:
         self.address = f"inproc://handshakes-{domain}-{next(_WATCHES)}"   # id(self) is reused: an address too
         sock.monitor(self.address, self.EVENTS)
         self._stop = threading.Event()
+        self.monitor_stopped = False        # the reader read the monitor's last event (close() turned it off)
+        self._listening = threading.Event()  # the reader's PAIR socket is connected to the monitor
         self._said: Dict[Tuple[str, int], Tuple[float, int]] = {}   # (address, error) -> (last said, drops since)
         self._thread = threading.Thread(target=self._run, args=(context,), name=f"handshakes-{domain}", daemon=True)
         self._thread.start()
+        self._listening.wait(5.0)    # disable_monitor (close) blocks for ever if the reader is not yet connected
 
     def close(self) -> None:
-        """In the thread that owns the socket, before closing it."""
-        self._stop.set()
-        self._thread.join(timeout=1.0)
+        """In the thread that owns the socket, before closing it. The monitor is turned off first, while the
+        reader still reads: libzmq's I/O thread sends each event to the reader's PAIR socket holding a lock, and
+        with the reader gone a send waits for ever (a PAIR without its peer blocks). disable_monitor then waited
+        for that lock holding Python's GIL, and the whole hub froze on its way out (seen at the end of a test,
+        as an agent disconnected just after the reader had stopped). The reader is connected since __init__."""
         try:
             self.sock.disable_monitor()
         except zmq.ZMQError:
             pass
+        self._thread.join(timeout=1.0)     # the reader ends on the monitor's last event, MONITOR_STOPPED...
+        self._stop.set()                   # ... or here, should that never come
+        self._thread.join(timeout=1.0)
 
     def _run(self, context: zmq.Context) -> None:
         from zmq.utils.monitor import recv_monitor_message
@@ -295,6 +305,7 @@ class HandshakeWatch:
         pair = context.socket(zmq.PAIR)
         pair.linger = 0
         pair.connect(self.address)
+        self._listening.set()
         peers: Dict[int, str] = {}          # file descriptor -> peer address, while connected
         failed: Optional[int] = None        # the ZMTP error of a handshake that failed, until its disconnection
         try:
@@ -303,6 +314,9 @@ class HandshakeWatch:
                     continue
                 event = recv_monitor_message(pair)
                 kind, value = event["event"], event["value"]
+                if kind == zmq.EVENT_MONITOR_STOPPED:
+                    self.monitor_stopped = True      # the last event: nothing more will be sent to us
+                    break
                 if kind == zmq.EVENT_ACCEPTED:
                     peers[value] = peer_address(value)
                     if len(peers) > 10_000:     # descriptors are reused: this only guards against a leak

@@ -1,7 +1,11 @@
 """CURVE on by default: only listed robot and operator keys get in, and a robot key cannot claim another id."""
+import os
 import socket
 import stat
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 import zmq
@@ -327,3 +331,35 @@ def test_another_hubs_key_is_logged_once_however_often_the_agent_retries(secure_
     assert f"its hello cannot be decrypted with this hub's key: the agent's --keys holds a hub.key that is not " \
            f"{keys / 'hub.key'}" in said[0]
     assert not secure_hub.status()["robots"][0]["connected"]
+
+
+CLOSE_WHILE_PEERS_COME_AND_GO = """
+import sys, zmq
+from hub.security import HandshakeWatch
+ctx = zmq.Context.instance()
+for _ in range(40):
+    sock = ctx.socket(zmq.ROUTER)
+    sock.bind("tcp://127.0.0.1:*")
+    watch = HandshakeWatch(ctx, sock, "robots", None, log=lambda text: None)
+    peers = [ctx.socket(zmq.DEALER) for _ in range(5)]
+    for peer in peers:
+        peer.linger = 0
+        peer.connect(sock.getsockopt_string(zmq.LAST_ENDPOINT))
+    for peer in peers:
+        peer.close(0)             # their disconnections reach the monitor as it is turned off
+    watch.close()
+    assert watch.monitor_stopped, "the reader stopped before the monitor did"
+    sock.close(0)
+print("closed", flush=True)
+"""
+
+
+def test_a_handshake_watch_closes_while_peers_come_and_go():
+    """The hub froze for good on its way out: its handshake watch stopped the monitor's reader first, an agent
+    disconnected just then, and libzmq's I/O thread waited for ever to hand that event to the reader while
+    holding a lock that disable_monitor() then waited for, holding Python's GIL. The monitor is now turned off
+    while the reader still reads, and the reader ends on the monitor's own last event."""
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    run = subprocess.run([sys.executable, "-c", CLOSE_WHILE_PEERS_COME_AND_GO], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout == "closed\n", run.stderr
