@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import Any, Dict, List, Optional, Set, Tuple
 
 import zmq
 
@@ -54,16 +54,18 @@ class Lockstep:
         report = StepReport(frame.clock_s or 0.0)
         # One batch: the sensor part of every frame in one vectorised pass (Hub.send_frames). A frame counts as
         # sent once the whole batch is out, so a round trip never includes time before its frame left.
+        # Who must answer is settled before the send: an agent whose connection failed in it is waited for.
+        waiting = set(self.expected(now))
         connected = [robot for robot in hub.robots.values() if robot.routing is not None]
         if connected:
             hub.send_frames(connected, time.monotonic())
         sent = time.monotonic()
-        sent_at = {robot.id: (sent, robot.seq) for robot in connected}
-        waiting = set(self.expected(now))
+        sent_at = {robot.id: (sent, robot.seq, robot.routing) for robot in connected}
         deadline = time.monotonic() + self.timeout_s
         while waiting and time.monotonic() < deadline:
             events = dict(self.poller.poll(max(0.0, deadline - time.monotonic()) * 1000.0))
             hub.handle_sockets(events)
+            self._resend_to_reconnected(waiting, sent_at)
             for rid in list(waiting):
                 robot = hub.robots[rid]
                 if rid in sent_at and robot.step_answered >= sent_at[rid][1]:
@@ -82,6 +84,15 @@ class Lockstep:
         hub.housekeeping(time.monotonic())
         self.steps += 1
         return report
+
+    def _resend_to_reconnected(self, waiting: Set[int], sent_at: Dict[int, Tuple[float, int, Any]]) -> None:
+        """An agent that reopened its connection while its frame was on the way lost that frame (its agent counts
+        it lost): it gets this step's frame again on the new connection, or it could not answer the step."""
+        for rid in waiting:
+            robot = self.hub.robots[rid]
+            if robot.routing is not None and (rid not in sent_at or sent_at[rid][2] != robot.routing):
+                self.hub.send_frames([robot], time.monotonic())
+                sent_at[rid] = (time.monotonic(), robot.seq, robot.routing)
 
     def advance(self) -> None:
         self.source.advance(self.source.substeps_per_control)

@@ -308,8 +308,16 @@ class Hub(Downlink, Uplink, Housekeeping):
         if command is None:
             return
         for rid, robot in self.robots.items():
-            if self.mode_for(robot)[0] != "run" or not robot.connected(now, self.config.watchdog_s):
+            if self.mode_for(robot)[0] != "run" or not self._answering(robot, now):
                 command(rid, 0.0, 0.0)
+
+    def _answering(self, robot: RobotLink, now: float) -> bool:
+        """Whether a robot's agent is there to drive its simulated wheels. In lockstep that is whether it answered
+        the last step: the wall clock said silent whenever the hub had waited longer than watchdog_s for a slower
+        agent, and stopped this one's wheels, which its next step only restarted if it set them again."""
+        if self.run.lockstep:
+            return robot.routing is not None and robot.unresponsive_steps == 0
+        return robot.connected(now, self.config.watchdog_s)
 
     def mode_for(self, robot: RobotLink) -> Tuple[str, str]:
         """What this robot must do now, and why when it is not the hub's mode."""

@@ -110,8 +110,8 @@ class Uplink:
         """One line when a robot that was connected goes silent (its agent died, or its Wi-Fi dropped), and one
         when it speaks again (``handle_uplink``): `ctl status` showed it as not connected, but nobody watching the
         hub's console learnt that a robot had stopped."""
-        if now - self.silence_checked_at < SILENCE_CHECK_PERIOD_S:
-            return
+        if now - self.silence_checked_at < SILENCE_CHECK_PERIOD_S or self.run.lockstep:
+            return      # lockstep: an agent is quiet while the hub waits for a slower one (sil names one stuck)
         self.silence_checked_at = now
         quiet_s = max(SILENT_LOG_S, self.config.watchdog_s)
         for robot in self.robots.values():

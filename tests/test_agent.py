@@ -216,6 +216,23 @@ def test_lockstep_agent_answers_each_frame_once_on_the_hub_clock(scripted, agent
     assert len(steps) == len(set(steps))          # never two steps for one frame
 
 
+def test_a_lockstep_agent_waits_out_a_slow_hub_without_stopping_or_reconnecting(scripted, agent_process):
+    """In lockstep the hub is silent while it waits for a slower agent. After 0.25 s the agent's watchdog sent a
+    wheel stop, which landed in the step the hub was waiting on; after 2 s it reopened its socket and lost the
+    next frame. Simulated wheels move only when the hub steps, so the agent waits."""
+    start_run(scripted, {**RUN, "run_id": "lock", "lockstep": True, "clock": "hub"})
+    first = scripted.frame(clock_s=0.0, neighbours=FAR_NEIGHBOUR)
+    scripted.wait_for(lambda m: m["type"] == "telemetry" and m["step"] == first["seq"])
+    connection, silent_from = scripted.routing, time.monotonic()
+    time.sleep(2.6)
+    second = scripted.frame(clock_s=0.1, neighbours=FAR_NEIGHBOUR)
+    answer = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["step"] == second["seq"])
+    assert answer["frames_lost"] == 0 and answer["mode"] == "run" and answer["loop"]["steps"] == 2
+    assert scripted.routing == connection                   # the same connection: not reopened
+    during = [m for m in scripted.received if silent_from < m["_at"] < silent_from + 2.6]
+    assert not [m for m in during if m["type"] == "wheels"], during
+
+
 class Explode(Behaviour):
     def step(self) -> None:
         self.robot.wheels.set_speeds(0.2, 0.2)

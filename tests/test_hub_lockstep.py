@@ -117,3 +117,50 @@ def test_a_silent_agent_is_reported_missing_and_then_no_longer_waited_for(hub):
         agents.join(5.0)
     assert [r.missing for r in reports] == [[1], [1], [1], []]
     assert lockstep.timeouts == 3 and hub.robots[1].seq == 4               # still sent every step
+
+
+def test_an_agent_that_reopens_its_connection_gets_the_step_it_missed(hub):
+    """An agent reopens its socket after a long silence. The hub's frame of the next step went to the old
+    connection and was lost; the step went on without that robot's answer (its wheel command for the step
+    missing), or timed out. The frame now goes again on the new connection, and the step is answered."""
+    lockstep = Lockstep(hub, timeout_s=5.0)
+    endpoint = hub.endpoints["robots"]
+    context = zmq.Context.instance()
+    hello = {"type": "hello", "id": 1, "driver": "test", "agent": "one-process"}
+    old = context.socket(zmq.DEALER)
+    old.linger = 0
+    old.connect(endpoint)
+    old.send(encode(hello))
+    assert lockstep.wait_for(lambda: hub.robots[1].routing is not None, 10.0, "hello") is None
+    reopened, received = threading.Event(), []
+
+    def agent():
+        frame = decode(old.recv(), "hub", accept=DOWNLINK_TYPES)         # step 1, answered on the old socket
+        old.send(encode({"type": "telemetry", "id": 1, "step": frame["seq"], "mode": "idle", "agent": "one-process"}))
+        time.sleep(0.3)
+        old.close(0)
+        reopened.set()
+        time.sleep(0.3)              # the hub sends step 2's frame meanwhile, to the connection just closed
+        new = context.socket(zmq.DEALER)
+        new.linger = 0
+        new.connect(endpoint)
+        new.send(encode(hello))
+        while new.poll(5000):
+            message = decode(new.recv(), "hub", accept=DOWNLINK_TYPES)
+            if message["type"] == "frame":
+                received.append(message["seq"])
+                new.send(encode({"type": "telemetry", "id": 1, "step": message["seq"], "mode": "idle",
+                                 "agent": "one-process"}))
+                break
+        new.close(0)
+
+    thread = threading.Thread(target=agent, daemon=True)
+    thread.start()
+    first = lockstep.step()
+    lockstep.advance()
+    assert reopened.wait(5.0)
+    second = lockstep.step()
+    thread.join(10.0)
+    assert first.answered == [1] and second.answered == [1] and second.missing == []
+    assert lockstep.timeouts == 0
+    assert received == [3]             # step 2's first frame (seq 2) was lost with the old connection

@@ -155,3 +155,58 @@ def test_the_sil_summary_says_its_figures_and_drops_in_words():
         "  3 agents, lockstep, frame-to-answer latency p99 1.25 ms, loop misses 0",
         "  dropped: 2 messages the hub refused: bad message (hub.log says more)"]
     assert sil_summary_lines({"agents": 1, "lockstep": True, "dropped": {}})[1] == "  dropped: nothing"
+
+
+COURSE_HOLDER = '''
+import random
+import time
+from dataclasses import dataclass
+
+from onboard.behaviour import Behaviour, register
+
+
+@dataclass
+class Params:
+    slow_s: float = 0.0
+
+
+@register("course-holder")
+class CourseHolder(Behaviour):
+    """Sets random wheel speeds at t = 0 and 1 s only, as a behaviour holding a course does; robot 0's step at
+    t = 0.5 s takes slow_s longer."""
+    Params = Params
+
+    def step(self):
+        t = self.robot.clock.now()
+        if self.robot.id == 0 and abs(t - 0.5) < 0.05:
+            time.sleep(self.params.slow_s)
+        if abs(t) < 0.05 or abs(t - 1.0) < 0.05:
+            self.robot.wheels.set_speeds(random.uniform(0.05, 0.2), random.uniform(0.05, 0.2))
+'''
+
+COURSE_SCENARIO = """name: course
+behaviour: course-holder
+params: {{slow_s: {bug}}}
+robots: {{count: 3, spawn: {{x: [-0.5, 0.5], y: [-0.5, 0.5]}}}}
+arena: {{walls: [-2, -2, 2, 2]}}
+time_limit_s: 2
+"""
+
+
+def test_a_lockstep_run_does_not_depend_on_how_long_an_agent_takes(user_behaviour, tmp_path):
+    """One agent's step taking 0.7 s, as on a loaded machine, changed a lockstep run: the other agents' watchdogs
+    and the hub's silence check stopped their wheels in the step the hub was waiting on, and the slow agent's
+    own step watchdog dropped its wheel command. Physics waits for every answer, so nothing may change."""
+    from khepri_cli.main import main
+
+    scenario = user_behaviour("course_holder", COURSE_HOLDER, COURSE_SCENARIO)
+    poses = {}
+    for slow in ("0", "0.7"):
+        out = f"slow-{slow}"
+        assert main(["--import", "course_holder", "sil", scenario(slow), "--no-plot", "--no-record", "--out", out]) == 0
+        result = json.loads((tmp_path / out / "result.json").read_text())
+        assert result["sil"]["step_timeouts"] == 0 and result["sil"]["dropped"]["frames_lost_at_agents"] == 0
+        poses[slow] = np.load(tmp_path / out / "trajectory.npz")["robot_pose"]
+    assert "the behaviour's step took 0.7" in (tmp_path / "slow-0.7" / "agents" / "agent-0.log").read_text()
+    assert np.abs(poses["0"][-1, :, :2] - poses["0"][0, :, :2]).max() > 0.1      # they drove
+    assert np.array_equal(poses["0"], poses["0.7"])

@@ -169,9 +169,10 @@ def test_sil_ends_as_crashed_when_an_agent_stops_answering(tmp_path, monkeypatch
     err = capsys.readouterr().err
     assert "khepri: error: agent 0 stopped answering (3 frames in a row, 2 s each): the behaviour's step() has run " \
            "for " in err
-    assert "s: wheels stopped" in err                 # the agent's own step watchdog, from its log
+    # The agent's own step watchdog, from its log; in lockstep it leaves the simulated wheels to the hub.
+    assert "s: lockstep: its simulated wheels wait for it; a robot's would stop here" in err
     # How long step() has run when the hub gives up (3 frames of 2 s), not the 0.26 s of the agent's first note.
-    running = re.search(r"step\(\) has run for ([0-9.]+) s, since t = 0\.4 s: wheels stopped", err)
+    running = re.search(r"step\(\) has run for ([0-9.]+) s, since t = 0\.4 s: lockstep", err)
     assert running and 5.9 <= float(running.group(1)) < 10.0, err
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 2.0

@@ -9,7 +9,10 @@ __all__ = ["Agent", "LoopStats"]
 def __getattr__(name):
     # Imported on first use, not with the package: `python -m onboard.agent` on a robot that lacks pyzmq or
     # numpy must reach __main__, which says which package is missing in one line instead of a traceback.
-    if name in __all__:
-        from . import loop
-        return getattr(loop, name)
+    if name == "Agent":
+        from .loop import Agent
+        return Agent
+    if name == "LoopStats":
+        from .loop_stats import LoopStats
+        return LoopStats
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

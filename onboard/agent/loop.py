@@ -18,7 +18,6 @@ import math
 import random
 import signal
 import time
-from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional
 
 from onboard.behaviour import (
@@ -37,54 +36,17 @@ from onboard.protocol import IDLE_TELEMETRY_HZ, ProtocolError
 
 from .devices import AgentClock, HubState, apply_frame, make_robot
 from .link import HubLink, family_hint
+from .loop_stats import LoopStats
 from .run_start import run_control_hz, run_id_text, run_params, run_spec, run_uses_hub_clock
 from .safety import GuardedDriver, StepWatchdog
 
 SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is said at most this often
 HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
 RESET_AFTER_S = 2.0       # this long without a frame: reopen the socket (a connection can be stuck for good)
+# In lockstep (SIL) the hub is silent while it waits for the slowest agent, up to its step timeout (2 s) each
+# step, and longer on a loaded machine: a reopened socket there lost the frame in flight and the robot's step.
+LOCKSTEP_RESET_AFTER_S = 10.0
 WAITING_LOG_S = 10.0      # while the hub stays silent, say so this often
-
-
-@dataclass
-class LoopStats:
-    """Loop timing for telemetry: measured rate, step duration, deadline misses."""
-
-    steps: int = 0
-    misses: int = 0
-    total_step_s: float = 0.0
-    max_step_s: float = 0.0
-    last_step_s: float = 0.0
-    window_start: float = 0.0
-    window_steps: int = 0
-    hz: float = 0.0
-
-    def record(self, started: float, finished: float, deadline: float) -> None:
-        duration = finished - started
-        self.last_step_s = duration
-        self.steps += 1
-        self.total_step_s += duration
-        self.max_step_s = max(self.max_step_s, duration)
-        if finished > deadline:
-            self.misses += 1
-        self.window_steps += 1
-        if finished - self.window_start >= 1.0:
-            self.hz = self.window_steps / (finished - self.window_start) if self.window_start else 0.0
-            self.window_start, self.window_steps = finished, 0
-
-    def idle(self, now: float) -> None:
-        """A tick without a step (idle, hold, e-stop, watchdog): the rate falls to what was stepped, so that a
-        held robot does not keep reporting the 10 Hz of its last run. A window with no step at all closes,
-        and the next step opens a fresh one, as at start-up."""
-        if self.window_start and now - self.window_start >= 1.0:
-            self.hz = self.window_steps / (now - self.window_start)
-            self.window_start = now if self.window_steps else 0.0
-            self.window_steps = 0
-
-    def as_dict(self) -> Dict[str, Any]:
-        mean = self.total_step_s / self.steps if self.steps else 0.0
-        return {"hz": round(self.hz, 2), "steps": self.steps, "misses": self.misses,
-                "mean_ms": round(mean * 1000.0, 3), "max_ms": round(self.max_step_s * 1000.0, 3)}
 
 
 class Agent:
@@ -154,7 +116,7 @@ class Agent:
         now = time.monotonic()
         self.check_watchdog(now)
         silent_s = now - max(self.state.received_at, self.last_reset)
-        if silent_s > RESET_AFTER_S:
+        if silent_s > (LOCKSTEP_RESET_AFTER_S if self._lockstep() else RESET_AFTER_S):
             self.last_reset = now
             self.link.reset()
             self._say_still_waiting(now)
@@ -182,7 +144,9 @@ class Agent:
 
     def _wait_time(self, now: float) -> float:
         watchdog_left = self.state.received_at + self.watchdog_s - now
-        wait = 0.02 if self._lockstep() else self.next_tick - now
+        if self._lockstep():
+            return 0.02                # frames pace the loop; no watchdog to check on time (check_watchdog)
+        wait = self.next_tick - now
         if not self.watchdog_tripped:
             wait = min(wait, max(0.0, watchdog_left) + 0.001)
         return max(0.0, min(wait, 0.05))
@@ -309,6 +273,11 @@ class Agent:
 
     # --- safety -------------------------------------------------------------------------------------------
     def check_watchdog(self, now: float) -> None:
+        if self._lockstep():
+            # Lockstep wheels are the hub's simulated ones, which move only when the hub advances physics, after
+            # this agent answered (or timed out). A stop sent while the hub waited for a slower agent landed in
+            # the step being waited on, and the run then depended on the machine's load.
+            return
         if not self.watchdog_tripped and now - self.state.received_at > self.watchdog_s:
             self.watchdog_tripped = True
             self.driver.close_gate()
@@ -324,7 +293,7 @@ class Agent:
         stepped = self.behaviour is not None and self.state.mode == "run" and not self.watchdog_tripped
         if stepped:
             self.driver.open_gate()
-            self.step_watchdog.begin()
+            self.step_watchdog.begin(stops_wheels=not self._lockstep())
             try:
                 self.behaviour.step()
             except USER_CODE_ERRORS as exc:

@@ -84,6 +84,7 @@ class StepWatchdog:
         self.driver, self.limit_s, self.stop_requested = driver, limit_s, stop_requested
         self.log, self.robot_id = log, robot_id
         self.started_at: Optional[float] = None
+        self.stops_wheels = True
         self.tripped = False
         self._running = threading.Event()
         self._thread: Optional[threading.Thread] = None
@@ -97,15 +98,18 @@ class StepWatchdog:
     def stop(self) -> None:
         self._running.clear()
 
-    def begin(self) -> None:
+    def begin(self, stops_wheels: bool = True) -> None:
+        """A step starts. ``stops_wheels`` False in lockstep: the simulated wheels wait for the step's answer,
+        and a slow step (a loaded machine) that lost its wheel commands made the run depend on the load."""
+        self.stops_wheels = stops_wheels
         self.started_at = time.monotonic()
 
     def end(self) -> None:
         self.started_at = None
         if self.tripped:
             self.tripped = False
-            self.log(f"agent {self.robot_id}: the behaviour's step() returned; the wheels stay stopped until the "
-                     "next step commands them")
+            after = "; the wheels stay stopped until the next step commands them" if self.stops_wheels else ""
+            self.log(f"agent {self.robot_id}: the behaviour's step() returned{after}")
 
     def _watch(self) -> None:
         stop_asked_at: Optional[float] = None
@@ -118,10 +122,12 @@ class StepWatchdog:
                 continue
             if not self.tripped and now - started > self.limit_s:
                 self.tripped = True
-                self._stop_wheels()
+                if self.stops_wheels:
+                    self._stop_wheels()
+                what = "wheels stopped" if self.stops_wheels else "lockstep: its simulated wheels wait for it; " \
+                    "a robot's would stop here"
                 self.log(f"agent {self.robot_id}: the behaviour's step() has run for {now - started:.2f} s: "
-                         "wheels stopped (e-stop and the hub's watchdog act between steps only: step() must "
-                         "return)")
+                         f"{what} (e-stop and the hub's watchdog act between steps only: step() must return)")
             if self.stop_requested():
                 stop_asked_at = stop_asked_at or now
                 if now - stop_asked_at > STUCK_EXIT_AFTER_S:
