@@ -10,7 +10,8 @@ Safety rules, in order of precedence:
   runs longer than the watchdog has the wheels stopped by a thread of its own (``safety.py``).
 
 Pacing: in real time the loop ticks on its own clock at ``control_hz``; in lockstep (SIL) it ticks once per
-hub frame. Everything else is the same code.
+hub frame. Everything else is the same code, except that in lockstep neither watchdog stops the wheels: they
+are the hub's simulated ones, which move only once this agent has answered its frame.
 """
 from __future__ import annotations
 
