@@ -92,8 +92,12 @@ _RELAY_WORDS = {
 def sil_summary_lines(sil: Dict[str, Any]) -> List[str]:
     """What ``khepri sil`` prints under the run's summary: the figures in words, and every drop by its kind."""
     latency = (sil.get("latency_ms") or {}).get("p99")
-    timing = (f"frame-to-answer latency p99 {latency:g} ms" if latency is not None
-              else "frame-to-answer latency not measured (--realtime: the agents run on their own clocks)")
+    if latency is not None:
+        timing = f"frame-to-answer latency p99 {latency:g} ms"
+    elif sil.get("lockstep"):      # a lockstep run that ended before any frame was answered (a crash at t = 0)
+        timing = "frame-to-answer latency not measured (no frame was answered)"
+    else:
+        timing = "frame-to-answer latency not measured (--realtime: the agents run on their own clocks)"
     mode = "lockstep" if sil.get("lockstep") else "real time"
     lines = [f"  {sil.get('agents')} agents, {mode}, {timing}, loop misses {sil.get('loop_misses', 0)}"]
     dropped = sil.get("dropped") or {}

@@ -157,6 +157,15 @@ def test_the_sil_summary_says_its_figures_and_drops_in_words():
     assert sil_summary_lines({"agents": 1, "lockstep": True, "dropped": {}})[1] == "  dropped: nothing"
 
 
+def test_a_lockstep_run_without_latency_does_not_blame_realtime():
+    """A behaviour whose __init__ raised ended a lockstep `khepri sil` at t = 0, and the summary said the
+    latency was not measured because of `--realtime`, which was never given."""
+    from hub.sil_report import sil_summary_lines
+
+    line = sil_summary_lines({"agents": 3, "lockstep": True, "latency_ms": {"p99": None}, "dropped": {}})[0]
+    assert line == "  3 agents, lockstep, frame-to-answer latency not measured (no frame was answered), loop misses 0"
+
+
 COURSE_HOLDER = '''
 import random
 import time
