@@ -58,6 +58,20 @@ def test_a_clean_short_run_reports_no_drop(tmp_path):
     assert sil_summary_lines(result["sil"])[1] == "  dropped: nothing"
 
 
+def test_the_warnings_go_by_the_time_limit_the_run_gets(tmp_path):
+    """`khepri sil x.yaml --time-limit 2` with a fault at 100 s and the scenario's 60 s warned that the fault was
+    not before the time limit (60 s), and with --time-limit 120 warned that it never fires, although it does:
+    the preflight read the scenario's own limit. `sim run` goes by --time-limit."""
+    from sim_backend.scenario import Fault
+
+    lab6 = load_scenario("lab-6")
+    scenario = lab6.with_overrides(robots=dataclasses.replace(lab6.robots, count=3), time_limit_s=60.0,
+                                   faults=[Fault(robot=1, at_s=100.0)])
+    result = run_sil(scenario, tmp_path, SilOptions(plot=False, record=False, time_limit_s=1.0))
+    assert [w for w in result.get("warnings", []) if w.startswith("faults")] == [
+        "faults[0].at_s: 100 s is not before the time limit (1 s): robot 1 never fails"]
+
+
 def test_a_realtime_run_stops_at_its_time_limit_as_lockstep_does(tmp_path):
     """`khepri sil ... --realtime --time-limit 2` wrote sim_time_s 2.1 and a 21st sample at t = 2.0: the step
     that began at the limit was observed. Lockstep and `sim run` give 2.0 s and 20 samples (t = 0 .. 1.9)."""
