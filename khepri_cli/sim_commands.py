@@ -153,9 +153,9 @@ RUN_FILES = ("result.json", "trajectory.npz", "trajectory.png")    # what `sim r
 def out_folder_problem(out: Path, files: Sequence[str] = ()) -> Optional[str]:
     """Create the output folder now; what is wrong with it, or None. ``files``: names the command will write
     there, so that a folder of that name is said now rather than as "Is a directory" after the run."""
-    if out.exists() and not out.is_dir():      # mkdir would only say "File exists"
-        return f"{out} is a file, not a folder"
-    try:
+    try:      # exists() itself raises on a name too long for the file system
+        if out.exists() and not out.is_dir():      # mkdir would only say "File exists"
+            return f"{out} is a file, not a folder"
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         return f"cannot create the folder {out}: {err.strerror or err}"

@@ -99,6 +99,15 @@ def test_study_and_sil_refuse_an_out_folder_they_cannot_make(tmp_path, capsys, c
     assert f"--out: cannot create the folder {blocker / 'out'}" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", [["sim", "run", "lab-6"], ["sil", "lab-6"]])
+def test_an_out_folder_name_too_long_is_said_as_the_out_folder(tmp_path, capsys, command):
+    """A scenario named with 300 letters (its default --out) or a --out that long said `khepri: error: File name
+    too long: out/xxx...`, naming no option: Path.exists() raised before mkdir's error was caught."""
+    out = tmp_path / ("x" * 300)
+    assert main([*command, "--out", str(out)]) == 2
+    assert capsys.readouterr().err == f"khepri: error: --out: cannot create the folder {out}: File name too long\n"
+
+
 def test_sil_refuses_an_out_folder_whose_agents_is_a_file_before_it_starts(tmp_path, capsys):
     """It said `khepri: error: File exists: OUT/agents`, without --out, once the hub had started."""
     out = tmp_path / "out"
