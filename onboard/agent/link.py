@@ -22,8 +22,15 @@ def hub_endpoint(hub: str, port: int, option: str = "--hub", port_given: bool = 
     ``tcp://10.0.0.1:5560`` as it is, else ``tcp://HOST:PORT``. A host with a port in it (``10.0.0.1:5560``) is
     refused: it would make ``tcp://10.0.0.1:5560:5560``, which ZeroMQ takes and never reaches, so the agent
     would wait for ever and ``ctl`` time out as if no hub were running. A whole address with ``--port`` too
-    (``port_given``) is refused: the address's own port would win, silently."""
+    (``port_given``) is refused: the address's own port would win, silently. So is an empty host (``--hub
+    "$HUB"`` with HUB unset), which made ``tcp://:5560``: ZeroMQ takes that too and never reaches anything."""
+    if not hub.strip():
+        raise ConfigError(option, "is empty: give the hub PC's host name or IP address (e.g. --hub 192.168.10.1; "
+                                  "an unset shell variable?)")
     if "://" in hub:
+        if hub.split("://", 1)[1].strip().startswith(":"):
+            raise ConfigError(option, f"{hub!r} has no host: give the hub PC's host name or IP address before "
+                                      "the port (e.g. tcp://192.168.10.1:5560)")
         if port_given:
             raise ConfigError("--port", f"{hub!r} is a whole address with its own port: leave --port out, or "
                                         f"give --hub the host alone")

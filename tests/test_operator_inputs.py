@@ -1,0 +1,31 @@
+"""Operator mistakes on the command line that used to wait for ever or mislead (found by following docs/lab.md)."""
+import subprocess
+import sys
+
+import pytest
+
+from onboard.agent.link import hub_endpoint
+from onboard.config import ConfigError
+
+
+@pytest.mark.parametrize("hub", ["", "   "])
+def test_an_empty_hub_is_refused(hub):
+    """`--hub "$HUB"` with HUB unset made tcp://:5560, which ZeroMQ takes and never reaches: the agent waited for
+    ever and `ctl` timed out as if no hub ran."""
+    with pytest.raises(ConfigError, match="--hub: is empty"):
+        hub_endpoint(hub, 5560)
+
+
+@pytest.mark.parametrize("hub", ["tcp://:5560", "tcp://  :5560"])
+def test_a_whole_address_without_a_host_is_refused(hub):
+    with pytest.raises(ConfigError, match="has no host"):
+        hub_endpoint(hub, 5560)
+
+
+def test_ctl_and_agent_refuse_an_empty_hub_at_once():
+    ctl = subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "status", "--hub", "", "--port", "6499",
+                          "--timeout", "30"], capture_output=True, text=True, timeout=60)
+    assert ctl.returncode == 2 and "--hub: is empty" in ctl.stderr, ctl.stderr
+    agent = subprocess.run([sys.executable, "-m", "onboard.agent", "--id", "0", "--driver", "sim", "--hub", "",
+                            "--port", "6499"], capture_output=True, text=True, timeout=60)
+    assert agent.returncode == 2 and "--hub: is empty" in agent.stderr, agent.stderr
