@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from onboard.agent.link import hub_endpoint
+from onboard.agent.link import hub_endpoint, load_robot_keys
 from onboard.config import ConfigError
 
 
@@ -29,3 +29,17 @@ def test_ctl_and_agent_refuse_an_empty_hub_at_once():
     agent = subprocess.run([sys.executable, "-m", "onboard.agent", "--id", "0", "--driver", "sim", "--hub", "",
                             "--port", "6499"], capture_output=True, text=True, timeout=60)
     assert agent.returncode == 2 and "--hub: is empty" in agent.stderr, agent.stderr
+
+
+def test_a_robot_without_its_key_is_told_to_copy_or_add_it_not_to_init(tmp_path):
+    """`keys init` on a lab that has keys refuses (hub.key exists), so pointing a robot there was a dead end."""
+    (tmp_path / "robots").mkdir()
+    (tmp_path / "hub.key").write_text("")
+    with pytest.raises(ConfigError) as err:
+        load_robot_keys(tmp_path, 3)
+    assert "robot-3.key_secret: copy it from the lab PC's key folder" in str(err.value)
+    assert "khepri keys add KEYS --robots 3," in str(err.value) and "keys init" not in str(err.value)
+    (tmp_path / "hub.key").unlink()
+    (tmp_path / "robots" / "robot-3.key_secret").write_text("")
+    with pytest.raises(ConfigError, match="hub.key: copy hub.key from the lab PC"):
+        load_robot_keys(tmp_path, 3)

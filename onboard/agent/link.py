@@ -154,9 +154,15 @@ def load_robot_keys(folder: Path, robot_id: int) -> Dict[str, bytes]:
 
     secret_file = robot_secret_file(folder, robot_id)
     hub_file = folder / "hub.key"
-    for path in (secret_file, hub_file):
-        if not path.is_file():
-            raise ConfigError("--keys", f"missing {path} (make keys with `khepri keys init`)")
+    # On a robot, the folder holds what was copied from the lab PC's: `keys init` there would refuse (the lab
+    # has keys already), and a robot left out of it gets its key with `keys add`.
+    if not secret_file.is_file():
+        raise ConfigError("--keys", f"missing {secret_file}: copy it from the lab PC's key folder; a robot that "
+                                    f"has no key there yet gets one with `khepri keys add KEYS --robots {robot_id},` "
+                                    f"(then restart the hub)")
+    if not hub_file.is_file():
+        raise ConfigError("--keys", f"missing {hub_file}: copy hub.key from the lab PC's key folder (made by "
+                                    "`khepri keys init`)")
     try:
         public, secret = zmq.auth.load_certificate(str(secret_file))
         server, _ = zmq.auth.load_certificate(str(hub_file))
