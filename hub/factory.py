@@ -1,6 +1,7 @@
 """From a validated :class:`LabConfig` to a ready :class:`Hub`: source, robot list, run, sensing, keys, log."""
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
@@ -183,10 +184,17 @@ def relay_drop(config: LabConfig, scenario) -> float:
     return scenario.comm.drop if scenario is not None else 0.0
 
 
+BRACES = re.compile(r"\{[^{}]*\}")
+
+
 def record_path(config: LabConfig, now: Optional[float] = None) -> Path:
     """The log file for ``record``: ``{time}`` in it becomes the local start time (``logs/run-{time}.mcap`` ->
     ``logs/run-20261121-201502.mcap``). An existing file is refused: the hub never writes over a log (an
     earlier run's, the one being replayed, or one another hub is still writing)."""
+    for braces in BRACES.findall(str(config.record)):
+        if braces != "{time}":      # a typo ({tim}, {Time}) named one fixed file: the next start stopped at `exists`
+            raise ConfigError("record", f"{braces} is not something the hub fills in: only {{time}} is (the start "
+                                        "time, e.g. logs/run-{time}.mcap)")
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
     text = str(config.record).replace("{time}", stamp)
     folder = folder_not_file(text)

@@ -43,3 +43,19 @@ def test_a_robot_without_its_key_is_told_to_copy_or_add_it_not_to_init(tmp_path)
     (tmp_path / "robots" / "robot-3.key_secret").write_text("")
     with pytest.raises(ConfigError, match="hub.key: copy hub.key from the lab PC"):
         load_robot_keys(tmp_path, 3)
+
+
+@pytest.mark.parametrize("record", ["logs/run-{tim}.mcap", "logs/run-{Time}.mcap", "run-{ time }.mcap"])
+def test_a_mistyped_time_placeholder_in_record_is_refused(record, tmp_path, monkeypatch):
+    """`record: logs/run-{tim}.mcap` recorded to that very name, so the hub's next start stopped with `record: ...
+    exists ... put {time} in the name`, which the operator believed they had."""
+    from hub.config import parse_config
+    from hub.factory import record_path
+
+    monkeypatch.chdir(tmp_path)
+    config = parse_config({"record": record})
+    with pytest.raises(ConfigError, match=r"record: \{.*\} is not something the hub fills in: only \{time\} is"):
+        record_path(config)
+    assert not list(tmp_path.iterdir())
+    config = parse_config({"record": "logs/run-{time}.mcap"})
+    assert record_path(config, now=1_790_000_000.0).name.startswith("run-2026")
