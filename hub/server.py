@@ -299,7 +299,7 @@ class Hub(Downlink, Uplink, Housekeeping):
         x, y = self.poses[:, 0], self.poses[:, 1]
         outside = present & ((x < xmin) | (x > xmax) | (y < ymin) | (y > ymax))
         for row in np.nonzero(outside & ~self.outside_fence)[0]:
-            self.log(f"hub: robot {self.ids[row]} left the geofence at ({x[row]:.2f}, {y[row]:.2f}): stopped")
+            self.log(f"hub: robot {self.ids[row]} is outside the geofence at ({x[row]:.2f}, {y[row]:.2f}): stopped")
         self.outside_fence = outside
 
     def _hold_sim_wheels(self, now: float) -> None:

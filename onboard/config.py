@@ -6,6 +6,7 @@ everywhere, e.g. ``robots.count: must be >= 1 (got 0)``.
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import math
 import os
 import typing
@@ -126,7 +127,7 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
         return float(value)
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(where, f"must be a string (got {value!r})")
+            raise ConfigError(where, f"must be a string (got {_as_written(value)})")
         return value
     if origin in (list, tuple) or tp in (list, tuple):
         if not isinstance(value, (list, tuple)):
@@ -145,6 +146,14 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
             return {key: coerce(item, args[1], join(where, key)) for key, item in value.items()}
         return dict(value)
     raise ConfigError(where, f"unsupported type {_type_name(tp)}")
+
+
+def _as_written(value: Any) -> str:
+    """A value for an error line. YAML reads an unquoted 2024-01-01 as a date, and its repr
+    ``datetime.date(2024, 1, 1)`` hid that a pair of quotes is all it needs."""
+    if isinstance(value, (datetime.date, datetime.datetime)):
+        return f"{value.isoformat()}, which YAML reads as a date: put it in quotes"
+    return repr(value)
 
 
 def _takes_none(hint: Any) -> bool:

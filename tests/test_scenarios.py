@@ -378,3 +378,13 @@ def test_a_compound_part_just_clear_of_the_others_is_named_with_its_gap(make_sce
         make_scenario(object={"shape": "compound", "parts": [BOX, {"shape": "box", "size": [1.0, 0.2],
                                                                    "yaw_deg": 45, "offset": [0.9, 0.9]}]})
     assert err.value.field == "object.parts[1]" and "from part 0" in str(err.value)
+
+
+def test_a_name_yaml_reads_as_a_date_says_to_quote_it(tmp_path):
+    """`name: 2024-01-01` said `must be a string (got datetime.date(2024, 1, 1))`: a Python repr, where a pair
+    of quotes is the fix."""
+    path = tmp_path / "dated.yaml"
+    path.write_text("name: 2024-01-01\nbehaviour: aggregate\nrobots: {count: 3}\n")
+    with pytest.raises(ConfigError) as err:
+        load_scenario(str(path))
+    assert str(err.value) == "name: must be a string (got 2024-01-01, which YAML reads as a date: put it in quotes)"
