@@ -1215,13 +1215,14 @@ def test_scenarios_picks_a_scenario_file_by_its_path_as_typed(tmp_path, capsys, 
     write_gathering(tmp_path / "sub" / "my-file.yaml", "friday-demo", time_limit_s=1)
     study = write(tmp_path / "sub" / "s.yaml", "scenarios: [my-file.yaml, lab-6]\nreps: 1\n")
     monkeypatch.chdir(tmp_path)
-    for path in ("sub/my-file.yaml", "./sub/my-file.yaml", str(tmp_path / "sub" / "my-file.yaml")):
+    # The file name as the study file lists it was refused from another folder (it resolved against this one).
+    for path in ("sub/my-file.yaml", "./sub/my-file.yaml", str(tmp_path / "sub" / "my-file.yaml"), "my-file.yaml"):
         assert main(["study", str(study), "--scenarios", path, "--dry-run", "--out", str(tmp_path / "o")]) == 0, path
         out = capsys.readouterr().out
         assert "friday-demo" in out and "lab-6" not in out.replace(str(tmp_path), "")
     assert main(["study", str(study), "--scenarios", "other/my-file.yaml", "--dry-run"]) == 2
     said = capsys.readouterr().err
-    assert "not in the study: other/my-file.yaml (the study has: my-file, lab-6, friday-demo)" in said
+    assert "not in the study: other/my-file.yaml (the study has: my-file, lab-6, friday-demo, my-file.yaml)" in said
 
 
 def test_the_report_of_another_behaviour_says_how_its_runs_ended(tmp_path):

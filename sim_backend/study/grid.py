@@ -98,11 +98,13 @@ def behaviour_code_sha1(name: str) -> str:
 
 def restrict(spec: StudySpec, names: Sequence[str]) -> StudySpec:
     """Keep only the named scenarios (``--scenarios``), in the study's order. A scenario file can be named by
-    its path, its file name without ``.yaml``, or the ``name:`` inside it (what its cells are called)."""
+    its path, its file name with or without ``.yaml`` (``bar.yaml``, as a study file beside it lists it, was
+    refused when typed from another folder), or the ``name:`` inside it (what its cells are called)."""
     known = {Path(s).stem if s.endswith((".yaml", ".yml")) else s: s for s in spec.scenarios}
     for ref in spec.scenarios:
         if ref.endswith((".yaml", ".yml")):
             known.setdefault(str(scenario_mapping(ref, "scenarios").get("name")), ref)
+            known.setdefault(Path(ref).name, ref)
             known.setdefault(ref, ref)
 
     def scenario_of(name: str) -> Optional[str]:
