@@ -36,7 +36,15 @@ def _add_hub(groups) -> None:
     hub.add_argument("--insecure", action="store_true", help="run without CURVE encryption and authentication")
     hub.add_argument("--record", metavar="FILE", help="record everything in and out to this MCAP file")
     hub.add_argument("--bind", help="interface to listen on (overrides network.bind)")
+    hub.add_argument("--robot-port", type=int, metavar="PORT",
+                     help="port the agents connect to (overrides network.robot_port; 0: any free port)")
+    hub.add_argument("--control-port", type=int, metavar="PORT",
+                     help="port khepri ctl connects to (overrides network.control_port; 0: any free port)")
     hub.set_defaults(func=cmd_hub)
+
+
+# The options that override a network setting, by the field an error names (`port 5560 ... is already in use`).
+NETWORK_OPTIONS = {"network.bind": "bind", "network.robot_port": "robot_port", "network.control_port": "control_port"}
 
 
 def cmd_hub(args: argparse.Namespace) -> int:
@@ -62,11 +70,17 @@ def cmd_hub(args: argparse.Namespace) -> int:
                               f"loopback only (got {args.bind!r}); for a lab network use a config with keys "
                               f"(khepri keys init, docs/lab.md)")
         config.network.bind = args.bind
+    # A demo on other ports (5560 or 5561 taken), or one lab config run twice on one PC.
+    for name in ("robot_port", "control_port"):
+        if getattr(args, name) is not None:
+            setattr(config.network, name, getattr(args, name))
     try:
+        config.network.validate("network")
         return serve_hub(config)
     except ConfigError as err:
-        if args.bind and err.field == "network.bind":
-            raise ConfigError("--bind", err.problem) from None    # name the option the user typed
+        option = NETWORK_OPTIONS.get(err.field)
+        if option and getattr(args, option) is not None:    # name the option the user typed
+            raise ConfigError("--" + option.replace("_", "-"), err.problem) from None
         raise
 
 

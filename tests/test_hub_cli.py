@@ -53,29 +53,14 @@ def test_the_insecure_demo_hub_refuses_to_listen_beyond_loopback(bind, capsys):
     assert capsys.readouterr().err.startswith("khepri: error: --bind: --demo runs without encryption")
 
 
-# The demo hub on free ports (its own are the defaults, 5560 and 5561, which a running lab may hold).
-DEMO_ON_FREE_PORTS = """
-import sys
-import hub.config
-demo_config = hub.config.demo_config
-def on_free_ports():
-    config = demo_config()
-    config.network.robot_port = config.network.control_port = 0
-    return config
-hub.config.demo_config = on_free_ports
-from khepri_cli.main import main
-sys.exit(main(sys.argv[1:]))
-"""
-
-
 @pytest.mark.ipv6_loopback
 @pytest.mark.parametrize("bind", ["[::1]", "::1"])
 def test_the_demo_hub_listens_on_the_ipv6_loopback_written_either_way(bind, tmp_path):
     """--bind [::1], as in a URL (and as the hub itself writes it), was refused as beyond loopback; ::1 was not."""
     log_path = tmp_path / "hub.log"
     with open(log_path, "w") as log:
-        hub = subprocess.Popen([sys.executable, "-c", DEMO_ON_FREE_PORTS, "hub", "--demo", "--bind", bind],
-                               stdout=log, stderr=subprocess.STDOUT, env=ENV, text=True)
+        # On free ports: its own are the defaults, 5560 and 5561, which a running lab may hold.
+        hub = spawn("hub", "--demo", "--bind", bind, "--robot-port", "0", "--control-port", "0", log=log)
     try:
         deadline = time.monotonic() + 30
         while log_path.read_text().count("listening ") < 2:
@@ -134,6 +119,29 @@ def test_hub_answers_ctl_and_takes_an_agent(tmp_path):
         codes = stop_processes([p for p in (agent, hub) if p is not None])
         hub_log.close()
     assert codes == [0] * len(codes)
+
+
+def test_the_demo_hub_runs_on_ports_given_on_the_command_line(tmp_path):
+    """--demo could not be moved off 5560 and 5561 (it takes no --config): with those ports taken, no demo."""
+    hub_log = open(tmp_path / "hub.log", "w")
+    hub = spawn("hub", "--demo", "--robot-port", "0", "--control-port", "0", log=hub_log)
+    agent = None
+    try:
+        ports = hub_ports(tmp_path / "hub.log", hub)
+        assert "5560" not in ports.values() and "5561" not in ports.values()
+        agent = spawn("agent", "--id", "4", "--driver", "sim", "--port", ports["robots"],
+                      log=open(tmp_path / "agent.log", "w"))
+        wait_until_connected(4, ports["control"])
+        taken = khepri("hub", "--demo", "--robot-port", ports["robots"], "--control-port", "0")
+        assert taken.returncode == 2
+        assert taken.stderr.strip().splitlines()[-1] == \
+            f"khepri: error: --robot-port: port {ports['robots']} on 127.0.0.1 is already in use"
+    finally:
+        codes = stop_processes([p for p in (agent, hub) if p is not None])
+        hub_log.close()
+    assert codes == [0] * len(codes)
+    same = khepri("hub", "--demo", "--robot-port", "6411", "--control-port", "6411")
+    assert same.stderr.strip().splitlines()[-1] == "khepri: error: --control-port: must differ from robot_port"
 
 
 def test_ctl_start_names_the_robots_that_cannot_run_it(tmp_path):
