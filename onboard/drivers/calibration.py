@@ -57,6 +57,10 @@ class SensorCalibration:
             if i and raw <= self.points[i - 1][0]:
                 raise ConfigError(f"{join(join(where, 'points'), i)}[0]",
                                   f"raw counts must increase (got {raw:g} after {self.points[i - 1][0]:g})")
+            if i and value < self.points[i - 1][1]:     # as touch > ambient: a larger count is a nearer obstacle
+                raise ConfigError(f"{join(join(where, 'points'), i)}[1]",
+                                  "readings must not decrease as raw counts increase (a larger count is a nearer "
+                                  f"obstacle) (got {value:g} after {self.points[i - 1][1]:g})")
 
     def normalise(self, raw: float) -> float:
         """Map one raw count to [0, 1]; counts outside the calibrated range clip to its ends."""
