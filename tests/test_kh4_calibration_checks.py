@@ -29,3 +29,12 @@ def test_a_flat_table_still_loads_for_a_dead_sensor(tmp_path):
     """A sensor that is dead is read as 0 with a flat table: equal readings are not a decrease."""
     path = write(tmp_path, "proximity:\n  - {points: [[0, 0.0], [1023, 0.0]]}\n" + LINEAR * 7)
     assert load_calibration(path).normalise([1023] * 8)[0] == 0.0
+
+
+@pytest.mark.parametrize("robot", ["-1", "1000000"])
+def test_a_robot_id_no_agent_can_have_is_refused(tmp_path, robot):
+    """`robot: -1` loaded, and an agent then warned that the file was measured on robot -1."""
+    path = write(tmp_path, f"robot: {robot}\nproximity:\n" + LINEAR * 8)
+    with pytest.raises(ConfigError, match="must be") as caught:
+        load_calibration(path)
+    assert caught.value.field == f"{path}: robot"

@@ -15,6 +15,7 @@ import numpy as np
 
 from onboard.config import ConfigError, check_range, from_mapping, join
 from onboard.hal import PROXIMITY_SENSOR_COUNT
+from onboard.protocol_schema import MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
 
 #: Largest raw IR count: the dsPic's ADC is 10-bit (libkhepera's KH4_MAX_IR_VALUE is 1024 counts).
@@ -83,6 +84,8 @@ class IRCalibration:
         if len(self.proximity) != PROXIMITY_SENSOR_COUNT:
             raise ConfigError(join(where, "proximity"),
                               f"must list {PROXIMITY_SENSOR_COUNT} sensors in HAL order (got {len(self.proximity)})")
+        if self.robot is not None:      # an agent's --id is 0..MAX_ROBOT_ID: no agent could match another
+            check_range(join(where, "robot"), self.robot, 0, MAX_ROBOT_ID)
 
     def normalise(self, raw_hal_order: List[int]) -> List[float]:
         """Eight raw counts in HAL order to eight readings in [0, 1]."""
