@@ -555,6 +555,42 @@ def test_the_guard_says_what_the_agents_close_did_and_what_it_did_after(stub_lib
         f"zero-speed command failed: X); {said.format(lib=stub_library)}\n")
 
 
+def test_the_guard_outlives_a_sigterm_to_every_process_and_stops_the_wheels_when_the_agent_dies(
+        stub_library, stub_log, monkeypatch):
+    """systemd stops a service with SIGTERM to each of its processes. The guard died of it at once, so an agent
+    stuck in a libkhepera call (deaf to signals) and then killed left its wheels turning."""
+    from onboard.drivers.kh4_guard import WheelGuard
+
+    monkeypatch.setenv("KH4_STUB_LOG", str(stub_log))
+    stub_log.touch()
+    guard_process = WheelGuard.start(str(stub_library)).process
+    try:
+        deadline = time.monotonic() + 20.0
+        while not signal_ignored(guard_process.pid, signal.SIGTERM):       # started, and ready for it
+            assert guard_process.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+        guard_process.send_signal(signal.SIGTERM)
+        guard_process.send_signal(signal.SIGINT)
+        time.sleep(0.5)
+        assert guard_process.poll() is None, "the guard died of SIGTERM"
+        guard_process.stdin.close()          # the agent's end of the pipe: closed as a killed agent's is
+        assert guard_process.wait(timeout=20) == 0
+    finally:
+        if guard_process.poll() is None:
+            guard_process.kill()
+    assert speed_commands(stub_log) == [(0, 0)]
+
+
+def signal_ignored(pid: int, signum: int) -> bool:
+    """Whether process ``pid`` ignores ``signum`` (its SigIgn mask in /proc)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    mask = next(line.split()[1] for line in status.splitlines() if line.startswith("SigIgn:"))
+    return bool(int(mask, 16) >> (signum - 1) & 1)
+
+
 def test_the_guard_leaves_the_wheels_alone_after_an_orderly_exit(stub_library, stub_log, tmp_path):
     finished = run_child(stub_library, stub_log, tmp_path, "guarded")
     assert finished.returncode == 0, finished.stderr

@@ -11,14 +11,18 @@ stops the wheels, idles the motors and exits. An agent whose close() stopped the
 ways only (``WheelsStoppedPartly``) says so first (``partly ...``): the guard still tries both again, but
 does not say the agent left the wheels turning.
 
-The guard runs in its own session, so a Ctrl-C in the agent's terminal does not reach it, and it needs
-nothing but this package and libkhepera.
+The guard runs in its own session, so a Ctrl-C in the agent's terminal does not reach it, and it ignores
+SIGTERM, SIGINT and SIGHUP: ``pkill -f khepri`` (or a service stop) sends SIGTERM to every process, and a
+guard that died of it left an agent stuck in a libkhepera call, then killed by hand, with nobody to stop its
+wheels.
+It ends when the agent does (SIGKILL still ends it). It needs nothing but this package and libkhepera.
 
     python -m onboard.drivers.kh4_guard LIBRARY_PATH PARENT_PID     (started by the agent, not by hand)
 """
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 from typing import IO, List, Optional
@@ -122,7 +126,15 @@ def _guard_after_partial_stop(library_path: str, parent_pid: int, agent_stopped:
     return 0
 
 
+def ignore_stop_signals() -> None:
+    """The guard outlives the agent whatever asks the agent's processes to stop (see the module's docstring)."""
+    for name in ("SIGTERM", "SIGINT", "SIGHUP"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
+    ignore_stop_signals()
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 2 or not args[1].isdigit():
         print("usage: python -m onboard.drivers.kh4_guard LIBRARY_PATH PARENT_PID (the agent starts it)",
