@@ -54,7 +54,7 @@ def stub_log(tmp_path, monkeypatch) -> Path:
     log = tmp_path / "calls.log"
     monkeypatch.setenv("KH4_STUB_LOG", str(log))
     for name in ("KH4_STUB_IR", "KH4_STUB_POSITION", "KH4_STUB_BATTERY", "KH4_STUB_FAIL", "KH4_STUB_FAIL_TIMES",
-                 "KHEPRI_LIBKHEPERA", "KHEPRI_KH4_CALIBRATION"):
+                 "KH4_STUB_HANG", "KH4_STUB_HANG_AFTER", "KHEPRI_LIBKHEPERA", "KHEPRI_KH4_CALIBRATION"):
         monkeypatch.delenv(name, raising=False)
     return log
 
@@ -589,6 +589,35 @@ def signal_ignored(pid: int, signum: int) -> bool:
         return False
     mask = next(line.split()[1] for line in status.splitlines() if line.startswith("SigIgn:"))
     return bool(int(mask, 16) >> (signum - 1) & 1)
+
+
+def test_an_agent_whose_driver_call_hangs_exits_and_the_guard_stops_the_wheels(stub_library, stub_log, tmp_path):
+    """A libkhepera call that never returned (a stuck bus) froze the agent: deaf to SIGTERM and SIGINT (Python
+    runs signal handlers between calls), its wheels on their last speed, the hub's e-stop unheard."""
+    flag = tmp_path / "hang-now"
+    env = dict(os.environ, PYTHONPATH=str(ROOT), KH4_STUB_LOG=str(stub_log), KH4_STUB_HANG="kh4_battery_status",
+               KH4_STUB_HANG_AFTER=str(flag))
+    stub_log.touch()
+    agent = subprocess.Popen([sys.executable, "-m", "onboard.agent", "--id", "0", "--driver", "kh4", "--library",
+                              str(stub_library), "--hub", "tcp://127.0.0.1:9"],
+                             env=env, cwd=tmp_path, stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_for_calls(stub_log, lambda c: ("kh4_battery_status", {"dev": "ok"}) in c)   # telemetry reads it
+        flag.touch()
+        assert wait_for_calls(stub_log, lambda c: ("kh4_battery_status", {"hang": "yes"}) in c)
+        hung_at = time.monotonic()
+        agent.send_signal(signal.SIGTERM)
+        _, stderr = agent.communicate(timeout=20)
+    finally:
+        if agent.poll() is None:
+            agent.kill()
+    assert agent.returncode == 1
+    assert time.monotonic() - hung_at < 10.0
+    assert "agent 0: the driver's battery_v() has not returned for 2." in stderr, stderr
+    logged = wait_for_calls(stub_log, lambda c: c and c[-1] == ("knet_close", {"dev": "ok"}))
+    assert logged[-3:] == [("kh4_set_speed", {"left": "0", "right": "0", "dev": "ok"}),
+                           ("kh4_SetMode", {"mode": "0", "dev": "ok"}), ("knet_close", {"dev": "ok"})]
+    assert [name for name, _ in logged].count("kh4_init") == 2      # the guard opened the robot itself
 
 
 def test_the_guard_leaves_the_wheels_alone_after_an_orderly_exit(stub_library, stub_log, tmp_path):

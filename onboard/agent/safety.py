@@ -24,6 +24,11 @@ from onboard.drivers import Driver, DriverError
 from onboard.hal import WheelOdometry
 
 STUCK_EXIT_AFTER_S = 1.0     # a stop asked for while a step is stuck: the process ends this long after
+# A hardware call takes milliseconds. One stuck this long (a hung I2C bus) holds the driver's lock: nothing can
+# stop the wheels or reach the robot, and signals wait for the call too. The process ends, and the wheel guard,
+# a process of its own, opens the robot afresh and stops them.
+DRIVER_CALL_LIMIT_S = 2.0
+STOP_LOCK_WAIT_S = 0.1       # the step watchdog's stop waits this long for a driver call to return
 POLL_S = 0.02
 
 
@@ -39,6 +44,16 @@ class GuardedDriver(Driver):
         # (kh4). The sim driver sends over the agent's socket, which only the loop's thread may use; the hub
         # holds the simulated wheels of an agent that goes silent.
         self.stoppable_from_any_thread = driver.name != "sim"
+        self.call_started: Optional[float] = None     # the hardware call under way, for the step watchdog
+        self.call_name = ""
+
+    def _call(self, name: str, function: Callable, *args):
+        with self.lock:
+            self.call_started, self.call_name = time.monotonic(), name
+            try:
+                return function(*args)
+            finally:
+                self.call_started = None
 
     def open_gate(self) -> None:
         self.gate_open = True
@@ -47,28 +62,36 @@ class GuardedDriver(Driver):
         """No wheel command passes from now on, from any thread, and the wheels stop."""
         with self.lock:
             self.gate_open = False
-            self.inner.stop()
+            self._call("stop", self.inner.stop)
+
+    def close_gate_within(self, wait_s: float) -> bool:
+        """close_gate() from another thread, which must not wait for ever on a call that hangs: False when
+        the lock stayed busy (the gate is closed all the same; the hung-call check takes it from there)."""
+        self.gate_open = False
+        if not self.lock.acquire(timeout=wait_s):
+            return False
+        try:
+            self.close_gate()
+        finally:
+            self.lock.release()
+        return True
 
     def set_wheel_speeds(self, left_m_s: float, right_m_s: float) -> None:
         with self.lock:
             if self.gate_open:        # hold, e-stop, watchdog: a command from anywhere is dropped
-                self.inner.set_wheel_speeds(left_m_s, right_m_s)
+                self._call("set_wheel_speeds", self.inner.set_wheel_speeds, left_m_s, right_m_s)
 
     def stop(self) -> None:
-        with self.lock:
-            self.inner.stop()
+        self._call("stop", self.inner.stop)
 
     def proximity(self) -> List[float]:
-        with self.lock:
-            return self.inner.proximity()
+        return self._call("proximity", self.inner.proximity)
 
     def encoders(self) -> WheelOdometry:
-        with self.lock:
-            return self.inner.encoders()
+        return self._call("encoders", self.inner.encoders)
 
     def battery_v(self) -> Optional[float]:
-        with self.lock:
-            return self.inner.battery_v()
+        return self._call("battery_v", self.inner.battery_v)
 
     def close(self) -> None:
         with self.lock:
@@ -117,6 +140,7 @@ class StepWatchdog:
             time.sleep(POLL_S)
             started = self.started_at
             now = time.monotonic()
+            self._end_if_a_driver_call_hangs(now)
             if started is None:
                 stop_asked_at = None
                 continue
@@ -136,11 +160,19 @@ class StepWatchdog:
                              f"{now - started:.1f} s: exiting without it")
                     os._exit(1)
 
+    def _end_if_a_driver_call_hangs(self, now: float) -> None:
+        called = self.driver.call_started
+        if called is not None and now - called > DRIVER_CALL_LIMIT_S:
+            self.log(f"agent {self.robot_id}: the driver's {self.driver.call_name}() has not returned for "
+                     f"{now - called:.1f} s (a stuck bus?): nothing can stop the wheels or reach the robot from "
+                     "here; exiting, so that the wheel guard stops them")
+            os._exit(1)
+
     def _stop_wheels(self) -> None:
         if not self.driver.stoppable_from_any_thread:
             self.driver.gate_open = False    # what the stuck step sends is dropped; the hub holds the wheels
             return
         try:
-            self.driver.close_gate()
+            self.driver.close_gate_within(STOP_LOCK_WAIT_S)
         except DriverError as err:
             self.log(f"agent {self.robot_id}: cannot stop the wheels: {err}")

@@ -16,6 +16,8 @@
  *                         names separated by commas.
  *   KH4_STUB_FAIL_TIMES   if set, how many more calls of those functions fail; the stub counts it down, so
  *                         a glitch of one call is "1" (unset: every call fails).
+ *   KH4_STUB_HANG         name(s) of functions that never return (a stuck I2C bus), once the file named by
+ *                         KH4_STUB_HANG_AFTER exists (at once if that is unset). Logged before hanging.
  *
  * Every function that takes the dsPic handle logs dev=ok only if it got the very pointer knet_open
  * returned (a 64-bit address: a restype left as int would truncate it), and fails otherwise.
@@ -25,6 +27,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 /* The real knet_dev_t is a larger struct; callers only ever hold a pointer to it. */
 typedef struct knet_dev_s {
@@ -97,9 +100,30 @@ static int scripted_to_fail(const char *function)
     return 1;
 }
 
+static void hang_if_scripted(const char *function)
+{
+    const char *hanging = getenv("KH4_STUB_HANG");
+    const char *after = getenv("KH4_STUB_HANG_AFTER");
+    if (hanging == NULL || !listed(hanging, function)) {
+        return;
+    }
+    FILE *flag = after == NULL ? NULL : fopen(after, "r");
+    if (after != NULL && flag == NULL) {
+        return;
+    }
+    if (flag != NULL) {
+        fclose(flag);
+    }
+    record("%s hang=yes", function);
+    for (;;) {
+        sleep(1);
+    }
+}
+
 /* 0 for success, or the error code libkhepera would give for a bad handle or the scripted failure. */
 static int outcome(const char *function, const knet_dev_t *dev)
 {
+    hang_if_scripted(function);
     if (dev != &the_dspic) {
         return STUB_ERROR_NOT_INIT;
     }
