@@ -209,6 +209,9 @@ class SensorsSpec:
         check_range(join(where, "pose_dropout"), self.pose_dropout, 0.0, 1.0)
 
 
+MIN_CONTROL_HZ = 0.1     # a control period of at most 10 s
+
+
 @dataclass
 class PhysicsSpec:
     dt_s: float = 0.01        # physics step
@@ -217,7 +220,9 @@ class PhysicsSpec:
 
     def validate(self, where: str) -> None:
         check_range(join(where, "dt_s"), self.dt_s, 0.0, 0.05, low_open=True)
-        check_range(join(where, "control_hz"), self.control_hz, 0.0, 100.0, low_open=True)
+        # At least 0.1 Hz: a slower rate (1e-300 passed the old "> 0") made a control period longer than any
+        # run, which then ended after 0 steps as if it had succeeded.
+        check_range(join(where, "control_hz"), self.control_hz, MIN_CONTROL_HZ, 100.0)
         check_range(join(where, "iterations"), self.iterations, 1, 100)
         steps = 1.0 / (self.control_hz * self.dt_s)
         if abs(steps - round(steps)) > 1e-6:

@@ -219,6 +219,7 @@ SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such
     ({"object": BOX, "path": [[-1, 0]]}, "path[0]", "path[0]: must have 3 items (got 2)"),
     ({"object": BOX, "path": [[-1, 0, float("nan")]]}, "path[0][2]",
      "path[0][2]: must be a finite number (got nan)"),
+    ({"physics": {"control_hz": 1e-300}}, "physics.control_hz", "physics.control_hz: must be >= 0.1 (got 1e-300)"),
     ({"physics": {"dt_s": 0.03}}, "physics.control_hz",
      "physics.control_hz: the control period must be a whole "
      "number of physics steps (dt_s=0.03 gives 3.33333)"),
