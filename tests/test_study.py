@@ -829,6 +829,40 @@ def test_a_behaviour_without_caging_gets_no_success_rate(tmp_path):
     assert "success" not in report.split("## Outcome per cell (other behaviours)")[1]
 
 
+def test_a_behaviours_own_numbers_and_flags_are_summarised_and_the_paper_is_left_out(tmp_path):
+    """A study of one's own behaviour is run for its evaluator's numbers: the summary and the report had none of
+    them (only how the runs ended), and they cited the paper's data that no cell was compared with."""
+    for seed, (ratio, gathered) in enumerate(((0.2, True), (0.4, False), (0.3, True)), start=1):
+        result = {"scenario": "aggregate-20", "seed": seed, "robots": 20, "behaviour": "aggregate", "failed": False,
+                  "stop_reason": "time limit", "sim_time_s": 20.0, "real_time_factor": 100.0, "wall_time_s": 0.2,
+                  "spread_ratio": ratio, "gathered": gathered, "note": "text is not summarised",
+                  "study": {"cell": "aggregate-20", "overrides": {}}}
+        (tmp_path / "aggregate-20" / f"seed-{seed}").mkdir(parents=True)
+        write(tmp_path / "aggregate-20" / f"seed-{seed}" / "result.json", json.dumps(result))
+    write_study_outputs(tmp_path, figures=False)
+    rows = {row["metric"]: row for row in csv.DictReader((tmp_path / "summary.csv").open())}
+    assert rows["spread_ratio"]["value"] == "0.3" and rows["spread_ratio"]["min"] == "0.2"
+    assert rows["spread_ratio"]["max"] == "0.4" and rows["spread_ratio"]["n"] == "3"
+    assert float(rows["gathered_rate"]["value"]) == pytest.approx(2 / 3)
+    assert not {"seed", "robots", "sim_time_s", "real_time_factor", "note", "note_rate"} & set(rows)
+    report = (tmp_path / "report.md").read_text()
+    assert "| aggregate-20 | `spread_ratio` | 3 | 0.3 [0.25–0.35] | 0.2 – 0.4 |" in report
+    assert "| aggregate-20 | `gathered` | 3 | true in 67% | – |" in report
+    assert "Paper" not in report and "paper" not in report
+
+
+def test_a_transport_study_gets_no_table_of_its_own_numbers(tmp_path):
+    """The transport's numbers are in its own tables already: a whole lab-6 run's result.json, aggregated, adds
+    nothing as 'own results' (a field the transport's evaluator gains must join FRAMEWORK_FIELDS or its table)."""
+    assert main(["sim", "run", "lab-6", "--out", str(tmp_path / "run"), "--no-plot"]) == 0
+    result = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert result["completed"] is True
+    (tmp_path / "study" / "lab-6" / "seed-1").mkdir(parents=True)
+    write(tmp_path / "study" / "lab-6" / "seed-1" / "result.json", json.dumps(dict(result, failed=False)))
+    write_study_outputs(tmp_path / "study", figures=False)
+    assert "## The behaviour's own results" not in (tmp_path / "study" / "report.md").read_text()
+
+
 def test_override_values_that_would_share_a_folder_are_refused(tmp_path, capsys):
     study = write(tmp_path / "s.yaml", TINY_STUDY + "overrides: {comm.drop: [0.1234561, 0.1234564]}\n")
     assert main(["study", str(study), "--dry-run"]) == 2

@@ -28,6 +28,10 @@ RUN_METRICS = ("time_to_cage_s", "time_to_complete_s", "cage_size", "cage_spacin
 # result.json keeps the cage spacing as {"mean": m, "std": s}; the summary flattens it to two run metrics.
 NESTED_METRICS = {"cage_spacing_mean_m": ("cage_spacing_m", "mean"), "cage_spacing_std_m": ("cage_spacing_m", "std")}
 CAGED_ONLY = ("cage_size",)
+# Top-level numbers and true/false fields every result.json has, or the transport's evaluator gives and the
+# summary already covers: any other is the behaviour's own (its evaluator's result()), summarised as it is.
+FRAMEWORK_FIELDS = frozenset(("seed", "robots", "sim_time_s", "real_time_factor", "failed", "caged", "completed",
+                              "cage_encloses_object", *RUN_METRICS))
 CSV_COLUMNS = ("cell", "scenario", "robots", "overrides", "metric", "waypoint", "n", "value", "q1", "q3",
                "min", "max", "paper_value", "paper_n")
 
@@ -93,6 +97,21 @@ class Cell:
         runs = [r for r in self.ok if r.get("caged")] if key in CAGED_ONLY else self.ok
         values = (run_value(r, key) for r in runs)
         return [v for v in values if isinstance(v, (int, float)) and not isinstance(v, bool)]
+
+    def own_numbers(self) -> List[str]:
+        """The behaviour's own numbers (its evaluator's top-level fields, not ``FRAMEWORK_FIELDS``), in the
+        order its runs give them."""
+        return self._own_fields(lambda v: isinstance(v, (int, float)) and not isinstance(v, bool))
+
+    def own_flags(self) -> List[str]:
+        """The behaviour's own true/false fields (an evaluator's ``"gathered": true``): a rate each."""
+        return self._own_fields(lambda v: isinstance(v, bool))
+
+    def _own_fields(self, kind) -> List[str]:
+        names: Dict[str, None] = {}
+        for result in self.ok:
+            names.update((k, None) for k, v in result.items() if k not in FRAMEWORK_FIELDS and kind(v))
+        return list(names)
 
     def waypoint_values(self, index: int, key: str) -> List[float]:
         out = []
@@ -230,6 +249,10 @@ def cell_rows(cell: Cell) -> List[SummaryRow]:
     for metric in RUN_METRICS:
         paper_value = paper_time_s(cell, metric) if metric in PAPER_TIMES else None
         rows.append(distribution_row(metric, cell.values(metric), paper_value))
+    for metric in cell.own_numbers():
+        rows.append(distribution_row(metric, cell.values(metric), None))
+    for metric in cell.own_flags():
+        rows.append(SummaryRow(f"{metric}_rate", len(cell.ok), cell.rate(lambda r, key=metric: r.get(key) is True)))
     for index in cell.waypoint_indices():
         for metric in WAYPOINT_METRICS:
             reference = paper.error_values(cell.case, index, metric)

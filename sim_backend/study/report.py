@@ -8,7 +8,16 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from . import paper_reference as paper
-from .aggregate import Cell, StudyResults, distribution, load_results, paper_time_s, success_rate, write_summary_csv
+from .aggregate import (
+    Cell,
+    PaperCase,
+    StudyResults,
+    distribution,
+    load_results,
+    paper_time_s,
+    success_rate,
+    write_summary_csv,
+)
 from .driver import UNWRITABLE_KEY, outcome_text, read_study
 from .text import counted
 
@@ -79,11 +88,13 @@ def write_report(results: StudyResults, study: Dict[str, Any], path: Path, figur
     lines += version_section(results.cells)
     lines += warning_section(results.cells)
     lines += outcome_table(results.cells)
+    lines += own_metrics_table(results.cells)
     lines += error_tables(results.cells)
     lines += effective_tables(results.cells)
     lines += figure_section(figures, path.parent)
     lines += failure_section(results, unwritable_runs(results, study))
-    lines += source_section()
+    if any(cell.case != PaperCase() for cell in results.cells):
+        lines += source_section()
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
 
@@ -104,8 +115,10 @@ def header(results: StudyResults, study: Dict[str, Any]) -> List[str]:
         lines += [f"**{len(missing)} of the {len(planned)} runs the commands above asked for have no "
                   f"result yet** (not run, or interrupted): {shown}. Running the same command again runs them.",
                   ""]
-    lines += ["Values are medians over the runs that did not fail, with the interquartile range in brackets. "
-              "Paper: medians from the paper (times quoted in its text; errors from its per-run data).", ""]
+    paper_note = (" Paper: medians from the paper (times quoted in its text; errors from its per-run data)."
+                  if any(cell.case != PaperCase() for cell in results.cells) else "")
+    lines += ["Values are medians over the runs that did not fail, with the interquartile range in brackets."
+              + paper_note, ""]
     return lines
 
 
@@ -252,6 +265,27 @@ def generic_outcome_table(cells: List[Cell]) -> List[str]:
                      f"{len(cell.failed)} | {ended} | {median_and_spread(finished, 4)} | "
                      f"{median_and_spread(cell.values('sim_time_s'), 4)} |")
     return lines + [""]
+
+
+def own_metrics_table(cells: List[Cell]) -> List[str]:
+    """The numbers and true/false fields a behaviour's evaluator adds to result.json (``Cell.own_numbers``,
+    ``own_flags``), per cell: what a study of one's own behaviour is run for."""
+    rows = []
+    for cell in cells:
+        for metric in cell.own_numbers():
+            spread = distribution(cell.values(metric))
+            extremes = f"{number(spread.min)} – {number(spread.max)}" if spread and spread.n > 1 else "–"
+            rows.append(f"| {cell.name} | `{metric}` | {spread.n if spread else 0} | "
+                        f"{median_and_spread(cell.values(metric))} | {extremes} |")
+        for metric in cell.own_flags():
+            rate = cell.rate(lambda r, key=metric: r.get(key) is True)
+            rows.append(f"| {cell.name} | `{metric}` | {len(cell.ok)} | true in {percent(rate)} | – |")
+    if not rows:
+        return []
+    return ["## The behaviour's own results", "",
+            "Every other number or true/false field of the runs' result.json (what the behaviour's evaluator "
+            "returns): median [interquartile range] and extremes, or how often it was true.", "",
+            "| cell | field | n | value | min – max |", "|---|---|---|---|---|", *rows, ""]
 
 
 def spacing_text(cell: Cell) -> str:
