@@ -205,6 +205,17 @@ def test_a_missing_or_unparsable_calibration_file_is_refused_before_the_robot_is
     assert not stub_log.exists()
 
 
+def test_the_agent_names_a_missing_calibration_file_once(stub_library, stub_log, tmp_path):
+    """It said `--calibration: calibration file: no such file: ...`, the option and then the file's own label."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT), KH4_STUB_LOG=str(stub_log))
+    done = subprocess.run([sys.executable, "-m", "onboard.agent", "--id", "0", "--driver", "kh4", "--library",
+                           str(stub_library), "--calibration", str(tmp_path / "absent.yaml"), "--hub",
+                           "tcp://127.0.0.1:9"], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=30)
+    assert done.returncode == 2, done.stderr
+    assert f"agent: error: --calibration: no such file: {tmp_path / 'absent.yaml'}\n" in done.stderr, done.stderr
+    assert not stub_log.exists()
+
+
 def test_a_calibration_file_nested_thousands_deep_is_refused_naming_it(stub_library, stub_log, tmp_path):
     """It gave "cannot open the KheperaIV: maximum recursion depth exceeded" (a RecursionError is a RuntimeError),
     as if the hardware had failed, and named no file."""

@@ -127,13 +127,16 @@ def open_driver(args: argparse.Namespace, agent) -> Driver:
         return SimDriver(agent.link.send, lambda: agent.state.sim)
     try:
         kh4 = importlib.import_module("onboard.drivers.kh4")
+        calibration = importlib.import_module("onboard.drivers.calibration")
     except ImportError as err:
         raise ConfigError("--driver", f"the kh4 driver is not available here ({err})") from None
     try:
         driver = kh4.KheperaIV(library_path=args.library, calibration_path=args.calibration)
     except ConfigError as err:      # the calibration file: it already names itself and its field
         given_as = "--calibration" if args.calibration else f"${kh4.CALIBRATION_ENV}"
-        raise ConfigError(given_as, str(err)) from None
+        # "--calibration: no such file: x.yaml", not "--calibration: calibration file: no such file: x.yaml"
+        whole_file = err.field == calibration.CALIBRATION_LABEL
+        raise ConfigError(given_as, err.problem if whole_file else str(err)) from None
     except (OSError, RuntimeError, ValueError) as err:
         raise ConfigError("--driver kh4", f"cannot open the KheperaIV: {err}") from None
     driver.start_guard()      # stops the wheels should this process die without closing the driver (SIGKILL)

@@ -21,6 +21,8 @@ from onboard.yamlfile import read_yaml
 #: Largest raw IR count: the dsPic's ADC is 10-bit (libkhepera's KH4_MAX_IR_VALUE is 1024 counts).
 IR_RAW_MAX = 1023
 
+CALIBRATION_LABEL = "calibration file"    # the field of an error about the file as a whole (missing, unreadable)
+
 
 @dataclass
 class SensorCalibration:
@@ -101,7 +103,7 @@ def default_calibration() -> IRCalibration:
 def load_calibration(path: Union[str, Path]) -> IRCalibration:
     """Read and validate a calibration file; every error is a ConfigError naming the file and the field."""
     path = Path(path)
-    data = read_yaml(path, "calibration file")
+    data = read_yaml(path, CALIBRATION_LABEL)
     try:
         return from_mapping(IRCalibration, data)
     except ConfigError as err:
