@@ -13,6 +13,7 @@ from onboard.config import ConfigError, folder_not_file
 from onboard.hal import RobotSpec
 
 from .config import LabConfig, check_watchdog
+from .housekeeping import format_ids
 from .replay_source import ReplaySource
 from .security import KeyRing, exposed_secret, load_keyring
 from .sensors import SensingModel
@@ -55,6 +56,8 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     try:
         ids = robot_ids(config, source)
         say_untracked_bodies(config, ids, log)
+        if config.source.type == "sim":
+            say_idle_sim_robots(source.robot_ids(), ids, log)
         if isinstance(source, ReplaySource):
             say_unplaced_replay_robots(source, ids, log)
         if keyring is not None:
@@ -93,6 +96,17 @@ def say_untracked_bodies(config: LabConfig, ids: List[int], log: Callable[[str],
     others = [f"{name} (robot {rid})" for name, rid in config.source.bodies.items() if rid not in ids]
     if others:
         log(f"hub: source.bodies {', '.join(others)}: not in robots, so not served (their poses are ignored)")
+
+
+def say_idle_sim_robots(scenario_ids: List[int], ids: List[int], log: Callable[[str], None]) -> None:
+    """The scenario's robots left off ``robots`` stay in the simulated world, with no agent: said at start, since
+    they are still there for the others' IR and the object, like robots switched off on the lab floor."""
+    idle = [rid for rid in scenario_ids if rid not in set(ids)]
+    if idle:
+        several = len(idle) > 1
+        log(f"hub: robot{'s' if several else ''} {format_ids(idle)} of the scenario {'are' if several else 'is'} not "
+            f"in robots: {'they stay' if several else 'it stays'} in the world, still, with no agent (the others' "
+            f"IR sees {'them' if several else 'it'}; range and bearing and the radio do not)")
 
 
 def say_unplaced_replay_robots(source: ReplaySource, ids: List[int], log: Callable[[str], None]) -> None:

@@ -215,7 +215,10 @@ def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
         build_hub(config, log=lambda line: None)
     assert info.value.field == "robots"
     assert "has robots 0..5" in info.value.problem and "no robot 6, 7" in info.value.problem
-    build_hub(parse_config(sim_config(robots=[1, 3])), log=lambda line: None).close()    # a subset is fine
+    said = []
+    build_hub(parse_config(sim_config(robots=[1, 3])), log=said.append).close()    # a subset is fine, and said:
+    assert ("hub: robots 0, 2, 4, 5 of the scenario are not in robots: they stay in the world, still, with no agent "
+            "(the others' IR sees them; range and bearing and the radio do not)") in said
 
 
 def test_a_transport_lab_without_the_objects_start_is_refused_rather_than_left_idle():
