@@ -3,8 +3,9 @@
 With the ``sim`` source the hub holds the world, and a run's mission (the scenario's waypoints, the object estimate
 the behaviour starts from, the faults' times) is the scenario's, from its start. So, as a new ``khepri sim run``
 would, each run begins in the world the scenario builds for its seed: robots, object and their velocities,
-odometry, faults. A world that has not moved since it was built (``khepri sil``'s one run, in lockstep) is used as
-it is; ``source.reset_each_run: false`` keeps the world as the last run left it (docs/lab.md).
+odometry, faults, and the hub's own noise (range and bearing, relay drops) from the start of its stream. A world
+that has not moved since it was built (``khepri sil``'s one run, in lockstep) is used as it is;
+``source.reset_each_run: false`` keeps the world as the last run left it (docs/lab.md).
 """
 from __future__ import annotations
 
@@ -26,4 +27,5 @@ def prepare_new_run(hub: Hub) -> bool:
     # The new world's first frame goes through the hub as any frame does: poses, presence, the killed robots,
     # IR and odometry, the clock, the log. Its robots' wheels stand still until their agents start the run.
     hub.on_pose_frame(restart(time.monotonic()))
+    hub.restart_noise()
     return True

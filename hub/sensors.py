@@ -72,6 +72,12 @@ class VirtualSensors:
         self._pool = np.zeros(0)
         self._pool_at = 0
 
+    def restart(self, rng: np.random.Generator) -> None:
+        """Draw from ``rng`` from now on, with none of the old stream's normals left in the pool."""
+        self.rng = rng
+        self._pool = np.zeros(0)
+        self._pool_at = 0
+
     def update(self, poses: np.ndarray, present: np.ndarray) -> None:
         """``poses`` (N, 3) world x, y, yaw per row; ``present`` rows with a fresh pose (tracked and alive).
 

@@ -78,6 +78,7 @@ class Hub(Downlink, Uplink, Housekeeping):
         self.config, self.source, self.run, self.keyring, self.recorder, self.log = \
             config, source, run, keyring, recorder, log
         self.context = context or zmq.Context.instance()
+        self.noise_seed = seed            # the sim source's: each run that restarts its world restarts the noise too
         rng = np.random.default_rng(seed)
         self.ids = list(robot_ids)
         self.robots: Dict[int, RobotLink] = {rid: RobotLink(rid) for rid in self.ids}
@@ -279,6 +280,13 @@ class Hub(Downlink, Uplink, Housekeeping):
         self._hold_sim_wheels(frame.stamp)
         if self.recorder is not None:      # encoded by the recorder's thread, after the frames went out
             self.recorder.write_later("/mocap/poses", poses_record, (frame,))
+
+    def restart_noise(self) -> None:
+        """The virtual sensors' noise and the relay's drops from the start of their streams, as in a hub just
+        started: a new run in a world rebuilt for the scenario's seed then repeats the last one in lockstep."""
+        rng = np.random.default_rng(self.noise_seed)
+        self.sensors.restart(rng)
+        self.relay.rng = rng
 
     def settle_yaws(self, rows: np.ndarray) -> None:
         """Read the yaws of these robots (hub rows) that the last motion-capture frame has and nobody read yet.

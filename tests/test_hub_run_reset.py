@@ -179,6 +179,31 @@ def test_a_new_run_rebuilds_the_object_faults_and_evaluator_and_drops_the_last_r
         hub.close()
 
 
+def first_frames(hub):
+    """Every robot's noisy neighbours, as the next frames would carry them (draws the noise)."""
+    return hub.sensors.frames(hub.ids).records.tolist()
+
+
+def test_a_new_run_restarts_the_hubs_noise_with_its_world():
+    """The world was rebuilt for the scenario's seed, but the hub's range-and-bearing noise ran on from the last run,
+    so a second lockstep run could not repeat the first. Now the new run's first frames are a fresh hub's."""
+    fresh = lab_hub([])
+    try:
+        fresh.on_pose_frame(fresh.source.snapshot(time.monotonic()))      # the world as built, before any step
+        expected = first_frames(fresh)
+    finally:
+        fresh.close()
+    assert len(expected) > 6       # every robot hears some others: the noise is in the test
+    hub = lab_hub([])
+    try:
+        first_run_moves_everything(hub)
+        assert first_frames(hub) != expected            # the run moved the world and drew noise
+        hub.control.execute("start")
+        assert first_frames(hub) == expected
+    finally:
+        hub.close()
+
+
 def test_reset_each_run_false_keeps_the_last_runs_world():
     """The world, box and dead robot as the last run left them; the evaluator counts afresh, as it did."""
     lines = []
