@@ -93,7 +93,7 @@ def write_report(results: StudyResults, study: Dict[str, Any], path: Path, figur
     lines += effective_tables(results.cells)
     lines += figure_section(figures, path.parent)
     lines += failure_section(results, unwritable_runs(results, study))
-    if any(cell.case != PaperCase() for cell in results.cells):
+    if compares_with_the_paper(results.cells):
         lines += source_section()
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
@@ -116,10 +116,15 @@ def header(results: StudyResults, study: Dict[str, Any]) -> List[str]:
                   f"result yet** (not run, or interrupted): {shown}. Running the same command again runs them.",
                   ""]
     paper_note = (" Paper: medians from the paper (times quoted in its text; errors from its per-run data)."
-                  if any(cell.case != PaperCase() for cell in results.cells) else "")
+                  if compares_with_the_paper(results.cells) else "")
     lines += ["Values are medians over the runs that did not fail, with the interquartile range in brackets."
               + paper_note, ""]
     return lines
+
+
+def compares_with_the_paper(cells: List[Cell]) -> bool:
+    """Some cell is one of the paper's experiments (``aggregate.paper_case_of``): the report cites its data."""
+    return any(cell.case != PaperCase() for cell in cells)
 
 
 def time_limit_text(cells: List[Cell]) -> str:
