@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from onboard.config import ConfigError
-from sim_backend.study.text import counted
+from sim_backend.study.text import counted, them
 
 from .signals import sigterm_as_ctrl_c
 from .sim_commands import folder_arg
@@ -186,11 +186,13 @@ def print_outputs(files) -> int:
     failed = sum(len(cell.failed) for cell in results.cells)
     unwritable = len(unwritable_runs(results, read_study(folder)))
     if failed:
-        print(f"khepri: {failed} runs failed; report.md lists why (re-run them with --retry-failed)",
+        print(f"khepri: {counted(failed, 'run')} failed; report.md lists why (re-run {them(failed)} with "
+              f"--retry-failed)",
               file=sys.stderr)
     if unwritable:
-        print(f"khepri: {unwritable} runs have no result because their folder could not be written; report.md "
-              f"lists them (fix the folders and run the same command again)", file=sys.stderr)
+        print(f"khepri: {counted(unwritable, 'run')} {'has' if unwritable == 1 else 'have'} no result because "
+              f"{'its' if unwritable == 1 else 'their'} folder could not be written; report.md lists "
+              f"{them(unwritable)} (fix the folders and run the same command again)", file=sys.stderr)
     return 1 if failed or unwritable else 0
 
 

@@ -1210,6 +1210,7 @@ def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_pa
         main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", *dry_run])
         err = capsys.readouterr().err
         assert "warning: 1 run already in" in err and "ran a scenario that has changed since (cells mine)" in err
+        assert "(cells mine) and is kept; use another --out, or delete those cells' folders, to run it again" in err
 
 
 def test_resume_warns_about_finished_runs_of_a_behaviour_edited_since(tmp_path, capsys, monkeypatch):
@@ -1230,7 +1231,8 @@ def test_resume_warns_about_finished_runs_of_a_behaviour_edited_since(tmp_path, 
     behaviour_code_sha1.cache_clear()           # a new `khepri study` process would read the file afresh
     main(command + ["--dry-run"])
     err = capsys.readouterr().err
-    assert "warning: 1 run already in out ran another version of their behaviour's code" in err
+    assert "warning: 1 run already in out ran another version of its behaviour's code" in err
+    assert ") and is kept; use another --out" in err
 
 
 def test_scenarios_picks_a_scenario_file_by_its_name_too(tmp_path, capsys):

@@ -21,7 +21,7 @@ from onboard.config import ConfigError, to_mapping
 from onboard.jsontext import parse_json
 
 from .grid import RunSpec, StudySpec
-from .text import counted
+from .text import are, counted, them
 from .worker import RESULT_FILE, failed_result, read_result, write_result
 
 STUDY_FILE = "study.json"
@@ -71,20 +71,22 @@ def plan_warnings(plan: StudyPlan, out_dir: Path) -> List[str]:
     found = []
     if plan.other_limit:
         found.append(f"{counted(len(plan.other_limit), 'run')} already in {out_dir} "
-                     f"ran with another time limit and are "
-                     f"kept; use another --out to run them again")
+                     f"ran with another time limit and {are(len(plan.other_limit))} "
+                     f"kept; use another --out to run {them(len(plan.other_limit))} again")
     if plan.other_scenario:
         cells = sorted({run.cell for run in plan.other_scenario})
         found.append(f"{counted(len(plan.other_scenario), 'run')} already in {out_dir} "
                      f"ran a scenario that has changed since "
-                     f"(cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}) and are kept; use another "
-                     f"--out, or delete those cells' folders, to run them again")
+                     f"(cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}) and "
+                     f"{are(len(plan.other_scenario))} kept; use another --out, or delete those cells' folders, to run "
+                     f"{them(len(plan.other_scenario))} again")
     if plan.other_code:
         cells = sorted({run.cell for run in plan.other_code})
         found.append(f"{counted(len(plan.other_code), 'run')} already in {out_dir} "
-                     f"ran another version of their behaviour's "
+                     f"ran another version of {'its' if len(plan.other_code) == 1 else 'their'} behaviour's "
                      f"code (its files changed since; cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}"
-                     f") and are kept; use another --out, or delete those cells' folders, to run them again")
+                     f") and {are(len(plan.other_code))} kept; use another --out, or delete those cells' folders, to "
+                     f"run {them(len(plan.other_code))} again")
     return found
 
 
