@@ -62,6 +62,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     if not args.merge:
         refuse_another_study(out, spec.name)
     if args.dry_run:
+        check_scheduler_name(choice)
         return print_dry_run(runs, out, args.retry_failed)
     from khepri_cli.sim_commands import require_out_folder
     from sim_backend.study.driver import study_lock
@@ -72,6 +73,15 @@ def cmd_study(args: argparse.Namespace) -> int:
     # One study at a time per folder, through to its report: a second would run every unfinished run again.
     with study_lock(out):
         return run_and_report(args, spec, runs, out, executor)
+
+
+def check_scheduler_name(choice) -> None:
+    """``--dry-run`` reaches no scheduler, but a host name that does not exist is told all the same."""
+    from sim_backend.study.executors import unknown_host_reason
+
+    reason = unknown_host_reason(choice.address) if choice.address else None
+    if reason is not None:
+        raise ConfigError("--executor", f"cannot use the Dask scheduler {choice.address}: {reason}")
 
 
 def run_and_report(args: argparse.Namespace, spec, runs, out: Path, executor) -> int:

@@ -372,7 +372,8 @@ def load_scenario(name_or_path: str) -> Scenario:
     path = resolve(name_or_path)
     data = read_yaml(path, "scenario")
     if data is None:
-        raise ConfigError(path.name, "the file is empty (a scenario needs at least its robots and behaviour)")
+        raise ConfigError(path.name, "the file is empty (a scenario is a mapping of keys such as behaviour: and "
+                                     "robots:; {} takes every default)")
     return parse_scenario(data, default_name=path.stem)
 
 

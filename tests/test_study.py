@@ -1159,6 +1159,16 @@ def test_a_dask_scheduler_that_cannot_be_reached_is_said_before_the_folder_is_ma
     assert not (tmp_path / "o").exists()
 
 
+def test_a_dask_host_that_does_not_exist_is_said_by_a_dry_run_too(tmp_path, capsys):
+    """--dry-run checked the address's form and port but not its host, so a typo there passed the rehearsal."""
+    study = write(tmp_path / "tiny.yaml", TINY_STUDY)
+    command = ["study", str(study), "--dry-run", "--out", str(tmp_path / "o"), "--executor"]
+    assert main(command + ["dask:tcp://nosuchhost.invalid:8786"]) == 2
+    assert ("khepri: error: --executor: cannot use the Dask scheduler tcp://nosuchhost.invalid:8786: unknown host "
+            "'nosuchhost.invalid'") in capsys.readouterr().err
+    assert main(command + ["dask:tcp://127.0.0.1:8786"]) == 0        # nothing is reached: nobody need listen
+
+
 @pytest.mark.parametrize("damaged", ["[1, 2]", '{"commands": "khepri study x"}', '{"name": "tr', DEEP_JSON],
                          ids=["list", "commands", "cut", "deep"])
 def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_path, damaged):

@@ -17,7 +17,7 @@ from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Tuple
 
 from onboard.config import ConfigError
 
@@ -230,22 +230,39 @@ def connect_to_scheduler(address: str, timeout_s: float = 30.0):
     raise ConfigError("--executor", f"cannot use the Dask scheduler {address}: {reason}")
 
 
+def tcp_host_port(address: str) -> Optional[Tuple[str, int]]:
+    """The host and port of a ``tcp://`` scheduler address, or None for another scheme."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    scheme, location = parse_address(address)
+    return parse_host_port(location) if scheme == "tcp" else None
+
+
+def unknown_host_reason(address: str) -> Optional[str]:
+    """``unknown host 'x' (...)`` when the host name of a ``tcp://`` address does not exist, else None (a resolver
+    that failed this time, EAI_AGAIN, may yet answer). Cheap enough for ``--dry-run``, which connects to nothing."""
+    host_port = tcp_host_port(address)
+    if host_port is None:
+        return None
+    host, port = host_port
+    try:
+        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as err:
+        return f"unknown host {host!r} ({err.strerror})" if err.errno == socket.EAI_NONAME else None
+    return None
+
+
 def unreachable_reason(address: str, refused_for_s: float = 10.0) -> Optional[str]:
     """Why nothing can answer at a TCP ``address`` (its host name unknown, or its port refusing connections for
     ``refused_for_s``: a scheduler started just before the study takes a few seconds to listen), or None when
     that cannot be told soon. Dask retries both until its timeout and then says only "Timed out trying to
     connect ... after 30 s": a mistyped port or host name cost half a minute and hid which it was."""
-    from distributed.comm.addressing import parse_address, parse_host_port
-
-    scheme, location = parse_address(address)
-    if scheme != "tcp":
+    unknown = unknown_host_reason(address)
+    if unknown is not None:
+        return unknown
+    host, port = tcp_host_port(address) or (None, None)
+    if host is None:
         return None
-    host, port = parse_host_port(location)
-    try:
-        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except socket.gaierror as err:
-        # Only "no such name" is an answer; a resolver that failed this time (EAI_AGAIN) may yet answer.
-        return f"unknown host {host!r} ({err.strerror})" if err.errno == socket.EAI_NONAME else None
     deadline = time.monotonic() + refused_for_s
     while True:
         try:
