@@ -77,7 +77,7 @@ def cmd_study(args: argparse.Namespace) -> int:
 
 def check_scheduler_name(choice) -> None:
     """``--dry-run`` reaches no scheduler, but a host name that does not exist is told all the same."""
-    from sim_backend.study.executors import unknown_host_reason
+    from sim_backend.study.dask_address import unknown_host_reason
 
     reason = unknown_host_reason(choice.address) if choice.address else None
     if reason is not None:

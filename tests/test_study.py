@@ -1112,7 +1112,7 @@ def test_a_dask_address_that_never_answers_as_dask_is_an_error_not_a_hang(tmp_pa
     import socket
 
     from onboard.config import ConfigError
-    from sim_backend.study.executors import connect_to_scheduler
+    from sim_backend.study.dask_address import connect_to_scheduler
 
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
@@ -1131,7 +1131,7 @@ def test_a_dask_address_where_nothing_listens_is_refused_at_once_and_says_so():
     import socket
 
     from onboard.config import ConfigError
-    from sim_backend.study.executors import connect_to_scheduler
+    from sim_backend.study.dask_address import connect_to_scheduler
 
     with socket.socket() as probe:       # a free port, closed again: nothing listens there
         probe.bind(("127.0.0.1", 0))
