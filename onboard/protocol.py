@@ -243,16 +243,22 @@ def _neighbour_columns(data: bytes, count: int) -> Tuple[np.ndarray, np.ndarray,
 
 
 def _json_object(data: bytes, field: str, unreadable: str) -> Tuple[Dict[str, Any], bool]:
-    """``data`` parsed as a JSON object, and whether it held NaN or Infinity; a ProtocolError naming ``field``
-    if it is not JSON or not an object."""
+    """``data`` parsed as a JSON object, and whether it held NaN or Infinity (as such, or as a number too large
+    for a float); a ProtocolError naming ``field`` if it is not JSON or not an object."""
     constants: List[str] = []
 
     def constant(name: str) -> float:
         constants.append(name)
         return float(name)
 
+    def number(text: str) -> float:
+        value = float(text)
+        if not math.isfinite(value):        # 1e999: a JSON number, but one that overflows to infinity
+            constants.append(text)
+        return value
+
     try:
-        value = parse_json(data, parse_constant=constant)
+        value = parse_json(data, parse_constant=constant, parse_float=number)
     except ValueError:                         # not UTF-8, not JSON, or nested past the recursion limit
         fail(field, f"{unreadable} ({short(bytes(data[:40]))})")
     if not isinstance(value, dict):

@@ -221,6 +221,19 @@ def test_deeply_nested_json_is_rejected_not_crashing():
     assert reject(b"[" * 30_000 + b"]" * 30_000).startswith("from robot 3")
 
 
+@pytest.mark.parametrize("field, text", [
+    ("telemetry.behaviour.y", '"behaviour": {"y": -1e999}'),     # a state the robot reports
+    ("telemetry.extra.q", '"extra": {"q": 1e999}'),               # a field this version does not know
+    ("telemetry.behaviour.y", '"behaviour": {"y": NaN}'),
+])
+def test_a_number_too_large_for_a_float_is_refused_like_nan(field, text):
+    """1e999 is a JSON number, but Python reads it as infinity: it passed the NaN check (which saw only the
+    literals NaN and Infinity), and the hub's recording then stopped on a telemetry it could not write."""
+    message = ('{"v": 2, "type": "telemetry", "id": 0, "step": 1, "mode": "idle", ' + text + "}").encode()
+    with pytest.raises(ProtocolError, match=f"from robot 0: {field}: -?(inf|nan) is not a JSON number"):
+        decode(message, "robot 0")
+
+
 def test_unknown_fields_are_ignored_for_forward_compatibility():
     decoded = decode(encode({**EXAMPLES["wheels"], "future": 1}), "robot 3")
     assert decoded["left"] == 0.1
