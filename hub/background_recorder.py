@@ -4,7 +4,11 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from typing import TYPE_CHECKING, Any, Callable, Deque, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Deque, Optional, Set, Tuple
+
+from .log_format import UnrecordableMessage
+
+UNRECORDABLE = "unrecordable message"    # /hub/drops reason of a message the log could not hold (its topic: sender)
 
 if TYPE_CHECKING:      # hub.recording offers this class too, so it cannot be imported from here at run time
     from .recording import Recorder
@@ -18,7 +22,10 @@ class BackgroundRecorder:
     when :meth:`kick` wakes it (the hub kicks once its downlink frames are out) and at least every
     ``idle_s``. An error in the writer (e.g. a full disk) is raised by the next call, as the Recorder itself
     would have; or, with ``on_failure``, handed to that once, after which every call does nothing (a lab
-    run goes on without its log rather than end). ``close`` writes what is queued and closes the file.
+    run goes on without its log rather than end). A message the log cannot hold (not JSON-able) is left out
+    and counted under ``/hub/drops`` as ``unrecordable message`` (its topic as the sender), and ``on_skip`` is
+    told once per topic: the file is intact, so recording goes on. ``close`` writes what is queued and closes
+    the file.
 
     Why a thread: encoding a 100-robot lab's frames as JSON takes about 1 ms per motion-capture frame. Done
     by the hub's loop thread, that CPU time makes the kernel treat the thread as busy, so every ZeroMQ send
@@ -27,10 +34,13 @@ class BackgroundRecorder:
     """
 
     def __init__(self, recorder: Recorder, idle_s: float = 0.05,
-                 on_failure: Optional[Callable[[BaseException], None]] = None):
+                 on_failure: Optional[Callable[[BaseException], None]] = None,
+                 on_skip: Optional[Callable[[BaseException], None]] = None):
         self.recorder = recorder
         self.path = recorder.path
         self.on_failure = on_failure
+        self.on_skip = on_skip                  # told once per topic of a message left out (from the writer thread)
+        self._skipped_topics: Set[str] = set()
         self.failure: Optional[str] = None      # why recording stopped (with on_failure), else None
         self._queue: Deque[Tuple[Any, ...]] = deque()
         self._kick = threading.Event()
@@ -101,6 +111,18 @@ class BackgroundRecorder:
             self.on_failure(error)
         return self.failure is not None
 
+    def _skip(self, topic: str, err: UnrecordableMessage, stamp: float) -> None:
+        """Count a message the log cannot hold under /hub/drops, and say so once per topic."""
+        try:
+            self.recorder.count_drop(UNRECORDABLE, topic, stamp)
+        except Exception as failure:             # the file itself failed meanwhile
+            self._error = failure
+            return
+        if topic not in self._skipped_topics:
+            self._skipped_topics.add(topic)
+            if self.on_skip is not None:
+                self.on_skip(err)
+
     def _drain_wait(self) -> None:
         while self._queue and self._thread.is_alive():
             self._kick.set()
@@ -122,6 +144,8 @@ class BackgroundRecorder:
                         self.recorder.write(topic, first, stamp)
                     else:
                         self.recorder.write(topic, first(*second), stamp)
+                except UnrecordableMessage as err:   # this message only: the log is intact, so recording goes on
+                    self._skip(topic, err, stamp)
                 except Exception as err:          # handed to the hub's thread by its next call
                     self._error = err
             if stopping:

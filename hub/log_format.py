@@ -126,7 +126,30 @@ def schema_name_for(topic: str) -> str:
 
 
 # The log's JSON: compact, UTF-8, and no NaN or infinity, which are not JSON (docs/recording.md).
-compact_json = json.JSONEncoder(separators=(",", ":"), allow_nan=False, ensure_ascii=False).encode
+_compact_utf8 = json.JSONEncoder(separators=(",", ":"), allow_nan=False, ensure_ascii=False).encode
+_compact_ascii = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode
+
+
+def json_bytes(value: Any) -> bytes:
+    """``value`` as the log's compact UTF-8 JSON. A string with a lone surrogate (a file name read with
+    ``surrogateescape``, a ``\\udcff`` received in a robot's JSON) has no UTF-8 form: that value is written with
+    every non-ASCII character escaped (``"\\udcff"``), which is still JSON and reads back as the same string.
+    TypeError or ValueError for what JSON cannot hold (NaN, infinity, a set, ...)."""
+    text = _compact_utf8(value)
+    try:
+        return text.encode("utf-8")
+    except UnicodeEncodeError:
+        return _compact_ascii(value).encode("ascii")
+
+
+def compact_json(value: Any) -> str:
+    """:func:`json_bytes` as text (MCAP metadata values are strings)."""
+    return json_bytes(value).decode("utf-8")
+
+
+class UnrecordableMessage(LogError):
+    """One message that cannot be written (not a dict, or not JSON-able); the log itself is intact and the
+    recording goes on (docs/recording.md)."""
 
 
 def metadata_as_text(metadata: dict) -> Dict[str, str]:

@@ -40,7 +40,8 @@ from .log_format import (
     LogError,
     LogRecord,
     PathLike,
-    compact_json,
+    UnrecordableMessage,
+    json_bytes,
     metadata_as_text,
     metadata_from_text,
     robot_topic,
@@ -56,8 +57,8 @@ from .log_summary import summarise as summarise_log
 __all__ = [
     "CONTROL", "FORMAT_METADATA", "HUB_DROPS", "HUB_RUN", "HUB_STATUS", "LIBRARY", "LOG_FORMAT_VERSION", "MCAP_MAGIC",
     "MOCAP_POSES", "ROBOT_TOPIC_KINDS", "SCHEMAS", "USER_METADATA", "BackgroundRecorder", "ForeignChannelWarning",
-    "LogError", "LogRecord", "PathLike", "Recorder", "metadata_from_text", "read_log", "robot_topic",
-    "split_robot_topic", "summarise",
+    "LogError", "LogRecord", "PathLike", "Recorder", "UnrecordableMessage", "metadata_from_text", "read_log",
+    "robot_topic", "split_robot_topic", "summarise",
 ]
 
 # Stamps are wall-clock seconds (time.time()). Before 2001 means a monotonic or simulated clock slipped in, which
@@ -110,12 +111,12 @@ class Recorder:
         """Record ``payload`` (a JSON-able dict) on ``topic`` at ``stamp_s`` (hub clock; now if None)."""
         channel_id = self._channels.get(topic) or self._register(topic)
         if not isinstance(payload, dict):
-            raise LogError(topic, f"payload must be a dict (got {type(payload).__name__})")
+            raise UnrecordableMessage(topic, f"payload must be a dict (got {type(payload).__name__})")
         try:
-            data = compact_json(payload).encode()
+            data = json_bytes(payload)
         except (TypeError, ValueError) as err:
             # Raised before anything reaches the writer, so the file stays intact.
-            raise LogError(topic, f"payload is not JSON-able: {err}") from None
+            raise UnrecordableMessage(topic, f"payload is not JSON-able: {err}") from None
         stamp_ns = _stamp_ns(topic, stamp_s)
         with self._lock:
             if self._refusal:
@@ -219,7 +220,7 @@ class Recorder:
             return
         channel_id = self._channels[HUB_DROPS]   # registered by count_drop
         for (reason, sender), (count, stamp_ns) in sorted(self._drops.items(), key=_drop_order):
-            data = compact_json({"reason": reason, "sender": sender, "count": count}).encode()
+            data = json_bytes({"reason": reason, "sender": sender, "count": count})
             self._writer.add_message(channel_id, stamp_ns, data, stamp_ns, self._sequence)
             self._sequence = (self._sequence + 1) & 0xFFFFFFFF
         self._drops.clear()

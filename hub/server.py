@@ -74,7 +74,8 @@ class Hub(Downlink, Uplink, Housekeeping):
         if recorder is not None and not isinstance(recorder, BackgroundRecorder):
             # The loop only queues; a thread of its own writes. A write that fails (a full disk) ends the
             # recording, not the lab run: the robots keep being served, and the operator is told.
-            recorder = BackgroundRecorder(recorder, on_failure=self._recording_failed)
+            recorder = BackgroundRecorder(recorder, on_failure=self._recording_failed, on_skip=lambda error: log(
+                f"hub: not recorded: {error} (left out of the log, counted in its drops; said once per topic)"))
         self.config, self.source, self.run, self.keyring, self.recorder, self.log = \
             config, source, run, keyring, recorder, log
         self.context = context or zmq.Context.instance()

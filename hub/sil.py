@@ -54,7 +54,8 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     # The time limit the run gets, as `sim run` does: the warnings (a fault that never fires) go by it.
     scenario = scenario.with_overrides(seed=seed).with_time_limit(options.time_limit_s)
     limit = scenario.time_limit_s
-    hub_log = open(out / "hub.log", "w", encoding="utf-8")   # noqa: SIM115 - closed below
+    # backslashreplace: a line quoting a robot's text with a lone surrogate is written escaped, not a crash
+    hub_log = open(out / "hub.log", "w", encoding="utf-8", errors="backslashreplace")   # noqa: SIM115 - closed below
 
     def log(line: str) -> None:
         hub_log.write(line + "\n")

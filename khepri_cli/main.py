@@ -49,6 +49,8 @@ def _accept_import_after_the_command(parser: argparse.ArgumentParser) -> None:
 
 def main(argv: Optional[List[str]] = None) -> int:
     """``argv`` None: the ``khepri`` command itself, which exits when this returns."""
+    if argv is None:
+        escape_unencodable_output()
     with PatientInterrupts(exiting=argv is None):
         try:
             return _run(argv)
@@ -57,6 +59,15 @@ def main(argv: Optional[List[str]] = None) -> int:
             # on SIGPIPE"): point stdout at /dev/null so the interpreter's final flush does not fail again.
             _silence_stdout()
             return 1
+
+
+def escape_unencodable_output() -> None:
+    """Print what the terminal's encoding cannot hold escaped (``\\udcff``), as Python's stderr already does: a
+    robot's state holding a lone surrogate (a file name read with surrogateescape) ended `ctl status` with a
+    UnicodeEncodeError."""
+    reconfigure = getattr(sys.stdout, "reconfigure", None)
+    if reconfigure is not None:
+        reconfigure(errors="backslashreplace")
 
 
 class PatientInterrupts:

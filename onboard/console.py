@@ -33,6 +33,8 @@ def say(line: str, stream: Optional[TextIO] = None) -> None:
         print(line, file=stream, flush=True)
     except BlockingIOError:                # a non-blocking stream that is full for now: this line only is lost
         pass
+    except UnicodeEncodeError:             # a lone surrogate from a robot's text: the line escaped, not the console
+        say(line.encode("utf-8", "backslashreplace").decode("utf-8"), stream)
     except (OSError, ValueError):          # ValueError: the stream was closed
         silence(stream)
 

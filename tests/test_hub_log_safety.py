@@ -22,6 +22,7 @@ from hub.config import parse_config
 from hub.control import request
 from hub.factory import record_path
 from hub.harness import stop_processes
+from hub.recording import read_log
 from khepri_cli.main import main
 from onboard.config import ConfigError
 from onboard.protocol import decode, encode
@@ -308,3 +309,34 @@ def test_the_keys_of_a_killed_sil_are_removed_by_the_next_one(tmp_path, monkeypa
         (folder / "robots" / "robot-0.key_secret").write_text("secret")
     remove_stale_key_folders()
     assert not stale.exists() and live.exists()
+
+
+def test_a_robots_text_with_a_lone_surrogate_neither_stops_the_recording_nor_ctl_status(tmp_path):
+    """A behaviour state holding a lone surrogate (a file name read with surrogateescape, sent as the JSON escape
+    \\ud800): the hub could not write that telemetry as UTF-8 and stopped recording for the rest of the run,
+    and `khepri ctl status` ended with a UnicodeEncodeError. Now the log holds it escaped and ctl prints it."""
+    log = tmp_path / "run.mcap"
+    hub = start_hub(tmp_path, "-m", "khepri_cli.main", "hub", "--config", str(lab_config(tmp_path, log)))
+    robots = next(x for x in (tmp_path / "hub.log").read_text().splitlines() if x.startswith("listening robots"))
+    agent = zmq.Context.instance().socket(zmq.DEALER)
+    agent.linger = 0
+    agent.connect(robots.split()[-1])
+    try:
+        agent.send(encode({"type": "hello", "id": 0, "driver": "sim"}))
+        for step in range(1, 11):
+            agent.send(encode({"type": "telemetry", "id": 0, "step": step, "mode": "idle",
+                               "behaviour": {"state": "bad\ud800name"}}))
+            time.sleep(0.05)
+        ctl = subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "status", "--hub",
+                              control_endpoint(tmp_path)], capture_output=True, env=ENV, timeout=30)
+        assert ctl.returncode == 0 and b"Traceback" not in ctl.stderr, ctl.stderr
+        assert b"bad\\ud800name" in ctl.stdout, ctl.stdout
+        hub.send_signal(signal.SIGINT)
+        assert hub.wait(timeout=15) == 0
+    finally:
+        agent.close(0)
+        stop_processes([hub])
+    said = (tmp_path / "hub.log").read_text()
+    assert "RECORDING STOPPED" not in said and "not recorded" not in said, said
+    states = [r.payload["behaviour"]["state"] for r in read_log(log, topics=["/robot/0/telemetry"])]
+    assert states == ["bad\ud800name"] * 10

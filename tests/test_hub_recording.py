@@ -45,3 +45,49 @@ def test_a_writer_error_is_raised_by_the_next_call(tmp_path):
             recorder.write("/robot/1/frame", {"i": 1}, T0)
             time.sleep(0.01)
     recorder.close()
+
+
+def test_a_string_with_a_lone_surrogate_is_recorded_escaped_and_reads_back_the_same(tmp_path):
+    """A file name read with surrogateescape has no UTF-8 form: writing it stopped the whole recording."""
+    path = tmp_path / "run.mcap"
+    name = b"log-\xff.txt".decode("utf-8", "surrogateescape")
+    with BackgroundRecorder(Recorder(path)) as recorder:
+        recorder.write("/robot/1/telemetry", {"file": name, "é": "ok"}, T0)
+        recorder.write("/robot/1/telemetry", {"file": "after"}, T0 + 1)
+    assert [r.payload for r in read_log(path)] == [{"file": name, "é": "ok"}, {"file": "after"}]
+    assert summarise(path, check_payloads=True).refused_messages == []
+
+
+def test_a_message_the_log_cannot_hold_is_left_out_and_counted_and_recording_goes_on(tmp_path):
+    """One unwritable telemetry ended the recording for the rest of the run (RECORDING STOPPED), though the file
+    was intact; now it is left out, counted under /hub/drops, and said once per topic."""
+    path = tmp_path / "run.mcap"
+    skipped, failed = [], []
+    with BackgroundRecorder(Recorder(path), on_failure=failed.append, on_skip=skipped.append) as recorder:
+        recorder.write("/robot/1/frame", {"i": 0}, T0)
+        for k in range(3):
+            recorder.write("/robot/1/telemetry", {"y": float("inf"), "k": k}, T0 + 1 + k)
+        recorder.write_later("/robot/2/telemetry", lambda: {"seen": {1, 2}}, (), T0 + 4)
+        recorder.write("/robot/1/frame", {"i": 1}, T0 + 5)
+    assert failed == [] and recorder.failure is None
+    assert [str(err) for err in skipped] == [
+        "/robot/1/telemetry: payload is not JSON-able: Out of range float values are not JSON compliant",
+        "/robot/2/telemetry: payload is not JSON-able: Object of type set is not JSON serializable"]
+    assert [(r.topic, r.payload) for r in read_log(path) if r.topic != "/hub/drops"] == [
+        ("/robot/1/frame", {"i": 0}), ("/robot/1/frame", {"i": 1})]
+    summary = summarise(path)
+    assert summary.drops == {"unrecordable message": 4}
+    assert summary.drops_by_sender == {"/robot/1/telemetry": 3, "/robot/2/telemetry": 1}
+
+
+def test_a_console_line_with_a_lone_surrogate_is_printed_escaped_and_the_console_stays(tmp_path):
+    """say() took the UnicodeEncodeError (a ValueError) for a closed console, and silenced it for good."""
+    import io
+
+    from onboard.console import say
+
+    raw = io.BytesIO()
+    stream = io.TextIOWrapper(raw, encoding="utf-8", errors="strict")
+    say("robot 3: state bad\ud800name", stream)
+    say("next line", stream)
+    assert raw.getvalue().decode() == "robot 3: state bad\\ud800name\nnext line\n"
