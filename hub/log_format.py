@@ -12,6 +12,7 @@ here, so the writer and the readers do not import each other's machinery.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple, Union
@@ -168,14 +169,27 @@ def metadata_as_text(metadata: dict) -> Dict[str, str]:
 
 
 def metadata_from_text(text: Dict[str, str]) -> Dict[str, Any]:
-    """Inverse of :func:`metadata_as_text`; a value that is not JSON is kept as the string."""
+    """Inverse of :func:`metadata_as_text`; a value that is not JSON is kept as the string, and so is one holding
+    NaN, Infinity or a number too large for a float (another tool's file): Python reads them, but printed back
+    (``log info --json``) they would not be JSON."""
     values = {}
     for key, value in text.items():
         try:
-            values[key] = parse_json(value)
+            values[key] = parse_json(value, parse_constant=_refuse_constant, parse_float=_finite_float)
         except ValueError:
             values[key] = value
     return values
+
+
+def _refuse_constant(name: str) -> float:
+    raise ValueError(f"{name} is not JSON")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"{text} is too large for a float")
+    return value
 
 
 @dataclass(frozen=True)

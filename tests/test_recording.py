@@ -487,6 +487,26 @@ def test_log_info_json_prints_metadata_nested_hundreds_deep_in_full(tmp_path):
     assert parsed == json.loads(json.dumps(summary.to_dict())) and parsed["metadata"]["deep"] == deep
 
 
+def test_log_info_json_stays_json_when_another_tools_metadata_holds_nan_or_infinity(tmp_path):
+    """Python's json reads NaN, Infinity and 1e999 (as inf) in a metadata value, and printed them back: the
+    --json output then held NaN and Infinity, which strict JSON readers refuse. Such a value is kept as text."""
+    from mcap.writer import Writer
+
+    path = tmp_path / "other.mcap"
+    with open(path, "wb") as file:
+        writer = Writer(file)
+        writer.start()
+        writer.add_metadata("khepri.metadata", {"a": "NaN", "b": "1e400", "c": '{"x": -Infinity}', "d": "2.5"})
+        writer.finish()
+    assert summarise(path).metadata == {"a": "NaN", "b": "1e400", "c": '{"x": -Infinity}', "d": 2.5}
+    info = run_khepri(path, "--json")
+    assert info.returncode == 0, info.stderr
+
+    def refuse(name):
+        raise AssertionError(f"{name} in log info --json")
+    assert json.loads(info.stdout, parse_constant=refuse)["metadata"]["b"] == "1e400"
+
+
 @pytest.mark.parametrize("as_json", [True, False])
 def test_log_info_replaces_a_metadata_value_too_deep_to_print_by_a_note_naming_it(tmp_path, monkeypatch, capsys,
                                                                                  as_json):
