@@ -153,6 +153,21 @@ class UnrecordableMessage(LogError):
     recording goes on (docs/recording.md)."""
 
 
+def format_version(metadata: Dict[str, Dict[str, str]]) -> Optional[int]:
+    """The log format version a file's ``khepri.log`` record gives (MCAP metadata, name -> {key: text}), or None
+    when it has none (another tool's file) or not a number."""
+    version = metadata.get(FORMAT_METADATA, {}).get("version", "")
+    return int(version) if version.isdigit() else None
+
+
+def newer_format(version: Optional[int]) -> Optional[str]:
+    """What to say of a log written in a newer format than this khepri reads, or None."""
+    if version is None or version <= LOG_FORMAT_VERSION:
+        return None
+    return (f"newer than the log format {LOG_FORMAT_VERSION} this khepri reads: a topic or field may mean something "
+            f"else in it (read it with the khepri that wrote it)")
+
+
 def metadata_as_text(metadata: dict) -> Dict[str, str]:
     """MCAP metadata maps strings to strings: store each value as JSON text so numbers and lists survive."""
     if not isinstance(metadata, dict):

@@ -15,12 +15,12 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Message
 
 from hub.log_format import (
-    FORMAT_METADATA,
     HUB_DROPS,
     HUB_RUN,
     MOCAP_POSES,
     USER_METADATA,
     PathLike,
+    format_version,
     is_json_channel,
     metadata_from_text,
     split_robot_topic,
@@ -229,7 +229,6 @@ class _RefusedPayloads:
 def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[str, str]]) -> LogSummary:
     start_s = None if tally.start_ns is None else tally.start_ns / 1e9
     end_s = None if tally.end_ns is None else tally.end_ns / 1e9
-    version = metadata.get(FORMAT_METADATA, {}).get("version", "")
     sim_start_s, sim_end_s = _clock_s(tally.first_poses), _clock_s(tally.last_poses)
     if sim_start_s is None or sim_end_s is None:
         sim_start_s = sim_end_s = None
@@ -242,7 +241,7 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         robots=_robot_ids(tally.counts), drops=dict(sorted(tally.drops.items())),
         drops_by_sender=dict(sorted(tally.drops_by_sender.items())),
         metadata=metadata_from_text(metadata.get(USER_METADATA, {})),
-        format_version=int(version) if version.isdigit() else None, damaged_records=list(reader.damaged),
+        format_version=format_version(metadata), damaged_records=list(reader.damaged),
         sim_start_s=sim_start_s, sim_end_s=sim_end_s,
         foreign_topics={topic: {"encoding": tally.foreign_encodings[topic], "messages": count}
                         for topic, count in sorted(tally.foreign.items(), key=lambda item: natural_key(item[0]))},

@@ -7,7 +7,7 @@ from collections import Counter
 from datetime import datetime
 from typing import Any, Dict, List, Optional, Tuple
 
-from hub.log_format import split_robot_topic
+from hub.log_format import newer_format, split_robot_topic
 from hub.log_summary import LogSummary
 from hub.run_events import outcome_text
 from onboard.jsontext import dump_json
@@ -39,7 +39,8 @@ def printable_metadata(summary: LogSummary, *, indent: Optional[int] = None) -> 
 
 def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
     """The text ``khepri log info`` prints. Robot topics are grouped by kind unless ``all_topics``."""
-    lines = [f"log:       {summary.path} ({_size(summary.file_bytes)})", f"status:    {_status(summary)}"]
+    lines = [f"log:       {summary.path} ({_size(summary.file_bytes)})", f"status:    {_status(summary)}",
+             f"format:    {_format_text(summary.format_version)}"]
     if summary.start_s is None:
         lines.append("messages:  none")
     else:
@@ -62,6 +63,13 @@ def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
     for key, value in summary.metadata.items():
         lines.append(f"metadata:  {key} = {json.dumps(value)}")
     return "\n".join(lines)
+
+
+def _format_text(version: Optional[int]) -> str:
+    if version is None:
+        return "no khepri.log record (not written by a khepri hub?)"
+    newer = newer_format(version)
+    return f"khepri-log {version}" + (f", {newer.replace('newer', 'NEWER', 1)}" if newer else "")
 
 
 def _foreign_lines(summary: LogSummary) -> List[str]:

@@ -22,6 +22,7 @@ class ReplaySource(PoseSource):
     hub recording, which is said at start."""
 
     def __init__(self, path: str, rate: float = 1.0, log: Callable[[str], None] = print):
+        from hub.log_format import format_version, newer_format
         from hub.log_reader import LogReader, last_indexed_stamp
         from hub.recording import MOCAP_POSES, LogError
 
@@ -52,6 +53,9 @@ class ReplaySource(PoseSource):
                                                  f"channel's message encoding is {foreign!r}, not JSON (another "
                                                  "tool's log, not a khepri hub recording?)")
             raise ConfigError("source.file", f"{path} holds no /mocap/poses records (not a khepri hub recording?)")
+        version = format_version(self.reader.metadata)      # its record comes before the first poses
+        if newer_format(version):
+            log(f"hub: warning: {path} is in log format {version}, {newer_format(version)}")
         last = last_indexed_stamp(path, MOCAP_POSES)
         # The log time the replay spans, for `ctl status`: known from a complete log's index; not from a log cut
         # short, whose end only reading it all would find.

@@ -540,6 +540,7 @@ def test_cli_log_info_prints_the_summary_and_json(tmp_path):
     assert text.returncode == 0, text.stderr
     assert "status:    complete" in text.stdout and "robots:    2 (1, 2)" in text.stdout
     assert "/robot/*/frame (2 robots)" in text.stdout and "duration:  1.500 s" in text.stdout
+    assert "\nformat:    khepri-log 1\n" in text.stdout
     listed = run_khepri(path, "--all-topics")
     assert "/robot/2/command" in listed.stdout
 
@@ -556,6 +557,45 @@ def test_cli_log_info_prints_the_summary_and_json(tmp_path):
     stub = tmp_path / "stub.mcap"                      # the magic and a torn first record: nothing to recover
     stub.write_bytes(path.read_bytes()[:10])
     assert "TRUNCATED, no message recovered (8 of 10 bytes)" in run_khepri(stub).stdout
+
+
+def test_a_log_in_a_newer_format_is_said_by_log_info_and_the_replay(tmp_path):
+    """recording.md says readers should check the format version; neither log info's text nor the replay did,
+    so a log whose topics might mean other things by now was read as if it were this version's."""
+    from hub.replay_source import ReplaySource
+
+    poses = [(MOCAP_POSES, {"bodies": {"0": [0.1 * k, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}, "clock_s": None}, T0 + k)
+             for k in range(3)]
+    path = foreign_log_with_format(tmp_path / "v99.mcap", "99", poses)
+    assert ("format:    khepri-log 99, NEWER than the log format 1 this khepri reads: a topic or field may mean "
+            "something else in it") in run_khepri(path).stdout
+    said = []
+    replay = ReplaySource(str(path), log=said.append)
+    assert said == [f"hub: warning: {path} is in log format 99, newer than the log format 1 this khepri reads: a "
+                    "topic or field may mean something else in it (read it with the khepri that wrote it)"]
+    assert replay.pending is not None       # played all the same
+    assert "format:    no khepri.log record (not written by a khepri hub?)" in run_khepri(
+        foreign_log_with_format(tmp_path / "none.mcap", None, poses)).stdout
+
+
+def foreign_log_with_format(path, version, records):
+    """A log another writer made: a khepri.log record of ``version`` (None: none), then JSON ``records``."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as file:
+        writer = Writer(file)
+        writer.start()
+        if version is not None:
+            writer.add_metadata("khepri.log", {"format": "khepri-log", "version": version})
+        channels = {}
+        for topic, payload, stamp in records:
+            if topic not in channels:
+                schema = writer.register_schema(name="x", encoding="jsonschema", data=b"{}")
+                channels[topic] = writer.register_channel(topic=topic, message_encoding="json", schema_id=schema)
+            writer.add_message(channel_id=channels[topic], log_time=int(stamp * 1e9), publish_time=int(stamp * 1e9),
+                               data=json.dumps(payload).encode())
+        writer.finish()
+    return path
 
 
 def test_cli_log_info_bad_files_exit_2_with_one_line(tmp_path):
