@@ -67,8 +67,10 @@ class Housekeeping:
         if self.last_frame_stamp == -math.inf:
             self.log(f"hub: no motion-capture frame yet after {after} from {source}")
         else:
+            check = "robots against the ids the log's /mocap/poses place" if self.config.source.type == "replay" \
+                else "source.bodies and robots"
             self.log(f"hub: the frames from {source} hold none of this lab's robots yet after {after} "
-                     f"(check source.bodies and robots; this lab's robots: {format_ids(self.ids)})")
+                     f"(check {check}; this lab's robots: {format_ids(self.ids)})")
 
 
 def format_ids(ids: List[int], limit: int = 10) -> str:

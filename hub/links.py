@@ -187,8 +187,13 @@ class SparseFrames:
 
     RUN = 5
 
-    def __init__(self, stale_s: float, silence_s: float):
+    def __init__(self, stale_s: float, silence_s: float, configured_s: Optional[float] = None):
+        """``configured_s``: ``source.stale_s`` as the config gives it, when ``stale_s`` is it stretched (a replay
+        slower than real time), so that the line names the value to change."""
         self.stale_s, self.silence_s = stale_s, silence_s
+        stretched = configured_s is not None and configured_s != stale_s
+        self.stale_text = (f"{configured_s:g} s, {stale_s:g} s at this replay's rate" if stretched
+                           else f"{stale_s:g} s")
         self.last: Optional[float] = None
         self.run = 0
         self.said = False
@@ -200,6 +205,6 @@ class SparseFrames:
         if self.said or self.run < self.RUN:
             return None
         self.said = True
-        return (f"motion-capture frames come {gap:.2f} s apart, further than source.stale_s ({self.stale_s:g} s): "
+        return (f"motion-capture frames come {gap:.2f} s apart, further than source.stale_s ({self.stale_text}): "
                 "every robot loses its pose between frames and is held; raise source.stale_s above the frame "
                 "period, or check the system's frame rate")

@@ -100,7 +100,7 @@ class Hub(Downlink, Uplink, Housekeeping):
         slowed = min(1.0, getattr(source, "rate", 1.0))
         self.stale_s = config.source.stale_s / slowed if config.source.type == "replay" else config.source.stale_s
         self.mocap_silent = False
-        self.sparse_frames = SparseFrames(self.stale_s, MOCAP_SILENT_S)
+        self.sparse_frames = SparseFrames(self.stale_s, MOCAP_SILENT_S, config.source.stale_s)
         self._finished_said: Optional[str] = None    # the run whose end was said
         self.progress = progress          # the sim source's object and waypoints (hub/progress.py), else None
         self.arrival_said: Optional[str] = None      # the run whose arrival at its last waypoint was said

@@ -405,6 +405,15 @@ def test_one_outage_is_not_taken_for_sparse_frames():
     assert len(said) == 1 and "0.50 s apart" in said[0]
 
 
+def test_sparse_frames_of_a_slowed_replay_name_the_configured_stale_s():
+    """At replay rate 0.5 the line said source.stale_s (0.2 s), the stretched value, while the config said 0.1."""
+    from hub.links import SparseFrames
+
+    slowed = SparseFrames(stale_s=0.2, silence_s=1.0, configured_s=0.1)
+    said = [s for s in map(slowed.tick, [k * 0.4 for k in range(20)]) if s]
+    assert "further than source.stale_s (0.1 s, 0.2 s at this replay's rate)" in said[0]
+
+
 # --- 6, 7. replaying logs that are not what the hub wrote ----------------------------------------------------------
 T0 = 1_770_000_000.0
 
@@ -917,3 +926,16 @@ def test_run_params_for_the_sim_source_go_on_top_of_the_scenarios_mission():
     other = run_template(parse_config(sim_config(run={"behaviour": "aggregate", "params": {"k_avoid": 2.0}})),
                          scenario)
     assert other.params == {"k_avoid": 2.0}      # another behaviour than the scenario's: its params only
+
+
+def test_a_replay_of_other_robots_says_what_to_check_in_a_replays_terms(tmp_path):
+    """It said 'check source.bodies and robots', and a replay has no source.bodies."""
+    poses = json.dumps({"bodies": {"10": [0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}}).encode()
+    path = raw_log(tmp_path / "others.mcap", [("/mocap/poses", poses, T0 + 0.1 * k) for k in range(40)])
+    data = {"source": {"type": "replay", "file": str(path)}, "robots": [0, 1], "network": dict(NETWORK),
+            "security": {"insecure": True}, "run": {"behaviour": "aggregate"}}
+    with HubThread(parse_config(data)) as hub:
+        time.sleep(2.6)
+    said = [text for text in hub.lines if "yet after" in text]
+    assert said == [f"hub: the frames from replay {path} hold none of this lab's robots yet after 2 s (check robots "
+                    "against the ids the log's /mocap/poses place; this lab's robots: 0, 1)"], hub.lines
