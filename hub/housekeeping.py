@@ -24,7 +24,9 @@ class Housekeeping:
         self._warn_if_no_pose_yet(now)
         self.say_silent_robots(now)
         self.drops.flush(now)
-        silent = now - self.last_frame_stamp > MOCAP_SILENT_S and self.last_frame_stamp > -math.inf
+        # A replay at the end of its log said so itself; "no motion-capture frame" would only blur that.
+        silent = now - self.last_frame_stamp > MOCAP_SILENT_S and self.last_frame_stamp > -math.inf \
+            and not self.source.ended
         if silent != self.mocap_silent:
             self.mocap_silent = silent
             self.log("hub: no motion-capture frame for 1 s: robots without a pose are held" if silent

@@ -61,6 +61,14 @@ class ReplaySource(PoseSource):
         # short, whose end only reading it all would find.
         self.total_s = None if last is None else max(0.0, last - self._stamp(self.pending[1]))
 
+    @property
+    def untracked(self) -> str:
+        return "the replay has ended" if self.finished else "not in the log's poses now"
+
+    @property
+    def ended(self) -> bool:
+        return self.finished
+
     def never_placed(self, ids: List[int]) -> List[int]:
         """Those of ``ids`` that no readable ``/mocap/poses`` record of the log places: the replay would hold
         them all along. Reads the log (a second reader) only until every one of ``ids`` has been seen."""

@@ -340,7 +340,7 @@ class Hub(Downlink, Uplink, Housekeeping):
             return "hold", f"{self.source.not_the_real_robots}: a robot with real wheels ({robot.driver}) is held"
         row = self.row[robot.id]
         if not self.sensors.present[row]:
-            return "hold", "not tracked by motion capture"
+            return "hold", self.source.untracked
         if self.outside_fence[row]:
             return "hold", "outside the geofence"
         return "run", ""

@@ -55,6 +55,16 @@ class PoseSource:
     # do not follow it, and drive on where no geofence can see it.
     not_the_real_robots: Optional[str] = None
 
+    @property
+    def untracked(self) -> str:
+        """Why a robot without a pose is held (``ctl status``), in this source's terms."""
+        return "not tracked by motion capture"
+
+    @property
+    def ended(self) -> bool:
+        """The source has no more frames to give, and has said so (a replay at the end of its log)."""
+        return False
+
     def robot_ids(self) -> Optional[List[int]]:
         """The robots this source knows, or None when the config's list decides."""
         return None

@@ -480,3 +480,31 @@ def test_motion_capture_slower_than_the_downlink_reaches_every_robot_with_each_f
         for sock in sockets:
             sock.close(0)
         hub.close()
+
+
+def test_at_the_end_of_a_replay_the_robots_are_held_because_it_ended(tmp_path):
+    """After the last frame every robot was 'not tracked by motion capture', and the hub said 'no motion-capture
+    frame for 1 s', as if the cameras had stopped, right after 'replay reached the end of the log'."""
+    log = tmp_path / "run.mcap"
+    with Recorder(log) as recorder:
+        for k in range(5):
+            poses = np.array([[0.01 * k, 0.0, 0.0], [0.01 * k, 1.0, 0.0]])
+            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0, 1], poses)), stamp_s=1.7e9 + 0.05 * k)
+    config = parse_config({"source": {"type": "replay", "file": str(log), "rate": 2.0}, "robots": [0, 1],
+                           "network": NETWORK, "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+    lines = []
+    hub = build_hub(config, log=lines.append)
+    try:
+        hub.bind()
+        hub.mode = "run"
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            for frame in hub.source.poll(time.monotonic()):
+                hub.on_pose_frame(frame)
+            hub.housekeeping(time.monotonic())
+            time.sleep(0.02)
+        assert hub.source.ended and hub.mode_for(hub.robots[0]) == ("hold", "the replay has ended")
+    finally:
+        hub.close()
+    assert "hub: replay reached the end of the log" in lines
+    assert not [line for line in lines if "no motion-capture frame" in line], lines
