@@ -234,5 +234,10 @@ def open_recorder(path: Path, metadata: Dict[str, Any]):
     blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
     if blocker is not None:      # mkdir would say "File exists", which points at the wrong problem
         raise ConfigError("record", f"cannot make the folder {folder}: {blocker} is a file, not a folder")
-    folder.mkdir(parents=True, exist_ok=True)
-    return Recorder(path, flush_period_s=1.0, metadata={k: str(v) for k, v in metadata.items()}, exclusive=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        return Recorder(path, flush_period_s=1.0, metadata={k: str(v) for k, v in metadata.items()}, exclusive=True)
+    except OSError as err:                 # a folder it may not make (permissions, a read-only disk)
+        raise ConfigError("record", f"cannot make the folder {folder}: {err.strerror or err}") from None
+    except ConfigError as err:             # the Recorder's LogError names the file: say it is the record option's
+        raise ConfigError("record", str(err)) from None

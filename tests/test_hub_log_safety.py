@@ -88,6 +88,19 @@ def test_a_folder_given_as_the_log_is_refused_with_a_file_name_to_use(tmp_path, 
            f"{tmp_path / 'run-{time}.mcap'}" in capsys.readouterr().err
 
 
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc, where no file can be made")
+@pytest.mark.parametrize("log, said", [
+    ("/proc/khepri-test.mcap", "record: /proc/khepri-test.mcap: cannot create the log: "),
+    ("/proc/khepri-test/run.mcap", "record: cannot make the folder /proc/khepri-test: "),
+])
+def test_a_log_that_cannot_be_made_is_said_as_the_record_option(capsys, log, said):
+    """It said '/proc/x.mcap: cannot create the log' without naming the option, and a folder it could not make
+    was a traceback."""
+    assert main(["hub", "--demo", "--record", log, "--robot-port", "0", "--control-port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert f"khepri: error: {said}" in err and "Traceback" not in err, err
+
+
 def test_time_in_the_log_name_gives_each_start_its_own_file(tmp_path):
     config = parse_config({"record": str(tmp_path / "run-{time}.mcap")})
     at = time.mktime((2026, 11, 21, 20, 15, 2, 0, 0, -1))
