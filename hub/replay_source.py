@@ -13,6 +13,8 @@ from onboard.protocol import MAX_ROBOT_ID
 
 from .sources import PoseFrame, PoseSource, pose_from_mocap
 
+NEVER_PLACED_SCAN_S = 3.0      # at start, how long the hub looks through the log for robots it never places
+
 
 class ReplaySource(PoseSource):
     """Poses from a recorded log's ``/mocap/poses`` topic, paced by their stamps at ``rate``.
@@ -69,25 +71,34 @@ class ReplaySource(PoseSource):
     def ended(self) -> bool:
         return self.finished
 
-    def never_placed(self, ids: List[int]) -> List[int]:
-        """Those of ``ids`` that no readable ``/mocap/poses`` record of the log places: the replay would hold
-        them all along. Reads the log (a second reader) only until every one of ``ids`` has been seen."""
+    def never_placed(self, ids: List[int], scan_s: float = NEVER_PLACED_SCAN_S) -> Tuple[List[int], Optional[float]]:
+        """Those of ``ids`` that no readable ``/mocap/poses`` record of the log places (the replay would hold them
+        all along), and None; or, when reading took longer than ``scan_s`` of wall time before every one was
+        seen, those not placed so far and how many seconds of the log that was. Reads with a second reader only
+        until every one of ``ids`` has been seen: an hour-long log of many robots, one of them never placed,
+        kept the hub from listening for a minute, saying nothing."""
         from hub.log_reader import LogReader
         from hub.recording import MOCAP_POSES, LogError
 
         missing = set(ids)
+        deadline = time.monotonic() + scan_s
+        first = last = None
         try:
             reader = LogReader(self.path)
-            for _topic, message in reader.json_messages(MOCAP_POSES, warn=False):
+            for count, (_topic, message) in enumerate(reader.json_messages(MOCAP_POSES, warn=False)):
                 if not missing:
                     break
+                first = message.log_time if first is None else first
+                last = message.log_time
+                if count % 256 == 255 and time.monotonic() > deadline:
+                    return sorted(missing), (last - first) / 1e9
                 try:
                     missing.difference_update(poses_from_record(message.data)[0])
                 except (KeyError, TypeError, ValueError, AttributeError):
                     continue     # the replay skips it too, and says so when it gets there
         except LogError:             # damaged beyond what the reader walks past: what was read is the log
             pass
-        return sorted(missing)
+        return sorted(missing), None
 
     def _pose_messages(self):
         from hub.recording import MOCAP_POSES

@@ -508,3 +508,30 @@ def test_at_the_end_of_a_replay_the_robots_are_held_because_it_ended(tmp_path):
         hub.close()
     assert "hub: replay reached the end of the log" in lines
     assert not [line for line in lines if "no motion-capture frame" in line], lines
+
+
+def test_a_long_log_is_looked_through_for_unplaced_robots_only_so_long(tmp_path):
+    """With one lab robot never placed the hub read the whole log before it listened: about a minute, silent, for
+    an hour of 100 robots. Past its scan time it says how far it looked instead."""
+    from hub.factory import say_unplaced_replay_robots
+    from hub.replay_source import ReplaySource
+
+    log = tmp_path / "run.mcap"
+    with Recorder(log) as recorder:
+        for k in range(600):
+            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0], np.array([[0.0, 0.0, 0.0]]))),
+                           stamp_s=1.7e9 + 0.1 * k)
+    source = ReplaySource(str(log), log=lambda line: None)
+    assert source.never_placed([0, 7]) == ([7], None)                      # read to the end: never placed
+    missing, scanned_s = source.never_placed([0, 7], scan_s=0.0)          # out of time at once
+    assert missing == [7] and 25.0 <= scanned_s < 59.9
+
+    class Cut:
+        path = log
+
+        def never_placed(self, ids):
+            return [7], 25.5
+    said = []
+    say_unplaced_replay_robots(Cut(), [0, 7], said.append)
+    assert said == [f"hub: warning: robot 7 of this lab (robots) has no pose in the first 26 s of {log} "
+                    "(source.file): it is held until the replay places it"]
