@@ -112,15 +112,16 @@ def say_idle_sim_robots(scenario_ids: List[int], ids: List[int], log: Callable[[
 def say_unplaced_replay_robots(source: ReplaySource, ids: List[int], log: Callable[[str], None]) -> None:
     """A lab robot the log never places would be held for the whole replay, with nothing said at start."""
     missing, scanned_s = source.never_placed(ids)
-    if missing and scanned_s is not None:      # a long log, looked through only so far
-        several = len(missing) > 1
-        log(f"hub: warning: robot{'s' if several else ''} {', '.join(map(str, missing))} of this lab (robots) "
-            f"ha{'ve' if several else 's'} no pose in the first {scanned_s:.0f} s of {source.path} (source.file): "
+    if not missing:
+        return
+    several = len(missing) > 1
+    who = (f"robot{'s' if several else ''} {', '.join(map(str, missing))} of this lab (robots) "
+           f"ha{'ve' if several else 's'}")
+    if scanned_s is not None:      # a long log, looked through only so far
+        log(f"hub: warning: {who} no pose in the first {scanned_s:.0f} s of {source.path} (source.file): "
             f"{'they are' if several else 'it is'} held until the replay places {'them' if several else 'it'}")
-    elif missing:
-        several = len(missing) > 1
-        log(f"hub: warning: robot{'s' if several else ''} {', '.join(map(str, missing))} of this lab (robots) "
-            f"ha{'ve' if several else 's'} no pose in {source.path} (source.file): the replay never places "
+    else:
+        log(f"hub: warning: {who} no pose in {source.path} (source.file): the replay never places "
             f"{'them' if several else 'it'}, so {'they stay' if several else 'it stays'} held")
 
 

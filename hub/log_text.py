@@ -69,7 +69,7 @@ def _format_text(version: Optional[int]) -> str:
     if version is None:
         return "no khepri.log record (not written by a khepri hub?)"
     newer = newer_format(version)
-    return f"khepri-log {version}" + (f", {newer.replace('newer', 'NEWER', 1)}" if newer else "")
+    return f"khepri-log {version}" + (f", {newer}" if newer else "")
 
 
 def _foreign_lines(summary: LogSummary) -> List[str]:

@@ -567,7 +567,7 @@ def test_a_log_in_a_newer_format_is_said_by_log_info_and_the_replay(tmp_path):
     poses = [(MOCAP_POSES, {"bodies": {"0": [0.1 * k, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}, "clock_s": None}, T0 + k)
              for k in range(3)]
     path = foreign_log_with_format(tmp_path / "v99.mcap", "99", poses)
-    assert ("format:    khepri-log 99, NEWER than the log format 1 this khepri reads: a topic or field may mean "
+    assert ("format:    khepri-log 99, newer than the log format 1 this khepri reads: a topic or field may mean "
             "something else in it") in run_khepri(path).stdout
     said = []
     replay = ReplaySource(str(path), log=said.append)
