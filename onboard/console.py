@@ -34,7 +34,8 @@ def say(line: str, stream: Optional[TextIO] = None) -> None:
     except BlockingIOError:                # a non-blocking stream that is full for now: this line only is lost
         pass
     except UnicodeEncodeError:             # a lone surrogate from a robot's text: the line escaped, not the console
-        say(line.encode("utf-8", "backslashreplace").decode("utf-8"), stream)
+        encoding = getattr(stream, "encoding", None) or "utf-8"
+        say(line.encode(encoding, "backslashreplace").decode(encoding), stream)
     except (OSError, ValueError):          # ValueError: the stream was closed
         silence(stream)
 

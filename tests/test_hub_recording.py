@@ -91,3 +91,15 @@ def test_a_console_line_with_a_lone_surrogate_is_printed_escaped_and_the_console
     say("robot 3: state bad\ud800name", stream)
     say("next line", stream)
     assert raw.getvalue().decode() == "robot 3: state bad\\ud800name\nnext line\n"
+
+
+def test_a_console_line_its_encoding_cannot_hold_is_escaped_in_that_encoding():
+    """On an ASCII console (a C locale) the escaped line must be ASCII too, or the retry fails again."""
+    import io
+
+    from onboard.console import say
+
+    raw = io.BytesIO()
+    stream = io.TextIOWrapper(raw, encoding="ascii", errors="strict", write_through=True)
+    say("état \ud800", stream)
+    assert raw.getvalue() == b"\\xe9tat \\ud800\n"
