@@ -56,8 +56,9 @@ class ReplaySource(PoseSource):
                                                  "tool's log, not a khepri hub recording?)")
             raise ConfigError("source.file", f"{path} holds no /mocap/poses records (not a khepri hub recording?)")
         version = format_version(self.reader.metadata)      # its record comes before the first poses
-        if newer_format(version):
-            log(f"hub: warning: {path} is in log format {version}, {newer_format(version)}")
+        newer = newer_format(version)
+        if newer:
+            log(f"hub: warning: {path} is in log format {version}, {newer}")
         last = last_indexed_stamp(path, MOCAP_POSES)
         # The log time the replay spans, for `ctl status`: known from a complete log's index; not from a log cut
         # short, whose end only reading it all would find.
