@@ -308,16 +308,24 @@ def test_replay_warns_at_start_of_lab_robots_the_log_never_places(tmp_path):
     assert started([0, 1]) == []
 
 
+def walking_log(path, frames, period_s=0.05):
+    """A hub log of robots 0 and 1 walking along x, 1 m apart, one /mocap/poses record every ``period_s``."""
+    with Recorder(path) as recorder:
+        for k in range(frames):
+            poses = np.array([[0.01 * k, 0.0, 0.0], [0.01 * k, 1.0, 0.0]])
+            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0, 1], poses)), stamp_s=1.7e9 + period_s * k)
+    return path
+
+
+def replay_config(log, rate):
+    return parse_config({"source": {"type": "replay", "file": str(log), "rate": rate}, "robots": [0, 1],
+                         "network": NETWORK, "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+
+
 def test_a_slowed_replay_keeps_the_robots_tracked_between_its_frames(tmp_path):
     """At rate 0.1 a 20 Hz log gives a frame every 0.5 s, five times source.stale_s: every robot was held as
     'not tracked by motion capture' between two frames."""
-    log = tmp_path / "run.mcap"
-    with Recorder(log) as recorder:
-        for k in range(40):
-            poses = np.array([[0.01 * k, 0.0, 0.0], [0.01 * k, 1.0, 0.0]])
-            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0, 1], poses)), stamp_s=1.7e9 + 0.05 * k)
-    config = parse_config({"source": {"type": "replay", "file": str(log), "rate": 0.1}, "robots": [0, 1],
-                           "network": NETWORK, "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+    config = replay_config(walking_log(tmp_path / "run.mcap", frames=40), rate=0.1)
     hub = build_hub(config, log=lambda line: None)
     try:
         hub.bind()
@@ -485,13 +493,7 @@ def test_motion_capture_slower_than_the_downlink_reaches_every_robot_with_each_f
 def test_at_the_end_of_a_replay_the_robots_are_held_because_it_ended(tmp_path):
     """After the last frame every robot was 'not tracked by motion capture', and the hub said 'no motion-capture
     frame for 1 s', as if the cameras had stopped, right after 'replay reached the end of the log'."""
-    log = tmp_path / "run.mcap"
-    with Recorder(log) as recorder:
-        for k in range(5):
-            poses = np.array([[0.01 * k, 0.0, 0.0], [0.01 * k, 1.0, 0.0]])
-            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0, 1], poses)), stamp_s=1.7e9 + 0.05 * k)
-    config = parse_config({"source": {"type": "replay", "file": str(log), "rate": 2.0}, "robots": [0, 1],
-                           "network": NETWORK, "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+    config = replay_config(walking_log(tmp_path / "run.mcap", frames=5), rate=2.0)
     lines = []
     hub = build_hub(config, log=lines.append)
     try:
