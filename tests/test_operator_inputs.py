@@ -59,3 +59,16 @@ def test_a_mistyped_time_placeholder_in_record_is_refused(record, tmp_path, monk
     assert not list(tmp_path.iterdir())
     config = parse_config({"record": "logs/run-{time}.mcap"})
     assert record_path(config, now=1_790_000_000.0).name.startswith("run-2026")
+
+
+def test_a_doubled_time_placeholder_in_record_is_refused(tmp_path, monkeypatch):
+    """`record: run-{{time}}.mcap` (a Jinja or str.format habit) recorded to `run-{20261128-...}.mcap`: the inner
+    {time} was filled in and the outer braces kept in the file name."""
+    from hub.config import parse_config
+    from hub.factory import record_path
+
+    monkeypatch.chdir(tmp_path)
+    config = parse_config({"record": "logs/run-{{time}}.mcap"})
+    with pytest.raises(ConfigError, match=r"record: \{\{time\}\}: write \{time\} with single braces"):
+        record_path(config)
+    assert not list(tmp_path.iterdir())
