@@ -65,7 +65,6 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         if recorder is None and config.record is not None:
             path = record_path(config)
             recorder = open_recorder(path, {"source": source.description, "behaviour": run.behaviour})
-            log(f"hub: recording to {path}")
     except Exception:
         source.close()
         raise

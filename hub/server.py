@@ -139,6 +139,8 @@ class Hub(Downlink, Uplink, Housekeeping):
         for role, addresses in (("robots", robot_addresses), ("control", control_addresses)):
             self.endpoints[role] = addresses[0]
             self.log(f"listening {role} {' and '.join(addresses)}")   # one line per role: tools count them
+        if self.recorder is not None:      # said once bound: a hub that cannot bind removes the log it opened
+            self.log(f"hub: recording to {self.recorder.path}")
         return self.endpoints
 
     def _router(self, domain: str, port: int, port_field: str) -> Tuple[zmq.Socket, List[str]]:

@@ -124,14 +124,33 @@ def test_an_empty_log_name_is_an_error_not_a_run_without_a_log(tmp_path, capsys)
 
 def test_a_hub_that_cannot_bind_leaves_no_log(tmp_path, capsys):
     """It used to erase the log of the hub that held the port; now it would leave an empty one that then
-    blocks the next start (the hub does not write over a log)."""
+    blocks the next start (the hub does not write over a log). Nor does it say `recording to` the log it removed
+    (it did, before the error)."""
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         log = tmp_path / "run.mcap"
         assert main(["hub", "--config", str(lab_config(tmp_path, log, taken.getsockname()[1]))]) == 2
-    assert "network.robot_port" in capsys.readouterr().err
+    said = capsys.readouterr()
+    assert "network.robot_port" in said.err
+    assert "recording to" not in said.out + said.err
     assert not log.exists()
+
+
+def test_the_hub_says_where_it_records_once_it_listens(tmp_path):
+    log = tmp_path / "run.mcap"
+    hub = start_hub(tmp_path, "-m", "khepri_cli.main", "hub", "--config", str(lab_config(tmp_path, log)))
+    try:
+        deadline = time.monotonic() + 30
+        while "recording to" not in (tmp_path / "hub.log").read_text():
+            assert hub.poll() is None and time.monotonic() < deadline, (tmp_path / "hub.log").read_text()
+            time.sleep(0.1)
+        lines = (tmp_path / "hub.log").read_text().splitlines()
+        listening = [i for i, line in enumerate(lines) if line.startswith("listening ")]
+        assert len(listening) == 2 and lines[listening[-1] + 1] == f"hub: recording to {log}", lines
+    finally:
+        hub.send_signal(signal.SIGINT)
+        hub.wait(timeout=15)
 
 
 def test_a_full_disk_ends_the_recording_not_the_run(tmp_path):
