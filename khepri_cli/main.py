@@ -51,6 +51,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     """``argv`` None: the ``khepri`` command itself, which exits when this returns."""
     if argv is None:
         escape_unencodable_output()
+        if sys.stdout is not None:
+            sys.stdout = OutputNamedInErrors(sys.stdout)
     with PatientInterrupts(exiting=argv is None):
         try:
             return _run(argv)
@@ -68,6 +70,38 @@ def escape_unencodable_output() -> None:
     reconfigure = getattr(sys.stdout, "reconfigure", None)
     if reconfigure is not None:
         reconfigure(errors="backslashreplace")
+
+
+STANDARD_OUTPUT = "standard output"
+
+
+class OutputNamedInErrors:
+    """stdout, whose write errors name it: `khepri log info LOG > summary.txt` on a full disk ended in a
+    traceback (an OSError without a file name is taken for a bug), and is now one line that says what failed."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except OSError as err:
+            raise self._named(err) from None
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except OSError as err:
+            raise self._named(err) from None
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+    @staticmethod
+    def _named(err: OSError) -> OSError:
+        if err.filename is None and not isinstance(err, BrokenPipeError):   # a closed pipe stops quietly (main)
+            err.filename = STANDARD_OUTPUT
+        return err
 
 
 class PatientInterrupts:
@@ -118,7 +152,14 @@ def _run(argv: Optional[List[str]]) -> int:
     try:
         args = parser.parse_args(argv)
     except SystemExit:
-        sys.stdout.flush()          # --help into a closed pipe fails here, inside main(), not at exit
+        try:
+            sys.stdout.flush()      # --help into a closed pipe fails here, inside main(), not at exit
+        except BrokenPipeError:
+            raise
+        except OSError as err:      # --help onto a full disk
+            _silence_stdout()
+            say(f"khepri: error: {err.strerror or err}: {STANDARD_OUTPUT}")
+            return 2
         raise
     args.imports = args.imports + getattr(args, "late_imports", [])
     try:
@@ -149,6 +190,8 @@ def _run(argv: Optional[List[str]]) -> int:
         # Set KHEPRI_DEBUG=1 for the traceback in any case.
         if os.environ.get("KHEPRI_DEBUG") or err.filename is None:
             raise
+        if err.filename == STANDARD_OUTPUT:
+            _silence_stdout()       # else the interpreter's flush at exit fails on it again
         say(f"khepri: error: {err.strerror or err}: {err.filename}")
         return 2
     except KeyboardInterrupt:

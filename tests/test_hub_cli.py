@@ -297,6 +297,21 @@ def test_output_into_a_closed_pipe_ends_quietly(unbuffered):
     assert "Traceback" not in stderr and "BrokenPipeError" not in stderr, stderr
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full, a device that is always full")
+@pytest.mark.parametrize("command, unbuffered", [(("sim", "list"), ""), (("sim", "list"), "1"),
+                                                 (("log", "info", "--help"), "")])
+def test_output_onto_a_full_disk_is_one_error_line(command, unbuffered):
+    """`khepri sim list > list.txt` on a full disk ended in a traceback: an OSError that names no file was taken
+    for a bug. (Unbuffered, argparse ignores a failed --help itself.)"""
+    env = {k: v for k, v in ENV.items() if k != "PYTHONUNBUFFERED"}
+    if unbuffered:
+        env["PYTHONUNBUFFERED"] = unbuffered
+    with open("/dev/full", "w") as full:
+        run = subprocess.run([sys.executable, "-m", "khepri_cli.main", *command], stdout=full, stderr=subprocess.PIPE,
+                             env=env, text=True, timeout=60)
+    assert (run.returncode, run.stderr) == (2, "khepri: error: No space left on device: standard output\n")
+
+
 def test_an_error_said_to_a_terminal_that_is_gone_keeps_its_exit_code():
     """A hub or agent erring once its terminal is gone (the ssh session dropped): `khepri: error: ...` failed
     (EPIPE here, EIO on a pty) and the interpreter ended with a traceback and exit code 1, not the error's 2."""
