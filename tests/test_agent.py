@@ -630,6 +630,40 @@ def test_ctl_at_the_other_family_than_the_hub_says_why_nothing_answers(make_scen
                                         "localhost tries 127.0.0.1 and ::1).")
 
 
+def in_hosts_namespace(hosts_file, *command: str) -> list:
+    """``command`` to run in a mount namespace of its own whose /etc/hosts is ``hosts_file``: a host name with
+    exactly the records a test needs, without touching this machine's. Skips where namespaces are not allowed."""
+    bind = f"mount --bind {hosts_file} /etc/hosts"
+    probe = subprocess.run(["unshare", "-m", "sh", "-c", bind], capture_output=True, text=True)
+    if probe.returncode != 0:
+        pytest.skip(f"cannot bind a hosts file in a mount namespace here: {probe.stderr.strip()}")
+    return ["unshare", "-m", "sh", "-c", f'{bind} && exec "$@"', "sh", *command]
+
+
+@pytest.mark.ipv6_loopback
+def test_a_hub_pc_name_with_an_ipv6_address_alone_is_reached(tmp_path, make_scenario):
+    """ZeroMQ looks a name up for IPv4 only unless its IPV6 option is on: a hub PC known by an AAAA record alone
+    was never reached (here glibc even maps the name's ::1 to 127.0.0.1 for IPv4, where no hub listens), and ctl
+    timed out as if no hub ran. Both ctl and an agent now reach it."""
+    hosts = tmp_path / "hosts"
+    hosts.write_text("::1 hubpc.lab\n")
+    khepri = [sys.executable, "-m", "khepri_cli.main"]
+    with start_ipv6_lab("::1", 1, make_scenario) as hub:
+        port = hub.endpoints["control"].rsplit(":", 1)[1]
+        ctl = subprocess.run(in_hosts_namespace(hosts, *khepri, "ctl", "status", "--hub", "hubpc.lab", "--port", port,
+                                                "--timeout", "3"), capture_output=True, text=True, timeout=60)
+        assert ctl.returncode == 0 and "robot  connected" in ctl.stdout, ctl.stderr
+        robot_port = hub.endpoints["robots"].rsplit(":", 1)[1]
+        agent = subprocess.Popen(in_hosts_namespace(hosts, *khepri, "agent", "--id", "0", "--driver", "sim", "--hub",
+                                                    "hubpc.lab", "--port", robot_port),
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            hub.wait_until(lambda status: status["robots"][0]["connected"])
+        finally:
+            agent.send_signal(signal.SIGINT)
+            agent.wait(timeout=15)
+
+
 def test_a_robot_without_the_agents_packages_is_told_which_in_one_line():
     """`python3 -m onboard.agent` on a robot without pyzmq ended in a ModuleNotFoundError traceback."""
     blocked = "import sys, runpy; sys.modules['zmq'] = None; sys.argv = ['agent', '--id', '0', '--driver', 'sim']; " \

@@ -121,12 +121,27 @@ def family_hint(endpoint: str) -> str:
     return ""
 
 
-def use_ipv6(socket: zmq.Socket, endpoint: str) -> None:
+def use_ipv6(sock: zmq.Socket, endpoint: str) -> None:
     """ZeroMQ reaches an IPv6 address only with its IPV6 option on; it is off by default, and an address such as
-    tcp://[::1]:5560 then fails with "No such device". Turned on for such addresses only, so the IPv4 setups
-    are as they were."""
-    if "://[" in endpoint:
-        socket.ipv6 = True
+    tcp://[::1]:5560 then fails with "No such device". Turned on for such addresses only, and for host names
+    with IPv6 addresses alone (ZeroMQ looked such a name up for IPv4, found nothing, and kept retrying in
+    silence), so the IPv4 setups are as they were."""
+    if "://[" in endpoint or ipv6_only_name(endpoint):
+        sock.ipv6 = True
+
+
+def ipv6_only_name(endpoint: str) -> bool:
+    """``tcp://NAME:port`` whose name resolves to IPv6 addresses and no IPv4 one (an AAAA record alone)."""
+    if not endpoint.startswith("tcp://") or ";" in endpoint:
+        return False
+    host = endpoint[len("tcp://"):].rpartition(":")[0]
+    if not host or host == "*" or host.startswith("[") or host.replace(".", "").isdigit():
+        return False
+    try:
+        families = {info[0] for info in socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)}
+    except (socket.gaierror, UnicodeError):
+        return False            # said elsewhere (unresolvable_host), or an interface name ZeroMQ knows
+    return socket.AF_INET6 in families and socket.AF_INET not in families
 
 
 def exposed_secret(path: Path) -> Optional[str]:
