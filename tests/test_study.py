@@ -1070,6 +1070,31 @@ def test_ctrl_c_on_a_dask_local_cluster_says_one_line_and_keeps_the_runs_so_far(
     assert 0 < len(results_in(out)) < 500
 
 
+def test_a_local_cluster_worker_does_not_log_a_heartbeat_to_the_scheduler_that_closed(caplog):
+    """The Ctrl-C test above failed once in a full suite run: a worker's heartbeat fell between the scheduler
+    closing and its own close, and it logged an ERROR with two tracebacks under "khepri: interrupted". The
+    worker's other errors still show."""
+    import logging
+    import signal
+
+    from sim_backend.study.executors import dask_setup
+
+    before = signal.getsignal(signal.SIGINT)
+    worker_log = logging.getLogger("distributed.worker")
+    try:
+        dask_setup(None)
+        with caplog.at_level(logging.ERROR, logger="distributed.worker"):
+            try:
+                raise OSError("Timed out trying to connect to tcp://127.0.0.1:40000")
+            except OSError:
+                worker_log.exception("Failed to communicate with scheduler during heartbeat.")
+                worker_log.exception("Compute Failed")
+    finally:
+        signal.signal(signal.SIGINT, before)
+        worker_log.filters.clear()
+    assert [record.getMessage() for record in caplog.records] == ["Compute Failed"]
+
+
 def test_the_workers_of_a_killed_driver_do_not_stay_behind(tmp_path):
     """SIGKILL of the driver (the out-of-memory killer, `kill -9`) left its pool's worker waiting for ever."""
     import signal

@@ -185,6 +185,14 @@ def dask_setup(worker: Any) -> None:
     them (closing the cluster) and keeps the results so far; they need not hear the Ctrl-C themselves."""
     if threading.current_thread() is threading.main_thread():      # signal.signal works only there
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # A worker whose heartbeat fell between the scheduler closing and its own close logged an ERROR with two
+    # tracebacks: seen after Ctrl-C, and possible at any end of a study. Losing the scheduler mid-study is
+    # said by the driver (_check_connected), so this line only ever repeats what the driver knows.
+    logging.getLogger("distributed.worker").addFilter(_not_a_heartbeat_to_a_closed_scheduler)
+
+
+def _not_a_heartbeat_to_a_closed_scheduler(record: logging.LogRecord) -> bool:
+    return not record.getMessage().startswith("Failed to communicate with scheduler during heartbeat")
 
 
 class DaskExecutor:
