@@ -86,18 +86,23 @@ def _foreign_lines(summary: LogSummary) -> List[str]:
 def _run_text(run: Dict[str, Any]) -> str:
     """'3f2a... (transport): started 20:26:41 by operator at 127.0.0.1; ended 20:27:40 by SIGTERM: not completed
     (cage did not close); object at ...': a run as its /hub/run records tell it."""
-    said = [f"started {_time(run['started_s'])} by {run['started_by']}"] if run.get("started_s") else []
+    said = [f"started {_time(run['started_s'])}{_by(run.get('started_by'))}"] if run.get("started_s") else []
     if run.get("arrived_s"):
         said.append(f"all waypoints reached {_time(run['arrived_s'])}")
     if run.get("ended_s"):
         how = "stopped" if run.get("end_cause") == "stop" else "ended"      # else by a signal, named
-        said.append(f"{how} {_time(run['ended_s'])} by {run.get('ended_by')}")
+        said.append(f"{how} {_time(run['ended_s'])}{_by(run.get('ended_by'))}")
     else:
         said.append("no end in the log (the hub was killed, or is still running)")
     outcome = outcome_text(run)       # a row has a /hub/run record's outcome, failures and object
     if outcome:
         said[-1] += f": {outcome}"
     return f"{run['run_id']} ({run.get('behaviour') or '?'}): {'; '.join(said)}"
+
+
+def _by(who: Any) -> str:
+    """' by operator at ...', or nothing for a record that names nobody (another tool's, or an older hub's)."""
+    return f" by {who}" if who not in (None, "") else ""
 
 
 def _time(stamp_s: float) -> str:

@@ -2,6 +2,7 @@
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -613,3 +614,16 @@ def test_topics_are_listed_with_their_robot_numbers_in_order(tmp_path):
         for rid in (10, 2, 1):
             recorder.write(robot_topic(rid, "frame"), {"i": rid}, T0 + rid)
     assert list(summarise(path).topic_counts) == ["/robot/1/frame", "/robot/2/frame", "/robot/10/frame"]
+
+
+def test_a_run_record_that_names_nobody_is_told_without_by_none(tmp_path):
+    """Another tool's (or an older hub's) /hub/run records without `by` gave `started 20:00:00 by None`."""
+    from hub.log_text import format_summary
+
+    runs = [("/hub/run", {"run_id": "r1", "behaviour": "transport", "event": "started"}, T0),
+            ("/hub/run", {"run_id": "r1", "event": "ended", "cause": "stop", "by": ""}, T0 + 5),
+            ("/hub/run", {"run_id": "r2", "event": "started", "by": "operator at 10.0.0.2"}, T0 + 6)]
+    text = format_summary(summarise(write_log(tmp_path / "runs.mcap", runs)))
+    assert "None" not in text and " by ;" not in text and " by :" not in text, text
+    assert re.search(r"r1 \(transport\): started \d\d:\d\d:\d\d; stopped \d\d:\d\d:\d\d", text), text
+    assert re.search(r"r2 \(\?\): started \d\d:\d\d:\d\d by operator at 10\.0\.0\.2;", text), text
