@@ -61,8 +61,17 @@ def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
     lines += [f"run:       {_run_text(run)}" for run in summary.runs]
     lines.append(f"drops:     {_drops_text(summary)}")
     for key, value in summary.metadata.items():
-        lines.append(f"metadata:  {key} = {json.dumps(value)}")
+        lines.append(f"metadata:  {key or '(empty key)'} = {_shortened(json.dumps(value))}")
     return "\n".join(lines)
+
+
+METADATA_SHOWN_CHARS = 300     # a value written by another tool can be megabytes: the rest is in --json
+
+
+def _shortened(text: str) -> str:
+    if len(text) <= METADATA_SHOWN_CHARS:
+        return text
+    return f"{text[:METADATA_SHOWN_CHARS]}... ({len(text):,} characters; all of it with --json)"
 
 
 def _format_text(version: Optional[int]) -> str:

@@ -627,3 +627,17 @@ def test_a_run_record_that_names_nobody_is_told_without_by_none(tmp_path):
     assert "None" not in text and " by ;" not in text and " by :" not in text, text
     assert re.search(r"r1 \(transport\): started \d\d:\d\d:\d\d; stopped \d\d:\d\d:\d\d", text), text
     assert re.search(r"r2 \(\?\): started \d\d:\d\d:\d\d by operator at 10\.0\.0\.2;", text), text
+
+
+def test_a_huge_or_unnamed_metadata_value_is_shown_short_and_whole_in_json(tmp_path):
+    """Another tool's metadata: a 1 MB value printed a 1 MB line, and an empty key printed `metadata:   = 1`."""
+    from hub.log_text import format_summary
+
+    path = write_log(tmp_path / "meta.mcap", [(HUB_STATUS, {"frames_per_s": 1.0}, T0)],
+                     metadata={"notes": "x" * 1_000_000, "": 1})
+    lines = format_summary(summarise(path)).splitlines()
+    notes = next(line for line in lines if line.startswith("metadata:  notes = "))
+    assert len(notes) < 400 and notes.endswith("... (1,000,002 characters; all of it with --json)")
+    assert "metadata:  (empty key) = 1" in lines
+    shown = subprocess.run([*KHEPRI, "log", "info", str(path), "--json"], capture_output=True, text=True, env=ENV)
+    assert json.loads(shown.stdout)["metadata"]["notes"] == "x" * 1_000_000
