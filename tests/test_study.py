@@ -110,6 +110,38 @@ def test_overrides_make_a_cartesian_product_of_cells(tmp_path):
     assert runs[-1].run_dir == "lab-6@params.inter_robot_distance_m=0.65@comm.drop=0.1/seed-2"
 
 
+def test_overrides_listed_one_cell_each_change_keys_together(tmp_path):
+    """`overrides:` as a list of cells: robots.count and object.size paired, not crossed (a grid gave 4 cells, two
+    of them 3 robots round a big box); a list value in a cell is one whole value, and {} is the scenario."""
+    spec = parse_study({"name": "pairs", "scenarios": ["lab-6"], "seeds": [1], "overrides": [
+        {}, {"robots.count": 4, "object.size": [0.2, 0.2]},
+        {"robots.count": 8, "object.size": [0.5, 0.5], "robots.spawn.x": [-1.6, -0.6]}]})
+    runs = expand(spec)
+    assert [run.cell for run in runs] == ["lab-6", "lab-6@robots.count=4@object.size=0.2,0.2",
+                                          "lab-6@robots.count=8@object.size=0.5,0.5@robots.spawn.x=-1.6,-0.6"]
+    assert [(r.scenario_data["robots"]["count"], r.scenario_data["object"]["size"]) for r in runs] == \
+        [(6, [0.285, 0.435]), (4, [0.2, 0.2]), (8, [0.5, 0.5])]
+    assert runs[2].scenario_data["robots"]["spawn"]["x"] == [-1.6, -0.6]
+
+
+@pytest.mark.parametrize("overrides, said", [
+    ("[]", "overrides: lists no cells: give at least one mapping (or {} for the scenario as it is)"),
+    ("[{}, {}]", "overrides[1]: repeats overrides[0]: the two cells would be the same"),
+    ("[{robots.count: 4}, 3]", "overrides[1]: must be a mapping of scenario key -> value, one cell (got 3)"),
+    ("[{seed: 3}]", "overrides[0].seed: cannot be overridden (the study sets names and seeds)"),
+    ("[{object: {shape: circle, radius: 0.2}, object.mass: 2}]", "overrides[0].object.mass: lies inside "
+     "overrides[0].object, which replaces all of object: one of them would be lost; put mass into "
+     "overrides[0].object instead"),
+    ("[{}, {time_limit_s: 9}]", "overrides[1].time_limit_s: the study's time_limit_s replaces it in every run"),
+    ("[{robots.count: 0}]", "overrides (lab-6@robots.count=0): robots.count: must be >= 1 (got 0)"),
+    ("3", "overrides: must be a mapping of scenario key -> list of values (a grid), or a list of mappings"),
+])
+def test_a_bad_list_of_override_cells_names_the_cell(tmp_path, capsys, overrides, said):
+    study = write(tmp_path / "s.yaml", TINY_STUDY + f"overrides: {overrides}\n")
+    assert main(["study", str(study), "--dry-run"]) == 2
+    assert f"khepri: error: {said}" in capsys.readouterr().err
+
+
 def test_a_whole_mapping_override_names_its_cell_with_its_keys():
     """An override of a whole mapping (an object shape) used to name its folder after the dict's repr:
     lab-6@object=__shape___box____size___0.3__0.4___mass___2.0_."""

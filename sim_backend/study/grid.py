@@ -8,6 +8,7 @@ study file (or the paper's grid) into a StudySpec is ``study_file.py``'s.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import hashlib
 import inspect
@@ -37,6 +38,15 @@ class StudySpec:
     seeds: List[int]
     overrides: Dict[str, List[Any]] = field(default_factory=dict)   # dotted scenario key -> values
     time_limit_s: Optional[float] = None       # replaces every scenario's own limit; None = keep those
+    # The cells as a list instead (``overrides:`` a list in the study file): each a mapping of dotted key ->
+    # one value, values that must change together (robots.count with object.size). None: the product above.
+    override_sets: Optional[List[Dict[str, Any]]] = None
+
+    def cells(self) -> List[Dict[str, Any]]:
+        """Each cell's overrides, in order: the listed sets, or every combination of the listed values."""
+        if self.override_sets is not None:
+            return [dict(chosen) for chosen in self.override_sets]
+        return [dict(zip(self.overrides, combo)) for combo in itertools.product(*self.overrides.values())]
 
 
 @dataclass
@@ -118,19 +128,16 @@ def restrict(spec: StudySpec, names: Sequence[str]) -> StudySpec:
         raise ConfigError("--scenarios", f"not in the study: {', '.join(missing)} "
                           f"(the study has: {', '.join(k for k in known if not Path(k).is_absolute())})")
     wanted = {scenario_of(n) for n in names}
-    return StudySpec(spec.name, [s for s in spec.scenarios if s in wanted], spec.seeds, spec.overrides,
-                     spec.time_limit_s)
+    return dataclasses.replace(spec, scenarios=[s for s in spec.scenarios if s in wanted])
 
 
 def expand(spec: StudySpec) -> List[RunSpec]:
     """Every run of the study, cell by cell, seeds in order."""
     runs = []
-    combos = list(itertools.product(*spec.overrides.values())) or [()]
     for i, scenario_ref in enumerate(spec.scenarios):
         base = scenario_mapping(scenario_ref, f"scenarios[{i}]")
         named: Dict[str, Dict[str, Any]] = {}
-        for combo in combos:
-            chosen = dict(zip(spec.overrides, combo))
+        for chosen in spec.cells():
             data = apply_overrides(base, chosen)
             cell = cell_name(str(data["name"]), chosen)
             if cell in named:

@@ -61,13 +61,17 @@ def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "stud
     name = data.get("name", default_name)
     if not isinstance(name, str) or not SAFE_NAME.match(name):
         raise ConfigError("name", f"must be a name of letters, digits and _.+- (got {name!r})")
+    listed = data.get("overrides")
     spec = StudySpec(name=name, scenarios=parse_scenario_list(data.get("scenarios"), base_dir),
-                     seeds=parse_seeds(data), overrides=parse_overrides(data.get("overrides")),
-                     time_limit_s=parse_time_limit("time_limit_s", data.get("time_limit_s")))
-    if spec.time_limit_s is not None and "time_limit_s" in spec.overrides:
+                     seeds=parse_seeds(data), overrides={} if isinstance(listed, list) else parse_overrides(listed),
+                     time_limit_s=parse_time_limit("time_limit_s", data.get("time_limit_s")),
+                     override_sets=parse_override_sets(listed) if isinstance(listed, list) else None)
+    limited = [i for i, chosen in enumerate(spec.cells()) if "time_limit_s" in chosen]
+    if spec.time_limit_s is not None and limited:
         # The study's limit replaces every run's, so the cells would differ in name only.
-        raise ConfigError("overrides.time_limit_s", "the study's time_limit_s replaces it in every run: give "
-                                                    "one or the other")
+        where = "overrides" if spec.override_sets is None else f"overrides[{limited[0]}]"
+        raise ConfigError(f"{where}.time_limit_s", "the study's time_limit_s replaces it in every run: give "
+                                                   "one or the other")
     expand(spec)   # builds and validates every cell's scenario now, before anything runs
     return spec
 
@@ -134,14 +138,12 @@ def parse_overrides(value: Any) -> Dict[str, List[Any]]:
     if value is None:
         return {}
     if not isinstance(value, dict):
-        raise ConfigError("overrides", f"must be a mapping of scenario key -> list of values (got {value!r})")
+        raise ConfigError("overrides", f"must be a mapping of scenario key -> list of values (a grid), or a list "
+                                       f"of mappings of scenario key -> value (one cell each) (got {value!r})")
     overrides = {}
     for key, values in value.items():
         where = f"overrides.{key}"
-        if not isinstance(key, str) or not all(part.strip() for part in key.split(".")):
-            raise ConfigError(where, "the key must be a dotted scenario key, e.g. params.inter_robot_distance_m")
-        if key in ("name", "seed"):
-            raise ConfigError(where, "cannot be overridden (the study sets names and seeds)")
+        check_override_key(where, key)
         values = values if isinstance(values, list) else [values]
         if not values:
             raise ConfigError(where, "must list at least one value")
@@ -153,15 +155,43 @@ def parse_overrides(value: Any) -> Dict[str, List[Any]]:
     return overrides
 
 
-def check_nested_overrides(overrides: Dict[str, List[Any]]) -> None:
+def parse_override_sets(value: List[Any]) -> List[Dict[str, Any]]:
+    """``overrides:`` as a list: each item is one cell, a mapping of dotted key -> its one value (a list value is
+    one whole value, not a list of cells); ``{}`` is the scenario as it is."""
+    if not value:
+        raise ConfigError("overrides", "lists no cells: give at least one mapping (or {} for the scenario as it is)")
+    sets = []
+    for i, chosen in enumerate(value):
+        where = f"overrides[{i}]"
+        if chosen is None:
+            chosen = {}
+        if not isinstance(chosen, dict):
+            raise ConfigError(where, f"must be a mapping of scenario key -> value, one cell (got {chosen!r})")
+        for key in chosen:
+            check_override_key(f"{where}.{key}", key)
+        check_nested_overrides(chosen, where)
+        if chosen in sets:
+            raise ConfigError(where, f"repeats overrides[{sets.index(chosen)}]: the two cells would be the same")
+        sets.append(dict(chosen))
+    return sets
+
+
+def check_override_key(where: str, key: Any) -> None:
+    if not isinstance(key, str) or not all(part.strip() for part in key.split(".")):
+        raise ConfigError(where, "the key must be a dotted scenario key, e.g. params.inter_robot_distance_m")
+    if key in ("name", "seed"):
+        raise ConfigError(where, "cannot be overridden (the study sets names and seeds)")
+
+
+def check_nested_overrides(overrides: Dict[str, Any], where: str = "overrides") -> None:
     """Refuse a key overridden inside another that is overridden whole (``object.mass`` and ``object``): the
     one applied last wins, so cells were labelled with masses that never ran."""
     for key in overrides:
         for outer in overrides:
             if key != outer and key.startswith(outer + "."):
-                raise ConfigError(f"overrides.{key}", f"lies inside overrides.{outer}, which replaces all of {outer}: "
-                                  f"one of them would be lost; put {key[len(outer) + 1:]} into each value of "
-                                  f"overrides.{outer} instead")
+                into = f"each value of {where}.{outer}" if where == "overrides" else f"{where}.{outer}"
+                raise ConfigError(f"{where}.{key}", f"lies inside {where}.{outer}, which replaces all of {outer}: "
+                                  f"one of them would be lost; put {key[len(outer) + 1:]} into {into} instead")
 
 
 def parse_time_limit(where: str, value: Any) -> Optional[float]:
