@@ -173,7 +173,11 @@ def _small_cage_turns(scenario: Any, hull: np.ndarray, spacing: float, robot_rad
         change = abs(_wrap_deg(direction - heading)) if moves and heading is not None and normals else 0.0
         if off > SMALL_CAGE_TURN_DEG:
             found.append(f"path[{i}]: the object would travel {off:.0f} degrees off the normals of its faces with "
-                         f"{cage}; such a cage {advice}")
+                         f"{cage}: its members slide along the faces they push across, and the swarm's estimate of "
+                         "where the object is slides with them, so such a run often ends short of the waypoint "
+                         "(a 1.2 x 0.2 m bar pushed 35 degrees off: 0.4 m) or off in yaw (docs/behaviour.md "
+                         "section 8). Legs along the normals of the object's faces avoid it; a smaller "
+                         "params.inter_robot_distance_m (a larger cage) helps in some runs")
         elif turn > SMALL_CAGE_TURN_DEG:
             found.append(f"path[{i}]: the object would turn {turn:.0f} degrees with {cage}; such a cage {advice}")
         elif change > SMALL_CAGE_NEW_DIRECTION_DEG:

@@ -165,6 +165,7 @@ def test_a_small_cage_asked_to_push_across_its_faces_or_to_turn_is_warned_about(
     diagonal = Simulation(transport(make_scenario, path=[[0.3, 0.3, 0], [0.6, 0.3, 0]])).warnings
     assert len(diagonal) == 1 and diagonal[0].startswith(
         "path[0]: the object would travel 45 degrees off the normals of its faces with a cage of about 4 robots")
+    assert "the swarm's estimate of where the object is slides with them" in diagonal[0]    # not only yaw
     turned_box = {"shape": "box", "size": [0.5, 0.3], "mass": 0.3, "position": [0, 0], "yaw_deg": 30}
     started_turned = Simulation(transport(make_scenario, object=turned_box, path=[[0.5, 0.0, 30]])).warnings
     assert [w[:50] for w in started_turned] == ["path[0]: the object would travel 30 degrees off th"]
