@@ -664,6 +664,39 @@ def test_a_hub_pc_name_with_an_ipv6_address_alone_is_reached(tmp_path, make_scen
             agent.wait(timeout=15)
 
 
+@pytest.mark.parametrize("answer, lookups", [("ipv6", 1), ("ipv4", 1), ("no dns", 1)])
+def test_the_agent_looks_its_hub_name_up_once_not_at_every_reset(monkeypatch, answer, lookups):
+    """The IPv6-only check resolves the hub's name in the agent's loop: at every reset (2 s of silence) a DNS
+    server that does not answer would have held the loop for its whole timeout. An unanswered lookup is tried
+    again after IPV6_LOOKUP_RETRY_S, not before."""
+    import socket as sockets
+
+    from onboard.agent import link as link_module
+
+    calls = []
+
+    def resolve(host, *args, **kwargs):
+        calls.append(host)
+        if answer == "no dns":
+            raise sockets.gaierror(sockets.EAI_AGAIN, "Temporary failure in name resolution")
+        family, address = (sockets.AF_INET6, ("::1", 0, 0, 0)) if answer == "ipv6" else (sockets.AF_INET,
+                                                                                           ("127.0.0.1", 0))
+        return [(family, sockets.SOCK_STREAM, 6, "", address)]
+
+    monkeypatch.setattr(link_module.socket, "getaddrinfo", resolve)
+    link = link_module.HubLink(0, "tcp://hubpc.lab:5560", None, log=lambda line: None)
+    try:
+        for _ in range(5):
+            link.reset()
+        assert (calls.count("hubpc.lab"), link.socket.ipv6) == (lookups, answer == "ipv6")
+        if answer == "no dns":
+            monkeypatch.setattr(link_module.time, "monotonic", lambda: link._ipv6_lookup_after + 1.0)
+            link.reset()
+            assert calls.count("hubpc.lab") == 2
+    finally:
+        link.close()
+
+
 def test_a_robot_without_the_agents_packages_is_told_which_in_one_line():
     """`python3 -m onboard.agent` on a robot without pyzmq ended in a ModuleNotFoundError traceback."""
     blocked = "import sys, runpy; sys.modules['zmq'] = None; sys.argv = ['agent', '--id', '0', '--driver', 'sim']; " \

@@ -14,6 +14,7 @@ from onboard.config import ConfigError
 from onboard.protocol import DOWNLINK_TYPES, ProtocolError, decode, encode
 
 RECEIVE_HWM = 16      # downlink frames waiting; the agent drains every poll, so more would be stale anyway
+IPV6_LOOKUP_RETRY_S = 30.0   # a host name the DNS could not answer for is looked up again this much later
 MAX_SOCKET_BYTES = 1 << 20   # larger frames cut the connection; up to here they are read and rejected as oversized
 
 
@@ -130,8 +131,10 @@ def use_ipv6(sock: zmq.Socket, endpoint: str) -> None:
         sock.ipv6 = True
 
 
-def ipv6_only_name(endpoint: str) -> bool:
-    """``tcp://NAME:port`` whose name resolves to IPv6 addresses and no IPv4 one (an AAAA record alone)."""
+def ipv6_only_name(endpoint: str) -> Optional[bool]:
+    """``tcp://NAME:port`` whose name resolves to IPv6 addresses and no IPv4 one (an AAAA record alone): True;
+    False for any other address; None (falsy) when the name cannot be looked up just now (no DNS server
+    reachable), so that a caller keeping the answer asks again later."""
     if not endpoint.startswith("tcp://") or ";" in endpoint:
         return False
     host = endpoint[len("tcp://"):].rpartition(":")[0]
@@ -139,8 +142,10 @@ def ipv6_only_name(endpoint: str) -> bool:
         return False
     try:
         families = {info[0] for info in socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)}
-    except (socket.gaierror, UnicodeError):
-        return False            # said elsewhere (unresolvable_host), or an interface name ZeroMQ knows
+    except socket.gaierror as err:          # said elsewhere (unresolvable_host), or an interface name ZeroMQ knows
+        return None if err.errno == socket.EAI_AGAIN else False
+    except UnicodeError:
+        return False
     return socket.AF_INET6 in families and socket.AF_INET not in families
 
 
@@ -216,6 +221,8 @@ class HubLink:
         # from the other. One that never answered gives way to the next at each reset (2 s of silence).
         self.addresses = endpoint_candidates(endpoint)
         self.address = self.addresses[0]
+        self._ipv6_only: Dict[str, Optional[bool]] = {}    # per address: its name has IPv6 addresses alone
+        self._ipv6_lookup_after = 0.0
         self._open()
 
     def _open(self) -> None:
@@ -233,11 +240,22 @@ class HubLink:
             self.socket.curve_publickey = self.keys["public"]
             self.socket.curve_secretkey = self.keys["secret"]
             self.socket.curve_serverkey = self.keys["server"]
-        use_ipv6(self.socket, self.address)
+        if "://[" in self.address or self._is_ipv6_only_name():
+            self.socket.ipv6 = True
         self.socket.connect(self.address)
         self.heard = False                 # the hub has spoken on this socket (see unsent)
         self.poller = zmq.Poller()
         self.poller.register(self.socket, zmq.POLLIN)
+
+    def _is_ipv6_only_name(self) -> bool:
+        """ipv6_only_name, looked up once per address: a reset after 2 s of silence must not wait on the DNS
+        every time (the loop waits with it). A lookup the DNS could not answer is tried again after a while."""
+        answer = self._ipv6_only.get(self.address)
+        if answer is None and time.monotonic() >= self._ipv6_lookup_after:
+            answer = self._ipv6_only[self.address] = ipv6_only_name(self.address)
+            if answer is None:
+                self._ipv6_lookup_after = time.monotonic() + IPV6_LOOKUP_RETRY_S
+        return bool(answer)
 
     def reset(self) -> None:
         """A fresh socket and connection (the hub learns the new one from the next hello), to the next address
