@@ -53,11 +53,9 @@ def unresolvable_host(endpoint: str) -> Optional[Tuple[str, socket.gaierror]]:
     """The host of a ``tcp://`` address and why it cannot be resolved, or None when it can (or is an address).
     ZeroMQ resolves a host name only while connecting, in its own thread, and says nothing when it cannot: a
     typo in ``--hub`` made the agent wait for ever and ``ctl`` time out as if no hub were running."""
-    if not endpoint.startswith("tcp://"):
-        return None
-    host = unbracket(endpoint[len("tcp://"):].rsplit(";", 1)[-1].rpartition(":")[0])   # tcp://[iface;]host:port
+    host = endpoint_host(endpoint)
     if not host:
-        return None        # no port: ZeroMQ itself refuses the address
+        return None        # not tcp://, or no port: ZeroMQ itself refuses the address
     try:
         socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
     except socket.gaierror as err:
@@ -65,6 +63,14 @@ def unresolvable_host(endpoint: str) -> Optional[Tuple[str, socket.gaierror]]:
     except UnicodeError:            # an empty label (labpc..lan) fails before any lookup
         return host, socket.gaierror(socket.EAI_NONAME, "not a valid host name")
     return None
+
+
+def endpoint_host(endpoint: str) -> Optional[str]:
+    """The host of a ``tcp://[iface;]host:port`` address, without an IPv6 address's brackets ("" with no port);
+    None for another transport."""
+    if not endpoint.startswith("tcp://"):
+        return None
+    return unbracket(endpoint[len("tcp://"):].rsplit(";", 1)[-1].rpartition(":")[0])
 
 
 def resolve_problem(host: str, err: socket.gaierror) -> str:
@@ -135,10 +141,8 @@ def ipv6_only_name(endpoint: str) -> Optional[bool]:
     """``tcp://NAME:port`` whose name resolves to IPv6 addresses and no IPv4 one (an AAAA record alone): True;
     False for any other address; None (falsy) when the name cannot be looked up just now (no DNS server
     reachable), so that a caller keeping the answer asks again later."""
-    if not endpoint.startswith("tcp://") or ";" in endpoint:
-        return False
-    host = endpoint[len("tcp://"):].rpartition(":")[0]
-    if not host or host == "*" or host.startswith("[") or host.replace(".", "").isdigit():
+    host = endpoint_host(endpoint)
+    if not host or host == "*" or ":" in host or host.replace(".", "").isdigit():    # no name: * or an address
         return False
     try:
         families = {info[0] for info in socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)}
