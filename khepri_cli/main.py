@@ -147,6 +147,15 @@ def _silence_stdout() -> None:
         pass
 
 
+def _path_error(err: OSError, default: Optional[str] = None) -> int:
+    """One line for an OSError that names its file, or standard output (OutputNamedInErrors)."""
+    where = err.filename if err.filename is not None else default
+    if where == STANDARD_OUTPUT:
+        _silence_stdout()           # else the interpreter's flush at exit fails on it again
+    say(f"khepri: error: {err.strerror or err}: {where}")
+    return 2
+
+
 def _run(argv: Optional[List[str]]) -> int:
     parser = build_parser()
     try:
@@ -156,10 +165,8 @@ def _run(argv: Optional[List[str]]) -> int:
             sys.stdout.flush()      # --help into a closed pipe fails here, inside main(), not at exit
         except BrokenPipeError:
             raise
-        except OSError as err:      # --help onto a full disk
-            _silence_stdout()
-            say(f"khepri: error: {err.strerror or err}: {STANDARD_OUTPUT}")
-            return 2
+        except OSError as err:      # --help onto a full disk (a file error: the stream names itself)
+            return _path_error(err, default=STANDARD_OUTPUT)
         raise
     args.imports = args.imports + getattr(args, "late_imports", [])
     try:
@@ -190,10 +197,7 @@ def _run(argv: Optional[List[str]]) -> int:
         # Set KHEPRI_DEBUG=1 for the traceback in any case.
         if os.environ.get("KHEPRI_DEBUG") or err.filename is None:
             raise
-        if err.filename == STANDARD_OUTPUT:
-            _silence_stdout()       # else the interpreter's flush at exit fails on it again
-        say(f"khepri: error: {err.strerror or err}: {err.filename}")
-        return 2
+        return _path_error(err)
     except KeyboardInterrupt:
         say("khepri: interrupted")
         return 130
