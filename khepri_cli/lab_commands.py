@@ -275,7 +275,10 @@ def parse_robot_ids(text: str) -> List[int]:
             raise ConfigError("--robots", "0 is a count of no robots (a single number is a count N: ids 0..N-1); "
                                           "for robot id 0 alone, give --robots 0, (a list of one id)")
         return list(range(check_robot_count(numbers[0])))
-    ids = sorted(set(numbers))
+    twice = next((i for k, i in enumerate(numbers) if i in numbers[:k]), None)
+    if twice is not None:       # `1,1` is more likely a typo for `1,2` than a wish for robot 1 once
+        raise ConfigError("--robots", f"lists robot {twice} twice (got {text!r})")
+    ids = sorted(numbers)
     if not ids:
         raise ConfigError("--robots", f"give at least one robot id (got {text!r})")
     bad = [i for i in ids if not 0 <= i <= MAX_ROBOT_ID]

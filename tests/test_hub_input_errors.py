@@ -665,6 +665,7 @@ def keys_init(*args):
     ("0", "for robot id 0 alone, give --robots 0, (a list of one id)"),
     ("-2", "the robot count must be >= 1 (got -2)"),
     (",", "give at least one robot id (got ',')"),
+    ("1,1", "lists robot 1 twice (got '1,1')"),      # was keyed as robot 1 alone: a typo for 1,2 went unseen
 ])
 def test_keys_init_refuses_robots_no_hub_would_take(tmp_path, robots, problem):
     line = one_error_line(keys_init(tmp_path / "keys", "--robots", robots), "--robots")
