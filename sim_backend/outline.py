@@ -24,7 +24,7 @@ def outline_fault(vertices: List[Tuple[float, float]]) -> Optional[str]:
         if math.dist(a, b) < TOUCH_M:
             if i == n - 1:
                 return "the last vertex repeats the first (leave it out: the outline closes by itself)"
-            return f"vertices {i} and {i + 1} are the same point"
+            return f"vertices {i} and {i + 1} are the same point ({math.dist(a, b):.2g} m apart): leave one out"
     for i in range(n):
         (a, b), (_, c) = edges[i - 1], edges[i]
         if abs(_orient(a, b, c)) < TOUCH_M * math.dist(a, b) and (b[0] - a[0]) * (c[0] - b[0]) + \

@@ -87,7 +87,7 @@ class ObjectPart:
     """One piece of a compound object, placed at ``offset`` (m) and ``yaw_deg`` in the object's frame."""
 
     shape: str = "box"
-    size: Optional[Union[Tuple[float, float], float]] = None
+    size: Optional[Union[Tuple[float, ...], float]] = None
     radius: Optional[float] = None
     vertices: Optional[List[Tuple[float, float]]] = None
     offset: Tuple[float, float] = (0.0, 0.0)
@@ -103,7 +103,8 @@ class ObjectPart:
 @dataclass
 class ObjectSpec:
     shape: str = "box"
-    size: Optional[Union[Tuple[float, float], float]] = None     # box [w, h]; circle: radius
+    # box [w, h]; circle: radius. Any length here, so that validate_dimensions says what each shape takes
+    size: Optional[Union[Tuple[float, ...], float]] = None
     radius: Optional[float] = None                              # circle
     vertices: Optional[List[Tuple[float, float]]] = None        # polygon, may be concave
     parts: Optional[List[ObjectPart]] = None                    # compound
@@ -150,8 +151,9 @@ def validate_dimensions(spec: Any, where: str) -> None:
         if getattr(spec, key) is not None and key not in DIMENSIONS.get(shape, ()):
             raise ConfigError(join(where, key), f"not used by shape: {shape}")
     if shape == "box":
-        if not isinstance(spec.size, tuple):
-            raise ConfigError(join(where, "size"), "a box needs size: [width, height] in metres")
+        if not isinstance(spec.size, tuple) or len(spec.size) != 2:
+            got = f" (got {list(spec.size)})" if isinstance(spec.size, tuple) else ""
+            raise ConfigError(join(where, "size"), f"a box needs size: [width, height] in metres{got}")
         for i, v in enumerate(spec.size):
             check_extent(join(join(where, "size"), i), v, length=True)
     elif shape == "circle":
@@ -173,9 +175,11 @@ def validate_dimensions(spec: Any, where: str) -> None:
         crossing = fault is not None and fault.startswith("edges")   # a bow-tie's area is 0 too: this says why
         if abs(polygon_area(spec.vertices)) < 1e-6 and not crossing:
             raise ConfigError(join(where, "vertices"), "the polygon has no area (collinear or repeated points)")
-        if fault is not None:
+        if crossing:
             raise ConfigError(join(where, "vertices"), f"{fault}: the outline must be a simple polygon, not meeting "
                               "itself (split such a shape into compound parts)")
+        if fault is not None:       # a repeated vertex or a spike: compound parts would not mend it
+            raise ConfigError(join(where, "vertices"), fault)
 
 
 @dataclass

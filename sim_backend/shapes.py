@@ -53,6 +53,13 @@ def build_geometry(spec: ObjectSpec) -> Geometry:
     return _recentre(raw)
 
 
+def dimension_field(spec: ObjectSpec) -> str:
+    """The scenario field that sets the object's size, for an error about its size."""
+    if spec.shape in ("box", "circle"):
+        return "object.radius" if spec.radius is not None else "object.size"
+    return {"polygon": "object.vertices", "compound": "object.parts"}.get(spec.shape, "object.scale")
+
+
 def parts_of(spec: ObjectSpec) -> List[ObjectPart]:
     """The object as a list of simple parts (box / circle / polygon) in its own frame."""
     s = spec.scale

@@ -24,7 +24,7 @@ from onboard.hal import RobotSpec
 
 from .scenario import Scenario
 from .sensing import ObstacleGroup
-from .shapes import Geometry, build_geometry, extent_at
+from .shapes import Geometry, build_geometry, dimension_field, extent_at
 
 GRAVITY = 9.81
 COLLISION_SLOP_M = 0.0005        # allowed overlap; pymunk's default (0.1) is meant for pixels
@@ -161,6 +161,12 @@ class World:
         poses = [("object.position", spec.position[0], spec.position[1], spec.yaw_deg)]
         poses += [(f"path[{i}]", px, py, yaw) for i, (px, py, yaw) in enumerate(self.scenario.path)]
         xmin, ymin, xmax, ymax = walls
+        left, bottom, right, top = extent_at(self.geometry, 0.0, 0.0, math.radians(spec.yaw_deg))
+        if right - left > xmax - xmin or top - bottom > ymax - ymin:
+            # Where it starts does not matter then: say so of the size, the likely typo (centimetres for metres).
+            raise ConfigError(dimension_field(spec), f"the object is {right - left:.3g} x {top - bottom:.3g} m, "
+                              f"larger than the arena ({xmax - xmin:g} x {ymax - ymin:g} m inside arena.walls); "
+                              "sizes are in metres")
         for field_name, px, py, yaw_deg in poses:
             left, bottom, right, top = extent_at(self.geometry, px, py, math.radians(yaw_deg))
             if left < xmin or bottom < ymin or right > xmax or top > ymax:
@@ -243,7 +249,8 @@ class World:
             placed.append((x, y, rng.uniform(-math.pi, math.pi)))
         if len(placed) < count:
             cause = max(blocked, key=blocked.get)
-            advice = "make the area larger" if cause == "other robots" else f"move the area off {cause}"
+            advice = {"other robots": "make the area larger", "the walls": "move the area off the walls"}.get(
+                cause, f"move the area off the object ({self._object_size()}; sizes are in metres)")
             raise ConfigError("robots.spawn", f"cannot place {count} robots without overlap in this area "
                               f"(placed {len(placed)}; most tries landed on {cause}): {advice}")
         return placed
@@ -259,6 +266,10 @@ class World:
             raise ConfigError("robots.spawn", f"{count} robots need about {needed:.3g} m² to be placed at random "
                               f"without overlap; x {list(spawn.x)}, y {list(spawn.y)} gives {room:.3g} m²: "
                               f"make the area larger")
+
+    def _object_size(self) -> str:
+        left, bottom, right, top = extent_at(self.geometry, 0.0, 0.0, math.radians(self.scenario.object.yaw_deg))
+        return f"{dimension_field(self.scenario.object)} makes it {right - left:.3g} x {top - bottom:.3g} m"
 
     def _on_object(self, x: float, y: float, distance: float) -> bool:
         """Whether the object lies within ``distance`` of (x, y). The space holds the walls too: counting them

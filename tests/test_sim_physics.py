@@ -196,6 +196,29 @@ def test_an_object_across_the_walls_at_its_start_or_at_a_waypoint_is_refused(mak
     World(make_scenario(arena=walls, object=dict(box, position=[1.65, 0])), np.random.default_rng(1))
 
 
+@pytest.mark.parametrize("obj, field", [({"shape": "box", "size": [50, 30]}, "object.size"),
+                                        ({"shape": "circle", "radius": 25}, "object.radius"),
+                                        ({"shape": "clover", "scale": 40}, "object.scale")])
+def test_an_object_larger_than_the_arena_is_blamed_on_its_size(make_scenario, obj, field):
+    """`size: [50, 30]` (centimetres for metres) was said to start `across the arena walls` at object.position,
+    which is where the user would look last."""
+    from onboard.config import ConfigError
+
+    with pytest.raises(ConfigError) as caught:
+        World(make_scenario(arena={"walls": [-2, -2, 2, 2]}, object=dict(obj, position=[0, 0])),
+              np.random.default_rng(1))
+    assert caught.value.field == field and "larger than the arena (4 x 4 m inside arena.walls)" in \
+        caught.value.problem and caught.value.problem.endswith("sizes are in metres"), caught.value
+
+
+def test_a_spawn_area_covered_by_an_object_says_how_large_the_object_is(make_scenario):
+    """Without walls, `size: [500, 500]` was only `most tries landed on the object`: the size is said too."""
+    from onboard.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"move the area off the object \(object.size makes it 500 x 500 m; sizes"):
+        World(make_scenario(object={"shape": "box", "size": [500, 500]}), np.random.default_rng(1))
+
+
 @pytest.mark.parametrize("spawn, count, message", [
     ({"x": [1.0, 1.2], "y": [1.0, 1.2]}, 40, "40 robots need about"),
     ({"x": [-1.0, 1.0], "y": [-1.0, 1.0]}, 10 ** 11, "robots.count: must be <= 5000"),
