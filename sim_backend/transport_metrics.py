@@ -13,7 +13,14 @@ import numpy as np
 from onboard.behaviours.transport.params import TransportParams
 
 from .metrics import Evaluator, register_evaluator, waypoint_error
-from .transport_preflight import floor_friction_n, judges_yaw, push_force_n, transport_warnings
+from .transport_preflight import (
+    floor_friction_n,
+    judges_yaw,
+    push_force_n,
+    room_to_walls,
+    transport_warnings,
+    wall_room_needed,
+)
 
 SPACING_SAMPLE_PERIOD_S = 1.0
 STUCK_BELOW_M = 0.05            # a closed cage that moved the object less than this got nowhere
@@ -140,6 +147,9 @@ class TransportEvaluator(Evaluator):
         moved = math.inf if start is None else math.hypot(truth[0] - start[0], truth[1] - start[1])
         if moved >= STUCK_BELOW_M:
             return []
+        near_wall = self._wall_hint(truth, moved)
+        if near_wall:
+            return near_wall
         spec, robots = self.scenario.object, self.scenario.robots
         resisting = floor_friction_n(spec)
         everyone = robots.count * push_force_n(robots)
@@ -156,6 +166,21 @@ class TransportEvaluator(Evaluator):
         if params.get("profile") != "faithful" and stall_s > 0:
             return [hint + f" (the robots left out pushed too once the push stalled for {stall_s:g} s)"]
         return [hint + ", or params: {reinforce_push: true} (the robots left out push too)"]
+
+    def _wall_hint(self, truth: np.ndarray, moved: float) -> List[str]:
+        """A stuck object next to a wall: members likely caged the wall too, which floor friction does not
+        explain (a 0.4 kg box 0.4 m from a wall was said to be held by 1.2 N of friction)."""
+        walls = self.scenario.arena.walls
+        if walls is None or self.world.geometry is None:
+            return []
+        geometry = self.world.geometry
+        room = room_to_walls(geometry, walls, float(truth[0]), float(truth[1]), float(truth[2]))
+        needed = wall_room_needed(self.world.spec)
+        if room >= needed:
+            return []
+        return [f"the object moved {moved:.2f} m after the cage closed, {room:.2f} m from an arena wall where "
+                f"robots need about {needed:.2f} m to get round it: members likely caged the wall too (their IR "
+                "cannot tell it from the object). Start the object and its path farther from the walls"]
 
     def result(self) -> Dict[str, Any]:
         scenario = self.scenario

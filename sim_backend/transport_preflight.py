@@ -18,10 +18,15 @@ MIN_CAGE = 3                    # robots needed round an object to close a cage 
 # A ring a little short of MIN_CAGE x I_d still closes: members settle within their slots' tolerance. Measured
 # on discs with 6 robots, I_d = 0.45 m: r = 0.12 m (ring 2 % short) closes on every seed, r = 0.10 m (11 %) never.
 RING_SLACK = 0.95
-# Robots rounding the object swing out a few cm past their caging gap. Measured with 8 robots and a 0.4 m box:
-# 0.30 m from a wall it was delivered 0.11-0.14 m off every waypoint (members squeezed, estimate biased),
-# 0.35 m and more as far from any wall. The warning asks for gap + body + IR reach + this margin (0.33 m).
-WALL_MARGIN_M = 0.05
+# Room between the object and a wall: the caging gap, then twice a body and the IR's reach (a member at the face
+# and the next robot rounding it, which attaches to whatever its IR sees first): 0.54 m for a KheperaIV.
+# Measured (2026-11-28, a 0.4 kg 0.5 m box with 10 robots pushed 1.2 m along the wall, robots starting on the
+# wall's side of it, seeds 1-3): 0.40 m delivered 1 of 3 runs (0 of 5 more from robots spawned against the
+# wall), 0.45 m (a 0.4 m box, 8 robots) 1 of 3, 0.50 m 0 of 3, its cages 9 robots long with members on the
+# wall; 0.60 m and 0.70 m 6 of 6 (one 6 degrees off in yaw, a 4-member cage's), with the last waypoint 0.55 m
+# from the wall ahead. The same runs 2 m from any wall completed 3 of 3, and 0.50 m with the robots starting
+# across the room 2 of 3. An earlier bar of 0.33 m (one body), set from 8 robots arriving from the open side,
+# let all these through unwarned.
 CAGE_GAP_M = 0.02               # caging robots hold about this far off the surface (keep_gap_while_caging)
 # Round corners a ring of about 3 I_d is not enough: a 0.2 m box (3.0 I_d) caged in 1 of 4 runs with 4-6
 # robots at I_d 0.45 m, and in 6 of 6 at 0.30-0.35 m; a 0.25 m box (3.5 I_d) in 4 of 4. Discs caged at 2.9 I_d.
@@ -72,8 +77,7 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
         if scenario.object is not None:
             found += _small_cage_turns(scenario, hull, spacing, spec.radius_m)
     if world.geometry is not None and scenario.arena.walls is not None:
-        needed = CAGE_GAP_M + 2.0 * spec.radius_m + spec.proximity_range_m + WALL_MARGIN_M
-        found += _room_to_walls(scenario, world.geometry, needed)
+        found += _room_to_walls(scenario, world.geometry, wall_room_needed(spec))
     if scenario.object is not None and not scenario.object.static and scenario.object.friction == 0.0:
         found.append("object.friction: 0: nothing stops the object once it is pushed, so it slides past its "
                      "waypoints")
@@ -217,23 +221,37 @@ def _wrap_deg(angle: float) -> float:
     return (angle + 180.0) % 360.0 - 180.0
 
 
+def wall_room_needed(spec: Any) -> float:
+    """The room robots need between the object and a wall to cage it without caging the wall (see above)."""
+    return CAGE_GAP_M + 2.0 * (2.0 * spec.radius_m + spec.proximity_range_m)
+
+
+def room_to_walls(geometry: Geometry, walls: Any, x: float, y: float, yaw_rad: float) -> float:
+    """The gap between the object at (x, y, yaw) and the nearest of the arena walls."""
+    xmin, ymin, xmax, ymax = walls
+    left, bottom, right, top = extent_at(geometry, x, y, yaw_rad)
+    return min(left - xmin, bottom - ymin, xmax - right, ymax - top)
+
+
 def _room_to_walls(scenario: Any, geometry: Geometry, needed: float) -> List[str]:
     """Robots must get all round the object at its start and at every waypoint without their IR seeing a
     wall: the IR cannot tell a wall from the object, so robots attach to the wall and the cage closes on it."""
-    xmin, ymin, xmax, ymax = scenario.arena.walls
     spec = scenario.object
     poses = [("object.position", spec.position[0], spec.position[1], spec.yaw_deg)]
     poses += [(f"path[{i}]", x, y, yaw) for i, (x, y, yaw) in enumerate(scenario.path)]
-    found = []
-    for field_name, x, y, yaw_deg in poses:
-        left, bottom, right, top = extent_at(geometry, x, y, math.radians(yaw_deg))
-        room = min(left - xmin, bottom - ymin, xmax - right, ymax - top)
-        if room < needed:
-            where = "starts" if field_name == "object.position" else "would be at this waypoint"
-            found.append(f"{field_name}: the object {where} {room:.2f} m from an arena wall; robots need about "
-                         f"{needed:.2f} m (their gap, a body, the IR's reach and a margin) to get round it, and "
-                         "their IR cannot tell the wall from the object")
-    return found
+    close = [(field_name, room_to_walls(geometry, scenario.arena.walls, x, y, math.radians(yaw_deg)))
+             for field_name, x, y, yaw_deg in poses]
+    close = [(field_name, room) for field_name, room in close if room < needed - 1e-9]
+    if not close:
+        return []
+    (field_name, room), others = close[0], close[1:]
+    where = "starts" if field_name == "object.position" else "would be at this waypoint"
+    also = "; also " + ", ".join(f"{name} ({gap:.2f} m)" for name, gap in others) if others else ""
+    return [f"{field_name}: the object {where} {room:.2f} m from an arena wall{also}. Robots need about "
+            f"{needed:.2f} m to cage it (their gap, then a body and the IR's reach for a member and again for the "
+            "robot rounding it): their IR cannot tell the wall from the object, so members attach to the wall "
+            "and the swarm's estimate of the object is pulled toward it (a 0.5 m box 0.5 m from a wall, pushed "
+            "along it: 0 of 3 runs delivered it)"]
 
 
 def _cage_ring(hull: np.ndarray, robot_radius: float) -> float:

@@ -850,6 +850,27 @@ def test_the_stuck_hint_does_not_offer_reinforce_push_when_all_the_robots_are_to
     assert "reinforce_push" not in hint
 
 
+def test_the_stuck_hint_names_a_wall_beside_the_object_not_the_floor_friction(make_scenario):
+    """A 0.4 kg box stuck 0.4 m from a wall was said to be held by `1.2 N of floor friction`: its members had
+    caged the wall too. Beside a wall the hint says so; 1 m from it, it blames the friction as before."""
+    from sim_backend.transport_metrics import TransportEvaluator
+    from sim_backend.world import World
+
+    def hint_at(y):
+        scenario = make_scenario(behaviour="transport", robots={"count": 10, "spawn": {"x": [-1, 0], "y": [0, 1]}},
+                                 object={"shape": "box", "size": [0.5, 0.5], "mass": 0.4, "position": [0, -1]},
+                                 path=[[1.0, -1, 0]], arena={"walls": [-2, -2, 2, 2]})
+        evaluator = TransportEvaluator(scenario, World(scenario, np.random.default_rng(1)))
+        evaluator.pose_at_closure, evaluator.members = (0.0, y, 0.0), [0, 1, 2, 3]
+        (hint,) = evaluator._stuck_hint((0.0, y, 0.0))
+        return hint
+
+    beside = hint_at(-1.35)
+    assert beside.startswith("the object moved 0.00 m after the cage closed, 0.40 m from an arena wall where robots "
+                             "need about 0.54 m") and "caged the wall" in beside and "friction" not in beside
+    assert "floor friction" in hint_at(-0.75)
+
+
 def test_a_small_cage_turning_a_box_in_place_leaves_it_on_the_waypoint(make_scenario):
     """A 5-member cage turned a 0.8 x 0.5 m box by 90 degrees at its first waypoint and left it 0.30 m off
     (seed 1); its own estimate knew (0.03 m). Now it pushes the box back before the next leg."""
