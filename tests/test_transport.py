@@ -820,6 +820,7 @@ def test_the_stuck_hint_offers_reinforce_push_only_when_the_spares_did_not_push(
         return hint
 
     assert "pushed too once the push stalled for 15 s" in hint_with({})
+    assert "a smaller params.inter_robot_distance_m (more members behind it)" in hint_with({})
     assert "reinforce_push: true" in hint_with({"reinforce_when_stalled_s": 0})
     assert "reinforce_push: true" in hint_with({"profile": "faithful"})
     assert "reinforce_push" not in hint_with({"reinforce_push": True})
