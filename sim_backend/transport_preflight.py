@@ -7,7 +7,7 @@ fail?), but a user who expects it to work should hear why it will not before wai
 from __future__ import annotations
 
 import math
-from typing import Any, List
+from typing import Any, List, Optional
 
 import numpy as np
 
@@ -176,7 +176,12 @@ def _small_cage_turns(scenario: Any, hull: np.ndarray, spacing: float, robot_rad
         off = _off_faces_deg(direction - yaw, normals) if moves else 0.0
         change = abs(_wrap_deg(direction - heading)) if moves and heading is not None and normals else 0.0
         if off > SMALL_CAGE_TURN_DEG:
-            found.append(f"path[{i}]: the object would travel {off:.0f} degrees off the normals of its faces with "
+            end = _narrow_end_ahead(hull, direction - yaw) if off > 60.0 else None
+            travel = (f"travel {off:.0f} degrees off the normals of its faces" if end is None else
+                      f"travel end first ({off:.0f} degrees off the normals of its long faces; its {end:.2f} m end "
+                      "is too narrow a face to push square: a 1.2 x 0.2 m bar pushed so ended 0.18-0.21 m short "
+                      "in 3 of 3 runs)")
+            found.append(f"path[{i}]: the object would {travel} with "
                          f"{cage}: its members slide along the faces they push across, and the swarm's estimate of "
                          "where the object is slides with them, so such a run often ends short of the waypoint "
                          "(a 1.2 x 0.2 m bar pushed 35 degrees off: 0.4 m) or off in yaw (docs/behaviour.md "
@@ -208,6 +213,19 @@ def _face_normals(hull: np.ndarray) -> List[float]:
     lengths = np.hypot(edges[:, 0], edges[:, 1])
     long = lengths >= FACE_SHARE * lengths.sum()
     return [math.degrees(math.atan2(-ex, ey)) for ex, ey in edges[long].tolist()]
+
+
+def _narrow_end_ahead(hull: np.ndarray, direction_deg: float) -> Optional[float]:
+    """The length of the short hull edge (not a face, FACE_SHARE) whose outward normal is within 30 degrees
+    of the travel direction, either way along it: the end the object travels with; None if there is none."""
+    edges = np.roll(hull, -1, axis=0) - hull
+    lengths = np.hypot(edges[:, 0], edges[:, 1])
+    short = (lengths < FACE_SHARE * lengths.sum()) & (lengths > 1e-9)
+    for (ex, ey), length in zip(edges[short].tolist(), lengths[short].tolist()):
+        normal = math.degrees(math.atan2(-ex, ey))
+        if abs(_wrap_deg(direction_deg - normal)) <= 30.0 or abs(_wrap_deg(direction_deg - normal - 180.0)) <= 30.0:
+            return length
+    return None
 
 
 def _off_faces_deg(direction_deg: float, normals: List[float]) -> float:
