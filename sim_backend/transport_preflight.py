@@ -49,6 +49,7 @@ SMALL_CAGE_NEW_DIRECTION_DEG = 45.0
 # on friction 0.8 with 8 robots, so 4-5 in the cage; seeds 1-3): 31 % delivered 2 of 2, 42 % 1 of 2, 52 % 2 of
 # 2, 62 % 1 of 3, 72 % 0 of 3. The built-in scenarios take 3-22 %.
 HEAVY_SHARE = 0.6
+GRAMS_LIKELY_KG = 100.0         # a "mass" this large was most likely written in grams
 FACE_SHARE = 0.1                # a hull edge is a face (its normal an axis to push along) from this share of the hull
 
 
@@ -83,6 +84,7 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
                      "waypoints")
     found += _faults(scenario)
     found += _too_heavy(scenario)
+    found += _radians_for_degrees(scenario)
     for name in ("cruise_speed_m_s", "travel_speed_m_s"):
         speed = getattr(params, name, None)
         if speed is not None and speed > spec.max_wheel_speed_m_s:
@@ -115,9 +117,27 @@ def _too_heavy(scenario: Any) -> List[str]:
              f"{'' if resisting > everyone else f'{100 * HEAVY_SHARE:.0f} % of what '}all {scenario.robots.count} "
              f"robots push together ({everyone:.1f} N: {each:.1f} N each, robots.traction x robots.mass_kg x g)")
     if resisting > everyone:
-        return [f"object.mass: {takes}: it will not move"]
+        grams = f" (object.mass is in kilograms: {obj.mass:g} g would be {obj.mass / 1000:g})" \
+            if obj.mass >= GRAMS_LIKELY_KG else ""
+        return [f"object.mass: {takes}: it will not move{grams}"]
     return [f"object.mass: {takes}: they never all push square behind it, and such a push often stalls (a 0.5 m "
             "box with 8 robots: at 62 % 1 of 3 runs delivered it, at 72 % none). More robots, or a lighter object"]
+
+
+def _radians_for_degrees(scenario: Any) -> List[str]:
+    """A yaw of 3.14 or 1.57 is almost surely radians where degrees are asked for: a turn of 3 degrees, not a
+    half turn, that the run would carry out without a word."""
+    yaws = [(f"path[{i}]", wyaw) for i, (_, _, wyaw) in enumerate(scenario.path)]
+    if scenario.object is not None:
+        yaws.insert(0, ("object.yaw_deg", scenario.object.yaw_deg))
+    found = []
+    for field_name, value in yaws:
+        quarters = value / (math.pi / 2.0)
+        if value != 0.0 and abs(value) <= 2.0 * math.pi + 0.01 and abs(quarters - round(quarters)) * math.pi / 2 < 0.01:
+            what = "its yaw" if field_name.startswith("path") else "it"
+            found.append(f"{field_name}: {what} is in degrees, and {value:g} looks like radians "
+                         f"({math.degrees(value):.0f} degrees); write {math.degrees(value):.0f} if that is meant")
+    return found
 
 
 def _faults(scenario: Any) -> List[str]:

@@ -234,3 +234,20 @@ def test_a_ring_of_about_three_spacings_round_corners_is_warned_about_with_a_spa
     disc = {"shape": "circle", "radius": 0.12, "mass": 0.3, "position": [0, 0]}
     round_one = transport(make_scenario, object=disc, robots=six)
     assert Simulation(fitted).warnings == [] and Simulation(round_one).warnings == []
+
+
+def test_a_yaw_written_in_radians_and_a_mass_in_grams_are_pointed_out(make_scenario):
+    """A new user's waypoint yaw of 3.14 ran as a 3-degree turn, and a 400 (grams) box was only `it will not
+    move`: both are units the scenario does not take, and the warning now names the likely slip."""
+    radians = Simulation(transport(make_scenario, path=[[0.5, 0.0, 0], [0.5, 0.0, 3.14]])).warnings
+    assert radians == ["path[1]: its yaw is in degrees, and 3.14 looks like radians (180 degrees); write 180 if that "
+                       "is meant"]
+    turned = {"shape": "box", "size": [0.3, 0.4], "mass": 0.3, "position": [0, 0], "yaw_deg": -1.5708}
+    assert any(w.startswith("object.yaw_deg: it is in degrees, and -1.5708 looks like radians (-90 degrees)")
+               for w in Simulation(transport(make_scenario, object=turned)).warnings)
+    assert Simulation(transport(make_scenario, path=[[0.5, 0.0, 3], [0.5, 0.0, 2]])).warnings == []
+    grams = {"shape": "box", "size": [0.3, 0.4], "mass": 400, "position": [0, 0]}
+    (heavy,) = Simulation(transport(make_scenario, object=grams)).warnings
+    assert heavy.endswith("it will not move (object.mass is in kilograms: 400 g would be 0.4)"), heavy
+    tonne_free = {"shape": "box", "size": [0.3, 0.4], "mass": 20, "position": [0, 0]}
+    assert "grams" not in " ".join(Simulation(transport(make_scenario, object=tonne_free)).warnings)
