@@ -210,11 +210,13 @@ def record_path(config: LabConfig, now: Optional[float] = None) -> Path:
     """The log file for ``record``: ``{time}`` in it becomes the local start time (``logs/run-{time}.mcap`` ->
     ``logs/run-20261121-201502.mcap``). An existing file is refused: the hub never writes over a log (an
     earlier run's, the one being replayed, or one another hub is still writing)."""
-    doubled = re.search(r"\{\{[^{}]*\}\}", str(config.record))
-    if doubled:             # a template habit (Jinja, str.format escapes): the file name kept the outer braces
-        raise ConfigError("record", f"{doubled.group(0)}: write {doubled.group(0)[1:-1]} with single braces "
-                                    "(e.g. logs/run-{time}.mcap)")
-    for braces in BRACES.findall(str(config.record)):
+    record = str(config.record)
+    for found in BRACES.finditer(record):
+        braces = found.group(0)
+        if record[found.start() - 1:found.start()] == "{" and record[found.end():found.end() + 1] == "}":
+            # a template habit (Jinja, str.format escapes): the file name kept the outer braces
+            raise ConfigError("record", f"{{{braces}}}: write {braces} with single braces "
+                                        "(e.g. logs/run-{time}.mcap)")
         if braces != "{time}":      # a typo ({tim}, {Time}) named one fixed file: the next start stopped at `exists`
             raise ConfigError("record", f"{braces} is not something the hub fills in: only {{time}} is (the start "
                                         "time, e.g. logs/run-{time}.mcap)")

@@ -128,12 +128,13 @@ def family_hint(endpoint: str) -> str:
     return ""
 
 
-def use_ipv6(sock: zmq.Socket, endpoint: str) -> None:
+def use_ipv6(sock: zmq.Socket, endpoint: str, ipv6_only: Optional[bool] = None) -> None:
     """ZeroMQ reaches an IPv6 address only with its IPV6 option on; it is off by default, and an address such as
     tcp://[::1]:5560 then fails with "No such device". Turned on for such addresses only, and for host names
     with IPv6 addresses alone (ZeroMQ looked such a name up for IPv4, found nothing, and kept retrying in
-    silence), so the IPv4 setups are as they were."""
-    if "://[" in endpoint or ipv6_only_name(endpoint):
+    silence), so the IPv4 setups are as they were. ``ipv6_only``: the name's answer already looked up (the
+    agent keeps it), else it is looked up here."""
+    if "://[" in endpoint or (ipv6_only_name(endpoint) if ipv6_only is None else ipv6_only):
         sock.ipv6 = True
 
 
@@ -244,8 +245,7 @@ class HubLink:
             self.socket.curve_publickey = self.keys["public"]
             self.socket.curve_secretkey = self.keys["secret"]
             self.socket.curve_serverkey = self.keys["server"]
-        if "://[" in self.address or self._is_ipv6_only_name():
-            self.socket.ipv6 = True
+        use_ipv6(self.socket, self.address, "://[" not in self.address and self._is_ipv6_only_name())
         self.socket.connect(self.address)
         self.heard = False                 # the hub has spoken on this socket (see unsent)
         self.poller = zmq.Poller()
