@@ -184,6 +184,9 @@ def test_the_summarys_overrides_column_writes_lists_and_mappings_as_json_without
     ("scenarios: [lab-6]", "seeds: give either seeds"),
     ("scenarios: [lab-6]\nseeds: 5..2", "seeds: a range must read 'first..last'"),
     ("scenarios: [lab-6]\nseeds: [1, -3]", "seeds[1]: must be an integer >= 0"),
+    # A bare number is ambiguous (seed 3, or three seeds): both spellings are offered.
+    ("scenarios: [lab-6]\nseeds: 3", "seeds: must be a non-empty list of integers or 'first..last' (got 3): [3] for "
+     "seed 3 alone, or reps: 3 for seeds 1..3"),
     ("scenarios: [lab-6]\nreps: 1\noverrides: {params.no_such_param: [1]}", "params.no_such_param: unknown key"),
     ("scenarios: [lab-6]\nreps: 1\noverrides: {robots.count: [0]}", "robots.count: must be >= 1"),
     # An override of one field that leaves a sibling unfit says how to change both together.

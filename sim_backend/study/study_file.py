@@ -124,7 +124,10 @@ def parse_seeds(data: Dict[str, Any]) -> List[int]:
             raise ConfigError("seeds", f"a range may hold at most {MAX_SEEDS} seeds (got {value!r})")
         return list(range(int(match.group(1)), int(match.group(2)) + 1))
     if not isinstance(value, list) or not value:
-        raise ConfigError("seeds", f"must be a non-empty list of integers or 'first..last' (got {value!r})")
+        number = as_integer(value)
+        hint = (f": [{number}] for seed {number} alone, or reps: {number} for seeds 1..{number}"
+                if number is not None and number >= 0 else "")
+        raise ConfigError("seeds", f"must be a non-empty list of integers or 'first..last' (got {value!r}){hint}")
     seeds = [as_integer(seed) for seed in value]
     for i, seed in enumerate(seeds):
         if seed is None or seed < 0:
