@@ -206,7 +206,8 @@ def warning_section(cells: List[Cell]) -> List[str]:
         lines += [f"- `{cell.name}`: {warning}" for warning in seen]
     if not lines:
         return []
-    return ["## Warnings", "", "Said before the runs started: these cells were not expected to succeed.", "",
+    said = "Said before the runs started: what the simulator knew would doom, or often spoil, these cells' runs."
+    return ["## Warnings", "", said, "",
             *lines, ""]
 
 
