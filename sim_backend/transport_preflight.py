@@ -12,7 +12,7 @@ from typing import Any, List, Optional
 import numpy as np
 
 from .recesses import widest_recess
-from .shapes import Geometry, extent_at
+from .shapes import Geometry, dimension_field, extent_at
 from .world import GRAVITY
 
 MIN_CAGE = 3                    # robots needed round an object to close a cage (Proposition 1)
@@ -231,8 +231,7 @@ def _recess(scenario: Any, geometry: Geometry, hull: np.ndarray, robot_radius: f
     width = widest_recess(geometry, hull, robot_radius + CAGE_GAP_M, robot_radius)
     if width is None:
         return []
-    field_name = {"polygon": "object.vertices", "compound": "object.parts"}.get(obj.shape, "object.shape")
-    return [f"{field_name}: the object has a recess a robot fits into ({width:.2f} m across): a member that "
+    return [f"{dimension_field(obj)}: the object has a recess a robot fits into ({width:.2f} m across): a member that "
             "cages inside it pulls the swarm's estimate of the object off its centroid, and such runs often "
             "end about 0.1 m off (a 0.6 m U with a 0.3 m notch: 2 of 8 runs completed, an L 5 of 8; with a "
             "0.1 m notch 4 of 4). Filling the recess in the object, or narrowing it below a robot's width, "
