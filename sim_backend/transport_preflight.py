@@ -7,7 +7,7 @@ fail?), but a user who expects it to work should hear why it will not before wai
 from __future__ import annotations
 
 import math
-from typing import Any, List, Optional
+from typing import Any, List, Optional, Tuple
 
 import numpy as np
 
@@ -248,20 +248,23 @@ def judges_yaw(obj: Any) -> bool:
 def _face_normals(hull: np.ndarray) -> List[float]:
     """Outward normal angles (degrees, object frame) of the hull's long edges: the directions a push along
     which keeps a face square to it. Empty for a round object: no edge is long."""
+    normals, lengths = _hull_edges(hull)
+    return [normal for normal, length in zip(normals, lengths) if length >= FACE_SHARE * sum(lengths)]
+
+
+def _hull_edges(hull: np.ndarray) -> Tuple[List[float], List[float]]:
+    """Each hull edge's outward normal angle (degrees, object frame) and its length."""
     edges = np.roll(hull, -1, axis=0) - hull
-    lengths = np.hypot(edges[:, 0], edges[:, 1])
-    long = lengths >= FACE_SHARE * lengths.sum()
-    return [math.degrees(math.atan2(-ex, ey)) for ex, ey in edges[long].tolist()]
+    return [math.degrees(math.atan2(-ex, ey)) for ex, ey in edges.tolist()], np.hypot(*edges.T).tolist()
 
 
 def _narrow_end_ahead(hull: np.ndarray, direction_deg: float) -> Optional[float]:
     """The length of the short hull edge (not a face, FACE_SHARE) whose outward normal is within 30 degrees
     of the travel direction, either way along it: the end the object travels with; None if there is none."""
-    edges = np.roll(hull, -1, axis=0) - hull
-    lengths = np.hypot(edges[:, 0], edges[:, 1])
-    short = (lengths < FACE_SHARE * lengths.sum()) & (lengths > 1e-9)
-    for (ex, ey), length in zip(edges[short].tolist(), lengths[short].tolist()):
-        normal = math.degrees(math.atan2(-ex, ey))
+    normals, lengths = _hull_edges(hull)
+    for normal, length in zip(normals, lengths):
+        if not 1e-9 < length < FACE_SHARE * sum(lengths):
+            continue        # a face, or no edge at all
         if abs(_wrap_deg(direction_deg - normal)) <= 30.0 or abs(_wrap_deg(direction_deg - normal - 180.0)) <= 30.0:
             return length
     return None
