@@ -161,12 +161,11 @@ class World:
         poses = [("object.position", spec.position[0], spec.position[1], spec.yaw_deg)]
         poses += [(f"path[{i}]", px, py, yaw) for i, (px, py, yaw) in enumerate(self.scenario.path)]
         xmin, ymin, xmax, ymax = walls
-        left, bottom, right, top = extent_at(self.geometry, 0.0, 0.0, math.radians(spec.yaw_deg))
-        if right - left > xmax - xmin or top - bottom > ymax - ymin:
+        width, height = self._object_span()
+        if width > xmax - xmin or height > ymax - ymin:
             # Where it starts does not matter then: say so of the size, the likely typo (centimetres for metres).
-            raise ConfigError(dimension_field(spec), f"the object is {right - left:.3g} x {top - bottom:.3g} m, "
-                              f"larger than the arena ({xmax - xmin:g} x {ymax - ymin:g} m inside arena.walls); "
-                              "sizes are in metres")
+            raise ConfigError(dimension_field(spec), f"the object is {width:.3g} x {height:.3g} m, larger than the "
+                              f"arena ({xmax - xmin:g} x {ymax - ymin:g} m inside arena.walls); sizes are in metres")
         for field_name, px, py, yaw_deg in poses:
             left, bottom, right, top = extent_at(self.geometry, px, py, math.radians(yaw_deg))
             if left < xmin or bottom < ymin or right > xmax or top > ymax:
@@ -249,8 +248,10 @@ class World:
             placed.append((x, y, rng.uniform(-math.pi, math.pi)))
         if len(placed) < count:
             cause = max(blocked, key=blocked.get)
-            advice = {"other robots": "make the area larger", "the walls": "move the area off the walls"}.get(
-                cause, f"move the area off the object ({self._object_size()}; sizes are in metres)")
+            advice = {"other robots": "make the area larger", "the walls": "move the area off the walls"}.get(cause)
+            if advice is None:          # the object: its size may be the typo (centimetres for metres)
+                advice = "move the area off the object ({} makes it {:.3g} x {:.3g} m; sizes are in metres)".format(
+                    dimension_field(self.scenario.object), *self._object_span())
             raise ConfigError("robots.spawn", f"cannot place {count} robots without overlap in this area "
                               f"(placed {len(placed)}; most tries landed on {cause}): {advice}")
         return placed
@@ -267,9 +268,10 @@ class World:
                               f"without overlap; x {list(spawn.x)}, y {list(spawn.y)} gives {room:.3g} m²: "
                               f"make the area larger")
 
-    def _object_size(self) -> str:
+    def _object_span(self) -> tuple:
+        """The object's width and height (m) along x and y at its starting yaw."""
         left, bottom, right, top = extent_at(self.geometry, 0.0, 0.0, math.radians(self.scenario.object.yaw_deg))
-        return f"{dimension_field(self.scenario.object)} makes it {right - left:.3g} x {top - bottom:.3g} m"
+        return right - left, top - bottom
 
     def _on_object(self, x: float, y: float, distance: float) -> bool:
         """Whether the object lies within ``distance`` of (x, y). The space holds the walls too: counting them

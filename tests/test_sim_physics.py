@@ -217,6 +217,11 @@ def test_a_spawn_area_covered_by_an_object_says_how_large_the_object_is(make_sce
 
     with pytest.raises(ConfigError, match=r"move the area off the object \(object.size makes it 500 x 500 m; sizes"):
         World(make_scenario(object={"shape": "box", "size": [500, 500]}), np.random.default_rng(1))
+    # Said only when the object is the cause: with no object at all, a spawn area on a wall gave an
+    # AttributeError while the message for the object was being built.
+    with pytest.raises(ConfigError, match="most tries landed on the walls"):
+        World(make_scenario(robots={"count": 6, "spawn": {"x": [-2.0, -1.95], "y": [-1.5, 1.5]}},
+                            arena={"walls": [-2, -2, 2, 2]}), np.random.default_rng(1))
 
 
 @pytest.mark.parametrize("spawn, count, message", [
