@@ -245,7 +245,7 @@ class HubLink:
             self.socket.curve_publickey = self.keys["public"]
             self.socket.curve_secretkey = self.keys["secret"]
             self.socket.curve_serverkey = self.keys["server"]
-        use_ipv6(self.socket, self.address, "://[" not in self.address and self._is_ipv6_only_name())
+        use_ipv6(self.socket, self.address, self._is_ipv6_only_name())
         self.socket.connect(self.address)
         self.heard = False                 # the hub has spoken on this socket (see unsent)
         self.poller = zmq.Poller()
