@@ -94,7 +94,6 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
         self.object_seen_at = -math.inf          # attach: when the IR last saw the object
         self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
-        self.reinforce_reference: Dict[int, Vec] = {}   # the live members when first reinforcing (_cage_centre)
         self.closed_seen_at: Optional[float] = None     # idle: when this spare first saw the cage closed
         self.stall_watch: Optional[Tuple[int, float, float]] = None   # (leg, since, distance) (_push_stalled)
         self.next_stall_check = 0.0
@@ -356,11 +355,12 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
 
     def telemetry(self) -> Dict[str, Any]:
         # Everything the evaluator and the operator need travels here (also over the wire from real robots).
-        data: Dict[str, Any] = {"state": self.state, "waypoint": self.waypoint,
-                                "member": self.board.is_member(self.robot.id), "closed": "closed" in self.space,
-                                "effective": bool(self.effective), "rotating": bool(self.rotating)}
+        member = self.board.is_member(self.robot.id)
+        data: Dict[str, Any] = {"state": self.state, "waypoint": self.waypoint, "member": member,
+                                "closed": "closed" in self.space, "effective": bool(self.effective),
+                                "rotating": bool(self.rotating)}
         if self.task is not None:
             data["task"] = self.task.tid
-        if self.filter is not None:
+        if self.filter is not None and member:      # a spare's estimate (reinforce.py) is its own business
             data["estimate"] = [round(v, 4) for v in self.filter.pose]
         return data
