@@ -54,10 +54,9 @@ class KeyRing:
 def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: bool = False) -> List[Path]:
     """Create the hub, robot and operator key pairs. Refuses to overwrite existing keys unless ``force``; with
     it, the folder holds exactly the new set afterwards (``stale_keys`` names what ``force`` removes)."""
-    if folder.exists() and not folder.is_dir():
-        raise ConfigError("keys", f"{folder} is a file, not a folder")
     targets = [folder / "hub.key"] + [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
         + [folder / "operators" / f"{name}.key" for name in operators]
+    _refuse_files_in_the_way(folder, targets)
     existing = [p for p in targets if p.exists()]
     if existing and not force:
         raise ConfigError("FOLDER", f"{existing[0]} already exists (use --force to replace keys)")
@@ -77,6 +76,7 @@ def add_keys(folder: Path, robot_ids: List[int], operators: List[str]) -> List[P
                                     f"`khepri keys init {folder}` first")
     check_operator_names(operators)
     targets = _peer_keys(folder, robot_ids, operators)
+    _refuse_files_in_the_way(folder, targets)
     for path in targets:
         _refuse_a_key_in_use(path)
     return _create_pairs(targets)
@@ -105,6 +105,14 @@ def _refuse_a_key_in_use(path: Path) -> None:
     files = f"{path.name} and {secret.name}" if secret.exists() else path.name
     raise ConfigError("--robots" if robot else "--operator",
                       f"{who} already has a key ({path}); to replace it, delete {files} first")
+
+
+def _refuse_files_in_the_way(folder: Path, targets: List[Path]) -> None:
+    """A file where the key folder or its robots/ or operators/ folder goes, checked before anything is written:
+    found half-way, the hub's pair was already made, and running init again was refused for it."""
+    for place in dict.fromkeys([folder] + [path.parent for path in targets]):
+        if place.exists() and not place.is_dir():
+            raise ConfigError("FOLDER", f"{place} is a file, not a folder: move it away first")
 
 
 def _create_pairs(targets: List[Path]) -> List[Path]:
@@ -143,7 +151,8 @@ def load_keyring(folder: Path) -> KeyRing:
     for path in sorted((folder / "operators").glob("*.key")):
         ring.operators[_unique_public(path, holders)] = path.stem
     if not ring.robots:
-        raise ConfigError(HUB_KEYS_FIELD, f"no robot keys in {folder / 'robots'} (run `khepri keys init {folder}`)")
+        raise ConfigError(HUB_KEYS_FIELD, f"no robot keys in {folder / 'robots'} (add them with `khepri keys add "
+                                          f"{folder} --robots N`)")
     return ring
 
 

@@ -190,7 +190,7 @@ def _add_keys(groups) -> None:
     init = commands.add_parser("init", help="create hub, robot and operator key pairs",
                                description="Create FOLDER/hub.key(_secret), FOLDER/robots/robot-<id>.key(_secret) and "
                                            "FOLDER/operators/<name>.key(_secret).")
-    init.add_argument("folder", nargs="?", type=Path, default=Path("keys"), metavar="FOLDER",
+    init.add_argument("folder", nargs="?", default="keys", metavar="FOLDER",
                       help="key folder (default ./keys)")
     init.add_argument("--robots", default="6", help="robot count N (ids 0..N-1), or ids with commas: 0,1,5 "
                                                      "(one id: 5,) (default 6)")
@@ -202,7 +202,7 @@ def _add_keys(groups) -> None:
                               description="Add FOLDER/robots/robot-<id>.key(_secret) and FOLDER/operators/<name>.key"
                                           "(_secret) for new robots or operators. Every key already in FOLDER stays "
                                           "as it is; restart the hub to accept the new ones.")
-    add.add_argument("folder", nargs="?", type=Path, default=Path("keys"), metavar="FOLDER",
+    add.add_argument("folder", nargs="?", default="keys", metavar="FOLDER",
                      help="key folder (default ./keys)")
     add.add_argument("--robots", help="ids with commas: 6,7 (one id: 6,), or a count N (ids 0..N-1)")
     add.add_argument("--operator", action="append", help="operator name (repeatable)")
@@ -213,6 +213,7 @@ def cmd_keys_init(args: argparse.Namespace) -> int:
     from hub.security import check_operator_names, init_keys, stale_keys
     from khepri_cli.sim_commands import out_folder_problem
 
+    args.folder = key_folder(args.folder)
     ids = parse_robot_ids(args.robots)
     operators = list(dict.fromkeys(args.operator or ["operator"]))     # --operator alice twice: one key pair
     check_operator_names(operators)           # before the folder is made: a refused name leaves nothing behind
@@ -236,6 +237,7 @@ def cmd_keys_init(args: argparse.Namespace) -> int:
 def cmd_keys_add(args: argparse.Namespace) -> int:
     from hub.security import add_keys, revoked_secrets
 
+    args.folder = key_folder(args.folder)
     if args.robots is None and not args.operator:
         raise ConfigError("--robots", "name the robots (--robots 6,7) or operators (--operator NAME) to add")
     ids = parse_robot_ids(args.robots) if args.robots is not None else []
@@ -252,6 +254,14 @@ def cmd_keys_add(args: argparse.Namespace) -> int:
         print(f"  give robot N: {args.folder}/robots/robot-N.key_secret and {args.folder}/hub.key")
     print("  restart the hub to accept them")
     return 0
+
+
+def key_folder(text: str) -> Path:
+    """FOLDER of ``keys init|add``. Empty (``khepri keys init "$KEYS"`` with KEYS unset) is refused, as --hub ""
+    is: Path("") is the current folder, where the keys would have landed without a word."""
+    if not text.strip():
+        raise ConfigError("FOLDER", "is empty (an unset shell variable?): name the key folder, e.g. keys")
+    return Path(text)
 
 
 def describe_ids(ids: List[int]) -> str:

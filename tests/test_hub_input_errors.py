@@ -720,6 +720,27 @@ def test_keys_init_into_a_file_says_so(tmp_path):
     assert line.endswith(f"{tmp_path / 'afile'} is a file, not a folder")
 
 
+def test_keys_init_with_a_file_where_robots_go_writes_nothing_and_can_be_run_again(tmp_path):
+    """A file named robots in the key folder: the OS error ("File exists: kf/robots") came after the hub's
+    pair was written, so running init again once the file was moved was refused (hub.key exists)."""
+    (tmp_path / "kf").mkdir()
+    (tmp_path / "kf" / "robots").write_text("")
+    line = one_error_line(keys_init(tmp_path / "kf"), "FOLDER")
+    assert line.endswith(f"{tmp_path / 'kf' / 'robots'} is a file, not a folder: move it away first")
+    assert [p.name for p in (tmp_path / "kf").iterdir()] == ["robots"]
+    (tmp_path / "kf" / "robots").unlink()
+    assert keys_init(tmp_path / "kf").returncode == 0
+
+
+def test_keys_init_with_an_empty_folder_argument_is_refused(tmp_path):
+    """`khepri keys init "$KEYS"` with KEYS unset wrote 16 key files into the current folder without a word."""
+    run = subprocess.run([sys.executable, "-m", "khepri_cli.main", "keys", "init", ""], capture_output=True,
+                         text=True, env=ENV, timeout=60, cwd=tmp_path)
+    assert run.returncode == 2
+    assert "FOLDER: is empty (an unset shell variable?)" in run.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 # --- 12. the status of many robots, and khepri bench hub -----------------------------------------------------------
 def test_the_status_of_hundreds_of_robots_is_answered_and_a_reply_too_large_is_refused():
     """Found while bounding `khepri bench hub --robots`: with about 250 connected robots the status reply passed
