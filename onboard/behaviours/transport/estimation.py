@@ -18,6 +18,7 @@ from .control import Vec
 from .estimator import (
     ObjectFilter,
     edge_rotation,
+    median_turn,
     normal_displacement,
     offset_of_survivors,
     ring_centroid,
@@ -27,10 +28,9 @@ from .estimator import (
 )
 
 EDGE_FACTOR = 1.5             # edges between cage neighbours longer than 1.5 I_d are gaps, not faces
-# A cage of fewer members than this reads the yaw from its members' contact normals when at least
-# SPARSE_CAGE_NORMALS of them touch the object (_rotation_since_reference): most of its edges cross a corner.
+# A cage of fewer members than this (but not a small one) reads the yaw from its members' contact normals and
+# the edges between them together (_sparse_cage).
 SPARSE_CAGE_MEMBERS = 10
-SPARSE_CAGE_NORMALS = 3
 T = TypeVar("T")
 
 
@@ -140,8 +140,8 @@ class ObjectEstimation:
 
     def _rotation_since_reference(self, ring: Dict[int, Vec], centre: Vec) -> Optional[float]:
         """How far the object turned since transport began: in a small cage whose path turns, from how the
-        members' contact normals turned (params.small_cage_yaw); in a sparse cage, from them as well once 3
-        members touch (_sparse_cage); else from the edges between neighbouring members
+        members' contact normals turned (params.small_cage_yaw); in a sparse cage, from them and the edges
+        between neighbouring members together (_sparse_cage); else from the edges alone
         (estimator.edge_rotation), else from how the ring turned about the centroid."""
         if len(ring) < 3 and self._lost_a_member():
             return None         # _hold_yaw_of_two
@@ -149,34 +149,26 @@ class ObjectEstimation:
             turned = edge_rotation(self._contact_angles(ring), self.reference_contacts)
             if turned is not None:
                 return turned
-        if self._sparse_cage():
-            turned = self._normals_turn(ring)
-            if turned is not None:
-                return turned
         edges = ring_edges(ring, centre, EDGE_FACTOR * self._spacing())
-        turned = edge_rotation(edges, self.reference_edges)
+        if self._sparse_cage():
+            turned = median_turn((edges, self.reference_edges), (self._contact_angles(ring), self.reference_contacts))
+        else:
+            turned = edge_rotation(edges, self.reference_edges)
         if turned is not None:
             return turned
         return ring_rotation(ring, self.reference_ring, centre, self._reference_centre_of(ring))
 
     def _sparse_cage(self) -> bool:
-        """Ours: a cage of fewer than SPARSE_CAGE_MEMBERS but not a small one (``surface_estimate_min_points``),
-        unless ``small_cage_yaw`` is "edges". With one or two members per face most edges between neighbours
-        cross a corner, and the median of their turns follows members shuffling round the object, not the
-        object: round a 0.6 m box of 4 kg, 6 members (one behind it) swung the yaw estimate by up to 30
-        degrees while the stalled box stood still, and the cage pushed it askew. Their contact normals turn
-        only with the faces they press on (within 5 degrees there)."""
+        """Ours: a cage of ``surface_estimate_min_points`` to SPARSE_CAGE_MEMBERS - 1 members, unless
+        ``small_cage_yaw`` is "edges". With one or two members per face most edges between neighbours cross a
+        corner, and while the object stands still the members shuffle along its faces: round a stalled 0.6 m
+        box of 4 kg with 6 members the median of the edges' turns swung by up to 30 degrees, and the cage
+        pushed the box askew; the members' contact normals stayed within 5 degrees. Yet the normals alone
+        missed the turns of an oblong box pushed along a zigzag. The median of both together served both
+        best (docs/behaviour.md section 8)."""
         if self.params.small_cage_yaw == "edges" or self._small_cage():
             return False        # a small cage's yaw: above (lab-6's 4 members: their normals spread more)
         return self.board.member_count() < SPARSE_CAGE_MEMBERS
-
-    def _normals_turn(self, ring: Dict[int, Vec]) -> Optional[float]:
-        """How far the members' contact normals turned since transport began (their median), or None when
-        fewer than SPARSE_CAGE_NORMALS members touch the object now and did then."""
-        angles = self._contact_angles(ring)
-        if sum(1 for rid in angles if rid in self.reference_contacts) < SPARSE_CAGE_NORMALS:
-            return None
-        return edge_rotation(angles, self.reference_contacts)
 
     def _reference_centre_of(self, ring: Dict[int, Vec]) -> Vec:
         """The centroid, when transport began, of the members in ``ring``: the angles about it compare with

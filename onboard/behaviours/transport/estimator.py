@@ -14,7 +14,7 @@ noise, process noise from how fast a pushed object can plausibly accelerate.
 from __future__ import annotations
 
 import math
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -109,7 +109,13 @@ def edge_rotation(now: Dict[tuple, float], reference: Dict[tuple, float]) -> Opt
     along it, so their edge turns exactly as the object does; an edge across a corner does not, and the
     median rejects those. Needs at least two edges seen both now and at the reference.
     """
-    turns = sorted(wrap_angle(now[k] - reference[k]) for k in now if k in reference)
+    return median_turn((now, reference))
+
+
+def median_turn(*pairs: Tuple[Dict[Any, float], Dict[Any, float]]) -> Optional[float]:
+    """The median of how far every angle turned since its reference, over all ``(now, reference)`` pairs of
+    dicts together (keys seen in both), or None for fewer than two."""
+    turns = sorted(wrap_angle(now[k] - reference[k]) for now, reference in pairs for k in now if k in reference)
     if len(turns) < 2:
         return None
     middle = len(turns) // 2          # the median of the sorted turns (np.median's value, without numpy)

@@ -119,8 +119,8 @@ class TransportParams:
     # round the object as they turn it make the ring turn up to 1.4 times as far), "contact_normals" (the
     # members' IR directions to the object: they turn with the faces, sliding or not, but are noisier), or
     # "auto": contact normals when the path asks for a turn, edges otherwise. docs/behaviour.md section 8.
-    # Unless "edges", a cage of surface_estimate_min_points to 9 members reads the contact normals too, once
-    # 3 members touch the object (estimation.py:_sparse_cage).
+    # Unless "edges", a cage of surface_estimate_min_points to 9 members reads the median turn of its edges
+    # and its contact normals together (estimation.py:_sparse_cage).
     small_cage_yaw: str = "auto"
     # Ours: during T_a the robot holding the lowest bid for a branch target already travels toward it (it
     # stops 0.6 m short until it owns it); the paper's bidders stand still for the whole window (caging.py).
