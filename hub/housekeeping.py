@@ -59,13 +59,20 @@ class Housekeeping:
             self.sensors.update(self.poses, present)
             self._check_geofence(present)
 
+    def expect_frames_from(self, when: float) -> None:
+        """The source delivers frames from ``when`` on (math.inf: not yet), and the no-frame warning counts from
+        then: `khepri sil --realtime` starts physics only once its agents have connected, and said "no
+        motion-capture frame yet after 2 s" in every run."""
+        self.frames_expected_from = when
+        self._next_no_pose_warning = when + NO_POSE_YET_WARNING_S
+
     def _warn_if_no_pose_yet(self, now: float) -> None:
         """A source that never delivers (no server, wrong host, a log without poses) is said from the start,
         not only once frames stop after a first one. Lockstep frames wait for the agents: nothing to say."""
         if self.placed_a_robot or self.run.lockstep or now < self._next_no_pose_warning:
             return
         self._next_no_pose_warning = now + NO_POSE_YET_REPEAT_S
-        after, source = f"{now - self.started_at:.0f} s", self.source.description
+        after, source = f"{now - self.frames_expected_from:.0f} s", self.source.description
         if self.last_frame_stamp == -math.inf:
             self.log(f"hub: no motion-capture frame yet after {after} from {source}")
         else:

@@ -27,7 +27,7 @@ from .background_recorder import BackgroundRecorder
 from .config import LabConfig
 from .control_service import ControlService
 from .downlink import Downlink
-from .housekeeping import MOCAP_SILENT_S, NO_POSE_YET_WARNING_S, Housekeeping
+from .housekeeping import MOCAP_SILENT_S, Housekeeping
 from .links import VIRTUAL_DRIVERS, DropLog, RateMeter, RobotLink, SparseFrames
 from .relay import RadioRelay
 from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HandshakeWatch, HubAuthenticator, KeyRing, make_curve_server
@@ -109,7 +109,7 @@ class Hub(Downlink, Uplink, Housekeeping):
         self.run_id: Optional[str] = None
         self.estop_at: Optional[float] = None
         self.started_at = time.monotonic()
-        self._next_no_pose_warning = self.started_at + NO_POSE_YET_WARNING_S
+        self.expect_frames_from(self.started_at)
         self.control = ControlService(self)
         self.authenticator: Optional[HubAuthenticator] = None
         self.handshake_watches: List[HandshakeWatch] = []

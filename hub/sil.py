@@ -204,6 +204,7 @@ class SilSession:
         self.stop_reason = "time limit"
 
     def run(self) -> Dict[str, Any]:
+        self.hub.expect_frames_from(math.inf)      # physics starts once the agents are there (_run_realtime)
         lockstep = Lockstep(self.hub, self.options.step_timeout_s)
         count = len(self.agents)
         problem = lockstep.wait_for(lambda: self._connected() == count or self._dead_agent() is not None,
@@ -275,6 +276,7 @@ class SilSession:
             lockstep.advance()
 
     def _run_realtime(self) -> None:
+        self.hub.expect_frames_from(time.monotonic())
         period = self.source.control_period
         observed = -1
 

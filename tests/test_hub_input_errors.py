@@ -376,6 +376,25 @@ def test_a_source_that_never_places_a_robot_is_reported_from_the_start(source, l
     assert said == [line]       # once; the next one 30 s later
 
 
+def test_the_no_frame_warning_counts_from_when_frames_are_expected():
+    """`khepri sil --realtime` starts physics once its agents have connected; meanwhile the hub said "no
+    motion-capture frame yet after 2 s" in every run. It now counts from when the frames are due."""
+    lines = []
+    hub = Hub(parse_config(sim_config()), PoseSource(), [0, 1], RunTemplate("aggregate", {}), SensingModel(), 0.0,
+              log=lines.append)
+    try:
+        start = hub.started_at
+        hub.expect_frames_from(float("inf"))       # the agents are starting
+        hub._warn_if_no_pose_yet(start + 10.0)
+        hub.expect_frames_from(start + 10.0)        # physics runs from here
+        hub._warn_if_no_pose_yet(start + 11.0)
+        assert lines == []
+        hub._warn_if_no_pose_yet(start + 12.0)
+        assert lines == ["hub: no motion-capture frame yet after 2 s from source"]
+    finally:
+        hub.close()
+
+
 def test_a_source_that_placed_robots_says_nothing_of_the_kind():
     config = parse_config(mocap_config({"kh0": 0}, robots=[0]))
     with HubThread(config) as hub:

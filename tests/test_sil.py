@@ -82,6 +82,8 @@ def test_a_realtime_run_stops_at_its_time_limit_as_lockstep_does(tmp_path):
     assert result["sim_time_s"] == pytest.approx(2.0)
     t = np.load(tmp_path / "trajectory.npz")["t"]
     assert len(t) == 20 and t[-1] == pytest.approx(1.9)
+    # Physics starts once the agents are there: the hub used to warn of no frame while they started.
+    assert "no motion-capture frame yet" not in (tmp_path / "hub.log").read_text()
 
 
 def test_a_slow_scenario_gets_a_hub_watchdog_its_telemetry_can_feed(tmp_path):
