@@ -396,6 +396,21 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
     assert "is robot 0 in the hub's lab?" in waiting[0] and "key" not in waiting[0]    # an insecure link
     assert time.monotonic() - started < 5.0
 
+    # With keys, against a hub that may run --insecure (which then says nothing at all): both causes named.
+    import zmq
+
+    public, secret = zmq.curve_keypair()
+    lines.clear()
+    link = HubLink(0, f"tcp://127.0.0.1:{port}", keys={"public": public, "secret": secret, "server": public})
+    agent = Agent(0, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=lines.append)
+    started = time.monotonic()
+    agent.serve(should_stop=lambda: any("no frame from the hub" in line for line in lines)
+                or time.monotonic() - started > 10.0)
+    link.close()
+    waiting = [line for line in lines if "no frame from the hub" in line]
+    assert waiting and "does the hub list this robot's key, or does it run --insecure (then leave out --keys)?" \
+        in waiting[0]
+
     parser = argparse.ArgumentParser()
     add_agent_arguments(parser)      # every option with its default, as the command line gives them
     args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--quiet"])

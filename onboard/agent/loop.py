@@ -134,7 +134,8 @@ class Agent:
             return
         self.last_waiting_log = now
         since = "yet" if self.state.received_at == -math.inf else f"for {now - self.state.received_at:.0f} s"
-        key = ", does the hub list this robot's key" if self.link.keys is not None else ""
+        key = (", does the hub list this robot's key, or does it run --insecure (then leave out --keys)"
+               if self.link.keys is not None else "")
         self.log(f"agent {self.robot_id}: no frame from the hub at {self.link.endpoint} {since}; still trying "
                  f"(is the hub running, is another agent already connected as robot {self.robot_id}, are --hub and "
                  f"--port the host and robots port it printed when it started, is robot {self.robot_id} in the hub's "
