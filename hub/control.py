@@ -100,7 +100,7 @@ def _await_reply(sock: zmq.Socket, nonce: int, timeout_s: float, endpoint: str) 
 def _no_answer(endpoint: str, timeout_s: float) -> str:
     return (f"no answer from the hub at {endpoint} within {timeout_s:g} s (is it running, and is that its "
             "control port, the one it printed after `listening control`? A secure hub needs --keys with an "
-            f"operator key it lists; a hub run with --insecure needs no keys) {family_hint(endpoint)}").rstrip()
+            f"operator key it lists; a hub run with --insecure needs no keys). {family_hint(endpoint)}").rstrip()
 
 
 def status_table(status: Dict[str, Any]) -> str:
