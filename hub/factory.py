@@ -169,6 +169,8 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     params.update(run.params or {})
     built = build_params(cls, params, "run.params")     # reject bad parameters here, not on every robot
     check_required(name, built)
+    if scenario is not None and "path" in (run.params or {}):
+        check_path_inside_walls(scenario, getattr(built, "path", None) or [])
     spec = RobotSpec() if scenario is None else RobotSpec(max_wheel_speed_m_s=scenario.robots.max_wheel_speed_m_s)
     control_hz = scenario.physics.control_hz if scenario is not None else run.control_hz
     if scenario is not None:       # the config checked watchdog_s against run.control_hz, which sim replaces
@@ -176,6 +178,20 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     seed = config.source.seed if config.source.seed is not None else getattr(scenario, "seed", None)
     return RunTemplate(name, params, control_hz, lockstep=config.source.type == "sim" and config.source.lockstep,
                        spec=dict(spec.__dict__), seed=seed)
+
+
+def check_path_inside_walls(scenario, path) -> None:
+    """``run.params.path`` for the sim source: every waypoint inside the scenario's walls, as `sim run` requires
+    of a scenario's own path (outside, the run could only fail, at its time limit)."""
+    walls = scenario.arena.walls
+    if walls is None:
+        return
+    xmin, ymin, xmax, ymax = walls
+    for i, waypoint in enumerate(path):
+        x, y = float(waypoint[0]), float(waypoint[1])
+        if not (xmin < x < xmax and ymin < y < ymax):
+            raise ConfigError(f"run.params.path[{i}]", f"({x:g}, {y:g}) is outside {scenario.name}'s arena walls "
+                                                       f"[{xmin:g}, {ymin:g}, {xmax:g}, {ymax:g}]")
 
 
 def check_required(behaviour: str, params: Any) -> None:

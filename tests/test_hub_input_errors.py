@@ -969,6 +969,20 @@ def test_run_params_for_the_sim_source_go_on_top_of_the_scenarios_mission():
     assert other.params == {"k_avoid": 2.0}      # another behaviour than the scenario's: its params only
 
 
+def test_a_run_params_path_outside_the_sim_scenarios_walls_is_refused():
+    """`run: {params: {path: [[0, 5, 0]]}}` on lab-6 (walls at +-2 m) started without a word; a scenario's own
+    path there is refused."""
+    from hub.factory import run_template
+    from sim_backend.scenario import load_scenario
+
+    config = parse_config(sim_config(run={"params": {"path": [[0, 0.5, 0], [0, 5, 0]]}}))
+    with pytest.raises(ConfigError) as err:
+        run_template(config, load_scenario("lab-6"))
+    assert str(err.value) == "run.params.path[1]: (0, 5) is outside lab-6's arena walls [-2, -2, 2, 2]"
+    inside = run_template(parse_config(sim_config(run={"params": {"path": [[0, 1.5, 0]]}})), load_scenario("lab-6"))
+    assert inside.params["path"] == [[0, 1.5, 0]]
+
+
 def test_a_replay_of_other_robots_says_what_to_check_in_a_replays_terms(tmp_path):
     """It said 'check source.bodies and robots', and a replay has no source.bodies."""
     poses = json.dumps({"bodies": {"10": [0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}}).encode()
