@@ -52,6 +52,13 @@ def integer(value: Any, field: str) -> None:
         fail(field, f"must be an integer (got {short(value)})")
 
 
+def nonce(value: Any, field: str) -> None:
+    """0 to 2**53 - 1: what every JSON reader holds exactly (docs/protocol.md), so the echo matches."""
+    integer(value, field)
+    if not 0 <= value < 1 << 53:
+        fail(field, f"must be 0 to 2**53 - 1 (got {value})")
+
+
 def robot_id(value: Any, field: str) -> None:
     integer(value, field)
     if not 0 <= value < 1_000_000:
@@ -169,11 +176,11 @@ SCHEMAS: Dict[str, Dict[str, Schema]] = {
     # operator <-> hub (control socket)
     "request": {
         "required": {"cmd": one_of(CONTROL_COMMANDS)},
-        "optional": {"nonce": integer},
+        "optional": {"nonce": nonce},
     },
     "reply": {
         "required": {"ok": boolean},
-        "optional": {"error": text, "status": mapping, "nonce": integer},
+        "optional": {"error": text, "status": mapping, "nonce": nonce},
     },
 }
 DOWNLINK_TYPES = ("frame", "command")
