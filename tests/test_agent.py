@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+import zmq
 
 from hub.harness import ScriptedHub, spawn_agent, stop_processes
 from onboard.agent.devices import AgentClock, HubState, apply_frame
@@ -373,6 +374,19 @@ def test_sends_before_the_hub_answered_are_not_counted_as_unsent_but_later_ones_
         link.close()
 
 
+def first_waiting_line(link: HubLink) -> str:
+    """The first line an agent on ``link``, with no hub there, says while it waits (within 10 s)."""
+    lines: list = []
+    agent = Agent(0, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=lines.append)
+    started = time.monotonic()
+    agent.serve(should_stop=lambda: any("no frame from the hub" in line for line in lines)
+                or time.monotonic() - started > 10.0)
+    link.close()
+    waiting = [line for line in lines if "no frame from the hub" in line]
+    assert waiting, lines
+    return waiting[0]
+
+
 def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
     """Nothing listens on the port: the agent keeps trying and says what to check, instead of sitting quiet.
     An address ZeroMQ refuses is a one-line error naming --hub."""
@@ -384,32 +398,16 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
     with sockets.socket() as probe:          # a free port, closed again: nothing listens there
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    lines = []
-    link = HubLink(0, f"tcp://127.0.0.1:{port}")
-    agent = Agent(0, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=lines.append)
     started = time.monotonic()
-    agent.serve(should_stop=lambda: any("no frame from the hub" in line for line in lines)
-                or time.monotonic() - started > 10.0)
-    link.close()
-    waiting = [line for line in lines if "no frame from the hub" in line]
-    assert waiting and f"at tcp://127.0.0.1:{port} yet; still trying" in waiting[0]
-    assert "is robot 0 in the hub's lab?" in waiting[0] and "key" not in waiting[0]    # an insecure link
+    waiting = first_waiting_line(HubLink(0, f"tcp://127.0.0.1:{port}"))
+    assert f"at tcp://127.0.0.1:{port} yet; still trying" in waiting
+    assert "is robot 0 in the hub's lab?" in waiting and "key" not in waiting    # an insecure link
     assert time.monotonic() - started < 5.0
-
     # With keys, against a hub that may run --insecure (which then says nothing at all): both causes named.
-    import zmq
-
     public, secret = zmq.curve_keypair()
-    lines.clear()
-    link = HubLink(0, f"tcp://127.0.0.1:{port}", keys={"public": public, "secret": secret, "server": public})
-    agent = Agent(0, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=lines.append)
-    started = time.monotonic()
-    agent.serve(should_stop=lambda: any("no frame from the hub" in line for line in lines)
-                or time.monotonic() - started > 10.0)
-    link.close()
-    waiting = [line for line in lines if "no frame from the hub" in line]
-    assert waiting and "does the hub list this robot's key, or does it run --insecure (then leave out --keys)?" \
-        in waiting[0]
+    keyed = HubLink(0, f"tcp://127.0.0.1:{port}", keys={"public": public, "secret": secret, "server": public})
+    assert "does the hub list this robot's key, or does it run --insecure (then leave out --keys)?" \
+        in first_waiting_line(keyed)
 
     parser = argparse.ArgumentParser()
     add_agent_arguments(parser)      # every option with its default, as the command line gives them
