@@ -27,7 +27,7 @@ def offset_of_survivors(reference: Dict[int, Tuple[float, float]], members, cent
     """From the ring centroid that ``members`` had in ``reference`` (their positions at some earlier moment) to
     ``centre_then``, the centre they surrounded at that moment. Added to those members' ring centroid now, it
     gives that centre now (turned by the object's turn since, where known): what a cage that lost members to
-    a death counts on (estimation.py:_live_members_offset, reinforce.py:_cage_centre)."""
+    a death counts on (estimation.py:_live_members_offset, which the spares run too)."""
     then = ring_centroid(np.asarray([reference[rid] for rid in members]))
     return (centre_then[0] - then[0], centre_then[1] - then[1])
 
