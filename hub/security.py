@@ -160,6 +160,9 @@ def operator_client_keys(folder: Path, name: Optional[str] = None) -> Dict[str, 
     """``khepri ctl``'s side: an operator pair (the only one in the folder unless ``name`` is given)."""
     found = sorted((folder / "operators").glob("*.key_secret"))
     candidates = [p for p in found if name is None or p.stem == name]
+    stem = name.rsplit(".", 1)[0] if name is not None and name.endswith((".key_secret", ".key")) else None
+    if not candidates and any(p.stem == stem for p in found):
+        raise ConfigError("--operator", f"takes the operator's name, not its key file: --operator {stem}")
     if not candidates:
         # With keys in the folder, the name is what is wrong (`--operator bob` among alice's): say that option.
         option = "--operator" if name is not None and found else "--keys"

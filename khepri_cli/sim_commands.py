@@ -54,7 +54,7 @@ def add_sim(groups) -> None:
 
     show = commands.add_parser("show", help="print a scenario as loaded (defaults filled in)",
                                description="Validate SCENARIO and print it with every default filled in.")
-    show.add_argument("scenario")
+    show.add_argument("scenario", help="built-in scenario name (see `khepri sim list`) or path to a YAML file")
     show.set_defaults(func=cmd_show)
 
 

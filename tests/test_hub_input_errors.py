@@ -663,6 +663,10 @@ def test_an_operator_name_the_folder_lacks_names_the_operator_option(tmp_path):
     with pytest.raises(ConfigError) as info:      # no key at all: the folder is what is wrong
         operator_client_keys(tmp_path / "elsewhere", "bob")
     assert info.value.field == "--keys"
+    for file in ("alice.key_secret", "alice.key"):  # the file's name for the operator's: said so
+        with pytest.raises(ConfigError) as info:
+            operator_client_keys(keys, file)
+        assert str(info.value) == "--operator: takes the operator's name, not its key file: --operator alice"
 
 
 # --- 11. keys init -------------------------------------------------------------------------------------------------
