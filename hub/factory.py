@@ -245,10 +245,21 @@ def record_path(config: LabConfig, now: Optional[float] = None) -> Path:
     if config.source.type == "replay" and path.exists() and path.resolve() == Path(config.source.file).resolve():
         raise ConfigError("record", f"{path} is the log being replayed (source.file): recording would erase it; "
                           "name another file")
+    if "{time}" in str(config.record):
+        path = first_free(path)      # two hubs started within one second (two labs, a script) each get a log
     if path.exists() or path.is_symlink():
         raise ConfigError("record", f"{path} exists (an earlier run's log, or one a hub is writing): the hub does "
                           "not write over a log. Remove it, name another file, or put {time} in the name "
                           "(e.g. logs/run-{time}.mcap)")
+    return path
+
+
+def first_free(path: Path, tries: int = 100) -> Path:
+    """``path``, or ``run-20261121-201502-2.mcap`` and on for the first name no file has (``path`` if none is)."""
+    for n in range(1, tries):
+        candidate = path if n == 1 else path.with_name(f"{path.stem}-{n}{path.suffix}")
+        if not (candidate.exists() or candidate.is_symlink()):
+            return candidate
     return path
 
 

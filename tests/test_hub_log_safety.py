@@ -105,6 +105,14 @@ def test_time_in_the_log_name_gives_each_start_its_own_file(tmp_path):
     config = parse_config({"record": str(tmp_path / "run-{time}.mcap")})
     at = time.mktime((2026, 11, 21, 20, 15, 2, 0, 0, -1))
     assert record_path(config, at) == tmp_path / "run-20261121-201502.mcap"
+    # Two hubs started within the same second: the second stopped at `record: ... exists`.
+    (tmp_path / "run-20261121-201502.mcap").write_bytes(b"")
+    assert record_path(config, at) == tmp_path / "run-20261121-201502-2.mcap"
+    (tmp_path / "run-20261121-201502-2.mcap").write_bytes(b"")
+    assert record_path(config, at) == tmp_path / "run-20261121-201502-3.mcap"
+    fixed = parse_config({"record": str(tmp_path / "run-20261121-201502.mcap")})
+    with pytest.raises(ConfigError, match="exists"):      # a fixed name still never writes over a log
+        record_path(fixed, at)
 
 
 def test_recording_onto_the_log_being_replayed_is_refused(tmp_path):
