@@ -6,7 +6,7 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import List
+from typing import List, Tuple
 
 from onboard.config import ConfigError
 from onboard.protocol import MAX_ROBOT_ID
@@ -123,7 +123,7 @@ def _add_ctl(groups) -> None:
     ctl.add_argument("--keys", type=Path, metavar="DIR", help="key folder with operators/<name>.key_secret, hub.key")
     ctl.add_argument("--operator", help="operator key name when the folder holds several")
     ctl.add_argument("--timeout", type=float, default=2.0, metavar="S", help="wait this long for the hub (default 2)")
-    ctl.add_argument("--json", action="store_true", help="status: print JSON")
+    ctl.add_argument("--json", action="store_true", help="print JSON: the status, or what the command did")
     ctl.set_defaults(func=cmd_ctl)
 
 
@@ -152,20 +152,28 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         return 1
     if args.command == "status":
         print(json.dumps(reply["status"], indent=2) if args.json else status_table(reply["status"]))
+    elif args.json:
+        pass                       # one JSON object below, once start's refusals are known
     elif reply.get("nothing_done"):
         print(f"{args.command}: {reply['note']}")
     else:
         print(f"{args.command}: ok{' (' + reply['note'] + ')' if reply.get('note') else ''}")
+    refused: List[Tuple[int, str]] = []
     if args.command == "start":    # the hub is in run mode now; say which robots will not run (ctl said ok)
         try:
             refused = refusals_after_start(endpoint, keys, args.timeout)
         except ControlError as err:
             print(f"khepri: error: {err}", file=sys.stderr)
             return 1
-        for robot_id, error in refused:
-            print(f"khepri: error: robot {robot_id}: {error}", file=sys.stderr)
-        return 1 if refused else 0
-    return 0
+        if not args.json:
+            for robot_id, error in refused:
+                print(f"khepri: error: robot {robot_id}: {error}", file=sys.stderr)
+    if args.json and args.command != "status":
+        said = {key: reply[key] for key in ("note", "nothing_done") if key in reply}
+        if args.command == "start":
+            said["refused"] = [{"robot": robot_id, "error": error} for robot_id, error in refused]
+        print(json.dumps({"command": args.command, "ok": True, **said}))
+    return 1 if refused else 0
 
 
 MAX_TIMEOUT_S = 3600.0

@@ -186,7 +186,7 @@ def test_ctl_stop_and_clear_with_nothing_to_do_say_so(tmp_path):
         control = hub_ports(tmp_path / "hub.log", hub)["control"]
 
         def ctl(command: str) -> str:
-            run = khepri("ctl", command, "--port", control)
+            run = khepri("ctl", *command.split(), "--port", control)
             assert run.returncode == 0, run.stderr
             return run.stdout.strip()
 
@@ -197,6 +197,11 @@ def test_ctl_stop_and_clear_with_nothing_to_do_say_so(tmp_path):
         assert ctl("clear") == "clear: ok (robots stay stopped until `khepri ctl start`)"
         assert re.fullmatch(r"stop: ok \(run [0-9a-f]{12} ended; 0 of 6 robots connected and told to stop\)",
                             ctl("stop"))
+        # --json for every command, not only status (start and stop printed plain text)
+        assert json.loads(ctl("stop --json")) == {"command": "stop", "ok": True, "nothing_done": True,
+                                                  "note": "nothing to stop: no run is going"}
+        started = json.loads(ctl("start --json"))
+        assert started["command"] == "start" and started["refused"] == [] and "note" in started
     finally:
         codes = stop_processes([hub])
         hub_log.close()
