@@ -15,9 +15,10 @@ from .run_events import end_by_signal
 
 INSECURE_WARNING = """\
 ************************************************************************
-*  WARNING: --insecure: no encryption and no authentication.           *
-*  Anyone who can reach these ports can drive the robots and read the  *
-*  lab's traffic. Use it only on loopback or an isolated test network. *
+*  WARNING: insecure (--insecure or security.insecure): no encryption  *
+*  and no authentication. Anyone who can reach these ports can drive   *
+*  the robots and read the lab's traffic. Use it only on loopback or   *
+*  an isolated test network.                                           *
 ************************************************************************"""
 
 

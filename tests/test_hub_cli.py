@@ -109,7 +109,7 @@ def test_hub_answers_ctl_and_takes_an_agent(tmp_path):
     agent = None
     try:
         ports = hub_ports(tmp_path / "hub.log", hub)
-        assert "WARNING: --insecure" in (tmp_path / "hub.log").read_text()
+        assert "WARNING: insecure (--insecure or security.insecure)" in (tmp_path / "hub.log").read_text()
         agent = spawn("agent", "--id", "2", "--driver", "sim", "--port", ports["robots"],
                       log=open(tmp_path / "agent.log", "w"))
         wait_until_connected(2, ports["control"])
