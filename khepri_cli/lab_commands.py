@@ -152,12 +152,10 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         return 1
     if args.command == "status":
         print(json.dumps(reply["status"], indent=2) if args.json else status_table(reply["status"]))
-    elif args.json:
-        pass                       # one JSON object below, once start's refusals are known
-    elif reply.get("nothing_done"):
-        print(f"{args.command}: {reply['note']}")
-    else:
-        print(f"{args.command}: ok{' (' + reply['note'] + ')' if reply.get('note') else ''}")
+    elif not args.json:            # with --json: one object below, once start's refusals are known
+        note = reply.get("note")
+        print(f"{args.command}: {note}" if reply.get("nothing_done") else
+              f"{args.command}: ok{' (' + note + ')' if note else ''}")
     refused: List[Tuple[int, str]] = []
     if args.command == "start":    # the hub is in run mode now; say which robots will not run (ctl said ok)
         try:
