@@ -25,9 +25,9 @@ from .estimation import ObjectEstimation
 from .estimator import ObjectFilter, ring_centroid, surrounds
 from .params import TransportParams
 from .perception import Percept, near, perceive, world_to_robot
-from .reinforce import ReinforcePhase
+from .reinforce import STALL_PROGRESS_M, ReinforcePhase
 from .tasks import Task, TaskBoard, distance, new_space, task_from
-from .transport import TransportPhases
+from .transport import ProgressWatch, TransportPhases
 
 # A spare robot that has heard no news of the mission this long is out of reach of it (left behind as the cage
 # pushed away, or never near it): it counts as finished, though it goes on keeping clear.
@@ -95,7 +95,7 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
         self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
         self.closed_seen_at: Optional[float] = None     # idle: when this spare first saw the cage closed
-        self.stall_watch: Optional[Tuple[int, float, float]] = None   # (leg, since, distance) (_push_stalled)
+        self.stall_watch = ProgressWatch(STALL_PROGRESS_M)   # idle: the cage's progress (_push_stalled)
         self.next_stall_check = 0.0
         self.push_stalled = False                # the cage stalled pushing: this spare reinforces from now on
         self.quiet_since: Tuple[int, float] = (-1, 0.0)   # idle: (count of mission news, since when)

@@ -53,15 +53,13 @@ class ReinforcePhase:
         needed = self._barrier_needed(len(members))
         leg = self._cage_leg(needed, path) if len(members) >= 3 and path else None
         if leg is None or not self._cage_pushing(leg, needed):
-            self.stall_watch = None
+            self.stall_watch.clear()
             return False
         centre = self._cage_centre(now)
         distance = math.hypot(float(path[leg][0]) - centre[0], float(path[leg][1]) - centre[1])
-        watch = self.stall_watch
-        if distance < self.params.push_tolerance_m or watch is None or watch[0] != leg \
-                or distance < watch[2] - STALL_PROGRESS_M:
-            self.stall_watch = (leg, now, distance)
-        elif now - watch[1] >= stall_s:
+        if distance < self.params.push_tolerance_m:
+            self.stall_watch.restart(leg, now, distance)
+        elif self.stall_watch.waited(leg, now, distance) >= stall_s:
             self.push_stalled = True
         return self.push_stalled
 

@@ -6,7 +6,8 @@ paper's names: u_fp = u_t + u_f + u_cp (push), u_fr = u_r + u_f + u_cr (rotate).
 from __future__ import annotations
 
 import math
-from typing import Dict, List, Optional, Tuple
+from dataclasses import dataclass
+from typing import Any, Dict, List, Optional
 
 import numpy as np
 
@@ -27,6 +28,29 @@ PACE_STOP_M = 0.08    # ... and this far ahead, stopped (it slows from PACE_MIN 
 PACE_ANGLE = math.radians(45.0)   # ... a robot whose object lies more than this off its way (not behind it)
 
 
+@dataclass
+class ProgressWatch:
+    """How long a distance to a target has not come ``step_m`` nearer on one leg: the stall test that
+    hold_yaw_while_pushing (a member, _pushing_on) and reinforce_when_stalled_s (a spare, reinforce.py) share."""
+
+    step_m: float
+    leg: Any = None                 # the leg watched (None: none yet)
+    since: float = 0.0              # when the distance last came step_m nearer, or the watch restarted
+    distance: float = math.inf
+
+    def waited(self, leg: Any, now: float, distance: float) -> float:
+        """Seconds since the distance last came step_m nearer on ``leg``: 0 when it just did or the leg is new."""
+        if leg != self.leg or distance < self.distance - self.step_m:
+            self.restart(leg, now, distance)
+        return now - self.since
+
+    def restart(self, leg: Any, now: float, distance: float) -> None:
+        self.leg, self.since, self.distance = leg, now, distance
+
+    def clear(self) -> None:
+        self.leg = None
+
+
 class TransportPhases:
     # --- settle: even out the spacing once the ring is closed --------------------------------------------
     def _on_settle(self, now: float) -> None:
@@ -44,7 +68,7 @@ class TransportPhases:
         self.waypoint, self.phase, self.state = 0, "p", "push"
         self.estimated_at = now
         self.yaw_from_normals = self._yaw_from_contact_normals()   # the path is known from here on
-        self.push_progress: Optional[Tuple[tuple, float, float]] = None   # (leg, since, distance): _pushing_on
+        self.push_watch = ProgressWatch(HOLD_YAW_PROGRESS_M)      # _pushing_on
 
     def _formation_now(self) -> Dict[int, Vec]:
         """N_f: cage members within k * I_d, as world-frame vectors from this robot."""
@@ -105,11 +129,7 @@ class TransportPhases:
     def _pushing_on(self, now: float, remaining: float) -> bool:
         """Whether the push got HOLD_YAW_PROGRESS_M nearer the waypoint (by this robot's estimate) within the
         last HOLD_YAW_STALL_S: hold_yaw_while_pushing corrects the yaw only then."""
-        watch = self.push_progress
-        if watch is None or watch[0] != (self.waypoint, self.phase) or remaining < watch[2] - HOLD_YAW_PROGRESS_M:
-            self.push_progress = ((self.waypoint, self.phase), now, remaining)
-            return True
-        return now - watch[1] < HOLD_YAW_STALL_S
+        return self.push_watch.waited((self.waypoint, self.phase), now, remaining) < HOLD_YAW_STALL_S
 
     def _leg(self) -> Vec:
         """The way from the previous waypoint (the start, for the first) to the current one: unlike the way
