@@ -156,10 +156,27 @@ def _path_error(err: OSError, default: Optional[str] = None) -> int:
     return 2
 
 
+def _take_late_positional(args: argparse.Namespace, extras: List[str]) -> List[str]:
+    """An optional positional given after an option (``study report --no-figures DIR``): argparse has already
+    matched it to nothing with the positional before it, and leaves DIR over. A command names such a positional
+    with ``set_defaults(late_positional=(dest, type))``; the first leftover that is not an option fills it."""
+    late = getattr(args, "late_positional", None)
+    if late is None or not extras or extras[0].startswith("-"):
+        return extras
+    dest, kind = late
+    if getattr(args, dest, None) is not None:
+        return extras
+    setattr(args, dest, kind(extras[0]))
+    return extras[1:]
+
+
 def _run(argv: Optional[List[str]]) -> int:
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args, extras = parser.parse_known_args(argv)
+        extras = _take_late_positional(args, extras)
+        if extras:
+            parser.error(f"unrecognized arguments: {' '.join(extras)}")
     except SystemExit:
         try:
             sys.stdout.flush()      # --help into a closed pipe fails here, inside main(), not at exit

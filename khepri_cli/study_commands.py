@@ -45,7 +45,7 @@ def add_study(groups) -> None:
                             "cells and seeds are then taken as this study's)")
     study.add_argument("--dry-run", action="store_true", help="print the grid and what is done; run nothing")
     study.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    study.set_defaults(func=cmd_study)
+    study.set_defaults(func=cmd_study, late_positional=("folder", Path))
 
 
 def cmd_study(args: argparse.Namespace) -> int:

@@ -941,6 +941,12 @@ def test_study_report_reaggregates_a_folder_without_running(known_study, capsys)
     assert len(load_results(known_study).cells) == 2
     assert main(["study", "report", str(known_study / "missing")]) == 2
     assert "study report: no such folder" in capsys.readouterr().err
+    # The folder after an option: argparse alone left it over as an unrecognised argument.
+    assert main(["study", "report", "--no-figures", str(known_study / "missing")]) == 2
+    assert "study report: no such folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["study", "report", "--no-figures", str(known_study), "surplus"])
+    assert "unrecognized arguments: surplus" in capsys.readouterr().err
     (known_study / "notes.txt").write_text("a file, not a study")
     assert main(["study", "report", str(known_study / "notes.txt")]) == 2
     assert "notes.txt is a file: give the study's folder" in capsys.readouterr().err
