@@ -110,11 +110,7 @@ def status_table(status: Dict[str, Any]) -> str:
     recording = status.get("recording")
     if recording and recording.get("error"):
         lines.append(f"RECORDING STOPPED ({recording['path']}): {recording['error']}")
-    header = f"{'robot':>5}  {'connected':9}  {'last seen':>9}  {'mode':7}  {'state':14}  {'loop Hz':>7}  " \
-             f"{'misses':>6}  {'battery':>7}  note"
-    lines.append(header)
-    for row in status["robots"]:
-        lines.append(_row(row))
+    lines += robot_table(status["robots"])
     # Newer hubs' fields (docs/protocol.md): an older hub's reply has none of them, and gets no such line.
     if status.get("object"):
         lines.append(object_text(status["object"]))
@@ -126,7 +122,27 @@ def status_table(status: Dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _row(row: Dict[str, Any]) -> str:
+# The status table's columns: title and whether it is right-aligned (numbers). The note is last, unpadded.
+COLUMNS = (("robot", True), ("connected", False), ("last seen", True), ("mode", False), ("state", False),
+           ("loop Hz", True), ("misses", True), ("battery", True), ("note", False))
+STATE_WIDTH = 14        # a behaviour's state name longer than this is cut: the note after it stays in view
+
+
+def robot_table(rows: List[Dict[str, Any]]) -> List[str]:
+    """Header and one line per robot, each column as wide as its widest cell (a 6-digit id, a robot silent
+    for hours, a million misses), so that the columns stay in line."""
+    cells = [[title for title, _ in COLUMNS]] + [_row_cells(row) for row in rows]
+    widths = [max(len(line[i]) for line in cells) for i in range(len(COLUMNS) - 1)]
+
+    def line(values: List[str]) -> str:
+        padded = [value.rjust(width) if right else value.ljust(width)
+                  for value, width, (_, right) in zip(values, widths, COLUMNS)]
+        return "  ".join(padded + [values[-1]]).rstrip()
+
+    return [line(values) for values in cells]
+
+
+def _row_cells(row: Dict[str, Any]) -> List[str]:
     seen = "never" if row["last_seen_s"] is None else f"{row['last_seen_s']:.1f} s"
     battery = "-" if row.get("battery_v") is None else f"{row['battery_v']:.2f} V"
     loop = "-" if row.get("loop_hz") is None else f"{row['loop_hz']:.1f}"
@@ -139,8 +155,9 @@ def _row(row: Dict[str, Any]) -> str:
         notes.insert(0, "finished")
     if row.get("estop_ack_ms") is not None:
         notes.append(f"e-stop acknowledged in {row['estop_ack_ms']:.1f} ms")
-    return f"{row['id']:>5}  {'yes' if row['connected'] else 'no':9}  {seen:>9}  {row['mode']:7}  " \
-           f"{str(row.get('state') or '-'):14.14}  {loop:>7}  {misses:>6}  {battery:>7}  {'; '.join(notes)}"
+    state = str(row.get("state") or "-")[:STATE_WIDTH]
+    return [str(row["id"]), "yes" if row["connected"] else "no", seen, str(row["mode"]), state, loop, misses,
+            battery, "; ".join(notes)]
 
 
 def object_text(status: Optional[Dict[str, Any]]) -> str:

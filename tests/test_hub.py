@@ -107,6 +107,20 @@ def test_status_before_any_agent_shows_robots_never_seen(three_robots):
                                  f"listening control {hub.endpoints['control']}"]
 
 
+def test_the_status_tables_columns_stay_in_line_for_long_ids_and_counts():
+    """Widths were fixed: a 6-digit id or a robot silent for hours pushed its row's columns out of line."""
+    base = {"connected": True, "mode": "run", "state": "push", "loop_hz": 10.0, "loop_misses": 0, "battery_v": 7.4}
+    rows = [{**base, "id": 7, "last_seen_s": 0.1},
+            {**base, "id": 123456, "connected": False, "last_seen_s": 98765.4, "loop_hz": None, "loop_misses": 1234567}]
+    status = {"mode": "run", "source": "sim", "mocap_hz": 120.0, "robots": rows}
+    header, *lines = status_table(status).splitlines()[1:]
+    # Every column starts (left-aligned) or ends (right-aligned) at the same place in every line.
+    assert lines[0].index("yes") == lines[1].index("no ") == header.index("connected")
+    assert lines[0].index("run") == lines[1].index("run") == header.index("mode")
+    assert lines[0].index("7.40 V") + 6 == lines[1].index("7.40 V") + 6 == header.index("battery") + 7
+    assert lines[1].split()[0] == "123456" and "1234567" in lines[1]
+
+
 def test_a_killed_agent_shows_no_loop_rate_and_says_its_state_is_old(three_robots, tmp_path):
     """A SIGKILLed agent's row kept `loop Hz 10.0`, mode `run` and its last state with no note: a dead robot
     read as one still running its behaviour."""
