@@ -128,7 +128,8 @@ class NetworkConfig:
         for name in ("robot_port", "control_port"):
             check_range(join(where, name), getattr(self, name), 0, 65535)
         if self.robot_port == self.control_port != 0:
-            raise ConfigError(join(where, "control_port"), "must differ from robot_port")
+            raise ConfigError(join(where, "control_port"),
+                              f"must differ from the robot port (both are {self.robot_port})")
         check_range(join(where, "downlink_hz"), self.downlink_hz, 1.0, 1000.0)
         if self.downlink_hz < MIN_DOWNLINK_HZ:
             raise ConfigError(join(where, "downlink_hz"), f"must be >= {MIN_DOWNLINK_HZ:g} (got {self.downlink_hz:g}): "

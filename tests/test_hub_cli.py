@@ -141,7 +141,8 @@ def test_the_demo_hub_runs_on_ports_given_on_the_command_line(tmp_path):
         hub_log.close()
     assert codes == [0] * len(codes)
     same = khepri("hub", "--demo", "--robot-port", "6411", "--control-port", "6411")
-    assert same.stderr.strip().splitlines()[-1] == "khepri: error: --control-port: must differ from robot_port"
+    assert same.stderr.strip().splitlines()[-1] == \
+        "khepri: error: --control-port: must differ from the robot port (both are 6411)"
 
 
 def test_ctl_start_names_the_robots_that_cannot_run_it(tmp_path):
