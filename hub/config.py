@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
+from hub.mocap_options import check_mock_options
 from onboard.config import ConfigError, check_range, from_mapping, join
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
@@ -67,6 +68,8 @@ class SourceConfig:
                 raise ConfigError(join(join(where, "bodies"), name),
                                   f"robot {rid} is already the body {first_body[rid]!r}: one body per robot")
             first_body[rid] = name
+        if self.type == "motioncapture" and self.system == "mock":
+            check_mock_options(join(where, "options"), self.options)
         if self.type == "motioncapture" and self.system == "mock" and "frequency" in self.options:
             # The mock backend parses it in C++ (a bad one is a traceback there) and spins without a wait at
             # 0 or below, starving the hub.

@@ -14,6 +14,7 @@ from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from hub.mocap_options import unread_option_notes
 from onboard.config import ConfigError
 
 
@@ -232,6 +233,8 @@ class MotionCaptureSource(PoseSource):
             self.not_the_real_robots = "the mock motion capture's poses do not follow real robots"
         self.bodies, self.up_axis, self.log = dict(bodies), up_axis, log
         log(f"hub: connecting to {system} ({describe_options(options)})...")
+        for note in unread_option_notes(system, options):
+            log(f"hub: warning: {note}")
         if connect is None and system not in IN_PROCESS_SYSTEMS:
             probe_mocap(system, options, connect_timeout_s)
         try:

@@ -144,6 +144,17 @@ def test_a_mock_frequency_that_is_not_a_whole_rate_is_refused(frequency):
     assert parse_config({**config, "source": {**config["source"], "options": {"frequency": "100"}}})
 
 
+@pytest.mark.parametrize("key, hint", [("frequncy", "; did you mean frequency?"), ("hostname", "")])
+def test_an_option_the_mock_does_not_read_is_refused(key, hint):
+    """The mock ignored it: `frequncy: 30` ran at its default 100 Hz without a word."""
+    config = mocap_config({"kh0": 0})
+    config["source"]["options"][key] = "30"
+    with pytest.raises(ConfigError) as info:
+        parse_config(config)
+    assert str(info.value) == (f"source.options.{key}: the mock backend does not read it (it reads rigid_bodies, "
+                               f"pointcloud, frequency){hint}")
+
+
 def test_a_numeric_body_name_matches_the_sdks_string_name():
     assert parse_config(mocap_config({7: 0})).source.bodies == {"7": 0}
 

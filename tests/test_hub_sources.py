@@ -100,6 +100,21 @@ def test_an_option_the_sdk_cannot_parse_is_one_line_naming_source_options():
     assert info.value.field == "source.options" and "'fake' refused an option" in info.value.problem
 
 
+def test_an_option_a_real_system_does_not_read_is_warned_with_the_key_it_reads():
+    """motioncapture's connect() ignores unknown keys: `host:` for a Vicon connected to localhost, unsaid."""
+    lines: list = []
+    source = MotionCaptureSource(zmq.Context.instance(), "vicon", {"host": "10.0.0.5"}, {"kh0": 0}, "z",
+                                 log=lines.append, connect=lambda system, options: FakeMocap())
+    source.close()
+    assert lines[1] == ("hub: warning: source.options.host: motioncapture 1.x's vicon backend does not read it; "
+                        "passed on all the same (it reads hostname, enable_objects, enable_pointclout); did you "
+                        "mean hostname?")
+    lines.clear()
+    MotionCaptureSource(zmq.Context.instance(), "vicon", {"hostname": "10.0.0.5"}, {"kh0": 0}, "z",
+                        log=lines.append, connect=lambda system, options: FakeMocap()).close()
+    assert not [line for line in lines if "warning" in line]
+
+
 def reference_convert(bodies, names_to_ids, up_axis):
     """The conversion body by body: listed names only, world pose per body, non-finite poses dropped."""
     ids, poses = [], []
