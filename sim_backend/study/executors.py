@@ -6,6 +6,7 @@ so one bad run cannot stop a study.
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 import multiprocessing
 import os
@@ -195,6 +196,15 @@ def _not_a_heartbeat_to_a_closed_scheduler(record: logging.LogRecord) -> bool:
     return not record.getMessage().startswith("Failed to communicate with scheduler during heartbeat")
 
 
+def _not_the_clients_own_word_on_a_lost_scheduler(record: logging.LogRecord) -> bool:
+    """The client, having lost its scheduler, logged "Failed to reconnect to scheduler after 30.00 seconds" and
+    then two tracebacks of CancelledError from its own close. The driver says it in one line that names the
+    scheduler and how to resume (DaskExecutor._check_connected)."""
+    if record.getMessage().startswith("Failed to reconnect to scheduler"):
+        return False
+    return not (record.exc_info and isinstance(record.exc_info[1], asyncio.CancelledError))
+
+
 class DaskExecutor:
     """Dask distributed: a LocalCluster of ``workers`` single-threaded processes, or an existing scheduler.
 
@@ -223,6 +233,8 @@ class DaskExecutor:
 
         client, cluster = self._start()
         futures: Dict[Any, RunSpec] = {}
+        client_log = logging.getLogger("distributed.client")
+        client_log.addFilter(_not_the_clients_own_word_on_a_lost_scheduler)
         try:
             futures = {self._submit(client, spec, out_root): spec for spec in runs}
             suspects = []
@@ -237,6 +249,7 @@ class DaskExecutor:
             for future in futures:
                 future.cancel()
             client.close()
+            client_log.removeFilter(_not_the_clients_own_word_on_a_lost_scheduler)
             if cluster is not None:
                 cluster.close()
 
