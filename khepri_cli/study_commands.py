@@ -110,6 +110,19 @@ def refuse_another_study(out: Path, name: str) -> None:
                                    f"another --out, or add --merge to add this study's runs to that folder")
 
 
+def study_file_path(target: str) -> Path:
+    """TARGET when it names a study file; else what it is instead, said (a typo in the name is the usual one)."""
+    path = Path(target)
+    if path.is_file():
+        return path
+    if path.is_dir():
+        raise ConfigError("study", f"{target} is a folder: give `paper`, a study YAML file, or `report {target}` "
+                                   "to re-aggregate a study folder")
+    if path.suffix in (".yaml", ".yml") or os.sep in target or "/" in target:
+        raise ConfigError("study", f"no such file: {target}")
+    raise ConfigError("study", f"{target!r} is not `paper`, `report` or a study file (no such file)")
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from sim_backend.study.report import write_study_outputs
 
@@ -137,10 +150,7 @@ def study_grid(args: argparse.Namespace):
     if args.target == "paper":
         spec = paper_study(args.reps or DEFAULT_REPS)
     else:
-        path = Path(args.target)
-        if not path.is_file():
-            raise ConfigError("study", f"{args.target!r} is not `paper`, `report` or a study file")
-        spec = load_study_file(path, args.reps)
+        spec = load_study_file(study_file_path(args.target), args.reps)
     if args.time_limit is not None:
         spec.time_limit_s = args.time_limit
     if args.scenarios is not None:

@@ -378,7 +378,26 @@ def load_scenario(name_or_path: str) -> Scenario:
     if data is None:
         raise ConfigError(path.name, "the file is empty (a scenario is a mapping of keys such as behaviour: and "
                                      "robots:; {} takes every default)")
-    return parse_scenario(data, default_name=path.stem)
+    return _parse_file(data, path, default_name=path.stem)
+
+
+def load_builtin(name: str) -> Scenario:
+    """A built-in scenario by name alone, whatever files the current folder holds: a study names built-ins
+    by name and its own scenario files by path, and `lab-6` in the folder it is run from is neither."""
+    path = BUILTIN_DIR / f"{name}.yaml"
+    if not _is_bare_name(name) or not path.is_file():
+        raise ConfigError("scenario", f"unknown scenario {name!r}: not a file and not built in (see `khepri sim "
+                                      f"list`)")
+    return _parse_file(read_yaml(path, "scenario"), path, default_name=name)
+
+
+def _parse_file(data: Any, path: Path, default_name: str) -> Scenario:
+    try:
+        return parse_scenario(data, default_name=default_name)
+    except ConfigError as err:
+        if err.field:
+            raise
+        raise ConfigError(str(path), err.problem) from None     # the whole file is wrong: name it
 
 
 def parse_scenario(data: Any, default_name: str = "scenario") -> Scenario:

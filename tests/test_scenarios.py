@@ -300,8 +300,13 @@ def test_unknown_params_key_lists_the_known_names():
     assert "inter_robot_distance_m" in err.problem and err.problem.endswith("travel_speed_m_s)")
 
 
-def test_not_a_mapping():
+def test_not_a_mapping(tmp_path):
     assert str(error_of([1, 2])) == "a scenario must be a mapping of keys (got list)"
+    path = tmp_path / "list.yaml"
+    path.write_text("- a\n- b\n")
+    with pytest.raises(ConfigError) as info:         # the file is named: one of a study's many, say
+        load_scenario(str(path))
+    assert str(info.value) == f"{path}: a scenario must be a mapping of keys (got list)"
 
 
 def test_yaml_syntax_error_names_file_and_line(tmp_path):

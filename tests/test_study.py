@@ -140,7 +140,7 @@ def test_overrides_listed_one_cell_each_change_keys_together(tmp_path):
 def test_a_bad_list_of_override_cells_names_the_cell(tmp_path, capsys, overrides, said):
     study = write(tmp_path / "s.yaml", TINY_STUDY + f"overrides: {overrides}\n")
     assert main(["study", str(study), "--dry-run"]) == 2
-    assert f"khepri: error: {said}" in capsys.readouterr().err
+    assert f"khepri: error: {study}: {said}" in capsys.readouterr().err
 
 
 def test_a_whole_mapping_override_names_its_cell_with_its_keys():
@@ -302,7 +302,7 @@ def test_a_cell_whose_robots_cannot_be_placed_is_refused_before_anything_runs(tm
     """Only the world finds it (the scenario itself is valid): the study builds each cell's world first."""
     study = write(tmp_path / "tiny.yaml", TINY_STUDY + "overrides: {robots.spawn.x: [[-1.2, -0.6], [0.0, 0.0]]}\n")
     assert main(["study", str(study), "--out", str(tmp_path / "out")]) == 2
-    assert "khepri: error: overrides (lab-6@robots.spawn.x=0,0): robots.spawn: 6 robots need about" in \
+    assert f"khepri: error: {study}: overrides (lab-6@robots.spawn.x=0,0): robots.spawn: 6 robots need about" in \
         capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
@@ -918,7 +918,7 @@ def test_a_transport_study_gets_no_table_of_its_own_numbers(tmp_path):
 def test_override_values_that_would_share_a_folder_are_refused(tmp_path, capsys):
     study = write(tmp_path / "s.yaml", TINY_STUDY + "overrides: {comm.drop: [0.1234561, 0.1234564]}\n")
     assert main(["study", str(study), "--dry-run"]) == 2
-    assert ("khepri: error: overrides: comm.drop=0.1234561 and comm.drop=0.1234564 give the same folder name "
+    assert (f"khepri: error: {study}: overrides: comm.drop=0.1234561 and comm.drop=0.1234564 give the same folder name "
             "'lab-6@comm.drop=0.123456'") in capsys.readouterr().err
 
 
@@ -1413,9 +1413,9 @@ def test_a_scenario_file_written_relative_to_the_current_folder_is_said_to_be_re
     (tmp_path / "study/s.yaml").write_text("scenarios: [study/scen/a.yaml]\nreps: 1\n")
     monkeypatch.chdir(tmp_path)
     assert main(["study", "study/s.yaml", "--dry-run"]) == 2
-    assert capsys.readouterr().err == ("khepri: error: scenarios[0]: no such file: study/study/scen/a.yaml (a scenario "
-                                       "file is relative to the study file: for study/scen/a.yaml in the current "
-                                       "folder, write scen/a.yaml)\n")
+    assert capsys.readouterr().err == ("khepri: error: study/s.yaml: scenarios[0]: no such file: "
+                                       "study/study/scen/a.yaml (a scenario file is relative to the study file: for "
+                                       "study/scen/a.yaml in the current folder, write scen/a.yaml)\n")
 
 
 def test_a_study_takes_whole_numbers_written_as_floats_as_scenario_files_do():
@@ -1448,5 +1448,37 @@ def test_a_key_overridden_inside_a_whole_mapping_override_is_refused(tmp_path, c
     """The whole mapping silently replaced the sub-key: two cells labelled mass 2 and 3 both ran the default."""
     study = write(tmp_path / "s.yaml", TINY_STUDY + f"overrides: {overrides}\n")
     assert main(["study", str(study), "--dry-run"]) == 2
-    assert "khepri: error: overrides.object.mass: lies inside overrides.object, which replaces all of object: " \
-           "one of them would be lost; put mass into each value of overrides.object instead" in capsys.readouterr().err
+    assert f"khepri: error: {study}: overrides.object.mass: lies inside overrides.object, which replaces all of " \
+           "object: one of them would be lost; put mass into each value of overrides.object instead" \
+           in capsys.readouterr().err
+
+
+def test_a_built_in_name_in_a_study_is_the_built_in_whatever_the_current_folder_holds(tmp_path, monkeypatch, capsys):
+    """`khepri sim show lab-6 > lab-6` in the current folder made a study elsewhere that lists lab-6 fail with
+    "'lab-6' is both a built-in scenario and a file in this folder"; the study's files are beside the study."""
+    (tmp_path / "st").mkdir()
+    study = write(tmp_path / "st/s.yaml", TINY_STUDY)
+    write(tmp_path / "lab-6", "robots: {count: 3}\n")
+    monkeypatch.chdir(tmp_path)
+    assert main(["study", "st/s.yaml", "--dry-run", "--out", str(tmp_path / "o")]) == 0
+    assert [run.scenario_data["robots"]["count"] for run in expand(load_study_file(study))] == [6, 6]
+
+
+@pytest.mark.parametrize("target, said", [
+    ("nothere.yaml", "study: no such file: nothere.yaml"),
+    ("sub/nothere", "study: no such file: sub/nothere"),
+    ("sub", "study: sub is a folder: give `paper`, a study YAML file, or `report sub` to re-aggregate"),
+    ("papr", "study: 'papr' is not `paper`, `report` or a study file (no such file)"),
+    ("scen.yaml", "scen.yaml: this is a scenario, not a study: run it with `khepri sim run FILE`"),
+    ("list.yaml", "list.yaml: a study file must be a mapping of keys (got list)"),
+    ("bad.yaml", "bad.yaml: scenarios[0]: mass.yaml: object.mass: must be > 0 (got -2)"),
+])
+def test_a_study_target_that_is_not_a_study_file_says_what_it_is(tmp_path, monkeypatch, capsys, target, said):
+    (tmp_path / "sub").mkdir()
+    write(tmp_path / "scen.yaml", "robots: {count: 4}\nobject: {shape: circle, radius: 0.2}\n")
+    write(tmp_path / "list.yaml", "- a\n- b\n")
+    write(tmp_path / "mass.yaml", "object: {shape: circle, radius: 0.2, mass: -2}\n")
+    write(tmp_path / "bad.yaml", "scenarios: [mass.yaml]\nreps: 1\n")
+    monkeypatch.chdir(tmp_path)
+    assert main(["study", target, "--dry-run"]) == 2
+    assert capsys.readouterr().err.startswith(f"khepri: error: {said}")

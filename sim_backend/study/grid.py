@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from onboard.behaviour import get_behaviour
 from onboard.config import ConfigError, to_mapping
-from sim_backend.scenario import load_scenario, parse_scenario
+from sim_backend.scenario import load_builtin, load_scenario, parse_scenario
 
 # A cell's folder name at most (ASCII, so bytes too): what the usual file systems allow a name. A name that fits
 # is kept as it is, so the folders of studies run before this still resume.
@@ -161,10 +161,12 @@ def expand(spec: StudySpec) -> List[RunSpec]:
 
 def scenario_mapping(scenario_ref: str, where: str) -> Dict[str, Any]:
     """A scenario as a plain mapping with every default filled in (what ``khepri sim show`` prints)."""
+    is_file = Path(scenario_ref).is_absolute()      # the study file made its scenario files absolute
     try:
-        return to_mapping(load_scenario(scenario_ref))
+        return to_mapping(load_scenario(scenario_ref) if is_file else load_builtin(scenario_ref))
     except ConfigError as err:
-        raise ConfigError(where, str(err)) from None
+        which = f"{Path(scenario_ref).name}: " if is_file and not err.field.endswith(Path(scenario_ref).name) else ""
+        raise ConfigError(where, which + str(err)) from None
 
 
 def apply_overrides(base: Dict[str, Any], chosen: Dict[str, Any]) -> Dict[str, Any]:

@@ -100,9 +100,9 @@ def scenario_time_limit_s(scenario_name: str) -> Optional[float]:
     """The time limit of the built-in scenario that reproduces a paper case (what the paper's runs had room for,
     as far as we know); None when there is no such scenario."""
     from onboard.config import ConfigError
-    from sim_backend.scenario import load_scenario  # here: the scenarios need not load to read the paper's data
+    from sim_backend.scenario import load_builtin  # here: the scenarios need not load to read the paper's data
 
     try:
-        return float(load_scenario(scenario_name).time_limit_s)
+        return float(load_builtin(scenario_name).time_limit_s)
     except ConfigError:        # no such built-in scenario: nothing to compare with
         return None

@@ -45,10 +45,15 @@ def load_study_file(path: Path, reps: Optional[int] = None) -> StudySpec:
     data = read_yaml(path, "study")
     if data is None:
         raise ConfigError(path.name, "the file is empty (a study needs at least its scenarios)")
+    if reps is not None:
+        check_reps("--reps", reps)
     if reps is not None and isinstance(data, dict):
         data = {key: value for key, value in data.items() if key not in ("seeds", "reps")}
         data["reps"] = reps
-    return parse_study(data, base_dir=path.parent, default_name=path.stem)
+    try:
+        return parse_study(data, base_dir=path.parent, default_name=path.stem)
+    except ConfigError as err:       # which file: a study names scenario files, and each can be wrong too
+        raise ConfigError(f"{path}: {err.field}" if err.field else str(path), err.problem) from None
 
 
 def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "study") -> StudySpec:
@@ -56,6 +61,9 @@ def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "stud
     if not isinstance(data, dict):
         raise ConfigError("", f"a study file must be a mapping of keys (got {type(data).__name__})")
     unknown = [key for key in data if key not in STUDY_KEYS]
+    if unknown and "scenarios" not in data and {"behaviour", "robots", "object", "path"} & set(data):
+        raise ConfigError("", "this is a scenario, not a study: run it with `khepri sim run FILE`, or list it in "
+                              "a study file's scenarios: [FILE] (docs/study.md)")
     if unknown:
         raise ConfigError(str(unknown[0]), f"unknown key (known: {', '.join(STUDY_KEYS)})")
     name = data.get("name", default_name)
