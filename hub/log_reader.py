@@ -47,6 +47,7 @@ class LogReader:
         self.file_bytes = _check_is_mcap(self.path)
         self.complete = False
         self.stop_reason = ""
+        self.cut_short = True              # when not complete: cut short (a killed hub), or else damaged
         self.readable_bytes = 0
         self.channels: Dict[int, Channel] = {}
         self.metadata: Dict[str, Dict[str, str]] = {}
@@ -136,6 +137,11 @@ class LogReader:
                         continue
                     self.stop_reason = (f"the file ends inside a record at byte {offset}" if overrun
                                         else f"unreadable bytes at byte {offset}")
+                    if self._ends_closed(file):
+                        self.cut_short = False
+                        self.stop_reason = (f"a record's length or opcode is damaged at byte {offset}, and nothing "
+                                            "after it could be found; the file ends with MCAP's closing bytes, so "
+                                            "it was written to its end and damaged since, not cut short")
                     return
                 records = self._parse(opcode, file.read(length), offset)
                 offset += 9 + length
@@ -146,6 +152,17 @@ class LogReader:
                     return
                 self.readable_bytes = offset
                 yield from records
+
+    def _ends_closed(self, file: Any) -> bool:
+        """Whether the file's last bytes are MCAP's closing magic: a file written to its end (by a hub that
+        closed it), whatever happened to the bytes before."""
+        if self.file_bytes < 2 * len(MCAP_MAGIC):
+            return False
+        here = file.tell()
+        file.seek(self.file_bytes - len(MCAP_MAGIC))
+        closed = file.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+        file.seek(here)
+        return closed
 
     def _index(self) -> Any:
         """A complete file's summary section (chunk offsets, channels), read once; None if it has none or it

@@ -127,7 +127,8 @@ def _status(summary: LogSummary) -> str:
     if not summary.truncated:
         return "complete" + skipped
     recovered = f"recovered up to {_clock(summary.end_s)}" if summary.end_s is not None else "no message recovered"
-    return (f"TRUNCATED, {recovered} ({summary.readable_bytes} of {summary.file_bytes} bytes): "
+    label = "TRUNCATED" if summary.cut_short else "DAMAGED"
+    return (f"{label}, {recovered} ({summary.readable_bytes} of {summary.file_bytes} bytes): "
             f"{summary.stop_reason}{skipped}")
 
 

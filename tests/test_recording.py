@@ -558,6 +558,16 @@ def test_cli_log_info_prints_the_summary_and_json(tmp_path):
     stub = tmp_path / "stub.mcap"                      # the magic and a torn first record: nothing to recover
     stub.write_bytes(path.read_bytes()[:10])
     assert "TRUNCATED, no message recovered (8 of 10 bytes)" in run_khepri(stub).stdout
+    # Written to its end (the closing magic is there), then damaged: it was said TRUNCATED, as for a killed hub.
+    data = bytearray(path.read_bytes())
+    data[-200:-100] = bytes(b ^ 0xFF for b in data[-200:-100])
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    said = run_khepri(damaged, "--check")
+    assert said.returncode == 1 and "status:    DAMAGED, recovered up to" in said.stdout, said.stdout
+    assert "it was written to its end and damaged since, not cut short" in said.stdout
+    assert json.loads(run_khepri(damaged, "--json").stdout)["cut_short"] is False
+    assert json.loads(run_khepri(truncated, "--json").stdout)["cut_short"] is True
 
 
 def test_a_log_in_a_newer_format_is_said_by_log_info_and_the_replay(tmp_path):
