@@ -79,6 +79,7 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
         if scenario.object is not None:
             found += _small_cage_turns(scenario, hull, spacing, spec.radius_m)
             found += _recess(scenario, world.geometry, hull, spec.radius_m)
+            found += _thinner_than_a_robot(scenario, hull, spec.radius_m)
     if world.geometry is not None and scenario.arena.walls is not None:
         found += _room_to_walls(scenario, world.geometry, wall_room_needed(spec))
     if scenario.object is not None and not scenario.object.static and scenario.object.friction == 0.0:
@@ -219,6 +220,35 @@ def _small_cage_turns(scenario: Any, hull: np.ndarray, spacing: float, robot_rad
                          "or params.closure_factor 1.3 (a tighter ring) helps in some runs")
         x, y, yaw, heading = wx, wy, wyaw, direction
     return found
+
+
+def _thinner_than_a_robot(scenario: Any, hull: np.ndarray, robot_radius: float) -> List[str]:
+    """A movable object narrower than a robot is shoved about by the robots that cage it, before the cage
+    closes. Measured (2026-11-29, a 2 m bar, 12 robots, one waypoint 0.5 m across it): 0.05 m thick, 1 of 9 runs
+    completed (0.2-1.5 kg; at 0.2 and 1 kg no cage closed, the bar shoved up to 1.2 m); 0.1 m thick, 2 of 4;
+    0.2 m thick, 3 of 3."""
+    obj = scenario.object
+    width = hull_width(hull)
+    if obj.static or width >= 2.0 * robot_radius:
+        return []
+    return [f"{dimension_field(obj)}: the object is {width:.2f} m across at its narrowest, less than a robot "
+            f"({2.0 * robot_radius:.2f} m): the robots that cage it shove it about before the cage closes, and "
+            "such runs often fail (a 2 m bar 0.05 m thick with 12 robots: 1 of 9 runs completed, at 0.2 and 1 kg "
+            "no cage closed; 0.1 m thick 2 of 4; 0.2 m thick 3 of 3). A wider or heavier object, or object.static "
+            "for caging alone"]
+
+
+def hull_width(hull: np.ndarray) -> float:
+    """The narrowest width of a convex polygon: over its edges, the farthest vertex from the edge's line."""
+    if len(hull) < 3:
+        return 0.0
+    edges = np.roll(hull, -1, axis=0) - hull
+    lengths = np.hypot(*edges.T)
+    keep = lengths > 1e-12
+    edges, starts, lengths = edges[keep], hull[keep], lengths[keep]
+    offsets = hull[None, :, :] - starts[:, None, :]                       # every vertex from every edge's start
+    distances = np.abs(edges[:, None, 0] * offsets[:, :, 1] - edges[:, None, 1] * offsets[:, :, 0])
+    return float(np.min(distances.max(axis=1) / lengths))
 
 
 def _recess(scenario: Any, geometry: Geometry, hull: np.ndarray, robot_radius: float) -> List[str]:
