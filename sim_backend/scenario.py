@@ -347,6 +347,8 @@ def builtin_names() -> List[str]:
 
 def resolve(name_or_path: str) -> Path:
     """A built-in scenario's file, or the given path; ConfigError when neither exists."""
+    if not name_or_path.strip():    # Path("") is the current folder: "is a folder" of an unset $SCENARIO
+        raise ConfigError("scenario", "is empty (an unset shell variable?): give a built-in name or a YAML file")
     path = Path(name_or_path)
     is_yaml = path.suffix in (".yaml", ".yml")
     builtin = BUILTIN_DIR / f"{name_or_path}.yaml"
@@ -360,7 +362,11 @@ def resolve(name_or_path: str) -> Path:
         return builtin     # even when a folder of that name is here (a run's output, say)
     if path.is_dir():      # with any name: `sim run ./my-runs` said `no such file` of a folder that is there
         raise ConfigError("scenario", f"{name_or_path} is a folder, not a file")
-    if is_yaml or path.exists():
+    if path.exists():               # /dev/null, a FIFO: there, but not a file to read a scenario from
+        raise ConfigError("scenario", f"{name_or_path} is not a regular file")
+    if path.is_symlink():           # exists() follows it: a link to nowhere, or to itself
+        raise ConfigError("scenario", f"{name_or_path} is a symbolic link to nothing that exists")
+    if is_yaml:
         raise ConfigError("scenario", f"no such file: {name_or_path}")
     raise ConfigError("scenario", f"unknown scenario {name_or_path!r}: not a file and not built in "
                       f"(see `khepri sim list`)")

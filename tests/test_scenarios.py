@@ -1,6 +1,7 @@
 """Built-in scenarios load with the documented numbers; bad ones give one-line errors naming the field."""
 from __future__ import annotations
 
+import os
 import re
 import shutil
 from pathlib import Path
@@ -349,6 +350,23 @@ def test_builtin_name_wins_over_a_folder_of_that_name(tmp_path, monkeypatch):
     (tmp_path / "not-a-scenario").mkdir()
     with pytest.raises(ConfigError, match="not-a-scenario is a folder, not a file"):
         load_scenario("not-a-scenario")
+
+
+@pytest.mark.parametrize("make, said", [
+    (lambda here: "/dev/null", "scenario: /dev/null is not a regular file"),
+    (lambda here: os.mkfifo(here / "pipe.yaml") or "pipe.yaml", "scenario: pipe.yaml is not a regular file"),
+    (lambda here: (here / "loop.yaml").symlink_to("loop.yaml") or "loop.yaml",
+     "scenario: loop.yaml is a symbolic link to nothing that exists"),
+    (lambda here: (here / "gone.yaml").symlink_to("nowhere.yaml") or "gone.yaml",
+     "scenario: gone.yaml is a symbolic link to nothing that exists"),
+    (lambda here: "", "scenario: is empty (an unset shell variable?): give a built-in name or a YAML file"),
+])
+def test_a_path_that_is_there_but_no_file_is_said_as_what_it_is(tmp_path, monkeypatch, make, said):
+    """Each of these was "no such file" (or, for "", "is a folder"), of something that is there."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError) as info:
+        load_scenario(make(tmp_path))
+    assert str(info.value) == said
 
 
 def test_a_file_named_like_a_builtin_is_neither_taken_nor_hidden_silently(tmp_path, monkeypatch):
