@@ -23,13 +23,13 @@ def add_study(groups) -> None:
         description="Run TARGET's grid of runs (scenarios x overrides x seeds), skipping runs already in --out, "
                     "then write summary.csv, report.md and figures/. TARGET is `paper` (the paper's 9 transport "
                     "cases and 3 irregular caging cases), a study YAML file, or `report DIR` to re-aggregate a "
-                    "study folder without running anything. See docs/study.md.")
+                    "study folder without running anything (it takes only --no-figures). See docs/study.md.")
     study.add_argument("target", help="paper | STUDY.yaml | report")
     study.add_argument("folder", nargs="?", type=Path, help="with `report`: the study folder to re-aggregate")
     study.add_argument("--reps", type=int, metavar="N",
                        help=f"seeds 1..N per cell (default {DEFAULT_REPS} for paper; a YAML file's seeds otherwise)")
     study.add_argument("--scenarios", metavar="A,B", help="run only these scenarios of the study")
-    study.add_argument("--executor", default="local", metavar="KIND",
+    study.add_argument("--executor", metavar="KIND",
                        help="local (a process pool, default), dask (a Dask LocalCluster) or dask:ADDRESS "
                             "(an existing Dask scheduler, e.g. dask:tcp://10.0.0.5:8786)")
     study.add_argument("--workers", type=int, metavar="N", help="worker processes (default: the number of cores)")
@@ -55,7 +55,7 @@ def cmd_study(args: argparse.Namespace) -> int:
         raise ConfigError("study", f"unexpected argument {str(args.folder)!r} (only `report` takes a folder)")
     from sim_backend.study.executors import make_executor, parse_executor, worker_count
 
-    choice = parse_executor(args.executor)     # bad --executor / --workers: said before anything else
+    choice = parse_executor(args.executor or "local")     # bad --executor / --workers: said before anything else
     workers = worker_count(args.workers)
     spec, runs = study_grid(args)
     out = args.out or Path("out") / f"study-{spec.name}"
@@ -123,9 +123,19 @@ def study_file_path(target: str) -> Path:
     raise ConfigError("study", f"{target!r} is not `paper`, `report` or a study file (no such file)")
 
 
+# The options that run a study, which `study report` (re-aggregating, running nothing) does not take.
+RUN_OPTIONS = (("--reps", "reps"), ("--scenarios", "scenarios"), ("--executor", "executor"), ("--workers", "workers"),
+               ("--out", "out"), ("--time-limit", "time_limit"), ("--wall-limit", "wall_limit"),
+               ("--retry-failed", "retry_failed"), ("--merge", "merge"), ("--dry-run", "dry_run"))
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from sim_backend.study.report import write_study_outputs
 
+    given = [option for option, name in RUN_OPTIONS if getattr(args, name) not in (None, False)]
+    if given:       # `study report DIR --reps 5` did nothing with it, without a word
+        raise ConfigError(given[0], "is for running a study; `khepri study report DIR` runs nothing and takes only "
+                                    "--no-figures")
     folder = args.folder
     if folder is None:
         raise ConfigError("study report", "give the study folder: khepri study report DIR")
@@ -223,7 +233,7 @@ def command_line(args: argparse.Namespace) -> str:
                ("--workers", args.workers), ("--out", args.out), ("--time-limit", args.time_limit),
                ("--wall-limit", args.wall_limit))
     for flag, value in options:
-        if value is not None and not (flag == "--executor" and value == "local"):
+        if value is not None and not (flag == "--executor" and value == "local"):     # the default, unsaid
             words += [flag, format(value, "g") if isinstance(value, float) else str(value)]
     words += ["--retry-failed"] if args.retry_failed else []
     words += ["--merge"] if args.merge else []

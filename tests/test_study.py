@@ -964,6 +964,10 @@ def test_study_report_reaggregates_a_folder_without_running(known_study, capsys)
     with pytest.raises(SystemExit):
         main(["study", "report", "--no-figures", str(known_study), "surplus"])
     assert "unrecognized arguments: surplus" in capsys.readouterr().err
+    for option in (["--reps", "5"], ["--executor", "spark"], ["--retry-failed"], ["--executor", "local"]):
+        assert main(["study", "report", str(known_study), *option]) == 2      # ignored without a word, before
+        assert capsys.readouterr().err == (f"khepri: error: {option[0]}: is for running a study; `khepri study "
+                                           "report DIR` runs nothing and takes only --no-figures\n")
     (known_study / "notes.txt").write_text("a file, not a study")
     assert main(["study", "report", str(known_study / "notes.txt")]) == 2
     assert "notes.txt is a file: give the study's folder" in capsys.readouterr().err
