@@ -22,7 +22,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="khepri", description="Swarm behaviours from simulation to KheperaIV robots.")
     parser.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
                         help="import MODULE first: a module name (wander, for wander.py in this folder) or a "
-                             ".py file's path, holding your behaviour")
+                             ".py file's path, holding your behaviour (repeatable)")
+    parser.add_argument("--version", action="version", version=f"khepri {_version()}")
     groups = parser.add_subparsers(dest="group", metavar="COMMAND", required=True)
     sim_commands.add_sim(groups)
     benches = sim_commands.add_bench(groups)
@@ -32,6 +33,16 @@ def build_parser() -> argparse.ArgumentParser:
     study_commands.add_study(groups)
     _accept_import_after_the_command(parser)
     return parser
+
+
+def _version() -> str:
+    """The installed package's version; a source tree run without installing it says so."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("khepri")
+    except PackageNotFoundError:
+        return "(not installed: run from a source tree)"
 
 
 def _accept_import_after_the_command(parser: argparse.ArgumentParser) -> None:
@@ -172,6 +183,9 @@ def _take_late_positional(args: argparse.Namespace, extras: List[str]) -> List[s
 
 def _run(argv: Optional[List[str]]) -> int:
     parser = build_parser()
+    if not (sys.argv[1:] if argv is None else argv):    # plain `khepri`: the commands, not an error about them
+        parser.print_help()
+        return 2
     try:
         args, extras = parser.parse_known_args(argv)
         extras = _take_late_positional(args, extras)

@@ -9,6 +9,8 @@ import dataclasses
 import time
 from typing import Any, Dict, List
 
+from onboard.config import ConfigError
+
 from .runner import Simulation
 from .scenario import load_scenario
 
@@ -23,7 +25,15 @@ def bench_case(count: int, seconds: float, behaviour: str) -> Dict[str, Any]:
     base = load_scenario(PAPER_SCENARIO.get(count, "paper-100-straight"))
     robots = base.robots if count in PAPER_SCENARIO else dataclasses.replace(base.robots, count=count)
     scenario = base.with_overrides(behaviour=behaviour, params={}, robots=robots)
-    sim = Simulation(scenario)
+    try:
+        sim = Simulation(scenario)
+    except ConfigError as err:       # name the option the user typed, not a scenario field they cannot set
+        if err.field == "behaviour":
+            raise ConfigError("--behaviour", err.problem) from None
+        if err.field.startswith("robots"):
+            raise ConfigError("--robots", f"{count} robots do not fit where {base.name} starts its robots "
+                                          f"({err.field}: {err.problem.split(': make')[0]})") from None
+        raise
     started, cpu_started = time.perf_counter(), time.process_time()
     sim.run(time_limit_s=seconds)
     wall, cpu = time.perf_counter() - started, time.process_time() - cpu_started

@@ -84,6 +84,8 @@ def test_an_out_folder_that_cannot_be_made_is_refused_before_the_run(tmp_path, c
     ("sim", ["--seconds", "inf"], "--seconds: must be a finite number of seconds > 0 (got inf)"),
     ("sim", ["--seconds", "0"], "--seconds: must be a finite number of seconds > 0 (got 0)"),
     ("sim", ["--robots", "5,,6"], "--robots: give positive robot counts, e.g. 25,50,100 (got '5,,6')"),
+    ("sim", ["--robots", "3", "--behaviour", "dance"], "--behaviour: unknown behaviour 'dance' (known: "),
+    ("sim", ["--robots", "6000"], "--robots: 6000 robots do not fit where paper-100-straight starts its robots"),
 ])
 def test_bench_names_the_bad_option(capsys, bench, options, message):
     assert main(["bench", bench, *options]) == 2
@@ -302,3 +304,13 @@ def test_time_limit_on_the_command_line_is_what_the_fault_warning_goes_by(tmp_pa
     assert "never fails" not in said.err and "robot 1 failed at 70 s" in said.out
     assert main(["sim", "run", str(scenario), "--time-limit", "50", "--no-plot", "--out", str(tmp_path / "b")]) == 0
     assert "70 s is not before the time limit (50 s): robot 1 never fails" in capsys.readouterr().err
+
+
+def test_plain_khepri_prints_its_commands_and_version_says_the_version(capsys):
+    """`khepri` alone said "the following arguments are required: COMMAND"; there was no --version."""
+    assert main([]) == 2
+    out = capsys.readouterr().out
+    assert out.startswith("usage: khepri") and "sim" in out and "study" in out
+    with pytest.raises(SystemExit) as exited:
+        main(["--version"])
+    assert exited.value.code == 0 and capsys.readouterr().out.startswith("khepri 0.")
