@@ -49,7 +49,7 @@ def traceback_lines(frames: traceback.StackSummary, exc: BaseException) -> List[
     shown, left_out = _frames_to_show(frames)
     lines = [line.rstrip() for line in traceback.format_list(shown[:1])]
     if left_out:
-        lines.append(f"  ... ({left_out} frames in khepri's or Python's code left out)")
+        lines.append(f"  ... ({left_out} frame{'' if left_out == 1 else 's'} in khepri's or Python's code left out)")
     lines += [line.rstrip() for line in traceback.format_list(shown[1:])]
     return lines + [line.rstrip() for line in traceback.format_exception_only(type(exc), exc)]
 
