@@ -49,9 +49,9 @@ def check_servable(config: LabConfig) -> None:
 
 def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
     check_servable(config)
-    if config.security.insecure:
-        say(INSECURE_WARNING)
     hub = build_hub(config, log=log)
+    if config.security.insecure:     # after the config's own errors: a refused config serves nobody
+        say(INSECURE_WARNING)
     stop = {"requested": False, "signal": None}
 
     def request_stop(signum, frame):

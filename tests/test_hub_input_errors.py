@@ -247,6 +247,19 @@ def test_a_transport_lab_without_the_objects_start_is_refused_rather_than_left_i
     assert run_template(given, None).params["object_estimate"] == [0, 0, 0]
 
 
+def test_a_refused_insecure_config_says_its_error_without_the_insecure_banner(tmp_path):
+    """The banner ("WARNING: insecure ... Anyone who can reach these ports can drive the robots") came first,
+    then the config's error: a hub that never served anything warned of its open ports."""
+    mocap = {"type": "motioncapture", "system": "mock", "options": {"rigid_bodies": "kh0(0,0,0,1,0,0,0)"},
+             "bodies": {"kh0": 0}}
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump({"source": mocap, "network": dict(NETWORK), "security": {"insecure": True},
+                                      "run": {"behaviour": "transport", "params": {"path": [[0, 1, 0]]}}}))
+    run = khepri("hub", "--config", str(config))
+    one_error_line(run, "run.params.object_estimate")
+    assert "WARNING: insecure" not in run.stderr + run.stdout
+
+
 def test_an_empty_robot_list_is_refused_rather_than_serving_nobody(tmp_path):
     """`robots: []` started a hub with no robots at all, which then said `this lab's robots: ` every 30 s."""
     config = tmp_path / "lab.yaml"
