@@ -181,6 +181,16 @@ def _take_late_positional(args: argparse.Namespace, extras: List[str]) -> List[s
     return extras[1:]
 
 
+def _command_parser(parser: argparse.ArgumentParser, argv: List[str]) -> argparse.ArgumentParser:
+    """The (sub)command's parser that ``argv`` names: ``sim run`` for ``khepri sim run x.yaml extra``."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for index, word in enumerate(argv):
+                if word in action.choices:
+                    return _command_parser(action.choices[word], argv[index + 1:])
+    return parser
+
+
 def _run(argv: Optional[List[str]]) -> int:
     parser = build_parser()
     if not (sys.argv[1:] if argv is None else argv):    # plain `khepri`: the commands, not an error about them
@@ -189,8 +199,9 @@ def _run(argv: Optional[List[str]]) -> int:
     try:
         args, extras = parser.parse_known_args(argv)
         extras = _take_late_positional(args, extras)
-        if extras:
-            parser.error(f"unrecognized arguments: {' '.join(extras)}")
+        if extras:    # with the command's own usage line, as argparse gives for its other errors
+            _command_parser(parser, sys.argv[1:] if argv is None else argv).error(
+                f"unrecognized arguments: {' '.join(extras)}")
     except SystemExit:
         try:
             sys.stdout.flush()      # --help into a closed pipe fails here, inside main(), not at exit

@@ -314,3 +314,12 @@ def test_plain_khepri_prints_its_commands_and_version_says_the_version(capsys):
     with pytest.raises(SystemExit) as exited:
         main(["--version"])
     assert exited.value.code == 0 and capsys.readouterr().out.startswith("khepri 0.")
+
+
+def test_a_surplus_argument_is_said_with_the_commands_own_usage(capsys):
+    """`khepri sim run lab-6 extra` printed the top-level usage (`khepri [-h] [--import MODULE] COMMAND ...`)."""
+    with pytest.raises(SystemExit) as exited:
+        main(["sim", "run", "lab-6", "extra"])
+    err = capsys.readouterr().err
+    assert exited.value.code == 2 and err.startswith("usage: khepri sim run ")
+    assert err.rstrip().endswith("khepri sim run: error: unrecognized arguments: extra")
