@@ -6,7 +6,7 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import List, Tuple
+from typing import List
 
 from onboard.config import ConfigError
 from onboard.protocol import MAX_ROBOT_ID
@@ -147,31 +147,44 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         reply = request(endpoint, args.command, keys=keys, timeout_s=args.timeout)
     except BadEndpoint as err:
         raise ConfigError("--hub", str(err)) from None
-    except ControlError as err:
+    except ControlError as err:      # no answer, or the hub refused (an e-stop latched, ...)
+        if args.json and args.command != "status":     # a script reading stdout learns it failed, and why
+            print(json.dumps({"command": args.command, "ok": False, "error": str(err)}))
         print(f"khepri: error: {err}", file=sys.stderr)
         return 1
     if args.command == "status":
         print(json.dumps(reply["status"], indent=2) if args.json else status_table(reply["status"]))
-    elif not args.json:            # with --json: one object below, once start's refusals are known
-        note = reply.get("note")
-        print(f"{args.command}: {note}" if reply.get("nothing_done") else
-              f"{args.command}: ok{' (' + note + ')' if note else ''}")
-    refused: List[Tuple[int, str]] = []
-    if args.command == "start":    # the hub is in run mode now; say which robots will not run (ctl said ok)
+        return 0
+    refused, unknown = [], None
+    if args.command == "start":      # the hub is in run mode now; which robots will not run it?
         try:
             refused = refusals_after_start(endpoint, keys, args.timeout)
         except ControlError as err:
-            print(f"khepri: error: {err}", file=sys.stderr)
-            return 1
-        if not args.json:
-            for robot_id, error in refused:
-                print(f"khepri: error: robot {robot_id}: {error}", file=sys.stderr)
-    if args.json and args.command != "status":
+            unknown = str(err)
+    if args.json:
         said = {key: reply[key] for key in ("note", "nothing_done") if key in reply}
         if args.command == "start":
-            said["refused"] = [{"robot": robot_id, "error": error} for robot_id, error in refused]
-        print(json.dumps({"command": args.command, "ok": True, **said}))
-    return 1 if refused else 0
+            said["refused"] = None if unknown else [{"robot": rid, "error": error} for rid, error in refused]
+        print(json.dumps({"command": args.command, "ok": True, **said, **({"error": unknown} if unknown else {})}))
+    else:
+        print(ctl_reply_line(args.command, reply, len(refused)))
+    for robot_id, error in refused:
+        print(f"khepri: error: robot {robot_id}: {error}", file=sys.stderr)
+    if unknown:
+        print(f"khepri: error: the run started, but whether every robot took it is unknown: {unknown}",
+              file=sys.stderr)
+    return 1 if refused or unknown else 0
+
+
+def ctl_reply_line(command: str, reply: dict, refused: int) -> str:
+    """``start: ok (...)``; a start some robots refused says so, rather than "ok" above their errors."""
+    note = reply.get("note")
+    if reply.get("nothing_done"):
+        return f"{command}: {note}"
+    if refused:
+        return (f"{command}: the hub is running, but {refused} robot{'s' if refused > 1 else ''} refused to start "
+                f"(the errors follow){'; ' + note if note else ''}")
+    return f"{command}: ok{' (' + note + ')' if note else ''}"
 
 
 MAX_TIMEOUT_S = 3600.0

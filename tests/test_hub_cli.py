@@ -163,7 +163,9 @@ def test_ctl_start_names_the_robots_that_cannot_run_it(tmp_path):
         wait_until_connected(1, ports["control"])
         start = khepri("ctl", "start", "--port", ports["control"])
         assert start.returncode == 1, start
-        assert start.stdout.startswith("start: ok (1 of 3 robots connected and sent it")
+        # It said "start: ok (...)" above the robot's error.
+        assert start.stdout.startswith("start: the hub is running, but 1 robot refused to start (the errors "
+                                       "follow); 1 of 3 robots connected and sent it"), start.stdout
         assert "khepri: error: robot 1: cannot start the run: run.behaviour: unknown behaviour 'hub-only'" \
             in start.stderr
         status = json.loads(khepri("ctl", "status", "--json", "--port", ports["control"]).stdout)
@@ -195,6 +197,11 @@ def test_ctl_stop_and_clear_with_nothing_to_do_say_so(tmp_path):
         assert ctl("clear") == "clear: nothing to clear: no e-stop was latched"
         ctl("start")
         ctl("estop")
+        # A refused command printed nothing on stdout with --json: a script could not tell why it failed.
+        refused = khepri("ctl", "start", "--json", "--port", control)
+        assert refused.returncode == 1 and "the hub refused start" in refused.stderr
+        said = json.loads(refused.stdout)
+        assert said["command"] == "start" and said["ok"] is False and "e-stop is latched" in said["error"], said
         assert ctl("clear") == "clear: ok (robots stay stopped until `khepri ctl start`)"
         assert re.fullmatch(r"stop: ok \(run [0-9a-f]{12} ended; 0 of 6 robots connected and told to stop\)",
                             ctl("stop"))
