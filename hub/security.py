@@ -28,7 +28,7 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from onboard.agent.link import exposed_secret
+from onboard.agent.link import exposed_secret, key_folder_problem
 from onboard.config import ConfigError
 
 ROBOT_DOMAIN = "robots"
@@ -141,6 +141,9 @@ def stale_keys(folder: Path, keep: List[Path]) -> List[Path]:
 
 
 def load_keyring(folder: Path) -> KeyRing:
+    problem = key_folder_problem(folder)
+    if problem:
+        raise ConfigError(HUB_KEYS_FIELD, problem)
     public, secret = _load_pair(folder / "hub.key_secret", "hub", HUB_KEYS_FIELD)
     ring = KeyRing(folder, public, secret)
     holders: Dict[bytes, Path] = {public: folder / "hub.key"}
@@ -158,6 +161,9 @@ def load_keyring(folder: Path) -> KeyRing:
 
 def operator_client_keys(folder: Path, name: Optional[str] = None) -> Dict[str, bytes]:
     """``khepri ctl``'s side: an operator pair (the only one in the folder unless ``name`` is given)."""
+    problem = key_folder_problem(folder)
+    if problem:
+        raise ConfigError("--keys", problem)
     found = sorted((folder / "operators").glob("*.key_secret"))
     candidates = [p for p in found if name is None or p.stem == name]
     stem = name.rsplit(".", 1)[0] if name is not None and name.endswith((".key_secret", ".key")) else None

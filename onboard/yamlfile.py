@@ -93,8 +93,8 @@ def read_yaml(path: Path, field: str = "") -> Any:
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
-        raise ConfigError(path.name, "not a text (UTF-8) file") from None
-    return parse_yaml(text, path.name)
+        raise ConfigError(str(path), "not a text (UTF-8) file") from None
+    return parse_yaml(text, str(path))      # the path as given: cfg/lab.yaml:3, not lab.yaml:3 of which folder?
 
 
 __all__ = ["StrictLoader", "parse_yaml", "read_yaml"]

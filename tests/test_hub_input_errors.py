@@ -1022,3 +1022,15 @@ def test_a_replay_of_other_robots_says_what_to_check_in_a_replays_terms(tmp_path
     said = [text for text in hub.lines if "yet after" in text]
     assert said == [f"hub: the frames from replay {path} hold none of this lab's robots yet after 2 s (check robots "
                     "against the ids the log's /mocap/poses place; this lab's robots: 0, 1)"], hub.lines
+
+
+def test_a_lab_config_that_is_not_a_mapping_names_its_file(tmp_path):
+    """It said "a lab config must be a mapping of keys (got list)", naming neither --config nor the file."""
+    from hub.config import load_config
+
+    path = tmp_path / "cfg" / "lab.yaml"
+    path.parent.mkdir()
+    path.write_text("- a\n- b\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == f"{path}: a lab config must be a mapping of keys (got list)"

@@ -223,7 +223,7 @@ def test_a_calibration_file_nested_thousands_deep_is_refused_naming_it(stub_libr
         deep = write_yaml(tmp_path / name, text)
         with pytest.raises(ConfigError, match="nested too deeply") as caught:
             KheperaIV(library_path=str(stub_library), calibration_path=deep)
-        assert caught.value.field == name
+        assert caught.value.field == str(deep)
     assert not stub_log.exists()
 
 

@@ -83,6 +83,21 @@ def test_a_hub_started_right_after_another_in_one_process_gets_the_zap_endpoint(
         authenticator.stop()
 
 
+@pytest.mark.parametrize("kind", ["missing", "file"])
+def test_a_key_folder_that_is_missing_or_a_file_is_said_as_such_by_hub_agent_and_ctl(tmp_path, kind):
+    """A missing folder read as "missing nokeys/robots/robot-0.key_secret" or "no operator key in
+    nokeys/operators"; a file given for it was told to run `khepri keys init <the file>`."""
+    folder = tmp_path / "keys"
+    if kind == "file":
+        folder.write_text("not a folder")
+    said = f"{folder} is a file: give the key folder" if kind == "file" else f"no such folder: {folder} (a key"
+    for load, field in ((load_keyring, "security.keys"), (operator_client_keys, "--keys"),
+                        (lambda path: load_robot_keys(path, 0), "--keys")):
+        with pytest.raises(ConfigError) as info:
+            load(folder)
+        assert info.value.field == field and info.value.problem.startswith(said), info.value
+
+
 def test_keys_add_gives_new_robots_keys_and_leaves_every_other_key_as_it_was(keys):
     """What the hub's hint for robots without keys says to run. It used to say `keys init --force`, which
     made a new hub key, new keys for the robots that had them, and removed the operators not named again."""

@@ -172,11 +172,25 @@ def robot_secret_file(folder: Path, robot_id: int) -> Path:
     return folder / "robots" / f"robot-{robot_id}.key_secret"
 
 
+def key_folder_problem(folder: Path) -> Optional[str]:
+    """What is wrong with a key folder that is not one at all, said before the files it should hold are: a
+    missing folder read as "missing <folder>/robots/robot-0.key_secret" (or "no hub key"), and a file given
+    for it was told to run `khepri keys init <the file>`."""
+    if folder.is_file():
+        return f"{folder} is a file: give the key folder `khepri keys init` made (it holds hub.key)"
+    if not folder.exists():
+        return f"no such folder: {folder} (a key folder is made by `khepri keys init FOLDER` on the lab PC)"
+    return None
+
+
 def load_robot_keys(folder: Path, robot_id: int) -> Dict[str, bytes]:
     """The robot's key pair and the hub's public key, from a folder laid out by ``khepri keys init``
     (``robots/robot-<id>.key_secret`` and ``hub.key``; copy just these two files onto the robot)."""
     import zmq.auth
 
+    problem = key_folder_problem(folder)
+    if problem:
+        raise ConfigError("--keys", problem)
     secret_file = robot_secret_file(folder, robot_id)
     hub_file = folder / "hub.key"
     # On a robot, the folder holds what was copied from the lab PC's: `keys init` there would refuse (the lab
