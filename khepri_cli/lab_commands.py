@@ -43,8 +43,10 @@ def _add_hub(groups) -> None:
     hub.set_defaults(func=cmd_hub)
 
 
-# The options that override a network setting, by the field an error names (`port 5560 ... is already in use`).
-NETWORK_OPTIONS = {"network.bind": "bind", "network.robot_port": "robot_port", "network.control_port": "control_port"}
+# The options that override a config setting, by the field an error names (`port 5560 ... is already in use`,
+# `record: rp.mcap exists`): the error names the option the user typed instead.
+OVERRIDING_OPTIONS = {"network.bind": "bind", "network.robot_port": "robot_port",
+                      "network.control_port": "control_port", "record": "record"}
 
 
 def cmd_hub(args: argparse.Namespace) -> int:
@@ -78,7 +80,7 @@ def cmd_hub(args: argparse.Namespace) -> int:
         config.network.validate("network")
         return serve_hub(config)
     except ConfigError as err:
-        option = NETWORK_OPTIONS.get(err.field)
+        option = OVERRIDING_OPTIONS.get(err.field)
         if option and getattr(args, option) is not None:    # name the option the user typed
             raise ConfigError("--" + option.replace("_", "-"), err.problem) from None
         raise

@@ -412,7 +412,10 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
     parser = argparse.ArgumentParser()
     add_agent_arguments(parser)      # every option with its default, as the command line gives them
     args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--quiet"])
-    with pytest.raises(ConfigError, match=r"--hub: cannot connect to 'tcp://bad host'"):
+    with pytest.raises(ConfigError, match=r"--hub: 'tcp://bad host' has no port"):
+        run_agent(args)
+    args = parser.parse_args(["--id", "0", "--hub", "udp://bad host", "--driver", "sim", "--quiet"])
+    with pytest.raises(ConfigError, match=r"--hub: cannot connect to 'udp://bad host'"):
         run_agent(args)
 
 
@@ -487,6 +490,31 @@ def test_a_bad_calibration_file_is_named_as_the_option_that_gave_it(tmp_path, mo
     assert info.value.field == "$KHEPRI_KH4_CALIBRATION"
 
 
+def test_a_library_that_will_not_load_is_named_as_the_option_that_gave_it(tmp_path, monkeypatch):
+    """`--library /nope/libkhepera.so` said `--driver kh4: ... pass --library PATH or set KHEPRI_LIBKHEPERA`: the
+    wrong option, and advice to pass what was passed."""
+    from onboard.agent.cli import add_agent_arguments, run_agent
+    from onboard.config import ConfigError
+
+    monkeypatch.delenv("KHEPRI_LIBKHEPERA", raising=False)
+    monkeypatch.chdir(tmp_path)
+    parser = argparse.ArgumentParser()
+    add_agent_arguments(parser)
+    missing = str(tmp_path / "nope" / "libkhepera.so")
+    with pytest.raises(ConfigError) as info:
+        run_agent(parser.parse_args(["--id", "0", "--driver", "kh4", "--library", missing]))
+    assert info.value.field == "--library" and "--library PATH" not in info.value.problem
+    assert f"cannot load libkhepera from {missing!r}" in info.value.problem
+    with pytest.raises(ConfigError) as info:       # the default name, found nowhere: where to give the path
+        run_agent(parser.parse_args(["--id", "0", "--driver", "kh4"]))
+    assert info.value.field == "--driver kh4" and info.value.problem.endswith("pass --library PATH or set "
+                                                                              "KHEPRI_LIBKHEPERA")
+    monkeypatch.setenv("KHEPRI_LIBKHEPERA", missing)
+    with pytest.raises(ConfigError) as info:
+        run_agent(parser.parse_args(["--id", "0", "--driver", "kh4"]))
+    assert info.value.field == "$KHEPRI_LIBKHEPERA"
+
+
 def test_the_agents_neighbour_columns_are_read_only_as_in_the_simulator():
     """Writing into them raised in simulation but not on the agent, so such a bug showed up only in sim."""
     state = HubState()
@@ -540,6 +568,20 @@ def test_a_whole_hub_address_and_a_port_are_refused_together():
     ctl = subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "status", "--hub", "tcp://127.0.0.1:1",
                           "--port", "5561"], capture_output=True, text=True, timeout=60)
     assert ctl.returncode == 2 and "--port: 'tcp://127.0.0.1:1' is a whole address" in ctl.stderr
+
+
+def test_a_whole_tcp_address_without_a_port_says_so():
+    """`--hub tcp://127.0.0.1` said only "cannot connect to 'tcp://127.0.0.1': Invalid argument"."""
+    from onboard.agent.link import hub_endpoint
+    from onboard.config import ConfigError
+
+    for address, host in (("tcp://127.0.0.1", "127.0.0.1"), ("tcp://[::1]", "::1"), ("tcp://hub.lab", "hub.lab")):
+        with pytest.raises(ConfigError) as info:
+            hub_endpoint(address, 5560)
+        assert str(info.value) == (f"--hub: {address!r} has no port: a whole address ends with one ({address}:5560), "
+                                   f"or give the host alone (--hub {host}) and the port with --port")
+    assert hub_endpoint("tcp://[::1]:5560", 5561) == "tcp://[::1]:5560"
+    assert hub_endpoint("ipc:///tmp/hub", 5560) == "ipc:///tmp/hub"      # no port to have
 
 
 def test_an_ipv6_address_is_written_in_brackets_and_a_port_beside_it_refused():

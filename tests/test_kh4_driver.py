@@ -261,9 +261,13 @@ def test_battery_voltage_is_read_when_the_library_offers_it(stub_library, stub_l
 def test_a_missing_library_names_its_path_and_how_to_set_it(stub_log, monkeypatch, tmp_path):
     absent = tmp_path / "nowhere" / "libkhepera.so"
     monkeypatch.setenv("KHEPRI_LIBKHEPERA", str(absent))
-    with pytest.raises(LibkheperaError, match="KHEPRI_LIBKHEPERA") as caught:
+    with pytest.raises(LibkheperaError) as caught:     # a path given: that path (the agent names its option)
         KheperaIV()
-    assert str(absent) in str(caught.value)
+    assert str(absent) in str(caught.value) and "pass --library" not in str(caught.value)
+    monkeypatch.delenv("KHEPRI_LIBKHEPERA")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(LibkheperaError, match="pass --library PATH or set KHEPRI_LIBKHEPERA"):   # the default
+        KheperaIV()
 
 
 def test_a_bare_library_name_found_only_in_the_current_folder_is_pointed_at(stub_library, stub_log, monkeypatch):

@@ -138,7 +138,11 @@ def open_driver(args: argparse.Namespace, agent) -> Driver:
         whole_file = err.field == calibration.CALIBRATION_LABEL
         raise ConfigError(given_as, err.problem if whole_file else str(err)) from None
     except (OSError, RuntimeError, ValueError) as err:
-        raise ConfigError("--driver kh4", f"cannot open the KheperaIV: {err}") from None
+        # A library that would not load is the option that named it; any other failure is the robot's.
+        loading = isinstance(err, kh4.LibkheperaError) and str(err).startswith("cannot load libkhepera")
+        given_as = ("--library" if args.library else f"${kh4.LIBRARY_ENV}") \
+            if loading and (args.library or os.environ.get(kh4.LIBRARY_ENV)) else "--driver kh4"
+        raise ConfigError(given_as, f"cannot open the KheperaIV: {err}") from None
     driver.start_guard()      # stops the wheels should this process die without closing the driver (SIGKILL)
     measured_on = driver.calibration.robot
     if measured_on is not None and measured_on != args.robot_id:   # e.g. one file copied onto every robot

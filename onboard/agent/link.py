@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import re
 import socket
 import time
 from pathlib import Path
@@ -35,6 +36,11 @@ def hub_endpoint(hub: str, port: int, option: str = "--hub", port_given: bool = 
         if port_given:
             raise ConfigError("--port", f"{hub!r} is a whole address with its own port: leave --port out, or "
                                         f"give --hub the host alone")
+        scheme, rest = hub.split("://", 1)
+        if scheme == "tcp" and not re.search(r":\d+$", rest):     # ZeroMQ said only "Invalid argument"
+            raise ConfigError(option, f"{hub!r} has no port: a whole address ends with one ({hub}:{port}), or "
+                                      f"give the host alone (--hub {rest.strip('[]') or 'HOST'}) and the port with "
+                                      "--port")
         return hub
     literal = ipv6_literal(hub)
     if literal is not None:

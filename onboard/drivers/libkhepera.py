@@ -74,8 +74,9 @@ class Libkhepera:
         except OSError as err:
             # A bare name is searched by the loader, never in the current folder: say so when it is there.
             here = f"; ./{path} is here: pass that" if os.sep not in path and os.path.isfile(path) else ""
-            raise LibkheperaError(f"cannot load libkhepera from {path!r} ({err}){here}; pass --library PATH "
-                                  f"or set {LIBRARY_ENV}") from err
+            # The default name found by no one: say where to give the path. A path given: it is that path.
+            where = f"; pass --library PATH or set {LIBRARY_ENV}" if path == DEFAULT_LIBRARY else ""
+            raise LibkheperaError(f"cannot load libkhepera from {path!r} ({err}){here}{where}") from err
         self.functions = {name: self._bind(name, *signature) for name, signature in SIGNATURES.items()}
         for name, signature in OPTIONAL_SIGNATURES.items():
             if hasattr(self._cdll, name):
