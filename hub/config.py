@@ -25,6 +25,9 @@ SOURCE_FIELDS = {"sim": ("scenario", "lockstep", "frame_hz", "reset_each_run"),
 UP_AXES = ("z", "y")
 
 
+MIN_REPLAY_RATE = 0.001       # source.rate: a thousandth of real time, 17 minutes for a second of the log
+
+
 @dataclass
 class SourceConfig:
     """Where poses come from. ``sim``: the pymunk world of ``scenario``; ``motioncapture``: the motioncapture
@@ -54,7 +57,8 @@ class SourceConfig:
         check_range(join(where, "frame_hz"), self.frame_hz, 0.0, 1000.0, low_open=True)
         check_range(join(where, "stale_s"), self.stale_s, 0.0, low_open=True)
         check_range(join(where, "connect_timeout_s"), self.connect_timeout_s, 0.0, 300.0, low_open=True)
-        check_range(join(where, "rate"), self.rate, 0.0, 100.0, low_open=True)
+        # Below 0.001 a minute's log takes days: a typo (1e-9 took 190 years for 6 s), not a slow replay.
+        check_range(join(where, "rate"), self.rate, MIN_REPLAY_RATE, 100.0)
         if self.seed is not None:
             check_range(join(where, "seed"), self.seed, 0)     # numpy seeds are non-negative
         if self.type == "motioncapture" and not self.bodies:
@@ -209,7 +213,8 @@ class LabConfig:
         if self.geofence is not None:
             xmin, ymin, xmax, ymax = self.geofence
             if xmax <= xmin or ymax <= ymin:
-                raise ConfigError("geofence", "must be [xmin, ymin, xmax, ymax] with min < max")
+                raise ConfigError("geofence", f"must be [xmin, ymin, xmax, ymax] with min < max (got "
+                                              f"{[float(v) for v in self.geofence]})")
         check_range("watchdog_s", self.watchdog_s, 0.0, 10.0, low_open=True)
         if self.source.type != "sim":          # the sim source's agents run at the scenario's rate: build_hub
             check_watchdog(self.watchdog_s, self.run.control_hz, "run.control_hz")

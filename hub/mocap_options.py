@@ -49,3 +49,11 @@ def _did_you_mean(name: str, known: Iterable[str]) -> str:
     if not close and name.lower() in ("host", "ip", "address", "server"):
         close = ["hostname"] if "hostname" in known else None
     return f"; did you mean {close[0]}?" if close else ""
+
+
+def known_systems_hint(reason: str) -> str:
+    """After the library's "Unknown motion capture type!": the systems motioncapture 1.x has (a build may
+    leave some out)."""
+    if "unknown motion capture type" not in reason.lower():
+        return ""
+    return f" (motioncapture 1.x knows {', '.join(READ_OPTIONS)}; this build may lack some)"

@@ -1034,3 +1034,16 @@ def test_a_lab_config_that_is_not_a_mapping_names_its_file(tmp_path):
     with pytest.raises(ConfigError) as info:
         load_config(path)
     assert str(info.value) == f"{path}: a lab config must be a mapping of keys (got list)"
+
+
+def test_a_reversed_geofence_says_what_it_got_and_a_replay_rate_has_a_floor():
+    """The geofence error did not echo the values; `rate: 1e-9` was taken (a 6 s log would replay for 190 years)."""
+    with pytest.raises(ConfigError) as info:
+        parse_config(sim_config(geofence=[1.9, 1.9, -1.9, -1.9]))
+    assert str(info.value) == "geofence: must be [xmin, ymin, xmax, ymax] with min < max (got [1.9, 1.9, -1.9, -1.9])"
+    replay = {"type": "replay", "file": "run.mcap"}
+    for rate in (1e-9, 0.0009):
+        with pytest.raises(ConfigError) as info:
+            parse_config({"source": {**replay, "rate": rate}})
+        assert info.value.field == "source.rate" and "0.001" in info.value.problem
+    assert parse_config({"source": {**replay, "rate": 0.001}}).source.rate == 0.001

@@ -115,6 +115,17 @@ def test_an_option_a_real_system_does_not_read_is_warned_with_the_key_it_reads()
     assert not [line for line in lines if "warning" in line]
 
 
+def test_an_unknown_system_lists_the_ones_the_library_knows():
+    """It said only "cannot connect to 'vicn': Unknown motion capture type!"."""
+    def unknown(system, options):
+        raise RuntimeError("Unknown motion capture type!")
+    with pytest.raises(ConfigError) as info:
+        MotionCaptureSource(zmq.Context.instance(), "vicn", {}, {"kh0": 0}, "z", log=lambda line: None,
+                            connect=unknown)
+    assert info.value.field == "source.system"
+    assert "Unknown motion capture type! (motioncapture 1.x knows mock, vicon, optitrack" in info.value.problem
+
+
 def reference_convert(bodies, names_to_ids, up_axis):
     """The conversion body by body: listed names only, world pose per body, non-finite poses dropped."""
     ids, poses = [], []
