@@ -205,10 +205,15 @@ def print_summary(result: dict) -> None:
         print(f"  faults: {'; '.join(result['faults_fired'])}")
 
 
+def seconds_text(seconds: float) -> str:
+    """``1.1 s``; under a second with two digits that say something (``0.04 s``, not ``0.0 s`` beside 212x)."""
+    return f"{seconds:.1f} s" if seconds >= 1.0 else f"{seconds:.2g} s"
+
+
 def summary_line(result: dict) -> str:
     robots = "1 robot" if result["robots"] == 1 else f"{result['robots']} robots"
     parts = [f"{result['scenario']} seed {result['seed']}: {robots}, "
-             f"{result['sim_time_s']:.1f} s simulated in {result['wall_time_s']:.1f} s "
+             f"{result['sim_time_s']:.1f} s simulated in {seconds_text(result['wall_time_s'])} "
              f"({result['real_time_factor']}x real time), stopped: {result['stop_reason']}"]
     for key in ("caged", "completed", "final_position_error_m", "spread_ratio"):
         if key in result:

@@ -323,3 +323,13 @@ def test_a_surplus_argument_is_said_with_the_commands_own_usage(capsys):
     err = capsys.readouterr().err
     assert exited.value.code == 2 and err.startswith("usage: khepri sim run ")
     assert err.rstrip().endswith("khepri sim run: error: unrecognized arguments: extra")
+
+
+def test_a_run_under_a_second_says_its_wall_time_in_digits_that_count():
+    """It said `8.0 s simulated in 0.0 s (212.53x real time)`."""
+    from khepri_cli.sim_commands import summary_line
+
+    result = {"scenario": "s", "seed": 1, "robots": 7, "sim_time_s": 8.0, "wall_time_s": 0.0376,
+              "real_time_factor": 212.53, "stop_reason": "time limit"}
+    assert "8.0 s simulated in 0.038 s (212.53x real time)" in summary_line(result)
+    assert "in 1.2 s" in summary_line({**result, "wall_time_s": 1.234})
