@@ -159,7 +159,10 @@ class RateMeter:
             self.hz = (self.count - 1) / elapsed     # a provisional rate before the first full window
 
     def current(self, now: float) -> float:
-        return 0.0 if now - self.last > 2.0 * self.window_s else self.hz
+        """The rate, 0 once three periods have gone by without an event (half a second at least): at 200 Hz the
+        last window's rate was shown for 2 s after the source had ended."""
+        silent_after = min(2.0 * self.window_s, max(0.5, 3.0 / self.hz)) if self.hz > 0 else 2.0 * self.window_s
+        return 0.0 if now - self.last > silent_after else self.hz
 
 
 def frame_sender(frame: zmq.Frame, default_user: str) -> str:

@@ -3,6 +3,7 @@ reconnects, a second agent that claims a robot already taken. Real agent process
 import signal
 import time
 
+import pytest
 import zmq
 
 from hub.config import parse_config
@@ -122,3 +123,17 @@ def test_an_agent_names_itself_with_one_token_on_every_connection():
         another.close()
     assert before["agent"] == after["agent"] and len(after["agent"]) == 16
     assert another.instance != link.instance       # another agent with the same --id: another token
+
+
+def test_the_mocap_rate_falls_to_zero_soon_after_the_frames_stop():
+    """A 200 Hz replay that had ended showed `mocap: 203.5 Hz` for 2 s beside `replay: ended`."""
+    from hub.links import RateMeter
+
+    fast, slow = RateMeter(), RateMeter()
+    for k in range(401):
+        fast.tick(k / 200.0)
+    for k in range(4):
+        slow.tick(float(k))
+    assert fast.current(2.0 + 0.1) == pytest.approx(200.0, rel=0.05) and fast.current(2.0 + 0.6) == 0.0
+    assert slow.current(3.0 + 1.5) == pytest.approx(1.0, rel=0.05)     # 1 Hz: a 1.5 s gap is not silence yet
+    assert slow.current(3.0 + 2.1) == 0.0
