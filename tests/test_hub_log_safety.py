@@ -77,21 +77,21 @@ def test_an_existing_log_is_refused_and_left_as_it_was(tmp_path, capsys):
     log.write_bytes(b"an earlier run's log")
     assert main(["hub", "--demo", "--record", str(log)]) == 2
     err = capsys.readouterr().err
-    assert f"khepri: error: record: {log} exists" in err and "{time}" in err
+    assert f"khepri: error: --record: {log} exists" in err and "{time}" in err     # the option typed
     assert log.read_bytes() == b"an earlier run's log"
 
 
 def test_a_folder_given_as_the_log_is_refused_with_a_file_name_to_use(tmp_path, capsys):
     """It said 'logs exists (an earlier run's log, or one a hub is writing)'."""
     assert main(["hub", "--demo", "--record", str(tmp_path)]) == 2
-    assert f"khepri: error: record: {tmp_path} is a folder: give the log's file name, e.g. " \
+    assert f"khepri: error: --record: {tmp_path} is a folder: give the log's file name, e.g. " \
            f"{tmp_path / 'run-{time}.mcap'}" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc, where no file can be made")
 @pytest.mark.parametrize("log, said", [
-    ("/proc/khepri-test.mcap", "record: /proc/khepri-test.mcap: cannot create the log: "),
-    ("/proc/khepri-test/run.mcap", "record: cannot make the folder /proc/khepri-test: "),
+    ("/proc/khepri-test.mcap", "--record: /proc/khepri-test.mcap: cannot create the log: "),
+    ("/proc/khepri-test/run.mcap", "--record: cannot make the folder /proc/khepri-test: "),
 ])
 def test_a_log_that_cannot_be_made_is_said_as_the_record_option(capsys, log, said):
     """It said '/proc/x.mcap: cannot create the log' without naming the option, and a folder it could not make
