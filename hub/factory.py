@@ -183,15 +183,13 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
 def check_path_inside_walls(scenario, path) -> None:
     """``run.params.path`` for the sim source: every waypoint inside the scenario's walls, as `sim run` requires
     of a scenario's own path (outside, the run could only fail, at its time limit)."""
-    walls = scenario.arena.walls
-    if walls is None:
+    from sim_backend.scenario import check_inside_walls
+
+    if scenario.arena.walls is None:
         return
-    xmin, ymin, xmax, ymax = walls
     for i, waypoint in enumerate(path):
-        x, y = float(waypoint[0]), float(waypoint[1])
-        if not (xmin < x < xmax and ymin < y < ymax):
-            raise ConfigError(f"run.params.path[{i}]", f"({x:g}, {y:g}) is outside {scenario.name}'s arena walls "
-                                                       f"[{xmin:g}, {ymin:g}, {xmax:g}, {ymax:g}]")
+        check_inside_walls(scenario.arena.walls, f"run.params.path[{i}]", float(waypoint[0]), float(waypoint[1]),
+                           whose=f"{scenario.name}'s")
 
 
 def check_required(behaviour: str, params: Any) -> None:

@@ -323,22 +323,29 @@ class Scenario:
         """The spawn area must reach inside the walls, and the object's start and every waypoint lie inside
         them: a run with any of them outside cannot succeed, and would only say so at its time limit."""
         xmin, ymin, xmax, ymax = walls
-        box = f"the arena walls [{xmin:g}, {ymin:g}, {xmax:g}, {ymax:g}]"
-
-        def check(field_name: str, x: float, y: float) -> None:
-            if not (xmin < x < xmax and ymin < y < ymax):
-                raise ConfigError(field_name, f"({x:g}, {y:g}) is outside {box}")
-
         spawn = self.robots.spawn     # robots are placed inside the walls: the area must only reach inside
         if spawn.x[1] <= xmin or spawn.x[0] >= xmax or spawn.y[1] <= ymin or spawn.y[0] >= ymax:
-            raise ConfigError("robots.spawn", f"x {list(spawn.x)}, y {list(spawn.y)} lies outside {box}")
+            raise ConfigError("robots.spawn", f"x {list(spawn.x)}, y {list(spawn.y)} lies outside the "
+                                              f"{walls_text(walls)}")
         if self.object is not None:
-            check("object.position", *self.object.position)
+            check_inside_walls(walls, "object.position", *self.object.position)
         for i, (x, y, _yaw) in enumerate(self.path):
-            check(f"path[{i}]", x, y)
+            check_inside_walls(walls, f"path[{i}]", x, y)
 
     def with_overrides(self, **changes: Any) -> Scenario:
         return dataclasses.replace(self, **changes)
+
+
+def walls_text(walls: Tuple[float, float, float, float]) -> str:
+    return "arena walls [" + ", ".join(f"{v:g}" for v in walls) + "]"
+
+
+def check_inside_walls(walls: Tuple[float, float, float, float], field_name: str, x: float, y: float,
+                       whose: str = "the") -> None:
+    """A point (the object's start, a waypoint) strictly inside the walls; else an error naming the field."""
+    xmin, ymin, xmax, ymax = walls
+    if not (xmin < x < xmax and ymin < y < ymax):
+        raise ConfigError(field_name, f"({x:g}, {y:g}) is outside {whose} {walls_text(walls)}")
 
 
 def builtin_names() -> List[str]:
