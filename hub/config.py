@@ -308,9 +308,12 @@ def load_config(path: Path) -> LabConfig:
         # Not the defaults: an empty file is more likely a failed copy than a wish for lab-6 in simulation.
         raise ConfigError("--config", f"{path} is empty; hub/examples/lab.yaml is a commented example "
                                       "(`khepri hub --demo` runs the defaults)")
-    if not isinstance(data, dict):      # parse_config's "a lab config must be a mapping", naming the file
-        raise ConfigError(str(path), f"a lab config must be a mapping of keys (got {type(data).__name__})")
-    return parse_config(data)
+    try:
+        return parse_config(data)
+    except ConfigError as err:
+        if err.field:
+            raise
+        raise ConfigError(str(path), err.problem) from None     # the whole file is wrong: name it
 
 
 def demo_config() -> LabConfig:
