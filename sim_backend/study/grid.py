@@ -165,7 +165,7 @@ def scenario_mapping(scenario_ref: str, where: str) -> Dict[str, Any]:
     try:
         return to_mapping(load_scenario(scenario_ref) if is_file else load_builtin(scenario_ref))
     except ConfigError as err:
-        which = f"{Path(scenario_ref).name}: " if is_file and not err.field.endswith(Path(scenario_ref).name) else ""
+        which = f"{Path(scenario_ref).name}: " if is_file and scenario_ref not in str(err) else ""   # named yet?
         raise ConfigError(where, which + str(err)) from None
 
 
