@@ -6,6 +6,7 @@ import os
 import shlex
 import sys
 from pathlib import Path
+from typing import Any, List, Tuple
 
 from onboard.config import ConfigError
 from sim_backend.study.text import counted, them
@@ -129,12 +130,18 @@ RUN_OPTIONS = (("--reps", "reps"), ("--scenarios", "scenarios"), ("--executor", 
                ("--retry-failed", "retry_failed"), ("--merge", "merge"), ("--dry-run", "dry_run"))
 
 
+def given_run_options(args: argparse.Namespace) -> List[Tuple[str, Any]]:
+    """The RUN_OPTIONS given, as (flag, value); a flag's value is True."""
+    values = [(flag, getattr(args, name)) for flag, name in RUN_OPTIONS]
+    return [(flag, value) for flag, value in values if value is not None and value is not False]
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from sim_backend.study.report import write_study_outputs
 
-    given = [option for option, name in RUN_OPTIONS if getattr(args, name) not in (None, False)]
+    given = given_run_options(args)
     if given:       # `study report DIR --reps 5` did nothing with it, without a word
-        raise ConfigError(given[0], "is for running a study; `khepri study report DIR` runs nothing and takes only "
+        raise ConfigError(given[0][0], "is for running a study; `khepri study report DIR` runs nothing and takes only "
                                     "--no-figures")
     folder = args.folder
     if folder is None:
@@ -229,12 +236,8 @@ def print_outputs(files) -> int:
 def command_line(args: argparse.Namespace) -> str:
     """The command as it could be typed again (recorded in study.json and quoted by report.md)."""
     words = ["khepri"] + [f"--import={name}" for name in getattr(args, "imports", [])] + ["study", args.target]
-    options = (("--reps", args.reps), ("--scenarios", args.scenarios), ("--executor", args.executor),
-               ("--workers", args.workers), ("--out", args.out), ("--time-limit", args.time_limit),
-               ("--wall-limit", args.wall_limit))
-    for flag, value in options:
-        if value is not None and not (flag == "--executor" and value == "local"):     # the default, unsaid
-            words += [flag, format(value, "g") if isinstance(value, float) else str(value)]
-    words += ["--retry-failed"] if args.retry_failed else []
-    words += ["--merge"] if args.merge else []
+    for flag, value in given_run_options(args):
+        if flag == "--dry-run" or (flag == "--executor" and value == "local"):
+            continue        # a dry run records nothing; the default executor goes unsaid
+        words += [flag] if value is True else [flag, format(value, "g") if isinstance(value, float) else str(value)]
     return " ".join(shlex.quote(word) for word in words)
