@@ -375,8 +375,11 @@ def resolve(name_or_path: str) -> Path:
         raise ConfigError("scenario", f"{name_or_path} is a symbolic link to nothing that exists")
     if is_yaml:
         raise ConfigError("scenario", f"no such file: {name_or_path}")
-    raise ConfigError("scenario", f"unknown scenario {name_or_path!r}: not a file and not built in "
-                      f"(see `khepri sim list`)")
+    raise unknown_scenario(name_or_path)
+
+
+def unknown_scenario(name: str) -> ConfigError:
+    return ConfigError("scenario", f"unknown scenario {name!r}: not a file and not built in (see `khepri sim list`)")
 
 
 def _is_bare_name(text: str) -> bool:
@@ -399,8 +402,7 @@ def load_builtin(name: str) -> Scenario:
     by name and its own scenario files by path, and `lab-6` in the folder it is run from is neither."""
     path = BUILTIN_DIR / f"{name}.yaml"
     if not _is_bare_name(name) or not path.is_file():
-        raise ConfigError("scenario", f"unknown scenario {name!r}: not a file and not built in (see `khepri sim "
-                                      f"list`)")
+        raise unknown_scenario(name)
     return _parse_file(read_yaml(path, "scenario"), path, default_name=name)
 
 
