@@ -64,9 +64,9 @@ class LogSummary:
     # arrived_s (all waypoints reached), ended_s, ended_by, end_cause (ctl stop, signal), outcome, failures
     # and object (the sim source's progress at the end). A run the log has no end of has ended_s None.
     runs: List[Dict[str, Any]] = dataclasses.field(default_factory=list)
-    # When truncated: true if the file just ends early (a killed hub), false if it ends with MCAP's closing
-    # bytes and a damaged record stopped the reading (bits flipped or overwritten since it was written).
-    cut_short: bool = True
+    # True only for a truncated file that just ends early (a killed hub); false for a complete one, and for one
+    # that ends with MCAP's closing bytes where a damaged record stopped the reading (damaged since written).
+    cut_short: bool = False
 
     def to_dict(self) -> dict:
         """Every field, for JSON. Not ``dataclasses.asdict``, which copies every value recursively, two frames
@@ -248,7 +248,7 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         sim_start_s=sim_start_s, sim_end_s=sim_end_s,
         foreign_topics={topic: {"encoding": tally.foreign_encodings[topic], "messages": count}
                         for topic, count in sorted(tally.foreign.items(), key=lambda item: natural_key(item[0]))},
-        runs=list(tally.runs.values()), cut_short=reader.complete or reader.cut_short)
+        runs=list(tally.runs.values()), cut_short=not reader.complete and reader.cut_short)
 
 
 def _clock_s(poses: Optional[bytes]) -> Optional[float]:

@@ -550,6 +550,7 @@ def test_cli_log_info_prints_the_summary_and_json(tmp_path):
     parsed = json.loads(as_json.stdout)
     assert parsed == json.loads(json.dumps(summarise(path).to_dict()))
     assert parsed["topic_counts"][MOCAP_POSES] == 1 and parsed["metadata"] == {"lab": "L1"}
+    assert parsed["truncated"] is False and parsed["cut_short"] is False     # said true of every good log
 
     truncated = tmp_path / "truncated.mcap"
     truncated.write_bytes(path.read_bytes()[:-200])
