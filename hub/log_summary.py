@@ -150,7 +150,7 @@ def summarise(path: PathLike, *, use_index: bool = True, check_payloads: bool = 
             and summary_crc_holds(reader.path, reader.file_bytes):
         try:
             return _summary_from_index(reader)
-        except Exception:  # noqa: BLE001 - zstd, CRC, struct, overflow: a damaged index or drops chunk
+        except Exception:  # noqa: BLE001 - zstd, CRC, struct, overflow, UTF-8: a damaged index, chunk or metadata
             reader = LogReader(path)   # walk the records instead, which skips what is damaged and says so
     return _summary_from_records(reader)
 
@@ -177,11 +177,9 @@ def _summary_from_index(reader: LogReader) -> LogSummary:
             found = next(indexed.iter_messages(topics=[MOCAP_POSES], reverse=reverse), None)
             if found is not None:
                 tally.add_poses(found[2].data)
-        try:
-            metadata = {record.name: record.metadata for record in indexed.iter_metadata()}
-        except Exception as err:  # noqa: BLE001 - the counts above stand without it
-            metadata = {}
-            reader.damaged.append(f"metadata record: {str(err) or type(err).__name__}")
+        # A damaged metadata record raises too: the walk then reads the others and names it by its offset (this
+        # loop lost them all, the khepri.log record with them, and said the log was not a khepri hub's).
+        metadata = {record.name: record.metadata for record in indexed.iter_metadata()}
     reader.complete, reader.readable_bytes = True, reader.file_bytes
     return _build_summary(reader, tally, metadata)
 

@@ -335,6 +335,17 @@ def test_log_info_on_a_damaged_drops_chunk_says_so_instead_of_a_traceback(tmp_pa
     assert run_khepri(sound, "--check").returncode == 0
 
 
+def test_a_damaged_metadata_record_costs_only_itself(tmp_path):
+    """Read from the index, one damaged metadata record lost them all: the khepri.log record with them, so a hub's
+    log was said to be no hub's (and the damage was not placed). The records are walked instead."""
+    path = write_log(tmp_path / "meta.mcap", every_topic_records(), metadata={"lab": "L1"})
+    data = path.read_bytes()
+    damage(path, data.index(b"L1"), 2)          # the user metadata's value: no longer UTF-8
+    summary = summarise(path)
+    assert summary.format_version == 1 and summary.message_count == summarise(path, use_index=False).message_count
+    assert len(summary.damaged_records) == 1 and summary.damaged_records[0].startswith("metadata record at byte ")
+
+
 @pytest.mark.parametrize("content, problem", [(b"", r"empty file \(0 bytes\): not even the MCAP magic bytes"),
                                               (b"this is not a log\n" * 20, "not an MCAP"), (None, "no such file")])
 def test_unreadable_files_give_one_clear_error(tmp_path, content, problem):
