@@ -257,6 +257,12 @@ class SilSession:
                                  + (f": {stuck_step_account(robot, said)}" if said else "")
                                  + f"; its log is in {self.out / 'agents'}")
 
+    def _whole_error(self, index: int, error: str) -> str:
+        """Telemetry's ``error`` is cut in the middle to fit the protocol (``... ``): the agent's log has it whole."""
+        head, cut, _ = error.partition(" ... ")
+        rest = agent_log_line(self.out, index, f"agent {index}: {head}") if cut else ""
+        return head + rest if rest else error
+
     def _crash_line(self, index: int) -> str:
         """The agent's own account of its crash (``behaviour crashed: ...``) from its log, if it wrote one."""
         return agent_log_line(self.out, index, f"agent {index}: behaviour crashed: ")
@@ -304,7 +310,7 @@ class SilSession:
         for rid, robot in self.hub.robots.items():
             error = (robot.telemetry or {}).get("error")
             if error:
-                raise AgentError(f"agent {rid}: {error}")
+                raise AgentError(f"agent {rid}: {self._whole_error(rid, error)}")
         dead = self._dead_agent()
         if dead:
             raise AgentError(f"{dead} (its log is in {self.out / 'agents'})")

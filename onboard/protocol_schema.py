@@ -65,9 +65,12 @@ def robot_id(value: Any, field: str) -> None:
         fail(field, f"must be a robot id 0..999999 (got {value})")
 
 
+TEXT_MAX_CHARS = 200      # a text field (an agent's error, a reason): enough for one line
+
+
 def text(value: Any, field: str) -> None:
-    if not isinstance(value, str) or len(value) > 200:
-        fail(field, f"must be a string of at most 200 characters (got {short(value)})")
+    if not isinstance(value, str) or len(value) > TEXT_MAX_CHARS:
+        fail(field, f"must be a string of at most {TEXT_MAX_CHARS} characters (got {short(value)})")
 
 
 def mapping(value: Any, field: str) -> None:

@@ -1,6 +1,7 @@
 """The onboard agent, as a real process (or the real Agent class in a thread) against a scripted hub socket."""
 import argparse
 import os
+import re
 import select
 import signal
 import subprocess
@@ -238,7 +239,7 @@ class Explode(Behaviour):
     def step(self) -> None:
         self.robot.wheels.set_speeds(0.2, 0.2)
         if self.robot.clock.now() > 0.3:
-            raise RuntimeError("behaviour bug")
+            raise RuntimeError("behaviour bug: " + "a long account " * 100)
 
 
 @pytest.fixture
@@ -276,6 +277,11 @@ def test_an_exception_in_the_behaviour_stops_the_wheels_and_ends_the_agent(scrip
     wheels = [m for m in scripted.received if m["type"] == "wheels"]
     assert any(m["left"] == 0.2 for m in wheels), "the behaviour never drove"
     assert (wheels[-1]["left"], wheels[-1]["right"]) == (0.0, 0.0)
+    # The hub hears why, cut in the middle: the end says where and when (a cut at 200 characters lost it).
+    said = [m["error"] for m in scripted.received if m["type"] == "telemetry" and m.get("error")]
+    assert said and said[-1].startswith("behaviour crashed: robot 0, step(): RuntimeError: behaviour bug: ")
+    assert re.search(r" \.\.\. .* at test_agent\.py:\d+ \(at t = 0\.\d s\)$", said[-1]), said[-1]
+    assert len(said[-1]) <= 200
 
 
 NEIGHBOURS = [[3, 0.5, -1.25], [7, 2.9999, 3.1416], [12, 0.0, 0.0], [999_999, 1.0, -3.1415]]

@@ -66,6 +66,8 @@ class Buggy(Behaviour):
             self.robot.wheels.set_speeds(math.nan, 0.1)
         if self.params.bug == "strwheels" and late:
             self.robot.wheels.set_speeds(0.1, "fast")
+        if self.params.bug == "set_broadcast" and late:        # a long error: the payload's path to the set
+            self.robot.radio.broadcast({"summary": {"neighbours_seen": [{"id": 1, "ids_heard": {1, 2}}]}})
         if self.params.bug == "deep_broadcast" and late:
             self.robot.radio.broadcast({"a": nested(600)})
         if self.params.bug == "columns":
@@ -266,6 +268,16 @@ def test_sil_names_the_telemetry_field_the_wire_cannot_carry_as_sim_run_does(bug
     assert "agent 0: behaviour crashed: robot 0, telemetry(): TypeError: telemetry['neighbours'] is a set, which " \
         "JSON cannot carry: send dicts, lists, strings, numbers, booleans or None (at t = " in err   # whole, not cut
     assert json.loads((tmp_path / "sil-set" / "result.json").read_text())["stop_reason"] == "crashed"
+
+
+def test_sil_tells_a_long_crash_whole_with_its_file_and_time(buggy, capsys):
+    """The agent's telemetry cuts its error to the protocol's 200 characters: sil said `... send dicts with
+    string keys, lists, strings, numbe` and lost where and when; it takes the whole line from the agent's log."""
+    assert run("sil", buggy("set_broadcast"), "--no-plot", "--no-record", "--out", "sil-set-broadcast") == 1
+    err = capsys.readouterr().err
+    assert "step(): RadioPayloadError: radio payload['summary']['neighbours_seen'][0]['ids_heard'] is a set, " \
+        "which JSON cannot carry; send dicts with string keys, lists, strings, numbers, booleans or None at " \
+        "buggy_behaviour.py:" in err, err
 
 
 def test_an_evaluator_gets_telemetry_keys_as_the_strings_sil_delivers(buggy):

@@ -34,6 +34,7 @@ from onboard.config import ConfigError, check_boolean
 from onboard.console import stop_signals
 from onboard.drivers import Driver, DriverError
 from onboard.protocol import IDLE_TELEMETRY_HZ, ProtocolError
+from onboard.protocol_schema import TEXT_MAX_CHARS
 
 from .devices import AgentClock, HubState, apply_frame, make_robot
 from .link import HubLink, family_hint
@@ -91,7 +92,7 @@ class Agent:
             self._stop_wheels_on_the_way_out()
             farewell: Dict[str, Any] = {"type": "telemetry", "step": self.state.seq, "mode": "exiting"}
             if self.error:                 # the last word the hub hears must still say why
-                farewell["error"] = self.error[:200]
+                farewell["error"] = error_for_the_hub(self.error)
             self.link.send(farewell)
             self._restore_signal_handlers(previous)
             self._say_why_leaving()
@@ -338,14 +339,14 @@ class Agent:
             "run_id": self.run.get("run_id") if self.run else None, "driver": self.driver_name(),
         }
         if self.error:
-            message["error"] = self.error[:200]
+            message["error"] = error_for_the_hub(self.error)
         if self.run is None and self.error and self.refused_run_id is not None:
             message["refused_run_id"] = self.refused_run_id     # `ctl start` waits for this answer
         try:
             data = self.link.encode(message)
         except ProtocolError as err:       # too large, or not JSON even after plain_json: say so instead
             self.error = f"telemetry() cannot be sent: {err.problem}"
-            message.update(behaviour=None, error=self.error[:200])
+            message.update(behaviour=None, error=error_for_the_hub(self.error))
             data = self.link.encode(message)
         self.link.send_encoded(data)
 
@@ -369,3 +370,13 @@ class Agent:
     def _restore_signal_handlers(previous: List[Any]) -> None:
         for sig, handler in previous:
             signal.signal(sig, handler)
+
+
+
+def error_for_the_hub(error: str) -> str:
+    """``error`` cut to the protocol's TEXT_MAX_CHARS in its middle, not at its end: the end says where and when
+    (``at wander.py:5 (at t = 0.0 s)``), and a long radio-payload error lost it in SIL's account of the crash."""
+    if len(error) <= TEXT_MAX_CHARS:
+        return error
+    keep_end = 80
+    return error[:TEXT_MAX_CHARS - keep_end - 5] + " ... " + error[-keep_end:]
