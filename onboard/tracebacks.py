@@ -46,20 +46,34 @@ def traceback_lines(frames: traceback.StackSummary, exc: BaseException) -> List[
     ``frames`` (from ``traceback.extract_tb``, the caller's own frame left out) and the exception's line. The
     user's own frame is always among them: a check deep in khepri's code (a radio payload's nested key, say)
     had pushed the behaviour's call out of the last six, leaving only hal.py and payload.py."""
-    shown, left_out = _frames_to_show(frames)
+    shown, left_out, checked = _frames_to_show(frames)
     lines = [line.rstrip() for line in traceback.format_list(shown[:1])]
     if left_out:
         lines.append(f"  ... ({left_out} frame{'' if left_out == 1 else 's'} in khepri's or Python's code left out)")
     lines += [line.rstrip() for line in traceback.format_list(shown[1:])]
+    if checked:
+        lines.append(f"  (raised in khepri's code for that call, {checked} frame{'' if checked == 1 else 's'} "
+                     "further in, left out)")
     return lines + [line.rstrip() for line in traceback.format_exception_only(type(exc), exc)]
 
 
-def _frames_to_show(frames: traceback.StackSummary) -> Tuple[List[traceback.FrameSummary], int]:
-    """The last SHOWN_FRAMES frames, or the user's frame and the last ones after it; how many are skipped
-    between the first shown and the second."""
+def _frames_to_show(frames: traceback.StackSummary) -> Tuple[List[traceback.FrameSummary], int, int]:
+    """The frames to print: the last SHOWN_FRAMES, or the user's frame and the last ones after it; how many
+    are skipped between the first shown and the second; and how many are left off the end because they are
+    all khepri's own (a HAL check of the user's call raised: its lines are noise to the user)."""
     users = users_frame(frames)
     start = next((i for i, frame in enumerate(frames) if frame is users), 0)
+    checked = 0
+    if users is not None and start < len(frames) - 1 and all(_is_khepris(frame) for frame in frames[start + 1:]):
+        checked = len(frames) - start - 1
+        frames = frames[:start + 1]
     if start >= len(frames) - SHOWN_FRAMES:
-        return list(frames[-SHOWN_FRAMES:]), 0
+        return list(frames[-SHOWN_FRAMES:]), 0, checked
     tail = list(frames[-(SHOWN_FRAMES - 1):])
-    return [frames[start]] + tail, len(frames) - start - 1 - len(tail)
+    return [frames[start]] + tail, len(frames) - start - 1 - len(tail), checked
+
+
+def _is_khepris(frame: traceback.FrameSummary) -> bool:
+    """A frame of khepri's own code (not a behaviour's)."""
+    name = os.path.abspath(frame.filename)
+    return name.startswith(_FRAMEWORK) and not name.startswith(_BEHAVIOURS)
