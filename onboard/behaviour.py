@@ -24,6 +24,7 @@ import dataclasses
 import inspect
 import json
 import math
+import os
 import traceback
 from typing import Any, Callable, Dict, List, Mapping, Optional, Type
 
@@ -191,6 +192,7 @@ def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
     another class is an error (the second would silently replace the first, or be replaced by it)."""
 
     def decorate(cls: Type[Behaviour]) -> Type[Behaviour]:
+        _check_behaviour_class(cls)
         if getattr(cls, "step", None) is Behaviour.step:
             raise ConfigError("register", f"{_qualified(cls)} has no step(self): define it (it is called once "
                                           "per control period)")
@@ -208,6 +210,41 @@ def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
         return cls
 
     return decorate
+
+
+def _check_behaviour_class(cls: Any) -> None:
+    """What would otherwise fail only once a run starts (a wrong signature, at t = 0 in every robot), or never
+    run at all (``async def step``: a coroutine made and dropped each step, the robots standing still)."""
+    if not (isinstance(cls, type) and issubclass(cls, Behaviour)):
+        what = _qualified(cls) if isinstance(cls, type) else repr(cls)
+        raise ConfigError("register", f"{what} is not a Behaviour: write `class {getattr(cls, '__name__', 'X')}"
+                                      "(Behaviour):` (from onboard.behaviour import Behaviour)")
+    step = getattr(cls, "step", None)
+    if inspect.iscoroutinefunction(step):
+        raise ConfigError("register", f"{_qualified(cls)}.step is `async def`: it would never run (it is called, "
+                                      "not awaited); make it a plain `def step(self)`")
+    _check_signature(cls, "step", step, "step(self)", 1)
+    _check_signature(cls, "__init__", cls.__init__, "__init__(self, robot, params=None), calling "
+                                                    "super().__init__(robot, params)", 3)
+
+
+def _check_signature(cls: type, name: str, method: Any, wanted: str, arguments: int) -> None:
+    """``method`` (a plain function) must take ``arguments`` positional arguments, self included."""
+    if not inspect.isfunction(method):
+        return                     # inherited from Behaviour, a builtin, or a wrapped callable: not ours to judge
+    try:
+        inspect.signature(method).bind(*([None] * arguments))
+    except TypeError:
+        raise ConfigError("register", f"{_qualified(cls)}.{name} must be {wanted}; it is "
+                                      f"{name}{inspect.signature(method)} "
+                                      f"(at {_where(method)})") from None
+    except ValueError:             # no signature to read
+        return
+
+
+def _where(function: Any) -> str:
+    code = function.__code__
+    return f"{os.path.basename(code.co_filename)}:{code.co_firstlineno}"
 
 
 def _qualified(cls: type) -> str:

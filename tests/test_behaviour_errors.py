@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from khepri_cli.main import main
-from onboard.behaviour import Behaviour, build_params, register
+from onboard.behaviour import _REGISTRY, Behaviour, build_params, register
 from onboard.config import ConfigError
 from onboard.protocol import ProtocolError, decode
 from sim_backend.runner import Simulation
@@ -418,6 +418,52 @@ def test_params_mistakes_and_name_clashes_are_config_errors():
     with pytest.raises(ConfigError, match=r"Idle has no step\(self\): define it"):
         register("idle")(Idle)
     assert math.isfinite(build_params(Fussy, {}).speed)
+
+
+def test_register_refuses_what_would_fail_only_once_a_run_started():
+    """Each of these registered, then crashed every robot at t = 0 (a signature), ran with the robots standing
+    still and only Python's `never awaited` warning (async), or failed in the scenario check naming khepri's
+    code (`type object 'A' has no attribute 'Params' at behaviour.py`)."""
+    class Eager(Behaviour):
+        async def step(self):
+            pass
+
+    class Ported(Behaviour):
+        def step(self, robot, dt):
+            pass
+
+    class Narrow(Behaviour):
+        def __init__(self, robot):
+            super().__init__(robot)
+
+        def step(self):
+            pass
+
+    class Plain:
+        def step(self):
+            pass
+
+    refusals = {Eager: r"Eager.step is `async def`: it would never run",
+                Ported: r"Ported.step must be step\(self\); it is step\(self, robot, dt\) \(at test_behaviour_errors",
+                Narrow: r"Narrow.__init__ must be __init__\(self, robot, params=None\), calling super\(\).__init__\("
+                        r"robot, params\); it is __init__\(self, robot\)",
+                Plain: r"Plain is not a Behaviour: write `class Plain\(Behaviour\):`"}
+    for cls, refusal in refusals.items():
+        with pytest.raises(ConfigError, match=refusal):
+            register("test-refused")(cls)
+    assert "test-refused" not in _REGISTRY
+
+    class Flexible(Behaviour):             # any signature a call with (robot, params) fits is fine
+        def __init__(self, robot, *args, **kwargs):
+            super().__init__(robot, *args, **kwargs)
+
+        def step(self, *unused):
+            pass
+
+    try:
+        assert register("test-flexible")(Flexible) is Flexible
+    finally:
+        _REGISTRY.pop("test-flexible", None)
 
 
 RANDOM_WALK = '''
