@@ -198,6 +198,10 @@ class SilSession:
         behaviour_cls = get_behaviour(scenario.behaviour)       # the agents build these same params
         self.warnings = evaluator_call(self.evaluator, "warnings",
                                        build_params(behaviour_cls, mission_params(behaviour_cls, scenario)))
+        if scenario.comm.latency_s > 0:
+            self.warnings = [*self.warnings, f"comm.latency_s ({scenario.comm.latency_s:g} s) is not simulated "
+                             "in sil: the hub relays a broadcast with the next frame, one control step later, as "
+                             "it does in the lab (where the radio's own delay adds to that)"]
         self.recording = SilRecording(scenario, self.source.world)
         self.round_trips: List[float] = []
         self.missing_answers = 0
