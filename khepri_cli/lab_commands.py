@@ -81,7 +81,8 @@ def cmd_hub(args: argparse.Namespace) -> int:
         return serve_hub(config)
     except ConfigError as err:
         option = OVERRIDING_OPTIONS.get(err.field)
-        if option and getattr(args, option) is not None:    # name the option the user typed
+        # Name the option the user typed, or with --demo (which has no config file) the one that would change it.
+        if option and (getattr(args, option) is not None or (args.demo and option != "record")):
             raise ConfigError("--" + option.replace("_", "-"), err.problem) from None
         raise
 

@@ -145,6 +145,29 @@ def test_the_demo_hub_runs_on_ports_given_on_the_command_line(tmp_path):
         "khepri: error: --control-port: must differ from the robot port (both are 6411)"
 
 
+def test_the_demo_hub_names_the_option_for_its_own_port_when_taken(monkeypatch, capsys):
+    """With 5560 taken (another hub), `hub --demo` said `network.robot_port: ...`: a config key, with no config."""
+    import socket
+
+    import hub.config
+    from khepri_cli.main import main
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+
+        def demo_on_the_taken_port():
+            config = demo_config()
+            config.network.robot_port = port
+            return config
+
+        monkeypatch.setattr(hub.config, "demo_config", demo_on_the_taken_port)
+        assert main(["hub", "--demo", "--control-port", "0"]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == \
+        f"khepri: error: --robot-port: port {port} on 127.0.0.1 is already in use"
+
+
 def test_ctl_start_names_the_robots_that_cannot_run_it(tmp_path):
     """`ctl start` said ok (exit 0) when every agent refused the run, here a behaviour only the hub imported."""
     (tmp_path / "hub_only.py").write_text("from onboard.behaviour import Behaviour, register\n\n\n"
