@@ -34,6 +34,8 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         except ConfigError as err:
             # The lab config's field, and for a field inside the scenario file, which file and field.
             problem = err.problem if err.field == "scenario" else f"{config.source.scenario}: {err}"
+            if problem.startswith("no such file") and not Path(config.source.scenario).is_absolute():
+                problem += f" (a lab config's paths are relative to the folder the hub is started in, {Path.cwd()})"
             raise ConfigError("source.scenario", problem) from None
     # Checked before the source connects: with a motion-capture system that does not answer, a missing
     # run.behaviour or key folder was said only after the connection timed out.

@@ -415,6 +415,16 @@ def test_an_unknown_sim_scenario_names_the_lab_configs_field():
         assert info.value.field == field and "not built in" in str(info.value)
 
 
+def test_a_missing_scenario_file_says_relative_paths_are_from_the_hubs_folder(tmp_path, monkeypatch):
+    """A scenario beside the config, named without its folder, read as gone: the hub looks from its own folder."""
+    monkeypatch.chdir(tmp_path)
+    config = parse_config({"source": {"type": "sim", "scenario": "beside-the-config.yaml"}, "network": NETWORK,
+                           "security": {"insecure": True}})
+    with pytest.raises(ConfigError, match=r"^source.scenario: no such file: beside-the-config.yaml \(a lab config's "
+                                          r"paths are relative to the folder the hub is started in, "):
+        build_hub(config, log=lambda line: None)
+
+
 def test_a_bad_field_inside_the_sim_scenario_file_names_the_file_and_the_field(tmp_path):
     """It said only "behaviour: unknown behaviour 'goto'", which reads as a key of the lab config."""
     (tmp_path / "goto.yaml").write_text("behaviour: goto\nrobots: {count: 2}\n")
