@@ -118,12 +118,15 @@ def say_unplaced_replay_robots(source: ReplaySource, ids: List[int], log: Callab
     several = len(missing) > 1
     who = (f"robot{'s' if several else ''} {', '.join(map(str, missing))} of this lab (robots) "
            f"ha{'ve' if several else 's'}")
+    has = (f"; the log places {format_ids(source.placed_ids)}" if source.placed_ids
+           else "; the log places no robot")
     if scanned_s is not None:      # a long log, looked through only so far
         log(f"hub: warning: {who} no pose in the first {scanned_s:.0f} s of {source.path} (source.file): "
-            f"{'they are' if several else 'it is'} held until the replay places {'them' if several else 'it'}")
+            f"{'they are' if several else 'it is'} held until the replay places {'them' if several else 'it'}"
+            f"{has.replace('the log places', 'so far the log places')}")
     else:
         log(f"hub: warning: {who} no pose in {source.path} (source.file): the replay never places "
-            f"{'them' if several else 'it'}, so {'they stay' if several else 'it stays'} held")
+            f"{'them' if several else 'it'}, so {'they stay' if several else 'it stays'} held{has}")
 
 
 def say_missing_keys(ids: List[int], keyring: KeyRing, log: Callable[[str], None]) -> None:

@@ -54,6 +54,9 @@ class LogSummary:
     # log, whose wall-clock duration says nothing of how much it simulated. None without a simulated clock.
     sim_start_s: Optional[float] = None
     sim_end_s: Optional[float] = None
+    # The robot ids that have a pose in the first or the last /mocap/poses record (the ids a replay of this
+    # log feeds; a motion-capture-only log has no /robot topics to tell them).
+    posed_robots: List[RobotId] = dataclasses.field(default_factory=list)
     # Channels that are not JSON (another tool's, e.g. protobuf in a merged file): topic -> {"encoding",
     # "messages"}. read_log and the replay skip them; they are not damage, and not in topic_counts.
     foreign_topics: Dict[str, Dict[str, Any]] = dataclasses.field(default_factory=dict)
@@ -243,7 +246,7 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         drops_by_sender=dict(sorted(tally.drops_by_sender.items())),
         metadata=metadata_from_text(metadata.get(USER_METADATA, {})),
         format_version=format_version(metadata), damaged_records=list(reader.damaged),
-        sim_start_s=sim_start_s, sim_end_s=sim_end_s,
+        sim_start_s=sim_start_s, sim_end_s=sim_end_s, posed_robots=_posed_ids(tally.first_poses, tally.last_poses),
         foreign_topics={topic: {"encoding": tally.foreign_encodings[topic], "messages": count}
                         for topic, count in sorted(tally.foreign.items(), key=lambda item: natural_key(item[0]))},
         runs=list(tally.runs.values()), cut_short=not reader.complete and reader.cut_short)
@@ -256,6 +259,18 @@ def _clock_s(poses: Optional[bytes]) -> Optional[float]:
     if isinstance(clock, (int, float)) and not isinstance(clock, bool) and math.isfinite(clock):
         return float(clock)
     return None
+
+
+def _posed_ids(*records: Optional[bytes]) -> List[RobotId]:
+    """The body ids of these /mocap/poses records (a damaged one counts for none)."""
+    ids = set()
+    for record in records:
+        payload = json_or_none(record) if record is not None else None
+        bodies = payload.get("bodies") if isinstance(payload, dict) else None
+        if isinstance(bodies, dict):
+            ids.update(str(body) for body in bodies)
+    typed = [int(robot) if robot.isdigit() else robot for robot in ids]
+    return sorted(typed, key=lambda robot: (isinstance(robot, str), robot))
 
 
 def _robot_ids(topics: Iterable[str]) -> List[RobotId]:

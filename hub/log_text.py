@@ -51,6 +51,9 @@ def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
                          f"{summary.sim_start_s:.3f} to {summary.sim_end_s:.3f} s in /mocap/poses)")
     robots = ", ".join(str(robot) for robot in summary.robots) or "none"
     lines.append(f"robots:    {len(summary.robots)} ({robots})" if summary.robots else "robots:    none")
+    if summary.posed_robots and summary.posed_robots != summary.robots:   # a motion-capture log: what it places
+        posed = ", ".join(str(robot) for robot in summary.posed_robots)
+        lines.append(f"posed:     {len(summary.posed_robots)} ({posed}) in the first and last /mocap/poses records")
     if summary.start_s is not None:
         lines.append(f"messages:  {summary.message_count}")
         rows = list(summary.topic_counts.items() if all_topics else _grouped_topic_counts(summary.topic_counts))

@@ -77,11 +77,14 @@ class ReplaySource(PoseSource):
         all along), and None; or, when reading took longer than ``scan_s`` of wall time before every one was
         seen, those not placed so far and how many seconds of the log that was. Reads with a second reader only
         until every one of ``ids`` has been seen: an hour-long log of many robots, one of them never placed,
-        kept the hub from listening for a minute, saying nothing."""
+        kept the hub from listening for a minute, saying nothing. ``placed_ids`` holds the ids the records read
+        did place (when some of ``ids`` are missing, every id of what was read: which ids the log has)."""
         from hub.log_reader import LogReader
         from hub.recording import MOCAP_POSES, LogError
 
         missing = set(ids)
+        self.placed_ids: List[int] = []
+        placed = set()
         deadline = time.monotonic() + scan_s
         first = last = None
         try:
@@ -94,11 +97,15 @@ class ReplaySource(PoseSource):
                 if count % 256 == 255 and time.monotonic() > deadline:
                     return sorted(missing), (last - first) / 1e9
                 try:
-                    missing.difference_update(poses_from_record(message.data)[0])
+                    record_ids = poses_from_record(message.data)[0]
                 except (KeyError, TypeError, ValueError, AttributeError):
                     continue     # the replay skips it too, and says so when it gets there
+                missing.difference_update(record_ids)
+                placed.update(record_ids)
         except LogError:             # damaged beyond what the reader walks past: what was read is the log
             pass
+        finally:
+            self.placed_ids = sorted(placed)
         return sorted(missing), None
 
     def _pose_messages(self):

@@ -327,10 +327,12 @@ def test_replay_warns_at_start_of_lab_robots_the_log_never_places(tmp_path):
         build_hub(config, log=lines.append).close()
         return [line for line in lines if "no pose" in line]
 
+    # ... and which robots the log does place: finding that out took a script.
     assert started([0, 1, 2, 5]) == [f"hub: warning: robots 2, 5 of this lab (robots) have no pose in {log} "
-                                      "(source.file): the replay never places them, so they stay held"]
+                                      "(source.file): the replay never places them, so they stay held; the log "
+                                      "places 0, 1"]
     assert started([1, 3]) == [f"hub: warning: robot 3 of this lab (robots) has no pose in {log} (source.file): "
-                               "the replay never places it, so it stays held"]
+                               "the replay never places it, so it stays held; the log places 0, 1"]
     assert started([0, 1]) == []
 
 
@@ -566,10 +568,11 @@ def test_a_long_log_is_looked_through_for_unplaced_robots_only_so_long(tmp_path)
 
     class Cut:
         path = log
+        placed_ids = [0]
 
         def never_placed(self, ids):
             return [7], 25.5
     said = []
     say_unplaced_replay_robots(Cut(), [0, 7], said.append)
     assert said == [f"hub: warning: robot 7 of this lab (robots) has no pose in the first 26 s of {log} "
-                    "(source.file): it is held until the replay places it"]
+                    "(source.file): it is held until the replay places it; so far the log places 0"]

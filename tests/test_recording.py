@@ -104,6 +104,21 @@ def test_summary_counts_robots_drops_and_metadata(tmp_path):
     assert summarise(path, use_index=False) == summary
 
 
+def test_log_info_names_the_bodies_a_motion_capture_log_places(tmp_path):
+    """A motion-capture-only log said `robots: none`: which ids a replay of it would feed took a script."""
+    from hub.log_text import format_summary
+
+    path = tmp_path / "mocap.mcap"
+    with Recorder(path) as recorder:
+        recorder.write(MOCAP_POSES, {"bodies": {"11": [0, 0, 0, 0, 0, 0, 1]}, "clock_s": None}, T0)
+        recorder.write(MOCAP_POSES, {"bodies": {"10": [0, 0, 0, 0, 0, 0, 1]}, "clock_s": None}, T0 + 1)
+    summary = summarise(path)
+    assert summary.robots == [] and summary.posed_robots == [10, 11]
+    assert summarise(path, use_index=False) == summary
+    text = format_summary(summary)
+    assert "robots:    none\nposed:     2 (10, 11) in the first and last /mocap/poses records\n" in text, text
+
+
 def test_a_sil_log_says_how_much_it_simulated_beside_its_wall_clock_duration(tmp_path):
     """log info on a sil log showed 10 s (the wall clock) for a 30 s simulated run, and nothing else."""
     from hub.log_text import format_summary
