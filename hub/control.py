@@ -191,4 +191,6 @@ def replay_text(replay: Dict[str, Any]) -> str:
         text = f"{played:.1f} s played{rate}, {percent:.0f} % of the file (a log cut short: its length is not known)"
     else:
         text = f"{played:.1f} s played{rate}"
+    if replay.get("passed_over"):       # latest-only at a high rate: not every recorded frame was fed
+        text += f", {replay['passed_over']} frames passed over to keep up"
     return f"replay: {'ended: ' if replay.get('ended') else ''}{text}"

@@ -43,6 +43,7 @@ class ReplaySource(PoseSource):
         self.finished = False
         self.skipped = 0
         self._skips_unsaid = 0
+        self.passed_over = 0          # frames read but overtaken by a newer one in the same poll (latest-only)
         self._last_skip_line = -math.inf
         self._fetch()
         if self.pending is None:
@@ -133,6 +134,8 @@ class ReplaySource(PoseSource):
                 reason = "; ".join(filter(None, [reason, f"{len(damaged)} damaged record(s) skipped: {damaged[0]}"]))
             if self._skips_unsaid:
                 reason = "; ".join(filter(None, [reason, f"{self.skipped} unreadable pose records skipped in all"]))
+            if self.passed_over:
+                reason = "; ".join(filter(None, [reason, passed_over_text(self.passed_over, self.rate)]))
             self.log("hub: replay reached the end of the log" + (f" ({reason})" if reason else ""))
 
     def _stamp(self, message) -> float:
@@ -150,10 +153,11 @@ class ReplaySource(PoseSource):
                 break
             frame = self._to_frame(*self.pending, now)
             if frame is not None:
+                self.passed_over += 1 if out else 0   # the one before is overtaken (counted before _fetch ends)
                 out.append(frame)
             self.played_stamp = self._stamp(self.pending[1])
             self._fetch()
-        return out[-1:]   # latest-only: a late hub skips to the newest frame
+        return out[-1:]   # latest-only: a late hub skips to the newest frame (counted, and said at the end)
 
     def _to_frame(self, index: int, message, now: float) -> Optional[PoseFrame]:
         try:
@@ -186,7 +190,8 @@ class ReplaySource(PoseSource):
         else:
             percent = 100.0 * self.reader.readable_bytes / max(1, self.reader.file_bytes)
         return {"played_s": round(played, 3), "total_s": None if self.total_s is None else round(self.total_s, 3),
-                "percent": round(min(percent, 100.0), 1), "rate": self.rate, "ended": self.finished}
+                "percent": round(min(percent, 100.0), 1), "rate": self.rate, "ended": self.finished,
+                "passed_over": self.passed_over}
 
     def next_due(self, now: float) -> float:
         if self.pending is None:
@@ -194,6 +199,11 @@ class ReplaySource(PoseSource):
         if self.first_stamp is None:
             return 0.0
         return max(0.0, self._due_at() - now)
+
+
+def passed_over_text(count: int, rate: float) -> str:
+    return (f"{count} pose frame{'' if count == 1 else 's'} passed over: at {rate:g}x they came faster than the "
+            "hub's loop, which sends only the newest (a smaller source.rate feeds them all)")
 
 
 def poses_from_record(data: bytes) -> Tuple[List[int], np.ndarray, Optional[float]]:

@@ -395,7 +395,8 @@ def test_ctl_status_shows_how_far_the_replay_has_got(tmp_path):
     assert going["total_s"] == 2.0 and going["played_s"] < 2.0 and not going["ended"] and going["rate"] == 1.0
     assert status_table(early).splitlines()[-1] == \
         f"replay: {going['played_s']:.1f} s of 2.0 s played ({going['percent']:.0f} %) at 1x"
-    assert ended["replay"] == {"played_s": 2.0, "total_s": 2.0, "percent": 100.0, "rate": 1.0, "ended": True}
+    assert ended["replay"] == {"played_s": 2.0, "total_s": 2.0, "percent": 100.0, "rate": 1.0, "ended": True,
+                               "passed_over": 0}
     assert status_table(ended).splitlines()[-1] == "replay: ended: 2.0 s of 2.0 s played (100 %) at 1x"
 
     early, ended = replay(cut)              # its length is not known without reading it all: the file's share
@@ -526,6 +527,28 @@ def test_motion_capture_slower_than_the_downlink_reaches_every_robot_with_each_f
         for sock in sockets:
             sock.close(0)
         hub.close()
+
+
+def test_a_fast_replay_counts_and_says_the_frames_it_passed_over(tmp_path):
+    """At rate 100 a 50 Hz log's frames fall due faster than the hub's loop: only the newest of each pass is fed
+    (latest-only), and about one in ten was left out without a word."""
+    from hub.control import replay_text
+    from hub.replay_source import ReplaySource
+
+    log = tmp_path / "run.mcap"
+    with Recorder(log) as recorder:
+        for k in range(50):
+            recorder.write("/mocap/poses", poses_record(PoseFrame(0.0, [0], np.array([[0.01 * k, 0.0, 0.0]]))),
+                           stamp_s=1.7e9 + 0.02 * k)
+    lines = []
+    source = ReplaySource(str(log), rate=100.0, log=lines.append)
+    fed = [source.poll(1000.0)]                   # the first record starts the clock
+    fed += [source.poll(1000.0 + 0.001 * k) for k in range(1, 12)]     # 1 ms passes: 5 records fall due in each
+    assert sum(len(frames) for frames in fed) + source.passed_over == 50 and source.passed_over > 30
+    assert lines == [f"hub: replay reached the end of the log ({source.passed_over} pose frames passed over: at "
+                     "100x they came faster than the hub's loop, which sends only the newest (a smaller "
+                     "source.rate feeds them all))"]
+    assert replay_text(source.progress()).endswith(f", {source.passed_over} frames passed over to keep up")
 
 
 def test_at_the_end_of_a_replay_the_robots_are_held_because_it_ended(tmp_path):
