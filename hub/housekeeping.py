@@ -25,11 +25,11 @@ class Housekeeping:
         self.say_silent_robots(now)
         self.drops.flush(now)
         # A replay at the end of its log said so itself; "no motion-capture frame" would only blur that.
-        silent = now - self.last_frame_stamp > MOCAP_SILENT_S and self.last_frame_stamp > -math.inf \
+        silent = now - self.last_frame_stamp > self.silent_s and self.last_frame_stamp > -math.inf \
             and not self.source.ended
         if silent != self.mocap_silent:
             self.mocap_silent = silent
-            self.log("hub: no motion-capture frame for 1 s: robots without a pose are held" if silent
+            self.log(f"hub: no motion-capture frame for {self.silent_s:g} s: robots without a pose are held" if silent
                      else "hub: motion capture is back")
         if self.recorder is not None and now >= self._next_status_record:
             self._next_status_record = now + 1.0

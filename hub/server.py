@@ -98,9 +98,12 @@ class Hub(Downlink, Uplink, Housekeeping):
         # A replay slower than real time spaces its frames out by 1/rate: a pose is stale only after as many
         # of them as at real time (or every robot flickers between run and hold at rate 0.1).
         slowed = min(1.0, getattr(source, "rate", 1.0))
-        self.stale_s = config.source.stale_s / slowed if config.source.type == "replay" else config.source.stale_s
+        replay = config.source.type == "replay"
+        self.stale_s = config.source.stale_s / slowed if replay else config.source.stale_s
+        # Likewise the "no motion-capture frame" line: at rate 0.01 it came and went with every frame.
+        self.silent_s = MOCAP_SILENT_S / slowed if replay else MOCAP_SILENT_S
         self.mocap_silent = False
-        self.sparse_frames = SparseFrames(self.stale_s, MOCAP_SILENT_S, config.source.stale_s)
+        self.sparse_frames = SparseFrames(self.stale_s, self.silent_s, config.source.stale_s)
         self._finished_said: Optional[str] = None    # the run whose end was said
         self.progress = progress          # the sim source's object and waypoints (hub/progress.py), else None
         self.arrival_said: Optional[str] = None      # the run whose arrival at its last waypoint was said

@@ -371,6 +371,27 @@ def test_a_slowed_replay_keeps_the_robots_tracked_between_its_frames(tmp_path):
         hub.close()
 
 
+def test_a_slowed_replay_does_not_say_motion_capture_stopped_between_its_frames(tmp_path):
+    """At rate 0.04 a 20 Hz log gives a frame every 1.25 s: the hub said `no motion-capture frame for 1 s` and
+    `motion capture is back` with every frame. The silence it speaks of is stretched by 1/rate too."""
+    config = replay_config(walking_log(tmp_path / "run.mcap", frames=40), rate=0.04)
+    lines = []
+    hub = build_hub(config, log=lines.append)
+    try:
+        hub.bind()
+        frames, deadline = 0, time.monotonic() + 2.8      # three replayed frames, 1.25 s apart
+        while time.monotonic() < deadline:
+            for frame in hub.source.poll(time.monotonic()):
+                hub.on_pose_frame(frame)
+                frames += 1
+            hub.housekeeping(time.monotonic())
+            time.sleep(0.02)
+        assert frames >= 2 and hub.silent_s == 25.0
+        assert not [line for line in lines if "motion-capture frame" in line or "motion capture is back" in line]
+    finally:
+        hub.close()
+
+
 def test_ctl_status_shows_how_far_the_replay_has_got(tmp_path):
     """With the replay source `ctl status` said nothing of where in the log the replay was, or that it had ended:
     only the hub's console did, at the end."""
