@@ -179,6 +179,21 @@ def test_a_source_field_of_another_source_type_is_refused(source, field, kind):
     assert f"a {own} source takes type, seed, stale_s, {accepted}" in str(info.value)
 
 
+@pytest.mark.parametrize("source, said", [
+    ({"type": "replay", "file": "run.mcap", "rat": 2}, "source.rat: unknown key (a replay source takes type, seed, "
+                                                       "stale_s, file, rate); did you mean rate?"),
+    ({"scenari": "lab-6"}, "source.scenari: unknown key (a sim source takes type, seed, stale_s, scenario, "
+                           "lockstep, frame_hz, reset_each_run); did you mean scenario?"),
+    ({"type": "motioncapture", "colour": "red"}, "source.colour: unknown key (a motioncapture source takes type, "
+                                                 "seed, stale_s, system, options, bodies, up_axis, connect_timeout_s)"),
+])
+def test_an_unknown_source_key_lists_the_keys_of_that_source_type(source, said):
+    """`rat:` under a replay listed all 14 keys of every source type, and did not suggest `rate`."""
+    with pytest.raises(ConfigError) as info:
+        parse_config({"source": source})
+    assert str(info.value) == said
+
+
 def test_the_fields_every_source_type_reads_are_taken_by_each():
     assert parse_config({"source": {"type": "replay", "file": "run.mcap", "seed": 3, "stale_s": 0.5}})
     assert parse_config({"source": {"type": "sim", "seed": 3, "stale_s": 0.5, "frame_hz": 20}})
