@@ -23,7 +23,7 @@ DEFAULT_WATCHDOG_S = 0.3
 # sim source, which then runs the simulation.
 SOURCE_FIELDS = {"sim": ("scenario", "lockstep", "frame_hz", "reset_each_run"),
                  "motioncapture": ("system", "options", "bodies", "up_axis", "connect_timeout_s"),
-                 "replay": ("file", "rate")}
+                 "replay": ("file", "rate", "reset_each_run")}
 UP_AXES = ("z", "y")
 
 
@@ -40,7 +40,8 @@ class SourceConfig:
     seed: Optional[int] = None              # sim: overrides the scenario's seed
     lockstep: bool = False                  # sim: advance physics only when every agent answered
     frame_hz: float = 50.0                  # sim, real time: pose frames per second (physics in between)
-    reset_each_run: bool = True             # sim: each run starts at the scenario's start (false: where the last ended)
+    # sim: each run starts at the scenario's start (false: where the last ended); replay: at the log's start
+    reset_each_run: bool = True
     system: str = "mock"                    # motioncapture: the library's backend name
     options: Dict[str, Any] = field(default_factory=dict)   # motioncapture: passed to connect(), as strings
     # motioncapture: rigid body name -> robot id (checked by check_robot_id, whose message names the range)

@@ -5,7 +5,8 @@ the behaviour starts from, the faults' times) is the scenario's, from its start.
 would, each run begins in the world the scenario builds for its seed: robots, object and their velocities,
 odometry, faults, and the hub's own noise (range and bearing, relay drops) from the start of its stream. A world
 that has not moved since it was built (``khepri sil``'s one run, in lockstep) is used as it is;
-``source.reset_each_run: false`` keeps the world as the last run left it (docs/lab.md).
+``source.reset_each_run: false`` keeps the world as the last run left it (docs/lab.md). A replay likewise plays
+its log from the first record again for each run.
 """
 from __future__ import annotations
 
@@ -26,6 +27,8 @@ def prepare_new_run(hub: Hub) -> bool:
         return False
     # The new world's first frame goes through the hub as any frame does: poses, presence, the killed robots,
     # IR and odometry, the clock, the log. Its robots' wheels stand still until their agents start the run.
-    hub.on_pose_frame(restart(time.monotonic()))
+    first = restart(time.monotonic())
+    if first is not None:          # a replay whose first record is unreadable: its next one comes in time
+        hub.on_pose_frame(first)
     hub.restart_noise()
     return True

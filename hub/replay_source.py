@@ -73,6 +73,25 @@ class ReplaySource(PoseSource):
     def ended(self) -> bool:
         return self.finished
 
+    @property
+    def pristine(self) -> bool:
+        """Whether nothing has been played yet (a new run then starts the log from its first record anyway)."""
+        return self.played_stamp is None
+
+    def restart(self, now: float) -> Optional[PoseFrame]:
+        """The log from its first pose record again, for a new run (``source.reset_each_run``): agents that had
+        to connect first saw the replay only from where it was by then. Its first frame, stamped ``now``."""
+        from hub.log_reader import LogReader
+
+        self.reader = LogReader(self.path)
+        self.records = self._pose_messages()
+        self.first_stamp = self.played_stamp = self.started_at = None
+        self.finished = False
+        self.skipped = self._skips_unsaid = self.passed_over = 0
+        self._fetch()
+        frames = self.poll(now)
+        return frames[-1] if frames else None
+
     def never_placed(self, ids: List[int], scan_s: float = NEVER_PLACED_SCAN_S) -> Tuple[List[int], Optional[float]]:
         """Those of ``ids`` that no readable ``/mocap/poses`` record of the log places (the replay would hold them
         all along), and None; or, when reading took longer than ``scan_s`` of wall time before every one was

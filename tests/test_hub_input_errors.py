@@ -165,7 +165,8 @@ def test_a_numeric_body_name_matches_the_sdks_string_name():
     ({"options": {"hostname": "192.168.10.2"}}, "options", "motioncapture"),     # type: sim by default
     ({"type": "replay", "file": "run.mcap", "scenario": "lab-6"}, "scenario", "sim"),
     ({"type": "motioncapture", "bodies": {"kh0": 0}, "rate": 2.0}, "rate", "replay"),
-    ({"type": "replay", "file": "run.mcap", "reset_each_run": False}, "reset_each_run", "sim"),
+    ({"type": "replay", "file": "run.mcap", "lockstep": True}, "lockstep", "sim"),
+    ({"type": "motioncapture", "bodies": {"kh0": 0}, "reset_each_run": False}, "reset_each_run", "sim or replay"),
 ])
 def test_a_source_field_of_another_source_type_is_refused(source, field, kind):
     """A Vicon hostname under a sim source was ignored: the hub ran the simulation as if nothing were wrong."""
@@ -173,7 +174,7 @@ def test_a_source_field_of_another_source_type_is_refused(source, field, kind):
         parse_config({"source": source})
     assert info.value.field == f"source.{field}"
     own = source.get("type", "sim")
-    accepted = {"sim": "scenario, lockstep, frame_hz, reset_each_run", "replay": "file, rate",
+    accepted = {"sim": "scenario, lockstep, frame_hz, reset_each_run", "replay": "file, rate, reset_each_run",
                 "motioncapture": "system, options, bodies, up_axis, connect_timeout_s"}[own]
     assert f"is for a {kind} source" in str(info.value)
     assert f"a {own} source takes type, seed, stale_s, {accepted}" in str(info.value)
@@ -181,7 +182,7 @@ def test_a_source_field_of_another_source_type_is_refused(source, field, kind):
 
 @pytest.mark.parametrize("source, said", [
     ({"type": "replay", "file": "run.mcap", "rat": 2}, "source.rat: unknown key (a replay source takes type, seed, "
-                                                       "stale_s, file, rate); did you mean rate?"),
+                                                       "stale_s, file, rate, reset_each_run); did you mean rate?"),
     ({"scenari": "lab-6"}, "source.scenari: unknown key (a sim source takes type, seed, stale_s, scenario, "
                            "lockstep, frame_hz, reset_each_run); did you mean scenario?"),
     ({"type": "motioncapture", "colour": "red"}, "source.colour: unknown key (a motioncapture source takes type, "

@@ -371,6 +371,31 @@ def test_a_slowed_replay_keeps_the_robots_tracked_between_its_frames(tmp_path):
         hub.close()
 
 
+def test_each_run_replays_the_log_from_its_start(tmp_path):
+    """The replay started with the hub: agents that had to connect first saw it only from where it was by then
+    (0.6-0.8 s into a sil log, although started before the hub). Like the sim source's world, each run now begins
+    at the log's first record; `reset_each_run: false` keeps the replay going."""
+    for reset in (True, False):
+        config = replay_config(walking_log(tmp_path / f"run-{reset}.mcap", frames=40), rate=1.0)
+        config.source.reset_each_run = reset
+        hub = build_hub(config, log=lambda line: None)
+        try:
+            hub.bind()
+            deadline = time.monotonic() + 0.5                # 10 records played before the operator's start
+            while time.monotonic() < deadline:
+                for frame in hub.source.poll(time.monotonic()):
+                    hub.on_pose_frame(frame)
+                time.sleep(0.02)
+            assert hub.source.progress()["played_s"] >= 0.3 and hub.poses[hub.row[0], 0] >= 0.06
+            assert hub.control.execute("start")[0]
+            if reset:
+                assert hub.source.progress()["played_s"] == 0.0 and hub.poses[hub.row[0], 0] == 0.0
+            else:
+                assert hub.source.progress()["played_s"] >= 0.3 and hub.poses[hub.row[0], 0] >= 0.06
+        finally:
+            hub.close()
+
+
 def test_a_slowed_replay_does_not_say_motion_capture_stopped_between_its_frames(tmp_path):
     """At rate 0.04 a 20 Hz log gives a frame every 1.25 s: the hub said `no motion-capture frame for 1 s` and
     `motion capture is back` with every frame. The silence it speaks of is stretched by 1/rate too."""
