@@ -113,8 +113,9 @@ class ControlService:
             if hub.progress is not None:
                 hub.progress.start(hub.source.time_s, hub.source.world)
             run_event(hub, hub.run_id, "started", "start", sender)
-            hub.log(f"hub: run {hub.run_id} started by {sender}: {hub.run.behaviour}"
-                    + ("; the world is back at the scenario's start" if reset else ""))
+            back = "the replay is back at the log's start" if hub.config.source.type == "replay" \
+                else "the world is back at the scenario's start"
+            hub.log(f"hub: run {hub.run_id} started by {sender}: {hub.run.behaviour}" + (f"; {back}" if reset else ""))
         else:
             hub.log(f"hub: run {hub.run_id} resumed by {sender}")
         hub.mode = "run"

@@ -378,7 +378,8 @@ def test_each_run_replays_the_log_from_its_start(tmp_path):
     for reset in (True, False):
         config = replay_config(walking_log(tmp_path / f"run-{reset}.mcap", frames=40), rate=1.0)
         config.source.reset_each_run = reset
-        hub = build_hub(config, log=lambda line: None)
+        lines = []
+        hub = build_hub(config, log=lines.append)
         try:
             hub.bind()
             deadline = time.monotonic() + 0.5                # 10 records played before the operator's start
@@ -390,6 +391,7 @@ def test_each_run_replays_the_log_from_its_start(tmp_path):
             assert hub.control.execute("start")[0]
             if reset:
                 assert hub.source.progress()["played_s"] == 0.0 and hub.poses[hub.row[0], 0] == 0.0
+                assert lines[-1].endswith(": aggregate; the replay is back at the log's start"), lines
             else:
                 assert hub.source.progress()["played_s"] >= 0.3 and hub.poses[hub.row[0], 0] >= 0.06
         finally:
