@@ -1,4 +1,4 @@
-"""``khepri log info FILE``: summarise a recorded MCAP log."""
+"""``khepri log info FILE...``: summarise recorded MCAP logs."""
 from __future__ import annotations
 
 import argparse
@@ -14,8 +14,10 @@ def add_log(groups) -> None:
     info = commands.add_parser("info", help="summarise a log: duration, robots, message counts, drops",
                                description="Print a log's start, duration, robots, messages per topic, dropped "
                                            "frames by reason, and whether the file was cut short (a killed hub).")
-    info.add_argument("file", metavar="FILE", help="an .mcap log written by the hub")
-    info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    info.add_argument("files", nargs="+", metavar="FILE",
+                      help="an .mcap log written by the hub (several: one summary each, logs/*.mcap)")
+    info.add_argument("--json", action="store_true",
+                      help="print the summary as JSON (several files: a list of them, in the order given)")
     info.add_argument("--check", action="store_true",
                       help="read every record, check every chunk's CRC and decode every JSON message, also in a "
                            "complete log (slower; by default a complete log is summarised from its index); exit "
@@ -26,19 +28,40 @@ def add_log(groups) -> None:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
+    from onboard.config import ConfigError
+    from onboard.console import say
+
+    if len(args.files) == 1:
+        return _info(args, args.files[0], lambda summary: print(json.dumps(summary, indent=2)))
+    # Several: each file's summary, or its one error line, and on with the next (a folder's logs, one damaged).
+    summaries, code = [], 0
+    for number, name in enumerate(args.files):
+        if number and not args.json:
+            print()
+        try:
+            code = max(code, _info(args, name, summaries.append))
+        except ConfigError as err:
+            say(f"khepri: error: {err}")
+            code = 2
+    if args.json:
+        print(json.dumps(summaries, indent=2))
+    return code
+
+
+def _info(args: argparse.Namespace, name: str, print_json) -> int:
     from hub.log_summary import summarise
     from hub.log_text import format_summary, printable_metadata
     from onboard.config import ConfigError
     from onboard.console import say
 
-    if not args.file.strip():     # Path("") is ".", which would be reported as a folder
+    if not name.strip():     # Path("") is ".", which would be reported as a folder
         raise ConfigError("FILE", "an empty path: name the .mcap log")
 
     # LogError (a ConfigError) naming the file for missing, empty or non-MCAP files
-    summary = summarise(Path(args.file), use_index=not args.check, check_payloads=args.check)
+    summary = summarise(Path(name), use_index=not args.check, check_payloads=args.check)
     summary, unprintable = printable_metadata(summary, indent=2 if args.json else None)
     if args.json:
-        print(json.dumps(summary.to_dict(), indent=2))
+        print_json(summary.to_dict())
     else:
         print(format_summary(summary, all_topics=args.all_topics))
     for field in unprintable:

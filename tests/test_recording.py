@@ -350,6 +350,21 @@ def test_log_info_on_a_damaged_drops_chunk_says_so_instead_of_a_traceback(tmp_pa
     assert run_khepri(sound, "--check").returncode == 0
 
 
+def test_log_info_takes_several_files_and_goes_on_past_one_it_cannot_read(tmp_path):
+    """`khepri log info logs/*.mcap` was refused (`unrecognized arguments`)."""
+    first = write_log(tmp_path / "a.mcap", every_topic_records(), metadata={"lab": "A"})
+    second = write_log(tmp_path / "b.mcap", every_topic_records(), metadata={"lab": "B"})
+    (tmp_path / "empty.mcap").write_bytes(b"")
+    said = run_khepri(first, tmp_path / "empty.mcap", second)
+    assert said.returncode == 2 and said.stdout.count("status:    complete") == 2
+    assert said.stdout.index('lab = "A"') < said.stdout.index('lab = "B"')
+    assert said.stderr.strip() == f"khepri: error: {tmp_path / 'empty.mcap'}: empty file (0 bytes): not even the " \
+        "MCAP magic bytes a hub writes as it opens a log"
+    both = json.loads(run_khepri(first, second, "--json").stdout)
+    assert [summary["metadata"] for summary in both] == [{"lab": "A"}, {"lab": "B"}]
+    assert run_khepri(first, second, "--check").returncode == 0
+
+
 def test_a_damaged_metadata_record_costs_only_itself(tmp_path):
     """Read from the index, one damaged metadata record lost them all: the khepri.log record with them, so a hub's
     log was said to be no hub's (and the damage was not placed). The records are walked instead."""
