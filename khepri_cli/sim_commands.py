@@ -105,6 +105,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     for warning in sim.warnings:
         print(f"khepri: warning: {warning}", file=sys.stderr)
     bar = ProgressBar(f"{scenario.name} seed {sim.seed}")
+    sim.say = lambda note: bar.say(f"khepri: warning: {note}")
     try:
         with sigterm_as_ctrl_c():   # `kill` keeps what was recorded, as Ctrl-C does
             result = sim.run(time_limit_s=args.time_limit, progress=bar, wall_limit_s=args.wall_limit,

@@ -61,6 +61,13 @@ class ProgressBar:
         self.stream.write(f"\r{self.label} [{'#' * filled}{'.' * (width - filled)}] {done:7.1f}/{total:.0f} s")
         self.stream.flush()
 
+    def say(self, line: str) -> None:
+        """A line above the bar (the bar is drawn again at the next update)."""
+        if self.enabled:
+            self.stream.write("\r\033[K")
+        self.stream.write(line + "\n")
+        self.stream.flush()
+
     def close(self) -> None:
         if self.enabled:
             self.stream.write("\n")

@@ -37,6 +37,9 @@ from .world import World
 Progress = Callable[[float, float], None]
 #: Where a control step's wall time goes (``Simulation.phase_seconds``; ``khepri bench sim`` prints it).
 PHASES = ("physics", "sensing", "behaviours", "radio", "evaluation")
+# A robot's step() that runs this long (wall time) is said once a run: on a robot, the agent's step watchdog
+# stops the wheels after 0.25 s (onboard/agent/safety.py), so what runs in simulation would not run there.
+SLOW_STEP_S = 0.25
 
 
 @dataclass
@@ -113,6 +116,8 @@ class Simulation:
         self.telemetry: List[Optional[Dict[str, Any]]] = [None] * self.count
         self.stop_reason = ""
         self.phase_seconds: Dict[str, float] = dict.fromkeys(PHASES, 0.0)
+        self.say: Callable[[str], None] = lambda line: None     # a note during the run (sim run prints it)
+        self.slow_step_said = False
         self._noise = np.empty((2, self.count, self.count))   # range and bearing noise of one step
 
     # --- sensing --------------------------------------------------------------------------------------
@@ -185,11 +190,14 @@ class Simulation:
         spent["physics"] += clock() - evaluated
 
     def _step_behaviours(self, alive: np.ndarray) -> None:
-        robots, commands, i = self.robots, [], 0
+        robots, commands, i, clock = self.robots, [], 0, time.perf_counter
         try:
             for i, living in enumerate(alive.tolist()):
                 if living:
+                    started = clock()
                     self.behaviours[i].step()
+                    if clock() - started > SLOW_STEP_S and not self.slow_step_said:
+                        self._say_slow_step(i, clock() - started)
                     wheels = robots[i].wheels
                     commands.append((i, wheels.left, wheels.right))
         except USER_CODE_ERRORS as exc:     # the user's code: name the robot and the line (a try costs nothing here)
@@ -198,6 +206,14 @@ class Simulation:
             exc.where = f"robot {i}'s step(){where_in_users_code(traceback.extract_tb(exc.__traceback__)[1:])}"
             raise
         self.world.command_many(commands)
+
+    def _say_slow_step(self, robot: int, seconds: float) -> None:
+        self.slow_step_said = True
+        note = (f"robot {robot}'s step() took {seconds:.2f} s of wall time at t = {self.step_index * self.period:.1f} "
+                f"s (said once a run): on a robot the agent's step watchdog stops the wheels after {SLOW_STEP_S:g} s "
+                f"of one step(), and the simulation waits for it")
+        self.warnings = [*self.warnings, note]
+        self.say(note)
 
     def _collect_telemetry(self, alive: np.ndarray) -> List[Optional[Dict[str, Any]]]:
         telemetry: List[Optional[Dict[str, Any]]] = [

@@ -15,6 +15,7 @@ from sim_backend.runner import Simulation
 
 BUGGY = '''
 import math
+import time
 from dataclasses import dataclass, field
 from typing import List
 
@@ -66,6 +67,8 @@ class Buggy(Behaviour):
             self.robot.wheels.set_speeds(math.nan, 0.1)
         if self.params.bug == "strwheels" and late:
             self.robot.wheels.set_speeds(0.1, "fast")
+        if self.params.bug == "slow" and self.robot.id == 1 and 0.45 < self.robot.clock.now() < 0.55:
+            time.sleep(0.3)                  # once: past the agent's 0.25 s step watchdog
         if self.params.bug == "set_broadcast" and late:        # a long error: the payload's path to the set
             self.robot.radio.broadcast({"summary": {"neighbours_seen": [{"id": 1, "ids_heard": {1, 2}}]}})
         if self.params.bug == "deep_broadcast" and late:
@@ -268,6 +271,17 @@ def test_sil_names_the_telemetry_field_the_wire_cannot_carry_as_sim_run_does(bug
     assert "agent 0: behaviour crashed: robot 0, telemetry(): TypeError: telemetry['neighbours'] is a set, which " \
         "JSON cannot carry: send dicts, lists, strings, numbers, booleans or None (at t = " in err   # whole, not cut
     assert json.loads((tmp_path / "sil-set" / "result.json").read_text())["stop_reason"] == "crashed"
+
+
+def test_a_step_slower_than_the_agents_watchdog_is_said_once_in_sim_run(buggy, tmp_path, capsys):
+    """`time.sleep(0.5)` in step() ran at 0.05x real time without a word in sim run; the agent on a robot stops
+    the wheels after 0.25 s of one step()."""
+    assert run("sim", "run", buggy("slow"), "--no-plot", "--out", "slow") == 0
+    said = [line for line in capsys.readouterr().err.splitlines() if "step() took" in line]
+    assert len(said) == 1 and said[0].startswith("khepri: warning: robot 1's step() took 0.3")
+    assert "at t = 0.5 s (said once a run): on a robot the agent's step watchdog stops the wheels" in said[0]
+    warnings = json.loads((tmp_path / "slow" / "result.json").read_text())["warnings"]
+    assert said[0].removeprefix("khepri: warning: ") in warnings
 
 
 def test_sil_tells_a_long_crash_whole_with_its_file_and_time(buggy, capsys):
