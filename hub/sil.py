@@ -229,8 +229,8 @@ class SilSession:
             what = str(exc) if isinstance(exc, EvaluatorError) else f"{type(exc).__name__}: {exc}"
             error = str(exc) if isinstance(exc, AgentError) else f"{what} (at t = {self.source.time_s:.1f} s)"
             self.stop_reason = "crashed"
-        except KeyboardInterrupt:  # Ctrl-C or SIGTERM: what was recorded is written, as `khepri sim run` does
-            error = f"interrupted (Ctrl-C) (at t = {self.source.time_s:.1f} s)"
+        except KeyboardInterrupt as interrupt:  # Ctrl-C or SIGTERM: what was recorded is written, as `sim run` does
+            error = f"interrupted ({getattr(interrupt, 'how', 'Ctrl-C')}) (at t = {self.source.time_s:.1f} s)"
             self.stop_reason = "interrupted"
         wall = time.perf_counter() - started
         self.hub.control.execute("stop", "sil")

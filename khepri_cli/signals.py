@@ -8,7 +8,9 @@ from typing import Iterator
 
 
 def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
+    interrupt = KeyboardInterrupt()
+    interrupt.how = "SIGTERM"      # said as such: "interrupted (Ctrl-C)" read wrong after a `kill` or `timeout`
+    raise interrupt
 
 
 @contextmanager

@@ -296,7 +296,7 @@ class Simulation:
                 raise
             self.stop_reason = "wall-clock limit" if isinstance(exc, WallClockLimitReached) else "interrupted"
             what = f"wall-clock limit of {wall_limit_s:g} s reached" if isinstance(exc, WallClockLimitReached) \
-                else "interrupted (Ctrl-C)"
+                else f"interrupted ({getattr(exc, 'how', 'Ctrl-C')})"
             inside = f" while {exc.where} ran" if getattr(exc, "where", None) else ""
             error = f"{what}{inside} (at t = {self.step_index * self.period:.1f} s)"
             self.recording.trim(has_object=self.world.object_pose() is not None)

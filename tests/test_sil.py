@@ -142,7 +142,7 @@ def test_kill_ends_sil_as_ctrl_c_does_with_its_log_closed(tmp_path):
     finally:
         sil.kill()
     assert sil.returncode == 130
-    assert "khepri: interrupted (Ctrl-C) (at t = " in err and "Traceback" not in err
+    assert "khepri: interrupted (SIGTERM) (at t = " in err and "Traceback" not in err    # was "(Ctrl-C)"
     assert not summarise(out / "hub.mcap").truncated
     # What was recorded is written, as `sim run` does, in place of the earlier run's result.
     result = json.loads((out / "result.json").read_text())
