@@ -264,9 +264,10 @@ class World:
         room = (spawn.x[1] - spawn.x[0] + clearance) * (spawn.y[1] - spawn.y[0] + clearance)
         needed = count * math.pi * (clearance / 2.0) ** 2 / 0.547
         if count > 1 and needed > room:
+            area = (spawn.x[1] - spawn.x[0]) * (spawn.y[1] - spawn.y[0])
             raise ConfigError("robots.spawn", f"{count} robots need about {needed:.3g} m² to be placed at random "
-                              f"without overlap; x {list(spawn.x)}, y {list(spawn.y)} gives {room:.3g} m²: "
-                              f"make the area larger")
+                              f"without overlap; x {list(spawn.x)}, y {list(spawn.y)} is {area:.3g} m² "
+                              f"({room:.3g} m² with a robot's width round it): make the area larger")
 
     def _object_span(self) -> tuple:
         """The object's width and height (m) along x and y at its starting yaw."""
