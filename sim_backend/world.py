@@ -25,15 +25,13 @@ from onboard.hal import RobotSpec
 from .scenario import Scenario
 from .sensing import ObstacleGroup
 from .shapes import Geometry, build_geometry, dimension_field, extent_at
+from .spawn import object_span, spawn_poses
 
 GRAVITY = 9.81
 COLLISION_SLOP_M = 0.0005        # allowed overlap; pymunk's default (0.1) is meant for pixels
 ROBOT_CONTACT_FRICTION = 0.4     # plastic shell against foam/cardboard/plastic (combined by product in pymunk)
 OBJECT_CONTACT_FRICTION = 1.0
 WALL_THICKNESS_M = 0.02
-# Robots start at least this far clear of the object and of the walls' inner face (the walls are segments of
-# WALL_THICKNESS_M centred on the arena's edges, so their face lies half a thickness inside).
-SPAWN_GAP_M = 0.01
 
 # Every world not yet garbage-collected, so that the ones still alive when the interpreter exits are freed
 # while it can (see _free_live_worlds).
@@ -108,7 +106,7 @@ class World:
             if self.geometry is not None:
                 self._check_object_fits(scenario.arena.walls)
         self.robots: List[SimRobot] = []
-        poses = self._spawn_poses(rng)
+        poses = spawn_poses(self, rng, WALL_THICKNESS_M)
         self._commands = np.zeros((len(poses), 2))     # commanded (left, right) wheel speeds
         self._odometry = np.zeros((len(poses), 2))     # cumulative commanded wheel distances
         self._alive = np.ones(len(poses), dtype=bool)
@@ -161,7 +159,7 @@ class World:
         poses = [("object.position", spec.position[0], spec.position[1], spec.yaw_deg)]
         poses += [(f"path[{i}]", px, py, yaw) for i, (px, py, yaw) in enumerate(self.scenario.path)]
         xmin, ymin, xmax, ymax = walls
-        width, height = self._object_span()
+        width, height = object_span(self)
         if width > xmax - xmin or height > ymax - ymin:
             # Where it starts does not matter then: say so of the size, the likely typo (centimetres for metres).
             raise ConfigError(dimension_field(spec), f"the object is {width:.3g} x {height:.3g} m, larger than the "
@@ -223,71 +221,6 @@ class World:
         gear.max_bias = 0.0
         gear.max_force = max_torque
         self.space.add(pivot, gear)
-
-    def _spawn_poses(self, rng: np.random.Generator):
-        """Uniform, non-overlapping (and clear of the object), random heading."""
-        spawn, count = self.scenario.robots.spawn, self.scenario.robots.count
-        radius = self.spec.radius_m
-        clearance = 2.0 * radius + 0.02
-        self._check_spawn_room(count, clearance)
-        placed: List[tuple] = []
-        blocked = {"other robots": 0, "the object": 0, "the walls": 0}    # why tries failed, for the error
-        for _ in range(200 * count):
-            if len(placed) == count:
-                break
-            x, y = rng.uniform(*spawn.x), rng.uniform(*spawn.y)
-            if any((x - px) ** 2 + (y - py) ** 2 < clearance ** 2 for px, py, _ in placed):
-                blocked["other robots"] += 1
-                continue
-            if self._on_object(x, y, radius + SPAWN_GAP_M):
-                blocked["the object"] += 1
-                continue
-            if not self._inside_walls(x, y, radius + WALL_THICKNESS_M / 2.0 + SPAWN_GAP_M):
-                blocked["the walls"] += 1
-                continue
-            placed.append((x, y, rng.uniform(-math.pi, math.pi)))
-        if len(placed) < count:
-            cause = max(blocked, key=blocked.get)
-            advice = {"other robots": "make the area larger", "the walls": "move the area off the walls"}.get(cause)
-            if advice is None:          # the object: its size may be the typo (centimetres for metres)
-                advice = "move the area off the object ({} makes it {:.3g} x {:.3g} m; sizes are in metres)".format(
-                    dimension_field(self.scenario.object), *self._object_span())
-            raise ConfigError("robots.spawn", f"cannot place {count} robots without overlap in this area "
-                              f"(placed {len(placed)}; most tries landed on {cause}): {advice}")
-        return placed
-
-    def _check_spawn_room(self, count: int, clearance: float) -> None:
-        """Refuse at once a spawn area that random placement cannot fill (instead of trying 200 times per
-        robot): dropping discs at random jams at about 55 % of the area they may cover (random sequential
-        adsorption), far below the 91 % of a hexagonal packing."""
-        spawn = self.scenario.robots.spawn
-        room = (spawn.x[1] - spawn.x[0] + clearance) * (spawn.y[1] - spawn.y[0] + clearance)
-        needed = count * math.pi * (clearance / 2.0) ** 2 / 0.547
-        if count > 1 and needed > room:
-            area = (spawn.x[1] - spawn.x[0]) * (spawn.y[1] - spawn.y[0])
-            raise ConfigError("robots.spawn", f"{count} robots need about {needed:.3g} m² to be placed at random "
-                              f"without overlap; x {list(spawn.x)}, y {list(spawn.y)} is {area:.3g} m² "
-                              f"({room:.3g} m² with a robot's width round it): make the area larger")
-
-    def _object_span(self) -> tuple:
-        """The object's width and height (m) along x and y at its starting yaw."""
-        left, bottom, right, top = extent_at(self.geometry, 0.0, 0.0, math.radians(self.scenario.object.yaw_deg))
-        return right - left, top - bottom
-
-    def _on_object(self, x: float, y: float, distance: float) -> bool:
-        """Whether the object lies within ``distance`` of (x, y). The space holds the walls too: counting them
-        here said `most tries landed on the object` of a spawn area that lay on a wall."""
-        if self.object_body is None:
-            return False
-        hits = self.space.point_query((x, y), distance, pymunk.ShapeFilter())
-        return any(hit.shape.body is self.object_body for hit in hits if hit.shape is not None)
-
-    def _inside_walls(self, x: float, y: float, margin: float) -> bool:
-        walls = self.scenario.arena.walls
-        if walls is None:
-            return True
-        xmin, ymin, xmax, ymax = walls
-        return xmin + margin < x < xmax - margin and ymin + margin < y < ymax - margin
 
     # --- control and stepping -----------------------------------------------------------------------
     def command(self, index: int, left_m_s: float, right_m_s: float) -> None:
