@@ -150,7 +150,9 @@ def _row_cells(row: Dict[str, Any]) -> List[str]:
     notes: List[str] = [n for n in (row.get("reason"), row.get("error")) if n]
     if not row["connected"] and row["last_seen_s"] is not None:
         # The state is what the agent said last, not what it does now: it may be dead, its wheels held.
-        notes.insert(0, f"silent for {row['last_seen_s']:.1f} s: state is its last report")
+        # (A crashed agent's last report had no behaviour, so no state: then there is none to speak of.)
+        last = ": state is its last report" if row.get("state") else ""
+        notes.insert(0, f"silent for {row['last_seen_s']:.1f} s{last}")
     if row.get("finished"):
         notes.insert(0, "finished")
     if row.get("estop_ack_ms") is not None:

@@ -121,6 +121,15 @@ def test_the_status_tables_columns_stay_in_line_for_long_ids_and_counts():
     assert lines[1].split()[0] == "123456" and "1234567" in lines[1]
 
 
+def test_a_crashed_robots_row_does_not_speak_of_a_state_it_does_not_show():
+    """Its last report, the crash, had no behaviour: the row showed `-` and said `state is its last report`."""
+    from hub.control import robot_table
+
+    row = {"id": 2, "connected": False, "last_seen_s": 3.0, "mode": "run", "state": None, "loop_hz": None,
+           "loop_misses": 4, "battery_v": None, "error": "behaviour crashed: robot 2, step(): ..."}
+    assert robot_table([row])[1].endswith("silent for 3.0 s; behaviour crashed: robot 2, step(): ...")
+
+
 def test_a_killed_agent_shows_no_loop_rate_and_says_its_state_is_old(three_robots, tmp_path):
     """A SIGKILLed agent's row kept `loop Hz 10.0`, mode `run` and its last state with no note: a dead robot
     read as one still running its behaviour."""
