@@ -245,6 +245,8 @@ def poses_from_record(data: bytes) -> Tuple[List[int], np.ndarray, Optional[floa
                 or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
             raise ValueError(f"bodies[{name!r}]: must be {BODY_FIELDS}, 7 numbers (got {_short(value)})")
         x, y, _z, qx, qy, qz, qw = value
+        if qx * qx + qy * qy + qz * qz + qw * qw < 1e-12:     # no rotation at all: it read as yaw 0
+            raise ValueError(f"bodies[{name!r}]: the quaternion [qx, qy, qz, qw] is all zeros (no orientation)")
         poses.append(pose_from_mocap((x, y, 0.0), (qw, qx, qy, qz), "z"))
     array = np.asarray(poses, dtype=float).reshape(len(ids), 3)
     if not np.isfinite(array).all():

@@ -611,6 +611,8 @@ def test_a_pose_record_nested_past_pythons_recursion_limit_is_skipped_and_the_re
     (b'{"bodies": {"0": [1, 2]}}', "bodies['0']: must be [x, y, z, qx, qy, qz, qw], 7 numbers (got [1, 2])"),
     (b'{"bodies": {"0": [true, 0, 0, 0, 0, 0, 1]}}',
      "bodies['0']: must be [x, y, z, qx, qy, qz, qw], 7 numbers (got [True, 0, 0, 0, 0, 0, 1])"),
+    (b'{"bodies": {"0": [1, 2, 0, 0, 0, 0, 0]}}',       # was fed as yaw 0
+     "bodies['0']: the quaternion [qx, qy, qz, qw] is all zeros (no orientation)"),
 ])
 def test_a_malformed_pose_record_is_said_by_its_field(data, problem):
     """The replay's skip line gave Python's words ("'list' object has no attribute 'items'", "invalid literal for
