@@ -212,6 +212,14 @@ def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
     return decorate
 
 
+def ignored_return_text(returned: Any) -> str:
+    """What a step() that returned something is told (once a run, in sim run and by the agent)."""
+    shown = repr(returned)
+    shown = shown if len(shown) <= 40 else shown[:37] + "..."
+    return (f"{shown} (said once a run): its return value is ignored; drive the wheels with "
+            "self.robot.wheels.set_speeds(left_m_s, right_m_s)")
+
+
 def _check_behaviour_class(cls: Any) -> None:
     """What would otherwise fail only once a run starts (a wrong signature, at t = 0 in every robot), or never
     run at all (``async def step``: a coroutine made and dropped each step, the robots standing still)."""

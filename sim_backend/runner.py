@@ -17,6 +17,7 @@ from onboard.behaviour import (
     BehaviourError,
     build_params,
     get_behaviour,
+    ignored_return_text,
     make_behaviours,
     takes_param,
     telemetry_of,
@@ -117,7 +118,7 @@ class Simulation:
         self.stop_reason = ""
         self.phase_seconds: Dict[str, float] = dict.fromkeys(PHASES, 0.0)
         self.say: Callable[[str], None] = lambda line: None     # a note during the run (sim run prints it)
-        self.slow_step_said = False
+        self.slow_step_said = self.return_said = False
         self._noise = np.empty((2, self.count, self.count))   # range and bearing noise of one step
 
     # --- sensing --------------------------------------------------------------------------------------
@@ -195,9 +196,11 @@ class Simulation:
             for i, living in enumerate(alive.tolist()):
                 if living:
                     started = clock()
-                    self.behaviours[i].step()
+                    returned = self.behaviours[i].step()
                     if clock() - started > SLOW_STEP_S and not self.slow_step_said:
                         self._say_slow_step(i, clock() - started)
+                    if returned is not None and not self.return_said:
+                        self._say_returned(i, returned)
                     wheels = robots[i].wheels
                     commands.append((i, wheels.left, wheels.right))
         except USER_CODE_ERRORS as exc:     # the user's code: name the robot and the line (a try costs nothing here)
@@ -207,11 +210,18 @@ class Simulation:
             raise
         self.world.command_many(commands)
 
+    def _say_returned(self, robot: int, returned: Any) -> None:
+        self.return_said = True
+        self._note(f"robot {robot}'s step() returned {ignored_return_text(returned)}")
+
     def _say_slow_step(self, robot: int, seconds: float) -> None:
         self.slow_step_said = True
         note = (f"robot {robot}'s step() took {seconds:.2f} s of wall time at t = {self.step_index * self.period:.1f} "
                 f"s (said once a run): on a robot the agent's step watchdog stops the wheels after {SLOW_STEP_S:g} s "
                 f"of one step(), and the simulation waits for it")
+        self._note(note)
+
+    def _note(self, note: str) -> None:
         self.warnings = [*self.warnings, note]
         self.say(note)
 

@@ -67,6 +67,8 @@ class Buggy(Behaviour):
             self.robot.wheels.set_speeds(math.nan, 0.1)
         if self.params.bug == "strwheels" and late:
             self.robot.wheels.set_speeds(0.1, "fast")
+        if self.params.bug == "returns":
+            return (0.1, 0.1)                # wheel speeds, as a user of another framework might
         if self.params.bug == "slow" and self.robot.id == 1 and 0.45 < self.robot.clock.now() < 0.55:
             time.sleep(0.3)                  # once: past the agent's 0.25 s step watchdog
         if self.params.bug == "set_broadcast" and late:        # a long error: the payload's path to the set
@@ -282,6 +284,19 @@ def test_a_step_slower_than_the_agents_watchdog_is_said_once_in_sim_run(buggy, t
     assert "at t = 0.5 s (said once a run): on a robot the agent's step watchdog stops the wheels" in said[0]
     warnings = json.loads((tmp_path / "slow" / "result.json").read_text())["warnings"]
     assert said[0].removeprefix("khepri: warning: ") in warnings
+
+
+def test_a_step_that_returns_something_is_told_its_return_value_is_ignored(buggy, tmp_path, capsys):
+    """A step() returning wheel speeds instead of calling set_speeds ran with the robots standing still, without
+    a word; said once a run, in sim run and by each agent."""
+    told = "step() returned (0.1, 0.1) (said once a run): its return value is ignored; drive the wheels with " \
+           "self.robot.wheels.set_speeds(left_m_s, right_m_s)"
+    assert run("sim", "run", buggy("returns"), "--no-plot", "--out", "returns") == 0
+    assert [line for line in capsys.readouterr().err.splitlines() if "returned" in line] == [
+        f"khepri: warning: robot 0's {told}"]
+    assert run("sil", buggy("returns"), "--no-plot", "--no-record", "--time-limit", "0.5", "--out", "sil") == 0
+    logged = (tmp_path / "sil" / "agents" / "agent-2.log").read_text().splitlines()
+    assert [line for line in logged if "returned" in line] == [f"agent 2: warning: {told}"]
 
 
 def test_sil_tells_a_long_crash_whole_with_its_file_and_time(buggy, capsys):

@@ -27,6 +27,7 @@ from onboard.behaviour import (
     BehaviourError,
     build_params,
     get_behaviour,
+    ignored_return_text,
     plain_json,
     telemetry_of,
 )
@@ -74,6 +75,7 @@ class Agent:
         self.stop_requested = False
         self.stop_signal: Optional[int] = None     # the signal that asked the agent to leave, said on the way out
         self.slow_step_said_at = -math.inf
+        self.return_said = False          # a step() that returned something was said (once)
         self.watchdog_said = False        # the watchdog's trip was logged (so its end is logged too)
         self.step_watchdog = StepWatchdog(self.driver, watchdog_s, lambda: self.stop_requested, log, robot_id)
 
@@ -298,7 +300,10 @@ class Agent:
             self.driver.open_gate()
             self.step_watchdog.begin(stops_wheels=not self._lockstep())
             try:
-                self.behaviour.step()
+                returned = self.behaviour.step()
+                if returned is not None and not self.return_said:     # (e.g. wheel speeds: sim run says it too)
+                    self.return_said = True
+                    self.log(f"agent {self.robot_id}: warning: step() returned {ignored_return_text(returned)}")
             except USER_CODE_ERRORS as exc:
                 self.behaviour_failed(BehaviourError(self.robot_id, "step()", exc))
             finally:
