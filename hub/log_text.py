@@ -40,7 +40,7 @@ def printable_metadata(summary: LogSummary, *, indent: Optional[int] = None) -> 
 def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
     """The text ``khepri log info`` prints. Robot topics are grouped by kind unless ``all_topics``."""
     lines = [f"log:       {summary.path} ({_size(summary.file_bytes)})", f"status:    {_status(summary)}",
-             f"format:    {_format_text(summary.format_version)}"]
+             f"format:    {_format_text(summary.format_version, summary.truncated)}"]
     if summary.start_s is None:
         lines.append("messages:  none")
     else:
@@ -77,7 +77,9 @@ def _shortened(text: str) -> str:
     return f"{text[:METADATA_SHOWN_CHARS]}... ({len(text):,} characters; all of it with --json)"
 
 
-def _format_text(version: Optional[int]) -> str:
+def _format_text(version: Optional[int], truncated: bool = False) -> str:
+    if version is None and truncated:      # a hub's log cut before its metadata: not a sign of another writer
+        return "no khepri.log record in what was recovered"
     if version is None:
         return "no khepri.log record (not written by a khepri hub?)"
     newer = newer_format(version)

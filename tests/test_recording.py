@@ -272,6 +272,8 @@ def test_a_log_cut_inside_its_magic_bytes_reads_as_truncated_not_as_another_form
     assert summary.truncated and summary.message_count == 0 and summary.readable_bytes == 0
     assert summary.stop_reason == f"the file ends inside the MCAP magic bytes at byte {cut} (it was cut short " \
                                   "as it began)"
+    # A hub's log cut before its metadata is not another tool's: it said "not written by a khepri hub?".
+    assert "format:    no khepri.log record in what was recovered\n" in run_khepri(cut_path).stdout
     cut_path.write_bytes(b"\x89MCAP1")             # not a prefix of the magic: another file
     with pytest.raises(LogError, match="not an MCAP file"):
         summarise(cut_path)
