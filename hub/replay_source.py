@@ -55,7 +55,9 @@ class ReplaySource(PoseSource):
                 raise ConfigError("source.file", f"{path} holds no /mocap/poses records the replay can read: that "
                                                  f"channel's message encoding is {foreign!r}, not JSON (another "
                                                  "tool's log, not a khepri hub recording?)")
-            raise ConfigError("source.file", f"{path} holds no /mocap/poses records (not a khepri hub recording?)")
+            what = ("a khepri log with no motion-capture frames: nothing to replay" if
+                    format_version(self.reader.metadata) is not None else "not a khepri hub recording?")
+            raise ConfigError("source.file", f"{path} holds no /mocap/poses records ({what})")
         version = format_version(self.reader.metadata)      # its record comes before the first poses
         newer = newer_format(version)
         if newer:

@@ -519,6 +519,19 @@ def test_a_log_without_mocap_poses_is_refused_at_start(tmp_path, messages):
     assert str(info.value) == f"source.file: {path} holds no /mocap/poses records (not a khepri hub recording?)"
 
 
+def test_a_khepri_log_without_poses_is_not_called_another_tools(tmp_path):
+    from hub.factory import build_hub
+    from hub.recording import Recorder
+
+    path = tmp_path / "status-only.mcap"
+    with Recorder(path) as recorder:
+        recorder.write("/hub/status", {"mode": "idle"}, T0)
+    with pytest.raises(ConfigError) as info:
+        build_hub(replay_config(path), log=lambda line: None)
+    assert str(info.value) == f"source.file: {path} holds no /mocap/poses records (a khepri log with no " \
+                              "motion-capture frames: nothing to replay)"
+
+
 @pytest.mark.parametrize("kept", [5, 30])
 def test_a_log_cut_short_before_its_first_poses_is_called_truncated(tmp_path, kept):
     """A hub log cut inside its first bytes was refused as 'not a khepri hub recording?'."""
