@@ -377,7 +377,6 @@ class Agent:
             signal.signal(sig, handler)
 
 
-
 def error_for_the_hub(error: str) -> str:
     """``error`` cut to the protocol's TEXT_MAX_CHARS in its middle, not at its end: the end says where and when
     (``at wander.py:5 (at t = 0.0 s)``), and a long radio-payload error lost it in SIL's account of the crash."""
