@@ -132,9 +132,21 @@ def _is_beside(top: str, folder: Path) -> bool:
     return (folder / f"{top}.py").is_file() or (folder / top).is_dir()
 
 
-def imports_robots_lack(path: Optional[str]) -> List[str]:
-    """The packages of :data:`NOT_ON_ROBOTS` that the file at ``path`` imports, at any depth of its code."""
-    return [top for top in _top_level_imports(path) if top in NOT_ON_ROBOTS]
+def imports_robots_lack(path: Optional[str], _seen: Optional[set] = None) -> List[str]:
+    """The packages of :data:`NOT_ON_ROBOTS` that the file at ``path`` imports, at any depth of its code, and
+    those that the modules beside it that it imports do (a helper copied along: ``sim_backend (in helper.py)``)."""
+    seen = set() if _seen is None else _seen
+    if not path or path in seen:
+        return []
+    seen.add(path)
+    tops = _top_level_imports(path)
+    found = [top for top in tops if top in NOT_ON_ROBOTS]
+    for top in tops:
+        beside = Path(path).parent / f"{top}.py"
+        if top not in NOT_ON_ROBOTS and beside.is_file():
+            found += [name if " (in " in name else f"{name} (in {beside.name})"
+                      for name in imports_robots_lack(str(beside), seen)]
+    return found
 
 
 def _top_level_imports(path: Optional[str]) -> List[str]:

@@ -280,6 +280,14 @@ def test_a_behaviour_module_that_imports_the_simulator_is_warned_about(tmp_path,
     warnings = import_user_modules(["peeking", "my_eval"], str(tmp_path))
     assert warnings == ["peeking: registers the behaviour peeking and imports sim_backend: it runs in simulation "
                         "but will fail on a robot, which has only onboard/ (put an evaluator in a module of its own)"]
+    # A helper module beside it that imports the simulator fails on the robot all the same: it was not warned.
+    (tmp_path / "peek_helper.py").write_text("import pymunk\nfrom peek_deeper import x\n")
+    (tmp_path / "peek_deeper.py").write_text("import hub.sil\nfrom peek_helper import *\nx = 1\n")    # a cycle
+    (tmp_path / "helped.py").write_text(DRIVE_BEHAVIOUR.format(name="helped") + "\nimport peek_helper\n")
+    assert import_user_modules(["helped"], str(tmp_path)) == [
+        "helped: registers the behaviour helped and imports pymunk (in peek_helper.py), hub (in peek_deeper.py): it "
+        "runs in simulation but will fail on a robot, which has only onboard/ (put an evaluator in a module of its "
+        "own)"]
     (tmp_path / "peeking_cli.py").write_text(DRIVE_BEHAVIOUR.format(name="peeking-cli") + "import hub.sil\n")
     assert main(["--import", str(tmp_path / "peeking_cli.py"), "sim", "list"]) == 0
     assert "khepri: warning: --import " + str(tmp_path / "peeking_cli.py") + ": registers the behaviour " \
