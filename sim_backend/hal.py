@@ -215,10 +215,10 @@ class SimRadio(hal.Radio):
         # Encode as the real radio would: refuses what could not cross the wire, and isolates the copy
         # the receivers get from later changes by the sender.
         if not isinstance(payload, Mapping):
-            raise TypeError(f"robot {self._index}: radio payload must be a mapping, got {type(payload).__name__}")
+            raise TypeError(f"radio payload must be a mapping, got {type(payload).__name__}")
         encoded, copy = encode_payload(payload)
         if len(encoded) > self.MAX_PAYLOAD_BYTES:
-            raise ValueError(f"robot {self._index}: radio payload of {len(encoded)} bytes exceeds "
+            raise ValueError(f"radio payload of {len(encoded)} bytes exceeds "
                              f"{self.MAX_PAYLOAD_BYTES}")
         self.outbox.append(copy)
 

@@ -116,11 +116,11 @@ class HubRadio(hal.Radio):
     def broadcast(self, payload: Mapping[str, Any]) -> None:
         # The same checks as the simulator's radio, so a behaviour fails the same way in both.
         if not isinstance(payload, Mapping):
-            raise TypeError(f"robot {self.robot_id}: radio payload must be a mapping, got {type(payload).__name__}")
+            raise TypeError(f"radio payload must be a mapping, got {type(payload).__name__}")
         plain = plain_payload(payload)            # names a field JSON cannot carry, as the simulator does
         size = len(json.dumps(plain, separators=(",", ":")))
         if size > self.MAX_PAYLOAD_BYTES:
-            raise ValueError(f"robot {self.robot_id}: radio payload of {size} bytes exceeds {self.MAX_PAYLOAD_BYTES}")
+            raise ValueError(f"radio payload of {size} bytes exceeds {self.MAX_PAYLOAD_BYTES}")
         self.send({"type": "broadcast", "payload": plain, "sent_s": round(self.clock.now(), 6)})
 
     def receive(self) -> List[Message]:
