@@ -13,6 +13,8 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING
 
+from .sources import SourceRestartError
+
 if TYPE_CHECKING:
     from .server import Hub
 
@@ -27,7 +29,11 @@ def prepare_new_run(hub: Hub) -> bool:
         return False
     # The new world's first frame goes through the hub as any frame does: poses, presence, the killed robots,
     # IR and odometry, the clock, the log. Its robots' wheels stand still until their agents start the run.
-    first = restart(time.monotonic())
+    try:
+        first = restart(time.monotonic())
+    except SourceRestartError as err:
+        hub.log(f"hub: {err}")
+        return False
     if first is not None:          # a replay whose first record is unreadable: its next one comes in time
         hub.on_pose_frame(first)
     hub.restart_noise()

@@ -11,7 +11,7 @@ from onboard.config import ConfigError
 from onboard.jsontext import parse_json
 from onboard.protocol import MAX_ROBOT_ID
 
-from .sources import PoseFrame, PoseSource, pose_from_mocap
+from .sources import PoseFrame, PoseSource, SourceRestartError, pose_from_mocap
 
 NEVER_PLACED_SCAN_S = 3.0      # at start, how long the hub looks through the log for robots it never places
 
@@ -84,8 +84,13 @@ class ReplaySource(PoseSource):
         """The log from its first pose record again, for a new run (``source.reset_each_run``): agents that had
         to connect first saw the replay only from where it was by then. Its first frame, stamped ``now``."""
         from hub.log_reader import LogReader
+        from hub.recording import LogError
 
-        self.reader = LogReader(self.path)
+        try:
+            self.reader = LogReader(self.path)
+        except LogError as err:      # the file gone or replaced since the hub started: the replay goes on
+            raise SourceRestartError(f"replay: cannot start {self.path} again for the new run ({err.problem}); "
+                                     "it goes on from where it was") from None
         self.records = self._pose_messages()
         self.first_stamp = self.played_stamp = self.started_at = None
         self.finished = False

@@ -46,6 +46,10 @@ class PoseFrame:
         return self.poses
 
 
+class SourceRestartError(RuntimeError):
+    """A source could not start again for a new run (``restart``): the run starts where the source is."""
+
+
 class PoseSource:
     """Base: a source is polled by the hub loop. ``wake_socket`` (optional) becomes readable when frames wait."""
 

@@ -394,6 +394,12 @@ def test_each_run_replays_the_log_from_its_start(tmp_path):
                 assert lines[-1].endswith(": aggregate; the replay is back at the log's start"), lines
             else:
                 assert hub.source.progress()["played_s"] >= 0.3 and hub.poses[hub.row[0], 0] >= 0.06
+            if reset:                                         # the log gone since: the replay goes on, said
+                assert hub.control.execute("stop")[0]
+                (tmp_path / f"run-{reset}.mcap").unlink()
+                assert hub.control.execute("start")[0]
+                assert "cannot start" in lines[-2] and lines[-2].endswith("; it goes on from where it was"), lines
+                assert lines[-1].endswith(": aggregate"), lines      # not "back at the log's start"
         finally:
             hub.close()
 
