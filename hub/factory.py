@@ -66,7 +66,8 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
             say_missing_keys(ids, keyring, log)
         if recorder is None and config.record is not None:
             path = record_path(config)
-            recorder = open_recorder(path, {"source": source.description, "behaviour": run.behaviour})
+            recorder = open_recorder(path, {"source": source.description, "behaviour": run.behaviour},
+                                     next_name_if_taken="{time}" in str(config.record))
     except Exception:
         source.close()
         raise
@@ -266,9 +267,11 @@ def first_free(path: Path, tries: int = 100) -> Path:
     return path
 
 
-def open_recorder(path: Path, metadata: Dict[str, Any]):
+def open_recorder(path: Path, metadata: Dict[str, Any], next_name_if_taken: bool = False):
+    """``next_name_if_taken``: a {time} name another hub took between record_path's look and the open (two hubs
+    started in the same instant) becomes the next free one, as record_path gives one taken earlier."""
     try:
-        from hub.recording import Recorder
+        from hub.recording import LogExistsError, Recorder
     except ImportError as err:
         raise ConfigError("record", f"recording is not available in this installation ({err})") from None
     folder = Path(path).parent
@@ -277,6 +280,12 @@ def open_recorder(path: Path, metadata: Dict[str, Any]):
         raise ConfigError("record", f"cannot make the folder {folder}: {blocker} is a file, not a folder")
     try:
         folder.mkdir(parents=True, exist_ok=True)
+        for _ in range(10 if next_name_if_taken else 0):
+            try:
+                return Recorder(path, flush_period_s=1.0, metadata={k: str(v) for k, v in metadata.items()},
+                                exclusive=True)
+            except LogExistsError:
+                path = first_free(path)
         return Recorder(path, flush_period_s=1.0, metadata={k: str(v) for k, v in metadata.items()}, exclusive=True)
     except OSError as err:                 # a folder it may not make (permissions, a read-only disk)
         raise ConfigError("record", f"cannot make the folder {folder}: {err.strerror or err}") from None

@@ -40,6 +40,10 @@ class LogError(ConfigError):
     """A log cannot be written or read. ``str(err)`` is one line naming the file or the topic."""
 
 
+class LogExistsError(LogError):
+    """The log file to write exists already: the hub never writes over a log."""
+
+
 class ForeignChannelWarning(UserWarning):
     """A log's channel whose messages are not JSON (protobuf, ros2msg, ... : another tool wrote it, or merged it
     into a hub's log): readers skip it, and say so once per channel."""

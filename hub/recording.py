@@ -38,6 +38,7 @@ from .log_format import (
     USER_METADATA,
     ForeignChannelWarning,
     LogError,
+    LogExistsError,
     LogRecord,
     PathLike,
     UnrecordableMessage,
@@ -83,7 +84,7 @@ class Recorder:
         try:
             self._file = open(self.path, "xb" if exclusive else "wb")  # noqa: SIM115 - closed in close()
         except FileExistsError:
-            raise LogError(str(self.path), "exists: the log is not written over") from None
+            raise LogExistsError(str(self.path), "exists: the log is not written over") from None
         except OSError as err:
             raise LogError(str(self.path), f"cannot create the log: {err.strerror or err}") from None
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)

@@ -115,6 +115,23 @@ def test_time_in_the_log_name_gives_each_start_its_own_file(tmp_path):
         record_path(fixed, at)
 
 
+def test_a_time_name_taken_between_the_look_and_the_open_goes_to_the_next(tmp_path):
+    """Two hubs started in the same instant: both looked, the first opened run-<time>.mcap, and the second
+    stopped at `exists` instead of writing run-<time>-2.mcap. A fixed name is still refused."""
+    from hub.factory import open_recorder
+
+    taken = tmp_path / "run-20261121-201502.mcap"
+    taken.write_bytes(b"the other hub's")
+    recorder = open_recorder(taken, {}, next_name_if_taken=True)
+    try:
+        assert recorder.path == tmp_path / "run-20261121-201502-2.mcap"
+    finally:
+        recorder.close()
+    assert taken.read_bytes() == b"the other hub's"
+    with pytest.raises(ConfigError, match=r"^record: .*run-20261121-201502.mcap: exists"):
+        open_recorder(taken, {})
+
+
 def test_recording_onto_the_log_being_replayed_is_refused(tmp_path):
     replayed = tmp_path / "run.mcap"
     replayed.write_bytes(b"a recorded run")
