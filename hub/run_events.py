@@ -24,8 +24,16 @@ def follow_progress(hub: Hub) -> None:
     if count and hub.arrival_said != hub.run_id and progress.reached() == count:
         hub.arrival_said = hub.run_id
         event = run_event(hub, hub.run_id, "all waypoints reached", "waypoints", "the swarm")
-        hub.log(f"hub: run {hub.run_id}: all {count} waypoints reached: {outcome_text(event)}; "
-                "`khepri ctl stop` ends the run")
+        # The outcome first: "all 3 waypoints reached: not completed" read as a contradiction (a waypoint passed
+        # 0.101 m off, or the object turned past the tolerance, on the way).
+        outcome = outcome_text(event)
+        if event.get("outcome") == "not completed":
+            why = "; ".join(part for part in ((event.get("failures") or ["?"])[0],
+                                               object_text(event.get("object"))) if part)
+            hub.log(f"hub: run {hub.run_id}: NOT completed, although the object passed all {count} waypoints: "
+                    f"{why}; `khepri ctl stop` ends the run")
+        else:
+            hub.log(f"hub: run {hub.run_id}: all {count} waypoints reached: {outcome}; `khepri ctl stop` ends the run")
 
 
 def run_event(hub: Hub, run_id: str, event: str, cause: str, by: str) -> Dict[str, Any]:

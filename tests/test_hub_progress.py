@@ -109,3 +109,33 @@ def test_the_arrival_at_the_last_waypoint_is_said_once_with_the_outcome(tmp_path
         hub.close()
     events = [(r.payload["event"], r.payload.get("outcome")) for r in read_log(Path(log), topics=[HUB_RUN])]
     assert events == [("started", None), ("all waypoints reached", "completed")]
+
+
+def test_an_arrival_that_is_not_a_completion_leads_with_the_outcome():
+    """`all 3 waypoints reached: not completed (...)` read as a contradiction to an operator at a demo."""
+    from types import SimpleNamespace
+
+    from hub.run_events import follow_progress
+
+    class Progress:
+        scenario = SimpleNamespace(path=[(0, 0.3, 0), (0, 0.6, 0), (0, 0.9, 0)])
+
+        def follow(self, hub):
+            return True
+
+        def reached(self):
+            return 3
+
+        def status(self):
+            return None
+
+        def verdict(self):
+            return {"outcome": "not completed",
+                    "failures": ["waypoint 1 was passed with the object 0.101 m from it (tolerance 0.100 m)"]}
+
+    lines = []
+    hub = SimpleNamespace(progress=Progress(), mode="run", run_id="r1", arrival_said=None, recorder=None,
+                          run=SimpleNamespace(behaviour="transport"), log=lines.append)
+    follow_progress(hub)
+    assert lines == ["hub: run r1: NOT completed, although the object passed all 3 waypoints: waypoint 1 was "
+                     "passed with the object 0.101 m from it (tolerance 0.100 m); `khepri ctl stop` ends the run"]
