@@ -121,8 +121,18 @@ class ControlService:
         hub.mode = "run"
         # An agent that cannot start it (a behaviour it cannot import, bad params) says so in its telemetry,
         # after this reply: the operator is pointed at the status, where its error shows.
-        return True, {"note": self._reach("sent it") + "; an agent that cannot run it says so in `khepri ctl "
-                                                        "status`"}
+        note = self._reach("sent it") + "; an agent that cannot run it says so in `khepri ctl status`"
+        return True, {"note": note + self._held()}
+
+    def _held(self) -> str:
+        """The robots the run starts without, and why: four robots outside the geofence heard `start: ok` and
+        stood still, the cage never closing, with nothing said but in the status table."""
+        held = [(robot.id, why) for robot in self.hub.robots.values()
+                for mode, why in [self.hub.mode_for(robot)] if mode == "hold"]
+        if not held:
+            return ""
+        listed = ", ".join(f"robot {rid} ({why})" for rid, why in held[:6]) + (" ..." if len(held) > 6 else "")
+        return f"; HELD, not running: {listed}"
 
     def _reach(self, what: str) -> str:
         """How many robots a command reached: '4 of 6 robots connected and told to stop'."""

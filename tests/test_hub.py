@@ -82,7 +82,10 @@ def test_robots_outside_the_geofence_are_held(three_robots, tmp_path):
     with HubThread(config, scenario=three_robots) as hub:
         agents = start_agents(hub, 3, tmp_path)
         try:
-            hub.request("start")
+            reply = hub.request("start")
+            # The operator hears at once that the run starts without them (it said `ok` alone).
+            assert "; HELD, not running: robot 0 (outside the geofence), robot 1 (outside the geofence)" in \
+                reply["note"], reply
             # Waited for, not read once: on a loaded machine a late simulated frame briefly holds a robot as
             # "not tracked by motion capture" instead (a failed fresh-clone run).
             hub.wait_until(lambda s: robots_say(s, "agent_mode", "hold")
