@@ -87,6 +87,15 @@ def cmd_hub(args: argparse.Namespace) -> int:
         raise
 
 
+def keys_here_hint() -> str:
+    """`keys init` and the hub's security.keys both default to ./keys: a ctl run without --keys beside such a
+    folder most likely meant it."""
+    operators = Path("keys") / "operators"
+    if operators.is_dir() and any(operators.glob("*.key_secret")):
+        return " This folder has operator keys in keys/: try again with --keys keys."
+    return ""
+
+
 def is_loopback(host: str) -> bool:
     """localhost, 127.x.x.x, or ::1 however written: bare, in brackets as in a URL ([::1], as the hub writes its
     own addresses), or in full; the hub binds each of them."""
@@ -151,9 +160,12 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     except BadEndpoint as err:
         raise ConfigError("--hub", str(err)) from None
     except ControlError as err:      # no answer, or the hub refused (an e-stop latched, ...)
+        said = str(err) + (keys_here_hint() if keys is None and str(err).startswith("no answer") else "")
         if args.json and args.command != "status":     # a script reading stdout learns it failed, and why
-            print(json.dumps({"command": args.command, "ok": False, "error": str(err)}))
-        print(f"khepri: error: {err}", file=sys.stderr)
+            print(json.dumps({"command": args.command, "ok": False, "error": said}))
+        # An e-stop that did not arrive must not read like any other error at a demo: the robots still run.
+        loud = "E-STOP NOT DELIVERED: " if args.command == "estop" else ""
+        print(f"khepri: error: {loud}{said}", file=sys.stderr)
         return 1
     if args.command == "status":
         print(json.dumps(reply["status"], indent=2) if args.json else status_table(reply["status"]))

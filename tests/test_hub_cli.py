@@ -392,3 +392,21 @@ def test_the_insecure_warning_is_a_closed_box():
     lines = INSECURE_WARNING.splitlines()
     assert len({len(line) for line in lines}) == 1, [len(line) for line in lines]
     assert all(line.endswith("*") for line in lines)
+
+
+def test_an_estop_that_got_no_answer_says_so_loudly_and_points_at_the_keys_here(tmp_path):
+    """At a demo `ctl estop` without --keys, beside the lab's keys/ folder, read like any other error: the robots
+    ran on. It now says the e-stop was not delivered, and that keys/ holds operator keys."""
+    import socket
+
+    (tmp_path / "keys" / "operators").mkdir(parents=True)
+    (tmp_path / "keys" / "operators" / "alice.key_secret").write_text("not read")
+    with socket.socket() as probe:        # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    said = khepri("ctl", "estop", "--port", str(port), "--timeout", "0.3", cwd=tmp_path)
+    assert said.returncode == 1
+    assert said.stderr.startswith("khepri: error: E-STOP NOT DELIVERED: no answer from the hub at "), said.stderr
+    assert said.stderr.rstrip().endswith("This folder has operator keys in keys/: try again with --keys keys.")
+    quiet = khepri("ctl", "status", "--port", str(port), "--timeout", "0.3", cwd=tmp_path / "keys")
+    assert "NOT DELIVERED" not in quiet.stderr and "keys/" not in quiet.stderr
