@@ -260,6 +260,11 @@ class HubAuthenticator(ThreadAuthenticator):
             self._refusals_said.clear()
         self._refusals_said[(domain, address)] = now
         who = "a robot" if domain == ROBOT_DOMAIN else "an operator"
+        added = _key_file_holding(self.ring.folder / domain, zmq.utils.z85.encode(msg[6]))
+        if added is not None:       # `keys add` while the hub ran: "not in keys/robots" read as wrong, it was there
+            self.hub_log(f"hub: refused {who} key from {address}: {added} was added after this hub loaded its keys; "
+                         "restart the hub to accept it")
+            return
         self.hub_log(f"hub: refused {who} key from {address}: not in {self.ring.folder / domain} "
                      f"(a key made for another hub or lab, or for the other socket?)")
 
@@ -372,6 +377,20 @@ class HandshakeWatch:
         source = f"from {address}" if address != "?" else "from a peer gone before its address was read"
         self.log(f"hub: dropped a connection {source} to the {where} socket in the CURVE handshake: {why}; "
                  f"nothing was answered (said at most every {HANDSHAKE_LOG_S:g} s per address{more})")
+
+
+def _key_file_holding(folder: Path, z85_public: bytes) -> Optional[Path]:
+    """The public key file in ``folder`` that holds this key now, if one does (read only on a refusal)."""
+    import zmq.auth
+
+    for path in sorted(folder.glob("*.key")):
+        try:
+            public, _ = zmq.auth.load_certificate(str(path))
+        except (OSError, ValueError):
+            continue
+        if public == z85_public:
+            return path
+    return None
 
 
 def peer_address(fd: int) -> str:

@@ -266,6 +266,21 @@ def test_a_refused_key_is_logged_once_with_the_peers_address(secure_hub, keys):
         sock.close(0)
 
 
+def test_a_key_added_while_the_hub_runs_is_refused_with_the_fix(secure_hub, keys):
+    """`keys add KEYS --robots 6,` with the hub running: the hub loads its keys at start, and said the new robot's
+    key was `not in keys/robots`, where it was. It names the file and says to restart the hub."""
+    from hub.security import add_keys
+
+    add_keys(keys, [6], [])
+    sock = client(secure_hub.endpoints["robots"], (*[load_robot_keys(keys, 6)[k] for k in ("public", "secret")],
+                                                    load_robot_keys(keys, 6)["server"]))
+    hammer(sock, [HELLO_1], listen_s=1.0)
+    sock.close(0)
+    refused = [line for line in secure_hub.lines if "refused" in line]
+    assert refused == [f"hub: refused a robot key from 127.0.0.1: {keys / 'robots' / 'robot-6.key'} was added after "
+                       "this hub loaded its keys; restart the hub to accept it"], secure_hub.lines
+
+
 
 HANDSHAKE = "to the robot socket in the CURVE handshake: "
 UNENCRYPTED = ("it is not encrypted: a robot's agent started without --keys?; nothing was answered (said at most "
