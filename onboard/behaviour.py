@@ -31,6 +31,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Type
 from .config import ConfigError, from_mapping
 from .hal import Robot
 from .hal.payload import a_kind
+from .protocol_schema import short
 from .tracebacks import traceback_lines, where_in_users_code
 
 # What a behaviour's code may raise that is its own failure, reported as a BehaviourError naming the robot
@@ -214,9 +215,7 @@ def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
 
 def ignored_return_text(returned: Any) -> str:
     """What a step() that returned something is told (once a run, in sim run and by the agent)."""
-    shown = repr(returned)
-    shown = shown if len(shown) <= 40 else shown[:37] + "..."
-    return (f"{shown} (said once a run): its return value is ignored; drive the wheels with "
+    return (f"{short(returned)} (said once a run): its return value is ignored; drive the wheels with "
             "self.robot.wheels.set_speeds(left_m_s, right_m_s)")
 
 
