@@ -5,13 +5,12 @@ Every key is documented in docs/lab.md; ``hub/examples/lab.yaml`` is a commented
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
-from hub.mocap_options import check_mock_options
+from hub.mocap_options import check_mock_options, did_you_mean
 from onboard.config import ConfigError, check_range, from_mapping, join
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
@@ -297,9 +296,8 @@ def check_unknown_source_keys(source: Any) -> None:
     for name in source:
         if isinstance(name, str) and name not in known:
             takes = ["type", "seed", "stale_s", *SOURCE_FIELDS[kind]]
-            close = difflib.get_close_matches(name, takes, n=1, cutoff=0.6)
             raise ConfigError(join("source", name), f"unknown key (a {kind} source takes {', '.join(takes)})"
-                              + (f"; did you mean {close[0]}?" if close else ""))
+                              + did_you_mean(name, takes))
 
 
 def check_source_fields(source: Dict[str, Any], kind: str) -> None:

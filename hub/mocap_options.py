@@ -31,7 +31,7 @@ def unread_option_notes(system: str, options: Iterable[str]) -> List[str]:
     if known is None:
         return []
     return [f"source.options.{name}: motioncapture 1.x's {system} backend does not read it; passed on all the "
-            f"same (it reads {', '.join(known)}){_did_you_mean(name, known)}"
+            f"same (it reads {', '.join(known)}){did_you_mean(name, known)}"
             for name in options if name not in known]
 
 
@@ -41,11 +41,13 @@ def check_mock_options(where: str, options: Iterable[str]) -> None:
     for name in options:
         if name not in known:
             raise ConfigError(join(where, name), f"the mock backend does not read it (it reads {', '.join(known)})"
-                              + _did_you_mean(name, known))
+                              + did_you_mean(name, known))
 
 
-def _did_you_mean(name: str, known: Iterable[str]) -> str:
-    close: Optional[List[str]] = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+def did_you_mean(name: str, known: Iterable[str]) -> str:
+    """'; did you mean rate?' for the nearest of ``known`` to a mistyped key, '' when none is near."""
+    known = list(known)
+    close: Optional[List[str]] = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
     if not close and name.lower() in ("host", "ip", "address", "server"):
         close = ["hostname"] if "hostname" in known else None
     return f"; did you mean {close[0]}?" if close else ""
