@@ -118,10 +118,12 @@ class ControlService:
             hub.log(f"hub: run {hub.run_id} started by {sender}: {hub.run.behaviour}" + (f"; {back}" if reset else ""))
         else:
             hub.log(f"hub: run {hub.run_id} resumed by {sender}")
+        resumed = hub.mode == "hold"        # after `clear`: the operator is told it is the same run going on
         hub.mode = "run"
         # An agent that cannot start it (a behaviour it cannot import, bad params) says so in its telemetry,
         # after this reply: the operator is pointed at the status, where its error shows.
-        note = self._reach("sent it") + "; an agent that cannot run it says so in `khepri ctl status`"
+        note = (f"run {hub.run_id} resumed; " if resumed else "") + self._reach("sent it") \
+            + "; an agent that cannot run it says so in `khepri ctl status`"
         return True, {"note": note + self._held()}
 
     def _held(self) -> str:
@@ -135,11 +137,17 @@ class ControlService:
         return f"; HELD, not running: {listed}"
 
     def _reach(self, what: str) -> str:
-        """How many robots a command reached: '4 of 6 robots connected and told to stop'."""
+        """How many robots a command reached, naming the others when some are there: '4 of 6 robots connected
+        and told to stop (not connected: robot 2, robot 5)'. On a demo night the count alone left the
+        operator to find the missing two in the status table."""
         now = time.monotonic()
-        connected = sum(1 for r in self.hub.robots.values()
-                        if r.routing is not None and r.connected(now, self.hub.config.watchdog_s))
-        return f"{connected} of {len(self.hub.robots)} robots connected and {what}"
+        missing = [robot.id for robot in self.hub.robots.values()
+                   if not robot.connected(now, self.hub.config.watchdog_s)]
+        reached = f"{len(self.hub.robots) - len(missing)} of {len(self.hub.robots)} robots connected and {what}"
+        if not missing or len(missing) == len(self.hub.robots):
+            return reached
+        listed = ", ".join(f"robot {rid}" for rid in missing[:6]) + (" ..." if len(missing) > 6 else "")
+        return f"{reached} (not connected: {listed})"
 
     def stop(self, sender: str) -> Tuple[bool, Dict[str, Any]]:
         """Ends the run. Without one, the robots are told to stop all the same (an agent may hold a run of an

@@ -932,6 +932,30 @@ def test_start_and_estop_say_how_many_robots_they_reached():
         hub.close()
 
 
+def test_start_names_the_robots_not_connected_and_says_a_resume_is_one():
+    """With 4 of 6 robots connected, the operator had to find the other two in the status table; and a start
+    after `clear` said the same as a new run's."""
+    from hub.factory import build_hub
+
+    hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True}}),
+                    log=lambda line: None)
+    try:
+        hub.send_command_to_all = lambda *args: None      # no sockets: this hub is built, not started
+        now = time.monotonic()
+        for robot in list(hub.robots.values())[:4]:
+            robot.routing, robot.last_uplink = b"agent%d" % robot.id, now
+        missing = [robot.id for robot in hub.robots.values()][4:]
+        ok, reply = hub.control.execute("start")
+        assert ok and reply["note"].startswith("4 of 6 robots connected and sent it (not connected: "
+                                               f"robot {missing[0]}, robot {missing[1]});"), reply
+        hub.control.execute("estop")
+        hub.control.execute("clear")
+        ok, reply = hub.control.execute("start")
+        assert ok and reply["note"].startswith(f"run {hub.run_id} resumed; 4 of 6 robots"), reply
+    finally:
+        hub.close()
+
+
 def test_the_hub_says_once_when_every_robot_reports_its_job_finished():
     """The live hub ignored `finished` (which ends a simulated run), and `ctl status` did not show it."""
     import time
