@@ -110,6 +110,8 @@ def status_table(status: Dict[str, Any]) -> str:
     recording = status.get("recording")
     if recording and recording.get("error"):
         lines.append(f"RECORDING STOPPED ({recording['path']}): {recording['error']}")
+    elif recording:         # "am I recording, and where?" had only --json to answer it
+        lines.append(f"recording: {recording['path']}")
     lines += robot_table(status["robots"])
     # Newer hubs' fields (docs/protocol.md): an older hub's reply has none of them, and gets no such line.
     if status.get("object"):
@@ -118,7 +120,9 @@ def status_table(status: Dict[str, Any]) -> str:
         lines.append(replay_text(status["replay"]))
     drops = status.get("drops") or {}
     if drops:
-        lines.append("dropped: " + ", ".join(f"{reason} {count}" for reason, count in sorted(drops.items())))
+        # The counts are the hub's lifetime's: said so, as they outlive the run they came from.
+        counts = ", ".join(f"{reason} {count}" for reason, count in sorted(drops.items()))
+        lines.append(f"dropped since the hub started: {counts}")
     return "\n".join(lines)
 
 

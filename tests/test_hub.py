@@ -124,6 +124,20 @@ def test_the_status_tables_columns_stay_in_line_for_long_ids_and_counts():
     assert lines[1].split()[0] == "123456" and "1234567" in lines[1]
 
 
+def test_the_status_table_says_where_the_hub_records_and_that_its_drop_counts_are_since_it_started():
+    """Plain status showed the recording only once it had failed, and its `dropped:` line, counted over the
+    hub's lifetime, read as the current run's."""
+    status = {"mode": "run", "source": "sim", "mocap_hz": 50.0, "robots": [],
+              "recording": {"path": "logs/run-1.mcap", "error": None}, "drops": {"bad message": 2}}
+    lines = status_table(status).splitlines()
+    assert lines[1] == "recording: logs/run-1.mcap"
+    assert lines[-1] == "dropped since the hub started: bad message 2"
+    status["recording"]["error"] = "disk full"
+    assert status_table(status).splitlines()[1] == "RECORDING STOPPED (logs/run-1.mcap): disk full"
+    status["recording"] = None
+    assert not [line for line in status_table(status).splitlines() if "record" in line.lower()]
+
+
 def test_a_crashed_robots_row_does_not_speak_of_a_state_it_does_not_show():
     """Its last report, the crash, had no behaviour: the row showed `-` and said `state is its last report`."""
     from hub.control import robot_table
