@@ -8,13 +8,14 @@ import dataclasses
 import math
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any, Dict, Iterable, List, Optional, Union
+from typing import Any, Dict, Iterable, List, Optional, Tuple, Union
 
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Message
 
 from hub.log_format import (
+    CONTROL,
     HUB_DROPS,
     HUB_RUN,
     MOCAP_POSES,
@@ -70,6 +71,10 @@ class LogSummary:
     # True only for a truncated file that just ends early (a killed hub); false for a complete one, and for one
     # that ends with MCAP's closing bytes where a damaged record stopped the reading (damaged since written).
     cut_short: bool = False
+    # The operator's e-stops, from /control, in order: at_s, by, run_id (the run it stopped, None between runs),
+    # cleared_s and cleared_by (None while latched at the log's end), resumed_s and resumed_by (the `start` that
+    # resumed the run after the clear; None if it was stopped instead, or never went on).
+    estops: List[Dict[str, Any]] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict:
         """Every field, for JSON. Not ``dataclasses.asdict``, which copies every value recursively, two frames
@@ -96,6 +101,13 @@ class _Tally:
     first_poses: Optional[bytes] = None    # the raw first and last /mocap/poses messages, for their clock_s
     last_poses: Optional[bytes] = None
     runs: Dict[str, Dict[str, Any]] = dataclasses.field(default_factory=dict)     # run id -> LogSummary.runs row
+    commands: List[Tuple[float, str, Any]] = dataclasses.field(default_factory=list)  # (stamp, cmd, sender)
+
+    def add_command(self, payload: Any, stamp_s: float) -> None:
+        """One /control record: only the e-stop and what follows it (clear, the start that resumes) are kept."""
+        if isinstance(payload, dict) and payload.get("ok") is True and not payload.get("nothing_done") \
+                and payload.get("cmd") in ("estop", "clear", "start"):
+            self.commands.append((stamp_s, payload["cmd"], payload.get("sender")))
 
     def add_run(self, payload: Any, stamp_s: float) -> None:
         """One /hub/run record: a run's start, its arrival at the last waypoint, or its end."""
@@ -175,6 +187,8 @@ def _summary_from_index(reader: LogReader) -> LogSummary:
             tally.add_drops(json_or_none(message.data))
         for _schema, _channel, message in indexed.iter_messages(topics=[HUB_RUN]):
             tally.add_run(json_or_none(message.data), message.log_time / 1e9)
+        for _schema, _channel, message in indexed.iter_messages(topics=[CONTROL]):
+            tally.add_command(json_or_none(message.data), message.log_time / 1e9)
         # The first and the last pose record: a chunk at each end, not the whole file.
         for reverse in (False, True):
             found = next(indexed.iter_messages(topics=[MOCAP_POSES], reverse=reverse), None)
@@ -205,6 +219,8 @@ def _summary_from_records(reader: LogReader, check_payloads: bool = False) -> Lo
             tally.add_poses(message.data)
         elif topic == HUB_RUN:
             tally.add_run(json_or_none(message.data), message.log_time / 1e9)
+        elif topic == CONTROL:
+            tally.add_command(json_or_none(message.data), message.log_time / 1e9)
     summary = _build_summary(reader, tally, reader.metadata)
     summary.refused_messages = refused.lines()
     return summary
@@ -249,7 +265,35 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         sim_start_s=sim_start_s, sim_end_s=sim_end_s, posed_robots=_posed_ids(tally.first_poses, tally.last_poses),
         foreign_topics={topic: {"encoding": tally.foreign_encodings[topic], "messages": count}
                         for topic, count in sorted(tally.foreign.items(), key=lambda item: natural_key(item[0]))},
-        runs=list(tally.runs.values()), cut_short=not reader.complete and reader.cut_short)
+        runs=list(tally.runs.values()), cut_short=not reader.complete and reader.cut_short,
+        estops=_estops(sorted(tally.commands, key=lambda command: command[0]), list(tally.runs.values())))
+
+
+def _estops(commands: List[Tuple[float, str, Any]], runs: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
+    """Each e-stop with its clear and the start that resumed its run, from the /control records in time order.
+    A log's reader otherwise had to find them in /control by hand to learn why a run stood still for a minute."""
+    estops: List[Dict[str, Any]] = []
+    for stamp_s, cmd, sender in commands:
+        latest = estops[-1] if estops else None
+        if cmd == "estop" and (latest is None or latest["cleared_s"] is not None):   # a repeat while latched: one
+            estops.append({"at_s": stamp_s, "by": sender, "run_id": _run_at(runs, stamp_s), "cleared_s": None,
+                           "cleared_by": None, "resumed_s": None, "resumed_by": None})
+        elif cmd == "clear" and latest is not None and latest["cleared_s"] is None:
+            latest.update(cleared_s=stamp_s, cleared_by=sender)
+        elif cmd == "start" and latest is not None and latest["cleared_s"] is not None \
+                and latest["resumed_s"] is None and latest["run_id"] is not None \
+                and _run_at(runs, stamp_s) == latest["run_id"]:
+            latest.update(resumed_s=stamp_s, resumed_by=sender)
+    return estops
+
+
+def _run_at(runs: List[Dict[str, Any]], stamp_s: float) -> Optional[str]:
+    """The run going at that moment (started, and not yet ended), by its /hub/run records."""
+    for run in runs:
+        started, ended = run.get("started_s"), run.get("ended_s")
+        if started is not None and started <= stamp_s and (ended is None or stamp_s <= ended):
+            return run["run_id"]
+    return None
 
 
 def _clock_s(poses: Optional[bytes]) -> Optional[float]:

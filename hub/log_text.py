@@ -62,6 +62,9 @@ def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
             lines += [f"  {topic:<{width}}  {count:>10}" for topic, count in rows]
     lines += _foreign_lines(summary)
     lines += [f"run:       {_run_text(run)}" for run in summary.runs]
+    lines += [f"e-stop:    {_estop_text(estop)}" for estop in summary.estops[:MAX_ESTOP_LINES]]
+    if len(summary.estops) > MAX_ESTOP_LINES:
+        lines.append(f"e-stop:    ... {len(summary.estops) - MAX_ESTOP_LINES} more (all of them with --json)")
     lines.append(f"drops:     {_drops_text(summary)}")
     for key, value in summary.metadata.items():
         lines.append(f"metadata:  {key or '(empty key)'} = {_shortened(json.dumps(value))}")
@@ -112,6 +115,22 @@ def _run_text(run: Dict[str, Any]) -> str:
     if outcome:
         said[-1] += f": {outcome}"
     return f"{run['run_id']} ({run.get('behaviour') or '?'}): {'; '.join(said)}"
+
+
+MAX_ESTOP_LINES = 10
+
+
+def _estop_text(estop: Dict[str, Any]) -> str:
+    """'20:27:01 by alice in run 3f2a...; cleared 20:27:09 by alice; run resumed 20:27:12 by alice'."""
+    run = f" in run {estop['run_id']}" if estop.get("run_id") else " (no run going)"
+    said = [f"{_time(estop['at_s'])}{_by(estop.get('by'))}{run}"]
+    if estop.get("cleared_s") is None:
+        said.append("not cleared in the log")
+    else:
+        said.append(f"cleared {_time(estop['cleared_s'])}{_by(estop.get('cleared_by'))}")
+        if estop.get("resumed_s") is not None:
+            said.append(f"run resumed {_time(estop['resumed_s'])}{_by(estop.get('resumed_by'))}")
+    return "; ".join(said)
 
 
 def _by(who: Any) -> str:

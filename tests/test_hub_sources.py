@@ -1,6 +1,7 @@
 """Pose sources: the motioncapture library (its mock backend stands in for the cameras) and replay of a log."""
 import json
 import math
+import re
 import time
 
 import numpy as np
@@ -653,3 +654,27 @@ def test_a_long_log_is_looked_through_for_unplaced_robots_only_so_long(tmp_path)
     say_unplaced_replay_robots(Cut(), [0, 7], said.append)
     assert said == [f"hub: warning: robot 7 of this lab (robots) has no pose in the first 26 s of {log} "
                     "(source.file): it is held until the replay places it; so far the log places 0"]
+
+
+def test_log_info_tells_each_e_stop_with_its_clear_and_the_start_that_resumed_the_run(tmp_path):
+    """A run that stood still for a minute: the log's reader had to find why in /control by hand."""
+    from hub.log_summary import summarise
+    from hub.log_text import format_summary
+
+    log = tmp_path / "hub.mcap"
+    with HubThread(mock_config("kh0(1.0,2.0,0.05,1,0,0,0);kh1(1.5,2.0,0.05,1,0,0,0)", record=str(log))) as hub:
+        for cmd in ("start", "estop", "estop", "clear", "start", "stop", "estop"):   # the second: while latched
+            assert hub.request(cmd)["ok"], cmd
+    summary = summarise(log)
+    run = summary.runs[0]["run_id"]
+    assert [(e["run_id"], e["cleared_s"] is not None, e["resumed_s"] is not None) for e in summary.estops] == [
+        (run, True, True), (None, False, False)]
+    first = summary.estops[0]
+    assert summary.runs[0]["started_s"] <= first["at_s"] <= first["cleared_s"] <= first["resumed_s"] \
+        <= summary.runs[0]["ended_s"]
+    lines = [line for line in format_summary(summary).splitlines() if line.startswith("e-stop:")]
+    clock = r"\d\d:\d\d:\d\d"
+    assert len(lines) == 2 and re.fullmatch(
+        rf"e-stop:    {clock} by (.+) in run {run}; cleared {clock} by \1; run resumed {clock} by \1", lines[0]), lines
+    assert re.fullmatch(rf"e-stop:    {clock} by .+ \(no run going\); not cleared in the log", lines[1]), lines
+    assert summarise(log, use_index=False).estops == summary.estops        # the walk, as for a killed hub's log
