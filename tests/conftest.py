@@ -99,3 +99,26 @@ def user_behaviour(tmp_path, monkeypatch):
     for module in installed:
         sys.modules.pop(module, None)
 
+
+@pytest.fixture
+def first_waiting_line():
+    """The first line an agent on a given HubLink says while the hub sends it nothing (within 10 s)."""
+    import time
+
+    from onboard.agent.loop import Agent
+    from onboard.drivers.sim import SimDriver
+
+    def waiting_line(link) -> str:
+        lines: list = []
+        agent = Agent(link.robot_id, link,
+                      lambda a: SimDriver(link.send, lambda: a.state.sim), log=lines.append)
+        started = time.monotonic()
+        agent.serve(should_stop=lambda: any("no frame from the hub" in line for line in lines)
+                    or time.monotonic() - started > 10.0)
+        link.close()
+        waiting = [line for line in lines if "no frame from the hub" in line]
+        assert waiting, lines
+        return waiting[0]
+
+    return waiting_line
+

@@ -380,20 +380,7 @@ def test_sends_before_the_hub_answered_are_not_counted_as_unsent_but_later_ones_
         link.close()
 
 
-def first_waiting_line(link: HubLink) -> str:
-    """The first line an agent on ``link``, with no hub there, says while it waits (within 10 s)."""
-    lines: list = []
-    agent = Agent(0, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=lines.append)
-    started = time.monotonic()
-    agent.serve(should_stop=lambda: any("no frame from the hub" in line for line in lines)
-                or time.monotonic() - started > 10.0)
-    link.close()
-    waiting = [line for line in lines if "no frame from the hub" in line]
-    assert waiting, lines
-    return waiting[0]
-
-
-def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
+def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused(first_waiting_line):
     """Nothing listens on the port: the agent keeps trying and says what to check, instead of sitting quiet.
     An address ZeroMQ refuses is a one-line error naming --hub."""
     import socket as sockets
@@ -406,14 +393,15 @@ def test_an_agent_with_no_hub_says_so_and_a_bad_address_is_refused():
         port = probe.getsockname()[1]
     started = time.monotonic()
     waiting = first_waiting_line(HubLink(0, f"tcp://127.0.0.1:{port}"))
-    assert f"at tcp://127.0.0.1:{port} yet; still trying" in waiting
-    assert "is robot 0 in the hub's lab?" in waiting and "key" not in waiting    # an insecure link
+    # The connection was refused: that is what it says, not every question it might ask (docs/lab.md).
+    assert waiting.startswith(f"agent 0: no frame from the hub at tcp://127.0.0.1:{port} yet; still trying: "
+                              f"nothing accepts a connection at tcp://127.0.0.1:{port} (refused or unreachable): is "
+                              "the hub running, and are --hub and --port the host and robots port it printed when "
+                              "it started? A hub listening on ::1 only"), waiting     # and the family's hint
     assert time.monotonic() - started < 5.0
-    # With keys, against a hub that may run --insecure (which then says nothing at all): both causes named.
-    public, secret = zmq.curve_keypair()
+    public, secret = zmq.curve_keypair()        # keys change nothing when no hub is there
     keyed = HubLink(0, f"tcp://127.0.0.1:{port}", keys={"public": public, "secret": secret, "server": public})
-    assert "does the hub list this robot's key, or does it run --insecure (then leave out --keys)?" \
-        in first_waiting_line(keyed)
+    assert "nothing accepts a connection at" in first_waiting_line(keyed)
 
     parser = argparse.ArgumentParser()
     add_agent_arguments(parser)      # every option with its default, as the command line gives them

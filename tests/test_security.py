@@ -393,3 +393,41 @@ def test_a_handshake_watch_closes_while_peers_come_and_go():
     run = subprocess.run([sys.executable, "-c", CLOSE_WHILE_PEERS_COME_AND_GO], env=env, capture_output=True,
                          text=True, timeout=120)
     assert run.returncode == 0 and run.stdout == "closed\n", run.stderr
+
+
+def test_a_waiting_agent_names_the_key_mix_up_that_keeps_the_hub_silent(secure_hub, keys, first_waiting_line):
+    """The agent asked every question it could (hub running? port? robot in the lab? key listed?) whatever
+    the cause; ZeroMQ's handshake events tell which one it is."""
+    from onboard.agent.link import HubLink
+
+    endpoint = secure_hub.endpoints["robots"]
+    robot0 = load_robot_keys(keys, 0)
+    stranger_public, stranger_secret = zmq.curve_keypair()
+    said = {
+        "no keys": first_waiting_line(HubLink(0, endpoint)),
+        "unlisted": first_waiting_line(HubLink(0, endpoint, keys={"public": stranger_public, "secret": stranger_secret,
+                                                                  "server": robot0["server"]})),
+        "another hub's key": first_waiting_line(HubLink(0, endpoint, keys=dict(robot0, server=stranger_public))),
+    }
+    assert said["no keys"].endswith("still trying: the hub is encrypted: start the agent with --keys, a folder "
+                                    "holding hub.key and robots/robot-0.key_secret"), said
+    assert "still trying: the hub refused robot 0's key: does the hub's key folder hold robots/robot-0.key" \
+        in said["unlisted"], said
+    assert "still trying: the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key" \
+        in said["another hub's key"], said
+
+
+def test_a_waiting_agent_says_the_hub_is_not_encrypted_or_does_not_know_the_robot(make_scenario, keys,
+                                                                                    first_waiting_line):
+    from onboard.agent.link import HubLink
+
+    config = parse_config({"source": {"type": "sim"}, "security": {"insecure": True},
+                           "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}})
+    with HubThread(config, scenario=make_scenario(robots={"count": 2})) as hub:
+        endpoint = hub.endpoints["robots"]
+        keyed = first_waiting_line(HubLink(0, endpoint, keys=load_robot_keys(keys, 0)))
+        stranger = first_waiting_line(HubLink(9, endpoint))
+    assert keyed.endswith("still trying: the hub is not encrypted (it runs --insecure): start the agent without "
+                          "--keys"), keyed
+    assert f"still trying: connected to the hub at {endpoint}, but it sends robot 9 nothing: is robot 9 in the " \
+           "hub's lab, and is no other agent connected as robot 9?" in stranger, stranger

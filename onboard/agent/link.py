@@ -14,6 +14,8 @@ import zmq
 from onboard.config import ConfigError
 from onboard.protocol import DOWNLINK_TYPES, ProtocolError, decode, encode
 
+from .connection import ConnectionWatch
+
 RECEIVE_HWM = 16      # downlink frames waiting; the agent drains every poll, so more would be stale anyway
 IPV6_LOOKUP_RETRY_S = 30.0   # a host name the DNS could not answer for is looked up again this much later
 MAX_SOCKET_BYTES = 1 << 20   # larger frames cut the connection; up to here they are read and rejected as oversized
@@ -266,6 +268,7 @@ class HubLink:
             self.socket.curve_secretkey = self.keys["secret"]
             self.socket.curve_serverkey = self.keys["server"]
         use_ipv6(self.socket, self.address, self._is_ipv6_only_name())
+        self.watch = ConnectionWatch(self.context, self.socket)     # before connect: its first events count
         self.socket.connect(self.address)
         self.heard = False                 # the hub has spoken on this socket (see unsent)
         self.poller = zmq.Poller()
@@ -286,9 +289,18 @@ class HubLink:
         if the hub never spoke on this one."""
         if not self.heard:
             self.address = self.addresses[(self.addresses.index(self.address) + 1) % len(self.addresses)]
+        self.watch.close()
         self.socket.close(0)
         self.resets += 1
         self._open()
+
+    def likely_cause(self) -> Optional[str]:
+        """Why the hub is silent on this connection, as far as ZeroMQ's events tell (see connection.py), with
+        the address family's hint when the connection never got through (a hub on ::1 only, say)."""
+        cause = self.watch.likely_cause(self.robot_id, self.address, self.keys is not None)
+        if cause is None or self.watch.connected:
+            return cause
+        return f"{cause} {family_hint(self.endpoint)}".rstrip()
 
     def encode(self, message: Dict[str, Any]) -> bytes:
         """The message's wire bytes with this robot's id and this agent's token; ProtocolError if the hub would
@@ -341,4 +353,5 @@ class HubLink:
 
     def close(self) -> None:
         # A short linger: the last messages (the wheels' stop for the sim driver, the final telemetry) get out.
+        self.watch.close()
         self.socket.close(linger=200)

@@ -122,8 +122,8 @@ class Agent:
         silent_s = now - max(self.state.received_at, self.last_reset)
         if silent_s > (LOCKSTEP_RESET_AFTER_S if self._lockstep() else RESET_AFTER_S):
             self.last_reset = now
+            self._say_still_waiting(now)      # before the reset: what became of this connection tells why
             self.link.reset()
-            self._say_still_waiting(now)
         if silent_s > self.watchdog_s or (self.state.mode != "idle" and self.run is None):
             if now - self.last_hello >= HELLO_PERIOD_S:
                 self.hello(now)
@@ -137,6 +137,11 @@ class Agent:
             return
         self.last_waiting_log = now
         since = "yet" if self.state.received_at == -math.inf else f"for {now - self.state.received_at:.0f} s"
+        cause = self.link.likely_cause()
+        if cause is not None:
+            self.log(f"agent {self.robot_id}: no frame from the hub at {self.link.endpoint} {since}; still trying: "
+                     f"{cause}")
+            return
         key = (", does the hub list this robot's key, or does it run --insecure (then leave out --keys)"
                if self.link.keys is not None else "")
         self.log(f"agent {self.robot_id}: no frame from the hub at {self.link.endpoint} {since}; still trying "

@@ -1,0 +1,114 @@
+"""What became of the agent's connection to the hub, for the line it prints while no frame arrives.
+
+A silent hub has many causes: nothing listening at the address, a firewall, an encrypted hub and an agent
+without keys (or the reverse), a key the hub does not list, another lab's hub key, or a hub that accepts the
+connection but does not know this robot. ZeroMQ tells them apart in its socket monitor's events; this reads
+them, without a thread, when the agent is about to say it is still waiting, and names the likeliest cause.
+"""
+from __future__ import annotations
+
+import itertools
+from typing import Optional
+
+import zmq
+from zmq.utils.monitor import parse_monitor_message
+
+_ADDRESSES = itertools.count()     # inproc names must be unique per context; id() values are reused
+
+EVENTS = (zmq.EVENT_CONNECTED | zmq.EVENT_CONNECT_DELAYED | zmq.EVENT_CONNECT_RETRIED
+          | zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+          | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH)
+_HANDSHAKE_FAILED = {zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL: "no detail",
+                     zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "protocol",
+                     zmq.EVENT_HANDSHAKE_FAILED_AUTH: "auth"}
+MAX_EVENTS_READ = 1000       # per call: a socket retrying every 0.1 s makes a few dozen between two reads
+
+
+class ConnectionWatch:
+    """The monitor of one socket, read on demand. Its reading end takes any number of events (a receive
+    high-water mark of 0), so libzmq's I/O thread never blocks on it however seldom it is read."""
+
+    def __init__(self, context: zmq.Context, sock: zmq.Socket) -> None:
+        self.sock = sock
+        address = f"inproc://agent-connection-{next(_ADDRESSES)}"
+        sock.monitor(address, EVENTS)
+        self.events = context.socket(zmq.PAIR)
+        self.events.linger = 0
+        self.events.rcvhwm = 0
+        self.events.connect(address)
+        self.connected = False         # TCP got through at least once
+        self.refused = False           # a connection attempt failed (refused, unreachable) and is retried
+        self.handshake_ok = False      # a ZMTP handshake completed (keys accepted, or none needed)
+        self.handshake_failed: Optional[str] = None     # the last failure: "protocol", "auth", "no detail"
+        self.protocol_error: Optional[int] = None       # its ZMTP error, for "protocol"
+
+    def read(self) -> None:
+        """Takes the events waiting, and remembers what they say."""
+        for _ in range(MAX_EVENTS_READ):
+            try:
+                frames = self.events.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            try:
+                event = parse_monitor_message(frames)
+            except Exception:   # noqa: BLE001 - a malformed event must not stop an agent; it is skipped
+                continue
+            self._note(event["event"], event["value"])
+
+    def _note(self, kind: int, value: int) -> None:
+        if kind == zmq.EVENT_CONNECTED:
+            self.connected = True
+        elif kind == zmq.EVENT_CONNECT_RETRIED:
+            self.refused = True
+        elif kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+            self.handshake_ok, self.handshake_failed = True, None
+        elif kind in _HANDSHAKE_FAILED:
+            self.handshake_failed = _HANDSHAKE_FAILED[kind]
+            self.protocol_error = value if kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL else None
+
+    def likely_cause(self, robot_id: int, address: str, keyed: bool) -> Optional[str]:
+        """What most likely keeps the hub silent, or None when the events do not tell (then the agent asks
+        its general questions)."""
+        self.read()
+        if self.handshake_failed is not None:
+            return self._handshake_cause(robot_id, keyed)
+        if self.handshake_ok:
+            return (f"connected to the hub at {address}, but it sends robot {robot_id} nothing: is robot "
+                    f"{robot_id} in the hub's lab, and is no other agent connected as robot {robot_id}? "
+                    "The hub's console says which")
+        if self.refused and not self.connected:
+            return (f"nothing accepts a connection at {address} (refused or unreachable): is the hub running, "
+                    "and are --hub and --port the host and robots port it printed when it started?")
+        if not self.connected:
+            return (f"no answer at {address} yet: is that the hub PC's address, is it on this network, or does "
+                    "a firewall drop the connection?")
+        return None
+
+    def _handshake_cause(self, robot_id: int, keyed: bool) -> str:
+        if self.handshake_failed == "auth":
+            return (f"the hub refused robot {robot_id}'s key: does the hub's key folder hold "
+                    f"robots/robot-{robot_id}.key, the pair of this robot's key_secret? (The hub reads its keys "
+                    "when it starts: restart it after `khepri keys add`)")
+        if self.handshake_failed == "protocol" and self.protocol_error == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:
+            if keyed:
+                return "the hub is not encrypted (it runs --insecure): start the agent without --keys"
+            return ("the hub is encrypted: start the agent with --keys, a folder holding hub.key and "
+                    f"robots/robot-{robot_id}.key_secret")
+        if keyed:
+            return ("the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key "
+                    "(the keys of another hub, or of an older `khepri keys init`?)")
+        return f"the hub dropped the connection in its handshake ({self._detail()})"
+
+    def _detail(self) -> str:
+        if self.protocol_error is not None:
+            return f"ZMTP error {self.protocol_error:#x}"
+        return "no detail given"
+
+    def close(self) -> None:
+        """Before the socket is closed: the monitor is turned off while its reading end is still there (libzmq
+        sends it a last event, which must not find the reader gone), then the reader is closed."""
+        try:
+            self.sock.disable_monitor()
+        except zmq.ZMQError:
+            pass
+        self.events.close(0)
