@@ -13,6 +13,7 @@ from onboard.config import ConfigError, folder_not_file
 from onboard.hal import RobotSpec
 
 from .config import LabConfig, check_watchdog
+from .console import as_console
 from .housekeeping import format_ids
 from .replay_source import ReplaySource
 from .security import KeyRing, exposed_secret, load_keyring
@@ -25,6 +26,7 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
               recorder=None, scenario=None) -> Hub:
     """``scenario`` (sim source only) replaces loading ``source.scenario``, e.g. with overrides applied."""
     context = context or zmq.Context.instance()
+    log = as_console(log)       # what is said while building goes into the log too, once the hub opens it
     seed = None
     if config.source.type == "sim" and scenario is None:
         from sim_backend.scenario import load_scenario

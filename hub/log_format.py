@@ -31,6 +31,7 @@ CONTROL = "/control"
 HUB_DROPS = "/hub/drops"
 HUB_STATUS = "/hub/status"
 HUB_RUN = "/hub/run"
+HUB_LOG = "/hub/log"         # the hub's console lines (hub/console.py)
 ROBOT_TOPIC_KINDS = ("frame", "broadcast", "relay", "telemetry", "command", "wheels")
 
 PathLike = Union[str, Path]
@@ -111,10 +112,19 @@ SCHEMAS: Dict[str, dict] = {
         {"run_id": {"type": "string"}, "event": {"enum": ["started", "all waypoints reached", "ended"]},
          "cause": {"type": "string"}, "by": {"type": "string"}},
         required=("run_id", "event")),
+    # Foxglove's own log message (its Log panel shows these): the hub's console, line by line.
+    "foxglove.Log": _object_schema(
+        "foxglove.Log", "A line the hub printed on its console.",
+        {"timestamp": {"type": "object", "properties": {"sec": {"type": "integer", "minimum": 0},
+                                                        "nsec": {"type": "integer", "minimum": 0}}},
+         "level": {"type": "integer", "description": "1 debug, 2 info, 3 warning, 4 error, 5 fatal"},
+         "message": {"type": "string"}, "name": {"type": "string"}, "file": {"type": "string"},
+         "line": {"type": "integer", "minimum": 0}},
+        required=("timestamp", "level", "message", "name", "file", "line")),
     "khepri.Any": _object_schema("khepri.Any", "A JSON object on a topic khepri does not define."),
 }
 _FIXED_TOPIC_SCHEMAS = {MOCAP_POSES: "khepri.MocapPoses", CONTROL: "khepri.Control", HUB_DROPS: "khepri.HubDrops",
-                        HUB_STATUS: "khepri.HubStatus", HUB_RUN: "khepri.HubRun"}
+                        HUB_STATUS: "khepri.HubStatus", HUB_RUN: "khepri.HubRun", HUB_LOG: "foxglove.Log"}
 _ROBOT_KIND_SCHEMAS = {"frame": "khepri.RobotFrame", "broadcast": "khepri.RobotBroadcast",
                        "relay": "khepri.RobotRelay", "telemetry": "khepri.RobotTelemetry",
                        "command": "khepri.RobotCommand", "wheels": "khepri.RobotWheels"}

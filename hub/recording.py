@@ -27,6 +27,7 @@ from .log_format import (
     CONTROL,
     FORMAT_METADATA,
     HUB_DROPS,
+    HUB_LOG,
     HUB_RUN,
     HUB_STATUS,
     LIBRARY,
@@ -56,10 +57,10 @@ from .log_summary import summarise as summarise_log
 # Users import recording from here (docs/recording.md): besides its own Recorder, read_log and summarise, this
 # module offers the format's names (hub.log_format) and the BackgroundRecorder, which live in modules of their own.
 __all__ = [
-    "CONTROL", "FORMAT_METADATA", "HUB_DROPS", "HUB_RUN", "HUB_STATUS", "LIBRARY", "LOG_FORMAT_VERSION", "MCAP_MAGIC",
-    "MOCAP_POSES", "ROBOT_TOPIC_KINDS", "SCHEMAS", "USER_METADATA", "BackgroundRecorder", "ForeignChannelWarning",
-    "LogError", "LogRecord", "PathLike", "Recorder", "UnrecordableMessage", "metadata_from_text", "read_log",
-    "robot_topic", "split_robot_topic", "summarise",
+    "CONTROL", "FORMAT_METADATA", "HUB_DROPS", "HUB_LOG", "HUB_RUN", "HUB_STATUS", "LIBRARY", "LOG_FORMAT_VERSION",
+    "MCAP_MAGIC", "MOCAP_POSES", "ROBOT_TOPIC_KINDS", "SCHEMAS", "USER_METADATA", "BackgroundRecorder",
+    "ForeignChannelWarning", "LogError", "LogRecord", "PathLike", "Recorder", "UnrecordableMessage",
+    "metadata_from_text", "read_log", "robot_topic", "split_robot_topic", "summarise",
 ]
 
 # Stamps are wall-clock seconds (time.time()). Before 2001 means a monotonic or simulated clock slipped in, which

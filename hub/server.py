@@ -25,6 +25,7 @@ from onboard.protocol import MAX_MESSAGE_BYTES
 
 from .background_recorder import BackgroundRecorder
 from .config import LabConfig
+from .console import as_console
 from .control_service import ControlService
 from .downlink import Downlink
 from .housekeeping import MOCAP_SILENT_S, Housekeeping
@@ -76,8 +77,9 @@ class Hub(Downlink, Uplink, Housekeeping):
             # recording, not the lab run: the robots keep being served, and the operator is told.
             recorder = BackgroundRecorder(recorder, on_failure=self._recording_failed, on_skip=lambda error: log(
                 f"hub: not recorded: {error} (left out of the log, counted in its drops; said once per topic)"))
-        self.config, self.source, self.run, self.keyring, self.recorder, self.log = \
-            config, source, run, keyring, recorder, log
+        self.config, self.source, self.run, self.keyring, self.recorder = config, source, run, keyring, recorder
+        self.log = as_console(log)            # every line it prints goes into the log too, as /hub/log
+        self.log.record_to(recorder)
         self.context = context or zmq.Context.instance()
         self.noise_seed = seed            # the sim source's: each run that restarts its world restarts the noise too
         rng = np.random.default_rng(seed)
@@ -86,7 +88,7 @@ class Hub(Downlink, Uplink, Housekeeping):
         self.row = {rid: i for i, rid in enumerate(self.ids)}
         self.sensors = VirtualSensors(self.ids, sensing, rng)
         self.relay = RadioRelay(self.ids, relay_drop, config.relay.queue, config.relay.max_bytes, rng)
-        self.drops = DropLog(log, on_drop=self._record_drop)
+        self.drops = DropLog(self.log, on_drop=self._record_drop)
         self.poses = np.zeros((len(self.ids), 3))
         self.seen_at = np.full(len(self.ids), -math.inf)
         self.outside_fence = np.zeros(len(self.ids), dtype=bool)

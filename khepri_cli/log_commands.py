@@ -1,4 +1,4 @@
-"""``khepri log info FILE...``: summarise recorded MCAP logs."""
+"""``khepri log info FILE...``: summarise recorded MCAP logs; ``khepri log console FILE``: the hub's console lines."""
 from __future__ import annotations
 
 import argparse
@@ -25,6 +25,12 @@ def add_log(groups) -> None:
     info.add_argument("--all-topics", action="store_true",
                       help="list every robot's topics (default: one line per kind, e.g. /robot/*/frame)")
     info.set_defaults(func=cmd_info)
+    console = commands.add_parser("console", help="print the lines the hub printed while it recorded, with times",
+                                  description="Print the hub's console lines recorded in a log (/hub/log): "
+                                              "robots connecting, agents restarting, e-stops, refused keys, "
+                                              "drops, each with the lab PC's date and time.")
+    console.add_argument("file", metavar="FILE", help="an .mcap log written by the hub")
+    console.set_defaults(func=cmd_console)
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -70,3 +76,28 @@ def _info(args: argparse.Namespace, name: str, print_json) -> int:
     # With --check a script can tell a sound log from a damaged one by the exit code, not only by reading.
     unsound = args.check and (summary.truncated or summary.damaged_records or summary.refused_messages)
     return 1 if unprintable or unsound else 0
+
+
+def cmd_console(args: argparse.Namespace) -> int:
+    """One line per /hub/log record: '2026-11-29 20:27:01.123  hub: robot 3 connected from 10.0.0.13'."""
+    from datetime import datetime
+
+    from hub.recording import HUB_LOG, read_log
+    from onboard.config import ConfigError
+    from onboard.console import say
+
+    if not args.file.strip():
+        raise ConfigError("FILE", "an empty path: name the .mcap log")
+    count = 0
+    for record in read_log(Path(args.file), topics=[HUB_LOG]):     # LogError (a ConfigError) names the file
+        message = record.payload.get("message")
+        if not isinstance(message, str):
+            continue         # not a console line (another tool's /hub/log): nothing to print
+        when = datetime.fromtimestamp(record.stamp_s).astimezone().strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
+        print(f"{when}  {message}")
+        count += 1
+    if not count:
+        say(f"khepri: {args.file}: no console lines in this log (/hub/log: recorded by hubs since 2026-11-29)")
+        return 1
+    return 0
+

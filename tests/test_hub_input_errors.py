@@ -875,7 +875,9 @@ def test_two_agents_with_one_id_are_said_once_and_the_first_keeps_the_robot(tmp_
                                "127.0.0.1 (ignored while the first is alive); is a second agent running with --id 0?"]
             assert len(joined) == 1, joined       # no hand-over back and forth
             # The second agent's own console names the likely cause too, not only the hub's log.
-            assert "is another agent already connected as robot 0" in (tmp_path / "second.log").read_text()
+            assert "connected to the hub at tcp://127.0.0.1:" in (tmp_path / "second.log").read_text()
+            assert "but it sends robot 0 nothing: is robot 0 in the hub's lab, and is no other agent connected as " \
+                   "robot 0?" in (tmp_path / "second.log").read_text()
             assert hub.status()["drops"]["duplicate robot"] > 0
             stop_processes([first])               # the first goes: the second gets the robot
             # At least 2: the second agent reopens its socket after 2 s without frames, and when that falls just

@@ -1,8 +1,12 @@
 """Pose sources: the motioncapture library (its mock backend stands in for the cameras) and replay of a log."""
 import json
 import math
+import os
 import re
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -678,3 +682,46 @@ def test_log_info_tells_each_e_stop_with_its_clear_and_the_start_that_resumed_th
         rf"e-stop:    {clock} by (.+) in run {run}; cleared {clock} by \1; run resumed {clock} by \1", lines[0]), lines
     assert re.fullmatch(rf"e-stop:    {clock} by .+ \(no run going\); not cleared in the log", lines[1]), lines
     assert summarise(log, use_index=False).estops == summary.estops        # the walk, as for a killed hub's log
+
+
+def log_console(path):
+    return subprocess.run([sys.executable, "-m", "khepri_cli.main", "log", "console", str(path)], capture_output=True,
+                          text=True, env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+
+
+def test_the_hubs_console_lines_are_in_its_log_and_log_console_prints_them(tmp_path):
+    """A terminal's scrollback was the only record of an evening's connections, e-stops and refusals."""
+    from mcap.reader import make_reader
+
+    log = tmp_path / "hub.mcap"
+    with HubThread(mock_config("kh0(1.0,2.0,0.05,1,0,0,0);kh1(1.5,2.0,0.05,1,0,0,0)", record=str(log))) as hub:
+        hub.request("start")
+        hub.request("estop")
+        said = list(hub.lines)
+    shown = log_console(log)
+    assert shown.returncode == 0, shown.stderr
+    printed = shown.stdout.splitlines()
+    stamp = r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3}  "
+    assert all(re.match(stamp, line) for line in printed), printed
+    # Every line the hub said up to the e-stop, in order, beginning with those said before its log was open.
+    messages = [line[25:] for line in printed]
+    assert messages[:len(said)] == said and any("E-STOP" in line for line in messages), (said, messages)
+    with open(log, "rb") as file:       # Foxglove's Log panel reads foxglove.Log messages
+        reader = make_reader(file)
+        schema, channel, message = next(reader.iter_messages(topics=["/hub/log"]))
+        assert schema.name == "foxglove.Log" and channel.message_encoding == "json"
+        first = json.loads(message.data)
+        assert set(first) == {"timestamp", "level", "message", "name", "file", "line"}
+        assert abs(first["timestamp"]["sec"] + first["timestamp"]["nsec"] / 1e9 - message.log_time / 1e9) < 1e-6
+
+
+def test_log_console_of_a_log_without_console_lines_says_so(tmp_path):
+    from hub.recording import Recorder
+
+    log = tmp_path / "old.mcap"
+    with Recorder(log) as recorder:
+        recorder.write("/hub/status", {"frames_per_s": 1.0})
+    shown = log_console(log)
+    assert shown.returncode == 1 and shown.stdout == ""
+    assert shown.stderr.strip() == f"khepri: {log}: no console lines in this log (/hub/log: recorded by hubs since " \
+                                   "2026-11-29)"
