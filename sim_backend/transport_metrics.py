@@ -163,8 +163,8 @@ class TransportEvaluator(Evaluator):
         hint += "; more robots, less friction, a smaller params.inter_robot_distance_m (more members behind it)"
         params = self.scenario.params
         stall_s = float(params.get("reinforce_when_stalled_s", TransportParams.reinforce_when_stalled_s))
-        if params.get("reinforce_push", False):
-            return [hint]
+        if params.get("reinforce_push", False) or len(self.members) >= robots.count:
+            return [hint]       # every robot is a member: nobody was left out to push too
         if params.get("profile") != "faithful" and stall_s > 0:
             return [hint + f" (the robots left out pushed too once the push stalled for {stall_s:g} s)"]
         return [hint + ", or params: {reinforce_push: true} (the robots left out push too)"]

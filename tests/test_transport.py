@@ -832,8 +832,8 @@ def test_a_stalled_cage_does_not_spin_a_wide_heavy_box_on_a_noisy_yaw_estimate(m
 def test_the_stuck_hint_offers_reinforce_push_only_when_the_spares_did_not_push(make_scenario):
     from sim_backend.transport_metrics import TransportEvaluator
 
-    def hint_with(params):
-        scenario = make_scenario(behaviour="transport", robots={"count": 8}, params=params,
+    def hint_with(params, robots=8):
+        scenario = make_scenario(behaviour="transport", robots={"count": robots}, params=params,
                                  object={"shape": "box", "size": [0.4, 0.4], "mass": 4.3, "friction": 0.4},
                                  path=[[0.5, 0, 0]])
         evaluator = TransportEvaluator.__new__(TransportEvaluator)
@@ -846,6 +846,9 @@ def test_the_stuck_hint_offers_reinforce_push_only_when_the_spares_did_not_push(
     assert "reinforce_push: true" in hint_with({"reinforce_when_stalled_s": 0})
     assert "reinforce_push: true" in hint_with({"profile": "faithful"})
     assert "reinforce_push" not in hint_with({"reinforce_push": True})
+    # Every robot a member: there were none left out to push (a 6-robot cage of a heavy disc was told they had).
+    alone = hint_with({}, robots=4)
+    assert "left out" not in alone and "reinforce_push" not in alone and "more robots" in alone, alone
 
 
 def test_a_run_stopped_soon_after_its_cage_closed_is_not_blamed_on_friction():
