@@ -190,7 +190,9 @@ class TransportEvaluator(Evaluator):
         d_tol = float(params.get("push_tolerance_m", 0.1))
         yaw_tol = math.radians(float(params.get("orientation_tolerance_deg", 5.72)))
         caged = self.closed_at is not None
-        out: Dict[str, Any] = {"caged": caged, "time_to_cage_s": self.closed_at, "cage_size": len(self.members)}
+        # Rounded as reached_s is: a sum of 0.1 s steps gave 62.300000000000004 in result.json.
+        closed = None if self.closed_at is None else round(self.closed_at, 2)
+        out: Dict[str, Any] = {"caged": caged, "time_to_cage_s": closed, "cage_size": len(self.members)}
         failures = [] if caged else ["cage did not close"]
         # The swarm decides closure from what it senses; the truth may differ (a ring on one side of the object).
         encloses = None if self.gap_at_closure_rad is None else self.gap_at_closure_rad < math.pi
