@@ -11,6 +11,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from onboard.behaviours.transport.params import TransportParams
+from onboard.hal import wrap_angle
 
 from .metrics import Evaluator, register_evaluator, waypoint_error
 from .transport_preflight import (
@@ -99,6 +100,7 @@ class TransportEvaluator(Evaluator):
         estimates = [reports[i]["estimate"] for i in live if "estimate" in reports[i]]
         est_error = float(np.mean([math.hypot(e[0] - truth[0], e[1] - truth[1]) for e in estimates])) \
             if estimates else None
+        yaw_error = float(np.mean([abs(wrap_angle(e[2] - truth[2])) for e in estimates])) if estimates else None
         steps = self.phase_steps
         position_error, orientation_error = waypoint_error(truth, target)
         return {
@@ -107,6 +109,7 @@ class TransportEvaluator(Evaluator):
             "position_error_m": position_error,
             "orientation_error_rad": orientation_error,
             "centroid_estimation_error_m": est_error,
+            "yaw_estimation_error_rad": yaw_error,
             "effective_pushers": round(len(self.pushers.get(k, [])) / max(1, steps.get(("push", k), 1)), 2),
             "effective_rotators": round(len(self.rotators.get(k, [])) / max(1, steps.get(("rotate", k), 1)), 2),
         }
@@ -240,8 +243,11 @@ class TransportEvaluator(Evaluator):
                                                     math.degrees(yaw_tol), 1, 2)
                 off.append(f"{error}° off its yaw (tolerance {tolerance}°)")
             if off:
-                estimate = w.get("centroid_estimation_error_m")
+                estimate, yaw_estimate = w.get("centroid_estimation_error_m"), w.get("yaw_estimation_error_rad")
                 known = "" if estimate is None else f"; the swarm's centroid estimate was {estimate:.2f} m off"
+                if known and yaw_estimate is not None and w["orientation_error_rad"] > yaw_tol:
+                    # Why nobody corrected the turn: the cage believed the object had kept its yaw.
+                    known += f" and its yaw estimate {math.degrees(yaw_estimate):.1f}° off"
                 lines.append(f"waypoint {w['index'] + 1} was passed with the object {' and '.join(off)}{known}")
         return lines
 

@@ -50,6 +50,11 @@ def test_each_waypoint_passed_outside_tolerance_is_named_with_how_far_off():
     assert lines == ["waypoint 2 was passed with the object 0.30 m from it (tolerance 0.10 m) and 11.5° off its "
                      "yaw (tolerance 5.73°); the swarm's centroid estimate was 0.29 m off"]
     assert TransportEvaluator._outside_tolerance(waypoints, 0.1, math.inf)[0].endswith("0.29 m off")
+    # With the yaw off, how far the swarm's own yaw estimate was off too: why nobody corrected the turn.
+    waypoints[1]["yaw_estimation_error_rad"] = math.radians(10.0)
+    assert TransportEvaluator._outside_tolerance(waypoints, 0.1, 0.1)[0].endswith(
+        "; the swarm's centroid estimate was 0.29 m off and its yaw estimate 10.0° off")
+    assert TransportEvaluator._outside_tolerance(waypoints, 0.1, math.inf)[0].endswith("0.29 m off")
 
 
 def test_an_error_just_over_its_tolerance_is_printed_with_the_decimals_that_show_it():
