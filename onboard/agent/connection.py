@@ -32,10 +32,14 @@ class ConnectionWatch:
         self.sock = sock
         address = f"inproc://agent-connection-{next(_ADDRESSES)}"
         sock.monitor(address, EVENTS)
-        self.events = context.socket(zmq.PAIR)
-        self.events.linger = 0
-        self.events.rcvhwm = 0
-        self.events.connect(address)
+        try:
+            self.events = context.socket(zmq.PAIR)
+            self.events.linger = 0
+            self.events.rcvhwm = 0
+            self.events.connect(address)
+        except zmq.ZMQError:
+            sock.disable_monitor()       # a monitor with no reader could block libzmq's I/O thread
+            raise
         self.connected = False         # TCP got through at least once
         self.refused = False           # a connection attempt failed (refused, unreachable) and is retried
         self.handshake_ok = False      # a ZMTP handshake completed (keys accepted, or none needed)
@@ -112,3 +116,13 @@ class ConnectionWatch:
         except zmq.ZMQError:
             pass
         self.events.close(0)
+
+
+def watch_connection(context: zmq.Context, sock: zmq.Socket) -> Optional[ConnectionWatch]:
+    """A watch on ``sock``, or None where the socket cannot be monitored (a libzmq too old for these events):
+    the agent then asks its general questions, as before. Watching is help, never a reason not to run."""
+    try:
+        return ConnectionWatch(context, sock)
+    except zmq.ZMQError:
+        return None
+

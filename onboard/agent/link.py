@@ -14,7 +14,7 @@ import zmq
 from onboard.config import ConfigError
 from onboard.protocol import DOWNLINK_TYPES, ProtocolError, decode, encode
 
-from .connection import ConnectionWatch
+from .connection import watch_connection
 
 RECEIVE_HWM = 16      # downlink frames waiting; the agent drains every poll, so more would be stale anyway
 IPV6_LOOKUP_RETRY_S = 30.0   # a host name the DNS could not answer for is looked up again this much later
@@ -268,7 +268,7 @@ class HubLink:
             self.socket.curve_secretkey = self.keys["secret"]
             self.socket.curve_serverkey = self.keys["server"]
         use_ipv6(self.socket, self.address, self._is_ipv6_only_name())
-        self.watch = ConnectionWatch(self.context, self.socket)     # before connect: its first events count
+        self.watch = watch_connection(self.context, self.socket)    # before connect: its first events count
         self.socket.connect(self.address)
         self.heard = False                 # the hub has spoken on this socket (see unsent)
         self.poller = zmq.Poller()
@@ -289,7 +289,8 @@ class HubLink:
         if the hub never spoke on this one."""
         if not self.heard:
             self.address = self.addresses[(self.addresses.index(self.address) + 1) % len(self.addresses)]
-        self.watch.close()
+        if self.watch is not None:
+            self.watch.close()
         self.socket.close(0)
         self.resets += 1
         self._open()
@@ -297,6 +298,8 @@ class HubLink:
     def likely_cause(self) -> Optional[str]:
         """Why the hub is silent on this connection, as far as ZeroMQ's events tell (see connection.py), with
         the address family's hint when the connection never got through (a hub on ::1 only, say)."""
+        if self.watch is None:
+            return None
         cause = self.watch.likely_cause(self.robot_id, self.address, self.keys is not None)
         if cause is None or self.watch.connected:
             return cause
@@ -353,5 +356,6 @@ class HubLink:
 
     def close(self) -> None:
         # A short linger: the last messages (the wheels' stop for the sim driver, the final telemetry) get out.
-        self.watch.close()
+        if self.watch is not None:
+            self.watch.close()
         self.socket.close(linger=200)
