@@ -7,10 +7,19 @@ fail?), but a user who expects it to work should hear why it will not before wai
 from __future__ import annotations
 
 import math
-from typing import Any, List, Optional, Tuple
+from typing import Any, List, Optional
 
 import numpy as np
 
+from .object_hull import (
+    CAGE_GAP_M,
+    FACE_SHARE,
+    cage_ring,
+    face_normals,
+    hull_edges,
+    hull_width,
+    object_hull,
+)
 from .recesses import widest_recess
 from .shapes import Geometry, dimension_field, extent_at
 from .world import GRAVITY
@@ -28,7 +37,6 @@ RING_SLACK = 0.95
 # from the wall ahead. The same runs 2 m from any wall completed 3 of 3, and 0.50 m with the robots starting
 # across the room 2 of 3. An earlier bar of 0.33 m (one body), set from 8 robots arriving from the open side,
 # let all these through unwarned.
-CAGE_GAP_M = 0.02               # caging robots hold about this far off the surface (keep_gap_while_caging)
 # Round corners a ring of about 3 I_d is not enough: a 0.2 m box (3.0 I_d) caged in 1 of 4 runs with 4-6
 # robots at I_d 0.45 m, and in 6 of 6 at 0.30-0.35 m; a 0.25 m box (3.5 I_d) in 4 of 4. Discs caged at 2.9 I_d.
 CORNERED_RING = 3.25
@@ -51,7 +59,6 @@ SMALL_CAGE_NEW_DIRECTION_DEG = 45.0
 # 2, 62 % 1 of 3, 72 % 0 of 3. The built-in scenarios take 3-22 %.
 HEAVY_SHARE = 0.6
 GRAMS_LIKELY_KG = 100.0         # a "mass" this large was most likely written in grams
-FACE_SHARE = 0.1                # a hull edge is a face (its normal an axis to push along) from this share of the hull
 
 
 def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
@@ -78,6 +85,7 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
         found += _cage_fits(hull, spacing, spec.radius_m)
         if scenario.object is not None:
             found += _small_cage_turns(scenario, hull, spacing, spec.radius_m)
+            found += _cage_behind_too_weak(scenario, hull, spacing, spec.radius_m, params)
             found += _recess(scenario, world.geometry, hull, spec.radius_m)
             found += _thinner_than_a_robot(scenario, hull, spec.radius_m)
     if world.geometry is not None and scenario.arena.walls is not None:
@@ -127,6 +135,60 @@ def _too_heavy(scenario: Any) -> List[str]:
             "box with 8 robots: at 62 % 1 of 3 runs delivered it, at 72 % none). More robots, or a lighter object"]
 
 
+def _cage_behind_too_weak(scenario: Any, hull: np.ndarray, spacing: float, robot_radius: float,
+                          params: Any) -> List[str]:
+    """The members behind the object on the first leg cannot slide it, and no spare robot will push with them
+    (every robot a member, or reinforcing off). The members are about ring // I_d, spread
+    evenly round the ring; each pushes along the leg with the cosine of its face's angle to it
+    (behind_share). Measured (2026-11-29): a 0.4 m disc of 4 kg with 6 robots, all members, 0 of 2 (it never
+    moved), at 2 kg 2 of 2. Where spares join once the push stalls, runs mostly deliver (a 0.6 m box of 4 kg,
+    10 robots: 8 of 8; a 0.5 m box of 3 kg on friction 0.8, 8 robots, 1 of 3 though this model says even the
+    spares fall short; but a 1.0 x 0.8 m box of 4 kg, 16 robots: 0 of 6, behaviour.md section 8): not warned
+    about here (_too_heavy's share of all robots' push is the measured bar)."""
+    obj, robots = scenario.object, scenario.robots
+    leg = _first_leg_deg(scenario)
+    resisting, each = floor_friction_n(obj), push_force_n(robots)
+    if obj.static or leg is None or resisting > robots.count * each:      # _too_heavy: nothing moves it
+        return []
+    ring = cage_ring(hull, robot_radius)
+    members = min(robots.count, int(ring // spacing))
+    behind = members * behind_share(hull, robot_radius, leg - obj.yaw_deg)
+    if members < MIN_CAGE or behind * each >= resisting:
+        return []
+    spares = robots.count - members
+    cage = (f"object.mass: a cage of about {members} (params.inter_robot_distance_m {spacing:g} m apart) pushes "
+            f"the object along its first leg with about {behind * each:.1f} N, from the members behind it (as "
+            f"if {behind:.1f} pushed square), against {resisting:.1f} N of floor friction (object.friction x "
+            "mass x g)")
+    if spares <= 0 or not (params.reinforce_push or params.reinforce_when_stalled_s > 0):
+        who = "every robot is a member" if spares <= 0 else "the other robots do not push (reinforcing is off)"
+        return [f"{cage}, and {who}: it will most likely not move (a 0.4 m disc of 4 kg whose 6 robots were all "
+                "members moved 0.00 m in 2 of 2 runs). More robots, a smaller params.inter_robot_distance_m, or a "
+                "lighter object"]
+    return []      # the spares join once the push stalls (reinforce.py): such runs mostly deliver (section 8)
+
+
+def _first_leg_deg(scenario: Any) -> Optional[float]:
+    """The direction (degrees, world) of the first waypoint that moves the object; None if none does."""
+    x, y = scenario.object.position[0], scenario.object.position[1]
+    for wx, wy, _ in scenario.path:
+        if math.hypot(wx - x, wy - y) > 0.05:
+            return math.degrees(math.atan2(wy - y, wx - x))
+    return None
+
+
+def behind_share(hull: np.ndarray, robot_radius: float, leg_deg: float) -> float:
+    """The share of the cage ring that pushes along ``leg_deg`` (object frame), each stretch weighted by the
+    cosine between the leg and the way a member there pushes (against its face's outward normal): a face
+    square behind the object counts whole, a side face nothing. The ring's rounded corners add the integral of
+    the cosine over half a turn, twice their radius."""
+    normals, lengths = hull_edges(hull)
+    along = sum(length * max(0.0, -math.cos(math.radians(normal - leg_deg)))
+                for normal, length in zip(normals, lengths))
+    corners = 2.0 * (robot_radius + CAGE_GAP_M)
+    return (along + corners) / cage_ring(hull, robot_radius)
+
+
 def _radians_for_degrees(scenario: Any) -> List[str]:
     """A yaw of 3.14 or 1.57 is almost surely radians where degrees are asked for: a turn of 3 degrees, not a
     half turn, that the run would carry out without a word."""
@@ -159,8 +221,8 @@ def _faults(scenario: Any) -> List[str]:
 def _cage_fits(hull: np.ndarray, spacing: float, robot_radius: float) -> List[str]:
     """The ring the cage lies on (the object's convex hull grown by a robot's radius and its gap) must hold
     MIN_CAGE robots I_d apart; the behaviour only ever widens I_d (the `grow` levels), never narrows it."""
-    ring = _cage_ring(hull, robot_radius)
-    cornered = bool(_face_normals(hull))
+    ring = cage_ring(hull, robot_radius)
+    cornered = bool(face_normals(hull))
     if ring >= CORNERED_RING * spacing or (ring >= RING_SLACK * MIN_CAGE * spacing and not cornered):
         return []
     fitting = 4 if cornered else MIN_CAGE      # the spacing suggested leaves a ring of this many spacings
@@ -179,11 +241,11 @@ def _cage_fits(hull: np.ndarray, spacing: float, robot_radius: float) -> List[st
 def _small_cage_turns(scenario: Any, hull: np.ndarray, spacing: float, robot_radius: float) -> List[str]:
     """A small cage often misses the object turning: on a leg that runs across its faces (the object turns
     towards pushing a face flat) and on a turn the path asks for. Said once per leg, naming the waypoint."""
-    ring = _cage_ring(hull, robot_radius)
+    ring = cage_ring(hull, robot_radius)
     members = min(scenario.robots.count, int(ring // spacing))
     if members >= SMALL_CAGE_MEMBERS or members < MIN_CAGE:
         return []
-    normals = _face_normals(hull)
+    normals = face_normals(hull)
     cage = (f"a cage of about {members} robots (its ring is {ring:.2f} m, params.inter_robot_distance_m "
             f"{spacing:g} m)")
     advice = ("often does not see the object turn, and the run ends off in yaw (docs/behaviour.md section 8). "
@@ -238,19 +300,6 @@ def _thinner_than_a_robot(scenario: Any, hull: np.ndarray, robot_radius: float) 
             "for caging alone"]
 
 
-def hull_width(hull: np.ndarray) -> float:
-    """The narrowest width of a convex polygon: over its edges, the farthest vertex from the edge's line."""
-    if len(hull) < 3:
-        return 0.0
-    edges = np.roll(hull, -1, axis=0) - hull
-    lengths = np.hypot(*edges.T)
-    keep = lengths > 1e-12
-    edges, starts, lengths = edges[keep], hull[keep], lengths[keep]
-    offsets = hull[None, :, :] - starts[:, None, :]                       # every vertex from every edge's start
-    distances = np.abs(edges[:, None, 0] * offsets[:, :, 1] - edges[:, None, 1] * offsets[:, :, 0])
-    return float(np.min(distances.max(axis=1) / lengths))
-
-
 def _recess(scenario: Any, geometry: Geometry, hull: np.ndarray, robot_radius: float) -> List[str]:
     """A recess a robot fits into, on an object to be moved (recesses.py). Measured (2026-11-28, 12 robots,
     0.6 m objects pushed 0.8 m, seeds 1-4): a U with a 0.30 m notch completed 2 of 8 runs (0.10-0.16 m off),
@@ -275,23 +324,10 @@ def judges_yaw(obj: Any) -> bool:
     return obj is None or obj.shape != "circle"
 
 
-def _face_normals(hull: np.ndarray) -> List[float]:
-    """Outward normal angles (degrees, object frame) of the hull's long edges: the directions a push along
-    which keeps a face square to it. Empty for a round object: no edge is long."""
-    normals, lengths = _hull_edges(hull)
-    return [normal for normal, length in zip(normals, lengths) if length >= FACE_SHARE * sum(lengths)]
-
-
-def _hull_edges(hull: np.ndarray) -> Tuple[List[float], List[float]]:
-    """Each hull edge's outward normal angle (degrees, object frame) and its length."""
-    edges = np.roll(hull, -1, axis=0) - hull
-    return [math.degrees(math.atan2(-ex, ey)) for ex, ey in edges.tolist()], np.hypot(*edges.T).tolist()
-
-
 def _narrow_end_ahead(hull: np.ndarray, direction_deg: float) -> Optional[float]:
     """The length of the short hull edge (not a face, FACE_SHARE) whose outward normal is within 30 degrees
     of the travel direction, either way along it: the end the object travels with; None if there is none."""
-    normals, lengths = _hull_edges(hull)
+    normals, lengths = hull_edges(hull)
     for normal, length in zip(normals, lengths):
         if not 1e-9 < length < FACE_SHARE * sum(lengths):
             continue        # a face, or no edge at all
@@ -342,43 +378,3 @@ def _room_to_walls(scenario: Any, geometry: Geometry, needed: float) -> List[str
             "robot rounding it): their IR cannot tell the wall from the object, so members attach to the wall "
             "and the swarm's estimate of the object is pulled toward it (a 0.5 m box 0.5 m from a wall, pushed "
             "along it: 0 of 3 runs delivered it)"]
-
-
-def _cage_ring(hull: np.ndarray, robot_radius: float) -> float:
-    """The length of the ring the cage lies on: the convex hull grown by a robot's radius and its gap."""
-    return _perimeter(hull) + 2.0 * math.pi * (robot_radius + CAGE_GAP_M)
-
-
-def object_hull(geometry: Geometry) -> np.ndarray:
-    """The convex hull of the object's outline (circles included as polygons), counter-clockwise."""
-    return _convex_hull(np.vstack(geometry.outline_polygons()))
-
-
-def hull_perimeter(geometry: Geometry) -> float:
-    """Perimeter of the convex hull of the object's outline."""
-    return _perimeter(object_hull(geometry))
-
-
-def _perimeter(hull: np.ndarray) -> float:
-    return float(np.sum(np.hypot(*(np.roll(hull, -1, axis=0) - hull).T)))
-
-
-def _convex_hull(points: np.ndarray) -> np.ndarray:
-    """Andrew's monotone chain: the hull's vertices in counter-clockwise order."""
-    ordered = sorted(set(map(tuple, np.round(points, 9).tolist())))
-    if len(ordered) < 3:
-        return np.asarray(ordered, dtype=float)
-
-    def half(seq):
-        chain: List[tuple] = []
-        for p in seq:
-            while len(chain) >= 2 and _cross(chain[-2], chain[-1], p) <= 0:
-                chain.pop()
-            chain.append(p)
-        return chain[:-1]
-
-    return np.asarray(half(ordered) + half(reversed(ordered)), dtype=float)
-
-
-def _cross(o: tuple, a: tuple, b: tuple) -> float:
-    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])

@@ -2,14 +2,16 @@
 an object too small for the cage spacing, too little room to the walls, too few robots, a radio too short."""
 import json
 
+import numpy as np
 import pytest
 
 from khepri_cli.main import main
 from onboard.config import ConfigError
+from sim_backend.object_hull import hull_perimeter
 from sim_backend.runner import Simulation
 from sim_backend.scenario import builtin_names, load_scenario
 from sim_backend.shapes import build_geometry
-from sim_backend.transport_preflight import hull_perimeter
+from sim_backend.transport_preflight import behind_share
 
 
 def transport(make_scenario, **changes):
@@ -296,3 +298,28 @@ def test_an_object_thinner_than_a_robot_is_warned_about_unless_it_stays_put(make
     static = transport(make_scenario, robots=robots, path=[],
                        object={"shape": "box", "size": [2.0, 0.05], "position": [0, 0], "static": True})
     assert not [w for w in Simulation(static).warnings if "narrowest" in w]
+
+
+def test_a_cage_whose_members_behind_the_object_cannot_slide_it_is_warned_about(make_scenario):
+    """A new user's 4 kg disc with 6 robots (every one a member) never moved in 0 of 2 runs: it passed the 60 %
+    share of all robots' push unwarned, as the cage's members behind it are what pushes, and nobody else."""
+    disc = {"shape": "circle", "radius": 0.4, "mass": 4.0, "friction": 0.3, "position": [0, 0]}
+    six = {"count": 6, "spawn": {"x": [-1.6, -0.8], "y": [-1.6, -0.8]}}
+    (alone,) = Simulation(transport(make_scenario, object=disc, robots=six, path=[[0, 1, 0]])).warnings
+    assert alone.startswith("object.mass: a cage of about 6 (params.inter_robot_distance_m 0.45 m apart) pushes the "
+                            "object along its first leg with about 9.1 N") and "against 11.8 N" in alone, alone
+    assert "every robot is a member: it will most likely not move" in alone
+    assert Simulation(transport(make_scenario, object=dict(disc, mass=2.0), robots=six, path=[[0, 1, 0]])).warnings \
+        == []
+    # Spares that join once the push stalls: such runs mostly deliver, and are not warned about...
+    box = {"shape": "box", "size": [1.0, 0.8], "mass": 4.0, "friction": 0.5, "position": [0, 0]}
+    sixteen = {"count": 16, "spawn": {"x": [-3.0, -1.2], "y": [-2.0, 0.0]}}
+    wide = {"object": box, "path": [[1, 0, 0]], "arena": {"walls": [-3.5, -3, 3.5, 3.5]}}
+    assert Simulation(transport(make_scenario, robots=sixteen, **wide)).warnings == []
+    # ... but are when reinforcing is off (the faithful profile).
+    (faithful,) = Simulation(transport(make_scenario, robots=sixteen, params={"profile": "faithful"}, **wide)).warnings
+    assert "the other robots do not push (reinforcing is off): it will most likely not move" in faithful, faithful
+    # Across the box's long face there are more members behind it: fewer newtons short, still short.
+    along = behind_share(np.array([[-0.5, -0.4], [0.5, -0.4], [0.5, 0.4], [-0.5, 0.4]]), 0.07, 0.0)
+    across = behind_share(np.array([[-0.5, -0.4], [0.5, -0.4], [0.5, 0.4], [-0.5, 0.4]]), 0.07, 90.0)
+    assert across > along
