@@ -120,10 +120,10 @@ class TransportPhases:
             tolerance = math.radians(p.rotation_tolerance_deg)
             u = c.add(u, c.u_r(self.percept.position, centre, wrap_angle(held_yaw - yaw), p.k_t_push, tolerance))
         speed = self._ramp(remaining)
-        if p.pace_formation and self._small_cage():
+        if p.pace_formation and (self._small_cage() or self._sparse_cage()):
             leg = self._leg()
             if c.norm(leg) > 0 and c.angle_between(x_o, leg) > PACE_ANGLE:
-                speed *= self._pace(leg, held_yaw - self.reference_yaw, now)
+                speed *= self._pace(leg, held_yaw - self.reference_yaw, now, pushers_only=self._sparse_cage())
         self._drive(u, speed)
 
     def _pushing_on(self, now: float, remaining: float) -> bool:
@@ -141,7 +141,7 @@ class TransportPhases:
         target = self.path[self.waypoint]
         return (target[0] - start[0], target[1] - start[1])
 
-    def _pace(self, leg: Vec, rotation: float, now: float) -> float:
+    def _pace(self, leg: Vec, rotation: float, now: float, pushers_only: bool = False) -> float:
         """Improvement for small cages: a robot that does not push (beside or ahead of the object) slows down
         as it gets ahead of its formation neighbours along the leg, down to PACE_MIN of its speed
         PACE_AHEAD_M ahead. At full speed it outruns a heavy object that the pushers move slowly, sliding
@@ -150,19 +150,34 @@ class TransportPhases:
         follow a sliding robot, and pacing 16-18 robots against each other slowed a paper-25 cage with two
         dead members to a crawl and let its estimate fall 0.24 m behind. Only live members that
         touch the object count: a dead robot stays where it stopped, and one that lost the object drives
-        back to it (keep_contact), so everyone would seem to run ahead of them."""
+        back to it (keep_contact), so everyone would seem to run ahead of them.
+
+        ``pushers_only`` (cages of surface_estimate_min_points to 9 members, ours, 2026-11-29): only the
+        members that push from behind count (their contact normal within PACE_ANGLE of the leg), as they move
+        only as the object does, and only a runaway is held: full speed up to PACE_AHEAD_M ahead of them,
+        stopped at PACE_STOP_M. Round a 1.0 x 0.8 m box of 4 kg that its one rear member could not move, the
+        side members of an 8-member cage slid round its front corners within seconds, the estimate 0.2 m ahead
+        with them, and the runs ended 0.2-0.8 m off (0 of 4; now 4 of 4). Paced as small cages are, against
+        all their neighbours (who slide too) and from the first centimetre, a 1 kg box on a zigzag 40 degrees
+        off its faces turned 5-9 degrees (7 of 8 runs completed fell to 0 of 8); this way 10 of 16 against
+        13 of 16 (docs/behaviour.md section 8)."""
         direction = c.unit(leg)
         leads = []
         live = set(self._members_alive(now))
         for j, r_ref in self.formation.items():
-            touching = j in live and self.board.contact_normal(j) is not None
-            r_now = self.percept.neighbours.get(j) if touching else None
+            normal = self.board.contact_normal(j) if j in live else None
+            if normal is not None and pushers_only and \
+                    c.angle_between((math.cos(normal), math.sin(normal)), leg) > PACE_ANGLE:
+                continue        # beside or ahead of the object: it slides as this robot does
+            r_now = self.percept.neighbours.get(j) if normal is not None else None
             if r_now is not None:
                 error = c.sub(r_now, c.rotate(r_ref, rotation))    # < 0 along the way: j fell behind me
                 leads.append(-(error[0] * direction[0] + error[1] * direction[1]))
         if not leads:
             return 1.0
         ahead = sum(leads) / len(leads)
+        if pushers_only:        # only a runaway: level with the pushers to a few centimetres, full speed
+            return float(np.clip((PACE_STOP_M - ahead) / (PACE_STOP_M - PACE_AHEAD_M), 0.0, 1.0))
         if ahead > PACE_AHEAD_M:
             # Ours: farther ahead it stops altogether, at PACE_STOP_M: crawling on at PACE_MIN beside an object
             # that does not move (too heavy for its pushers) slid the side robots 0.27 m along its faces, and
