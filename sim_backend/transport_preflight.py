@@ -160,7 +160,8 @@ def _cage_behind_too_weak(scenario: Any, hull: np.ndarray, spacing: float, robot
             f"the object along its first leg with about {behind * each:.1f} N, from the members behind it (as "
             f"if {behind:.1f} pushed square), against {resisting:.1f} N of floor friction (object.friction x "
             "mass x g)")
-    if spares <= 0 or not (params.reinforce_push or params.reinforce_when_stalled_s > 0):
+    reinforcing = getattr(params, "reinforce_push", False) or getattr(params, "reinforce_when_stalled_s", 0.0) > 0
+    if spares <= 0 or not reinforcing:
         who = "every robot is a member" if spares <= 0 else "the other robots do not push (reinforcing is off)"
         return [f"{cage}, and {who}: it will most likely not move (a 0.4 m disc of 4 kg whose 6 robots were all "
                 "members moved 0.00 m in 2 of 2 runs). More robots, a smaller params.inter_robot_distance_m, or a "
