@@ -57,14 +57,10 @@ def cmd_info(args: argparse.Namespace) -> int:
 def _info(args: argparse.Namespace, name: str, print_json) -> int:
     from hub.log_summary import summarise
     from hub.log_text import format_summary, printable_metadata
-    from onboard.config import ConfigError
     from onboard.console import say
 
-    if not name.strip():     # Path("") is ".", which would be reported as a folder
-        raise ConfigError("FILE", "an empty path: name the .mcap log")
-
     # LogError (a ConfigError) naming the file for missing, empty or non-MCAP files
-    summary = summarise(Path(name), use_index=not args.check, check_payloads=args.check)
+    summary = summarise(log_path(name), use_index=not args.check, check_payloads=args.check)
     summary, unprintable = printable_metadata(summary, indent=2 if args.json else None)
     if args.json:
         print_json(summary.to_dict())
@@ -83,13 +79,10 @@ def cmd_console(args: argparse.Namespace) -> int:
     from datetime import datetime
 
     from hub.recording import HUB_LOG, read_log
-    from onboard.config import ConfigError
     from onboard.console import say
 
-    if not args.file.strip():
-        raise ConfigError("FILE", "an empty path: name the .mcap log")
     count = 0
-    for record in read_log(Path(args.file), topics=[HUB_LOG]):     # LogError (a ConfigError) names the file
+    for record in read_log(log_path(args.file), topics=[HUB_LOG]):     # LogError (a ConfigError) names the file
         message = record.payload.get("message")
         if not isinstance(message, str):
             continue         # not a console line (another tool's /hub/log): nothing to print
@@ -100,4 +93,13 @@ def cmd_console(args: argparse.Namespace) -> int:
         say(f"khepri: {args.file}: no console lines in this log (/hub/log: recorded by hubs since 2026-11-29)")
         return 1
     return 0
+
+
+def log_path(name: str) -> Path:
+    """The log's path; an empty one is refused (Path("") is ".", which would be reported as a folder)."""
+    from onboard.config import ConfigError
+
+    if not name.strip():
+        raise ConfigError("FILE", "an empty path: name the .mcap log")
+    return Path(name)
 

@@ -725,3 +725,5 @@ def test_log_console_of_a_log_without_console_lines_says_so(tmp_path):
     assert shown.returncode == 1 and shown.stdout == ""
     assert shown.stderr.strip() == f"khepri: {log}: no console lines in this log (/hub/log: recorded by hubs since " \
                                    "2026-11-29)"
+    empty = log_console(" ")            # as log info: refused naming the argument, not read as the folder "."
+    assert empty.returncode == 2 and "FILE: an empty path: name the .mcap log" in empty.stderr, empty.stderr
