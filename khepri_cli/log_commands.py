@@ -78,17 +78,22 @@ def cmd_console(args: argparse.Namespace) -> int:
     """One line per /hub/log record: '2026-11-29 20:27:01.123  hub: robot 3 connected from 10.0.0.13'."""
     from datetime import datetime
 
-    from hub.recording import HUB_LOG, read_log
+    from hub.log_reader import LogReader
+    from hub.recording import HUB_LOG
     from onboard.console import say
 
     count = 0
-    for record in read_log(log_path(args.file), topics=[HUB_LOG]):     # LogError (a ConfigError) names the file
+    reader = LogReader(log_path(args.file))         # LogError (a ConfigError) names the file
+    for record in reader.records([HUB_LOG]):
         message = record.payload.get("message")
         if not isinstance(message, str):
             continue         # not a console line (another tool's /hub/log): nothing to print
         when = datetime.fromtimestamp(record.stamp_s).astimezone().strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
         print(f"{when}  {message}")
         count += 1
+    if not reader.complete:         # a killed hub's log: its last lines are not there, and the reader is told
+        say(f"khepri: {args.file}: the log ends early ({reader.stop_reason}): the lines printed are those "
+            "recovered up to there")
     if not count:
         say(f"khepri: {args.file}: no console lines in this log (/hub/log: recorded by hubs since 2026-11-29)")
         return 1

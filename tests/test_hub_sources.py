@@ -706,6 +706,13 @@ def test_the_hubs_console_lines_are_in_its_log_and_log_console_prints_them(tmp_p
     # Every line the hub said up to the e-stop, in order, beginning with those said before its log was open.
     messages = [line[25:] for line in printed]
     assert messages[:len(said)] == said and any("E-STOP" in line for line in messages), (said, messages)
+    # A killed hub's log (no summary at its end): the lines recovered, and a word that there may be more.
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log.read_bytes()[:-100])
+    shown_cut = log_console(cut)
+    assert shown_cut.returncode == 0 and shown_cut.stdout.splitlines()[:3] == printed[:3], shown_cut
+    assert f"khepri: {cut}: the log ends early (" in shown_cut.stderr, shown_cut.stderr
+    assert "ends early" not in shown.stderr
     with open(log, "rb") as file:       # Foxglove's Log panel reads foxglove.Log messages
         reader = make_reader(file)
         schema, channel, message = next(reader.iter_messages(topics=["/hub/log"]))
