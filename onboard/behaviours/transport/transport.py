@@ -120,10 +120,11 @@ class TransportPhases:
             tolerance = math.radians(p.rotation_tolerance_deg)
             u = c.add(u, c.u_r(self.percept.position, centre, wrap_angle(held_yaw - yaw), p.k_t_push, tolerance))
         speed = self._ramp(remaining)
-        if p.pace_formation and (self._small_cage() or self._sparse_cage()):
+        sparse = p.pace_formation and self._sparse_cage()       # asked once: it walks the member table
+        if p.pace_formation and (sparse or self._small_cage()):
             leg = self._leg()
             if c.norm(leg) > 0 and c.angle_between(x_o, leg) > PACE_ANGLE:
-                speed *= self._pace(leg, held_yaw - self.reference_yaw, now, pushers_only=self._sparse_cage())
+                speed *= self._pace(leg, held_yaw - self.reference_yaw, now, pushers_only=sparse)
         self._drive(u, speed)
 
     def _pushing_on(self, now: float, remaining: float) -> bool:
