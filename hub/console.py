@@ -29,7 +29,7 @@ class HubConsole:
     def __init__(self, print_line: Callable[[str], None] = print) -> None:
         self.print_line = print_line
         self.recorder: Optional[Any] = None
-        self.early: List[Tuple[float, str]] = []
+        self.early: Optional[List[Tuple[float, str]]] = []     # None once record_to was told (log or none)
 
     def __call__(self, line: str) -> None:
         stamp = time.time()
@@ -37,16 +37,16 @@ class HubConsole:
         recorder = self.recorder
         if recorder is not None:
             recorder.write(HUB_LOG, console_record(line, stamp), stamp)
-        elif len(self.early) < EARLY_LINES_KEPT:
+        elif self.early is not None and len(self.early) < EARLY_LINES_KEPT:
             self.early.append((stamp, line))
 
     def record_to(self, recorder: Optional[Any]) -> None:
         """From now on each line goes into ``recorder`` too, after the lines said before (None: none are)."""
         self.recorder = recorder
         if recorder is not None:
-            for stamp, line in self.early:
+            for stamp, line in self.early or []:
                 recorder.write(HUB_LOG, console_record(line, stamp), stamp)
-        self.early = []
+        self.early = None       # a hub that does not record keeps no lines either
 
 
 def as_console(log: Callable[[str], None]) -> HubConsole:
