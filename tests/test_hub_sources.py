@@ -734,3 +734,17 @@ def test_log_console_of_a_log_without_console_lines_says_so(tmp_path):
                                    "2026-11-29)"
     empty = log_console(" ")            # as log info: refused naming the argument, not read as the folder "."
     assert empty.returncode == 2 and "FILE: an empty path: name the .mcap log" in empty.stderr, empty.stderr
+
+
+def test_a_hub_console_with_no_log_keeps_no_lines_once_the_hub_is_built():
+    """It kept up to 500 lines for a log that would never open."""
+    from hub.console import HubConsole
+
+    printed = []
+    console = HubConsole(printed.append)
+    console("hub: warning: said while building")
+    assert console.early and console.early[0][1] == "hub: warning: said while building"
+    console.record_to(None)
+    for n in range(3):
+        console(f"hub: line {n}")
+    assert console.early is None and printed[-1] == "hub: line 2"
