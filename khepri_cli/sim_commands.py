@@ -120,6 +120,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"  {name}: {path}")
     if interrupted:             # Ctrl-C: what was recorded is written, and where the run was is said
         print(f"khepri: {result['error']}", file=sys.stderr)
+        if args.video is not None:
+            print(f"khepri: no video written (interrupted){earlier_file_note(Path(args.video))}", file=sys.stderr)
         return 130
     if "error" in result:
         reason = result.get("stop_reason")
@@ -131,6 +133,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         print_evaluation_error(result)
         return 1
     return 0
+
+
+def earlier_file_note(path: Path) -> str:
+    """A file the run did not rewrite is an earlier run's: say so, or it passes for this run's."""
+    return f"; {path} is from an earlier run" if path.is_file() else ""
 
 
 def print_evaluation_error(result: dict) -> None:

@@ -168,10 +168,15 @@ def test_ctrl_c_keeps_what_was_recorded_and_says_which_step_was_running(buggy, t
     import signal
     import threading
 
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "run.gif").write_bytes(b"GIF89a")       # an earlier run's video, not rewritten
     threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT)).start()
     # The wall limit is a backstop: should the signal be lost, the test fails instead of hanging the suite.
-    assert run("sim", "run", buggy("hang"), "--no-plot", "--out", "out", "--wall-limit", "30") == 130
-    assert "khepri: interrupted (Ctrl-C) while robot 1's step() at buggy_behaviour.py:" in capsys.readouterr().err
+    assert run("sim", "run", buggy("hang"), "--no-plot", "--out", "out", "--video", "out/run.gif",
+               "--wall-limit", "30") == 130
+    err = capsys.readouterr().err
+    assert "khepri: interrupted (Ctrl-C) while robot 1's step() at buggy_behaviour.py:" in err
+    assert "khepri: no video written (interrupted); out/run.gif is from an earlier run" in err
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["stop_reason"] == "interrupted" and result["sim_time_s"] == pytest.approx(0.6)
 
