@@ -16,6 +16,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from onboard.config import ConfigError
 from onboard.hal import clamp_wheel_speeds
 from sim_backend.scenario import Scenario
 from sim_backend.sensing import ProximityModel
@@ -27,6 +28,7 @@ from .sources import PoseFrame, PoseSource
 class SimSource(PoseSource):
     not_the_real_robots = "this hub simulates the robots"
     def __init__(self, scenario: Scenario, seed: Optional[int] = None, frame_hz: float = 50.0):
+        refuse_agent_restarts(scenario)
         self.scenario = scenario
         self.seed = scenario.seed if seed is None else seed
         self.hub_seed = np.random.SeedSequence(self.seed).spawn(5)[4]    # for the hub's virtual sensors and relay
@@ -130,3 +132,14 @@ class SimSource(PoseSource):
 
     def control_steps_done(self) -> int:
         return int(math.floor(self.steps / self.substeps_per_control + 1e-9))
+
+
+def refuse_agent_restarts(scenario: Scenario) -> None:
+    """A fault that restarts a robot's agent is the simulator's: here the agents are processes of their own
+    (``khepri sil`` or real robots), and the world cannot restart them."""
+    for i, fault in enumerate(scenario.faults):
+        if fault.restart_after_s is not None:
+            raise ConfigError(f"faults[{i}].restart_after_s", "agent restarts are simulated by `khepri sim run` "
+                              "(and studies) only; with the hub, stop the robot's agent and start it again "
+                              "(docs/lab.md: a restarted agent joins the run at once)")
+

@@ -110,7 +110,9 @@ class Simulation:
         self.behaviours = make_behaviours(behaviour_cls, self.robots, params)
         self.evaluator = make_evaluator(scenario.behaviour, scenario, self.world)
         self.warnings = evaluator_call(self.evaluator, "warnings", params)   # said before the run, kept in result.json
-        self.faults = sorted((f.at_s, f.robot) for f in scenario.faults)
+        self.faults = sorted((f.at_s, f.robot, f.restart_after_s) for f in scenario.faults)   # one per robot
+        self.restarting: Dict[int, float] = {}     # robot -> when its restarted agent's behaviour starts
+        self.behaviour_class, self.params = behaviour_cls, params     # for a restarted agent's new behaviour
         self.pose_history: List[np.ndarray] = []
         self.recording = Recording()
         self.step_index = 0
@@ -165,9 +167,14 @@ class Simulation:
         clock, spent = time.perf_counter, self.phase_seconds
         started = clock()
         while self.faults and self.faults[0][0] <= t + 1e-9:
-            _, index = self.faults.pop(0)
-            self.world.kill(index)
-            self.behaviours[index].state = "dead"
+            _, index, down_s = self.faults.pop(0)
+            if down_s is None:
+                self.world.kill(index)
+                self.behaviours[index].state = "dead"
+            else:
+                self.restarting[index] = t + down_s
+        if self.restarting:
+            self._restart_agents(t)
         alive = self.world.alive()
         poses = self.world.robot_poses()
         self._sense(poses, alive)
@@ -190,11 +197,23 @@ class Simulation:
         spent["evaluation"] += evaluated - routed
         spent["physics"] += clock() - evaluated
 
+    def _restart_agents(self, t: float) -> None:
+        """A robot whose agent is down: wheels stopped, and what the radio brings it is lost (its agent's socket
+        is gone), until a new behaviour starts on it that knows nothing of the old one, as a restarted agent."""
+        for index, back_at in list(self.restarting.items()):
+            if t + 1e-9 < back_at:
+                self.frame.inboxes[index] = []
+                continue
+            del self.restarting[index]
+            self.behaviours[index] = make_behaviours(self.behaviour_class, [self.robots[index]], self.params)[0]
+
     def _step_behaviours(self, alive: np.ndarray) -> None:
-        robots, commands, i, clock = self.robots, [], 0, time.perf_counter
+        robots, commands, i, clock, down = self.robots, [], 0, time.perf_counter, self.restarting
         try:
             for i, living in enumerate(alive.tolist()):
-                if living:
+                if down and i in down:
+                    commands.append((i, 0.0, 0.0))      # its agent is down: the robot stops (the agent's exit)
+                elif living:
                     started = clock()
                     returned = self.behaviours[i].step()
                     if clock() - started > SLOW_STEP_S and not self.slow_step_said:
@@ -226,8 +245,9 @@ class Simulation:
         self.say(note)
 
     def _collect_telemetry(self, alive: np.ndarray) -> List[Optional[Dict[str, Any]]]:
+        down = self.restarting          # a robot whose agent is down reports nothing, as a dead one
         telemetry: List[Optional[Dict[str, Any]]] = [
-            telemetry_of(behaviour, i) if living else None
+            telemetry_of(behaviour, i) if living and not (down and i in down) else None
             for i, (behaviour, living) in enumerate(zip(self.behaviours, alive.tolist()))]
         # Every robot's at the first step, then one robot's per step, in turn: a value the wire cannot carry
         # (a set, an object, too many bytes) fails here, not only in `khepri sil` or on the robots. Encoding
@@ -265,9 +285,9 @@ class Simulation:
         rec.centroid_estimate.append(evaluator_call(self.evaluator, "centroid_estimate", self.telemetry))
 
     def done(self) -> bool:
-        """True when every live robot's behaviour says it has finished."""
+        """True when every live robot's behaviour says it has finished (none is, while an agent is down)."""
         alive = self.world.alive()
-        if not alive.any():
+        if not alive.any() or self.restarting:
             return False
         for i, behaviour in enumerate(self.behaviours):
             try:

@@ -253,10 +253,20 @@ class ArenaSpec:
 class Fault:
     robot: int
     at_s: float
+    # None: the robot fails for good. A number: its agent restarts instead, down this long (docs/scenarios.md).
+    restart_after_s: Optional[float] = None
 
     def validate(self, where: str) -> None:
         check_range(join(where, "robot"), self.robot, 0)
         check_range(join(where, "at_s"), self.at_s, 0.0)
+        if self.restart_after_s is not None:
+            check_range(join(where, "restart_after_s"), self.restart_after_s, 0.0)
+
+    def describe(self) -> str:
+        """What happened, for result.json's faults_fired."""
+        if self.restart_after_s is None:
+            return f"robot {self.robot} failed at {self.at_s:g} s"
+        return f"robot {self.robot}'s agent restarted at {self.at_s:g} s (down {self.restart_after_s:g} s)"
 
 
 @dataclass
@@ -304,8 +314,8 @@ class Scenario:
             if fault.robot >= self.robots.count:
                 raise ConfigError(f"faults[{i}].robot",
                                   f"no robot {fault.robot} (robots are 0..{self.robots.count - 1})")
-            if fault.robot in failing:      # a robot fails once: a second time is a typo for another robot
-                raise ConfigError(f"faults[{i}].robot", f"robot {fault.robot} already fails in "
+            if fault.robot in failing:      # one fault per robot: a second is a typo for another robot
+                raise ConfigError(f"faults[{i}].robot", f"robot {fault.robot} already has a fault in "
                                                         f"faults[{failing[fault.robot]}]")
             failing[fault.robot] = i
         for i, (x, y, yaw) in enumerate(self.path):

@@ -203,7 +203,7 @@ class TransportEvaluator(Evaluator):
         if encloses is False:
             failures.append(f"the cage closed without enclosing the object: seen from its true centroid, the "
                             f"members left a gap of {math.degrees(self.gap_at_closure_rad):.0f}° (all on one side)")
-        dead = [f"robot {f.robot} failed at {f.at_s:g} s" for f in scenario.faults if f.at_s <= self.last_time]
+        dead = [f.describe() for f in scenario.faults if f.at_s <= self.last_time]
         if scenario.path:
             waypoints = [self.reached[k] for k in sorted(self.reached)]
             done = len(waypoints) == len(scenario.path)

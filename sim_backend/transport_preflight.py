@@ -209,9 +209,11 @@ def _radians_for_degrees(scenario: Any) -> List[str]:
 def _faults(scenario: Any) -> List[str]:
     """Faults that never happen within the run, and faults that leave too few robots to cage."""
     found = [f"faults[{i}].at_s: {fault.at_s:g} s is not before the time limit ({scenario.time_limit_s:g} s): "
-             f"robot {fault.robot} never fails"
+             f"robot {fault.robot} never {'fails' if fault.restart_after_s is None else 'restarts'}"
              for i, fault in enumerate(scenario.faults) if fault.at_s >= scenario.time_limit_s]
-    failing = len(scenario.faults) - len(found)      # every fault not said above happens within the run
+    # A restarted robot lives on (as a spare, in the transport behaviour): only failures leave fewer robots.
+    failing = sum(1 for fault in scenario.faults
+                  if fault.at_s < scenario.time_limit_s and fault.restart_after_s is None)
     survivors = scenario.robots.count - failing
     if failing and survivors < MIN_CAGE <= scenario.robots.count:
         found.append(f"faults: {failing} of {scenario.robots.count} robots fail, leaving {survivors}; a cage "

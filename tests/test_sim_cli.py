@@ -39,6 +39,19 @@ def test_a_run_that_completes_despite_a_fault_is_not_called_not_completed(tmp_pa
     assert "not completed" not in printed and "  faults: robot 4 failed at 40 s" in printed
 
 
+def test_an_agent_restart_is_simulated_by_sim_run_and_refused_by_sil_by_its_field(tmp_path, capsys):
+    scenario = tmp_path / "restart.yaml"
+    scenario.write_text("behaviour: aggregate\nrobots: {count: 3}\ntime_limit_s: 2\n"
+                        "faults: [{robot: 1, at_s: 0.5, restart_after_s: 0.5}]\n")
+    assert main(["sim", "run", str(scenario), "--no-plot", "--out", str(tmp_path / "run")]) == 0
+    result = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert result["stop_reason"] == "time limit"
+    # SIL's agents are processes of their own: the world cannot restart them, and a run without it would mislead.
+    assert main(["sil", str(scenario), "--no-plot", "--no-record", "--out", str(tmp_path / "sil")]) == 2
+    assert "khepri: error: faults[0].restart_after_s: agent restarts are simulated by `khepri sim run`" \
+        in capsys.readouterr().err
+
+
 def test_each_waypoint_passed_outside_tolerance_is_named_with_how_far_off():
     from sim_backend.transport_metrics import TransportEvaluator
 

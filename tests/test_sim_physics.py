@@ -264,6 +264,27 @@ def test_a_run_whose_robots_have_all_failed_ends_there(make_scenario):
     assert result["stop_reason"] == "every robot failed" and result["sim_time_s"] <= 2.2
 
 
+def test_a_robot_whose_agent_restarts_stops_hears_nothing_and_starts_a_new_behaviour(make_scenario):
+    """faults[].restart_after_s: the robot's agent is down that long (wheels stopped, no telemetry, the radio's
+    messages lost), then a new behaviour object runs on it, as a restarted agent process would."""
+    scenario = make_scenario(robots={"count": 3, "spawn": {"x": [-0.5, 0.5], "y": [-0.5, 0.5]}},
+                             faults=[{"robot": 1, "at_s": 1.0, "restart_after_s": 0.5}], time_limit_s=5)
+    sim = Simulation(scenario, seed=2)
+    first = sim.behaviours[1]
+    while sim.step_index * sim.period < 1.2:
+        sim.step()
+    assert sim.telemetry[1] is None and sim.telemetry[0] is not None       # down: reports nothing
+    assert sim.frame.inboxes[1] == []                                      # what was sent to it is lost
+    assert sim.behaviours[1] is first and not sim.done()
+    while sim.step_index * sim.period < 1.5:
+        sim.step()
+    assert np.hypot(*sim.world.robots[1].body.velocity) < 0.01             # stopped by the end of the outage
+    sim.step()
+    assert sim.behaviours[1] is not first and sim.telemetry[1] is not None
+    result = sim.run()
+    assert result["stop_reason"] != "every robot failed" and sim.world.alive().all()
+
+
 SCRIPT_WITH_ITS_OWN_BEHAVIOUR = """
 from onboard.behaviour import Behaviour, register
 from sim_backend.runner import Simulation

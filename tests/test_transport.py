@@ -552,6 +552,28 @@ def test_the_lowest_bidder_for_a_branch_target_sets_off_during_t_a_and_stops_sho
     assert speed_at(0.0, 2.0) == 0.0
 
 
+def test_a_seed_whose_agent_restarts_bids_no_more_and_another_robot_takes_its_slot():
+    """A restarted agent runs a new behaviour that knows nothing of the old one, while the swarm still holds
+    its member entry: its bids are void (TaskBoard.busy). It used to bid anyway, for the nearest open task,
+    the seed's own slot re-opened, where it stood nearest; its void bid held off the robots that could take
+    it (lab-6 seed 1: the seed slot stayed open 12 s and the cage closed without it). Now it stays a spare."""
+    from sim_backend.scenario import Fault
+
+    scenario = load_scenario("lab-6").with_overrides(faults=[Fault(robot=4, at_s=30.0, restart_after_s=3.0)])
+    sim = Simulation(scenario, seed=1)
+    assert sim.behaviours[4].state == "idle"
+    while sim.step_index * sim.period < 60.0:
+        sim.step()
+        if sim.step_index * sim.period == pytest.approx(29.0):
+            assert sim.behaviours[4].state == "caged"                        # the seed, in the cage
+    restarted, board = sim.behaviours[4], sim.behaviours[0].board
+    bids = [key for key in restarted.space.keys("bid/") if restarted.space.entry(key).writer == 4]
+    assert bids == ["bid/S/0"]                          # its old incarnation's; none since the restart
+    assert restarted.state == "idle" and restarted.task is None
+    seed_task = board.task("S")
+    assert seed_task.epoch >= 1 and board.owner(seed_task)["robot"] != 4   # re-opened, and taken by another
+
+
 def test_i_d_grows_only_when_no_open_target_gets_a_bid():
     """Out of robots: a target this member opened has waited 3 T_a without a bid. While idle robots are
     bidding for another open target (they bid for the nearest one only, so targets wait their turn), that is

@@ -206,6 +206,11 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
             if not self._caging_only_done() and (self.params.reinforce_push or self._push_stalled(now)):
                 self._reinforce(now)
                 return
+        elif f"member/{self.robot.id}" in self.space:
+            # The swarm voids this robot's bids (it holds member/<id>: a restarted agent whose earlier run of
+            # the behaviour was a member, dead or not): a bid would only hold off the robots that can take
+            # the task. It stays a spare.
+            pass
         elif not self._take_won_task(now):
             task = self._nearest_open_task(now)
             if task is not None:
