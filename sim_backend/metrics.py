@@ -6,14 +6,16 @@ the evaluators. Each returns the behaviour-specific part of result.json.
 """
 from __future__ import annotations
 
+import json
 import math
 import traceback
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Type
 
 import numpy as np
 
-from onboard.behaviour import USER_CODE_ERRORS
+from onboard.behaviour import USER_CODE_ERRORS, plain_json
 from onboard.geometry import wrap
+from onboard.hal.payload import a_kind
 from onboard.plugins import OTHER_REGISTRIES
 from onboard.tracebacks import traceback_lines, where_in_users_code
 
@@ -91,12 +93,52 @@ def merge_result(evaluator: Evaluator, result: Dict[str, Any],
     (``earlier_error``), both are kept: its failure goes to ``result["evaluation_error"]``. Returns the failure
     when it is the run's error (no earlier one), else None."""
     try:
-        result.update(evaluator_call(evaluator, "result"))
+        result.update(checked_result(evaluator, evaluator_call(evaluator, "result"), result))
     except EvaluatorError as failure:
         if not earlier_error:
             return failure
         result["evaluation_error"] = str(failure)
     return None
+
+
+# result.json's fields that the simulator and a study write besides those already in the result when the
+# evaluator's are added (scenario, seed, robots, stop_reason, ...): an evaluator's field must not replace one.
+LATER_FIELDS = frozenset(("telemetry", "error", "traceback", "evaluation_error", "warnings", "failed", "study"))
+
+
+def checked_result(evaluator: Evaluator, fields: Any, result: Dict[str, Any]) -> Dict[str, Any]:
+    """The evaluator's ``result()`` if result.json can hold it; else EvaluatorError naming the field. A
+    ``seed`` or ``stop_reason`` of its own used to replace the run's (a study then lost the run), and a set
+    in it ended ``sim run`` in a traceback with no result.json."""
+    def refuse(problem: str) -> EvaluatorError:
+        error = EvaluatorError(evaluator, "result()", TypeError(problem))
+        error.lines = []        # no traceback: it would only repeat the line, with no frame of the user's
+        return error
+
+    if not isinstance(fields, dict):
+        raise refuse(f"returned {a_kind(fields)}, not a dict of result.json fields")
+    taken = sorted(str(key) for key in fields if key in result or key in LATER_FIELDS)
+    if taken:
+        raise refuse(f"{taken[0]!r} is a result.json field the simulator writes: give the evaluator's "
+                     f"own another name")
+    try:
+        json.dumps(fields, default=_plain_number)
+    except (TypeError, ValueError, RecursionError):
+        try:
+            plain_json(fields, "result()")     # names the first value JSON cannot hold
+        except TypeError as exc:
+            raise refuse(str(exc)) from None
+        except RecursionError:
+            pass
+        raise refuse("nests lists or mappings too deep for JSON") from None
+    return fields
+
+
+def _plain_number(value: Any) -> Any:
+    """numpy numbers and arrays, which result.json is written with (sim_backend/outputs.py)."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 _EVALUATORS: Dict[str, Type[Evaluator]] = {}

@@ -127,7 +127,11 @@ class CrashyEvaluator(Evaluator):
             1 / 0
 
     def result(self):
-        return {"per_step": 1 / self.steps}      # no step evaluated: ZeroDivisionError
+        return ODD_RESULTS.get(self.scenario.params.get("bug")) or {"per_step": 1 / self.steps}   # 0 steps: 1 / 0
+
+
+ODD_RESULTS = {"result_seed": {"stop_reason": "great", "seed": 99}, "result_set": {"seen": {1, 2}},
+               "result_list": [1, 2]}
 '''
 
 
@@ -166,6 +170,22 @@ def test_an_evaluator_failing_after_a_behaviour_crash_is_kept_beside_it(judged, 
     assert f"khepri: error: the evaluator failed too: {failure}" in err
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["error"].startswith("robot 1, step(): ") and result["evaluation_error"] == failure
+
+
+@pytest.mark.parametrize("bug, said", [
+    ("result_seed", "'seed' is a result.json field the simulator writes"),
+    ("result_set", "result()['seen'] is a set, which JSON cannot carry"),
+    ("result_list", "returned a list, not a dict of result.json fields")])
+def test_an_evaluator_result_that_result_json_cannot_hold_is_refused_by_its_field(judged, tmp_path, capsys,
+                                                                                bug, said):
+    """An evaluator's own `seed` replaced the run's (a study then failed with KeyError and later counted the
+    run as finished), and a set in its result ended `sim run` in khepri's traceback with no result.json."""
+    assert run_judged("sim", "run", judged(bug), "--no-plot", "--out", "out", "--time-limit", "0.5") == 1
+    err = capsys.readouterr().err
+    assert f"khepri: error: after the run (time limit): evaluator CrashyEvaluator.result(): TypeError: {said}" in err
+    assert "Traceback" not in err
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["seed"] == 1 and result["stop_reason"] == "time limit" and said in result["error"]
 
 
 def test_sil_names_an_evaluator_bug_as_sim_run_does(judged, tmp_path, capsys):
