@@ -325,6 +325,10 @@ def load_config(path: Path) -> LabConfig:
         # Not the defaults: an empty file is more likely a failed copy than a wish for lab-6 in simulation.
         raise ConfigError("--config", f"{path} is empty; hub/examples/lab.yaml is a commented example "
                                       "(`khepri hub --demo` runs the defaults)")
+    if isinstance(data, dict) and "source" in data and data["source"] in (None, {}):
+        # Its lines commented out: taking the defaults would serve simulated lab-6 robots to a real lab.
+        raise ConfigError("source", "is empty: give source.type (motioncapture, sim or replay) and its fields; "
+                                    "hub/examples/lab.yaml shows each")
     try:
         return parse_config(data)
     except ConfigError as err:

@@ -51,6 +51,7 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
 
         source: PoseSource = SimSource(scenario, config.source.seed, config.source.frame_hz)
         seed = source.hub_seed
+        log(f"hub: source {source.description}: the simulator plays the robots and the motion capture")
     elif config.source.type == "motioncapture":
         src = config.source
         source = MotionCaptureSource(context, src.system, src.options, src.bodies, src.up_axis, log,

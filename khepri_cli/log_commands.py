@@ -94,10 +94,14 @@ def cmd_console(args: argparse.Namespace) -> int:
     if not reader.complete:         # a killed hub's log: its last lines are not there, and the reader is told
         say(f"khepri: {args.file}: the log ends early ({reader.stop_reason}): the lines printed are those "
             "recovered up to there")
+    if reader.damaged:              # skipped chunks may have held console lines: said, not left to be missed
+        say(f"khepri: {args.file}: damaged, {len(reader.damaged)} part(s) skipped ({reader.damaged[0]}"
+            f"{'; ...' if len(reader.damaged) > 1 else ''}): console lines in them are missing "
+            "(`khepri log info` lists them)")
     if not count:
         say(f"khepri: {args.file}: no console lines in this log (/hub/log: recorded by hubs since 2026-11-29)")
         return 1
-    return 0
+    return 1 if reader.damaged else 0
 
 
 def log_path(name: str) -> Path:

@@ -289,9 +289,14 @@ def cmd_bench_sim(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     results = bench_sim(counts, args.seconds, args.behaviour)
+    crashed = [r for r in results if r.get("error")]
+    for r in crashed:
+        print(f"khepri: error: {r['robots']} robots: the run {r['stop_reason']} after {r['sim_seconds']:g} of the "
+              f"{args.seconds:g} simulated seconds: {r['error']} (its figures are of that shorter run)",
+              file=sys.stderr)
     if args.json:
         print(json.dumps({"results": results}, indent=2))
-        return 0
+        return 1 if crashed else 0
     phases = list(results[0]["phase_ms_per_sim_s"]) if results else []
     print(f"{'robots':>6} {'behaviour':>10} {'sim s':>7} {'wall s':>7} {'steps/s':>9} {'real-time x':>11} "
           f"{'cpu x':>7} | ms per simulated second: " + " ".join(f"{name:>10}" for name in phases))
@@ -300,4 +305,4 @@ def cmd_bench_sim(args: argparse.Namespace) -> int:
         phase_ms = " ".join(f"{r['phase_ms_per_sim_s'][name]:10.1f}" for name in phases)
         print(f"{r['robots']:6d} {r['behaviour']:>10} {r['sim_seconds']:7.1f} {r['wall_seconds']:7.2f} "
               f"{r['physics_steps_per_s']:9.0f} {r['real_time_factor']:11.1f} {cpu_factor:7.1f} | {'':24} {phase_ms}")
-    return 0
+    return 1 if crashed else 0

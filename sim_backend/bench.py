@@ -35,12 +35,14 @@ def bench_case(count: int, seconds: float, behaviour: str) -> Dict[str, Any]:
                                           f"({err.field}: {err.problem.split(': make')[0]})") from None
         raise
     started, cpu_started = time.perf_counter(), time.process_time()
-    sim.run(time_limit_s=seconds)
+    result = sim.run(time_limit_s=seconds)
     wall, cpu = time.perf_counter() - started, time.process_time() - cpu_started
-    sim_seconds = sim.step_index * sim.period
+    sim_seconds = round(sim.step_index * sim.period, 6)
     per_sim_second = 1000.0 / sim_seconds if sim_seconds > 0 else 0.0
+    # A crashed behaviour ends the run early: its speed is not the behaviour's, and the crash must be seen.
+    crash = {"stop_reason": result["stop_reason"], "error": result["error"]} if result.get("error") else {}
     return {
-        "robots": count, "behaviour": behaviour, "scenario": base.name, "sim_seconds": sim_seconds,
+        **crash, "robots": count, "behaviour": behaviour, "scenario": base.name, "sim_seconds": sim_seconds,
         "wall_seconds": wall, "cpu_seconds": cpu,
         "physics_steps_per_s": sim.step_index * sim.substeps / wall,
         "real_time_factor": sim_seconds / wall,

@@ -713,6 +713,14 @@ def test_the_hubs_console_lines_are_in_its_log_and_log_console_prints_them(tmp_p
     assert shown_cut.returncode == 0 and shown_cut.stdout.splitlines()[:3] == printed[:3], shown_cut
     assert f"khepri: {cut}: the log ends early (" in shown_cut.stderr, shown_cut.stderr
     assert "ends early" not in shown.stderr
+    # A damaged chunk (bytes overwritten on disk) was skipped without a word, exit code 0, lines missing.
+    damaged = tmp_path / "damaged.mcap"
+    data = bytearray(log.read_bytes())
+    data[200:232] = b"\xff" * 32
+    damaged.write_bytes(bytes(data))
+    shown_damaged = log_console(damaged)
+    assert shown_damaged.returncode == 1 and f"khepri: {damaged}: damaged, " in shown_damaged.stderr, shown_damaged
+    assert "console lines in them are missing" in shown_damaged.stderr
     with open(log, "rb") as file:       # Foxglove's Log panel reads foxglove.Log messages
         reader = make_reader(file)
         schema, channel, message = next(reader.iter_messages(topics=["/hub/log"]))

@@ -34,6 +34,12 @@ class Crashy(Behaviour):
         if self.params.bug == "telemetry_at_0":
             return {"seen": {1, 2}}
         return {"state": "ok"}
+
+
+@register("crashy-at-once")
+class CrashyAtOnce(Behaviour):
+    def step(self):
+        raise RuntimeError("deliberate crash")
 '''
 
 SCENARIO = """name: crashy
@@ -101,6 +107,18 @@ def test_the_traceback_shows_the_behaviours_own_line_under_khepris_checks(crashy
     assert not [line for line in trace if "hal.py" in line or "payload.py" in line], trace
     assert trace[-1].startswith("onboard.hal.payload.RadioPayloadError: radio payload['v'] has the key (1, 2)")
     assert "\n".join(trace) in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("json_flag", [[], ["--json"]])
+def test_bench_sim_says_a_crashed_behaviour_and_exits_1(crashy, capsys, json_flag):
+    """It printed the figures of the short run as if it had run its time, exit code 0."""
+    assert run("bench", "sim", "--robots", "4", "--seconds", "2", "--behaviour", "crashy-at-once", *json_flag) == 1
+    out, err = capsys.readouterr()
+    assert "khepri: error: 4 robots: the run crashed after 0 of the 2 simulated seconds: robot 0, step(): " \
+           "RuntimeError: deliberate crash at crashy_behaviour.py:" in err
+    if json_flag:
+        [result] = json.loads(out)["results"]
+        assert result["stop_reason"] == "crashed" and result["sim_seconds"] == 0
 
 
 EVALUATOR = '''
