@@ -284,6 +284,17 @@ def test_an_empty_robot_list_is_refused_rather_than_serving_nobody(tmp_path):
     assert "is empty" in line
 
 
+@pytest.mark.parametrize("source", ["source:\n#  type: motioncapture\n#  system: vicon\n", "source: {}\n"])
+def test_an_empty_source_is_refused_rather_than_simulating_lab_6(tmp_path, source):
+    """Its lines commented out, `source:` took the defaults: the hub served simulated lab-6 robots to a lab, and
+    only `ctl status` said so."""
+    config = tmp_path / "lab.yaml"
+    config.write_text(source + "network: {bind: 127.0.0.1, robot_port: 0, control_port: 0}\n"
+                               "security: {insecure: true}\nrun: {behaviour: aggregate}\n")
+    line = one_error_line(khepri("hub", "--config", str(config), timeout=20), "source")
+    assert "is empty: give source.type (motioncapture, sim or replay)" in line
+
+
 def test_the_shipped_example_config_starts_again_and_keeps_an_agents_worth_of_messages(tmp_path, monkeypatch):
     """hub/examples/lab.yaml recorded to logs/lab.mcap, so its second start stopped at `record: ... exists`; and
     its relay.queue of 64 dropped messages the agent's inbox and the simulator's radio keep (256)."""
