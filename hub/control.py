@@ -8,6 +8,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import zmq
 
+from onboard.agent.connection import ConnectionWatch, watch_connection
 from onboard.agent.link import endpoint_candidates, family_hint, use_ipv6
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
@@ -17,7 +18,12 @@ DEFAULT_CONTROL_ENDPOINT = "tcp://127.0.0.1:5561"
 
 
 class ControlError(RuntimeError):
-    """The hub did not answer, or answered with an error."""
+    """The hub did not answer, or answered with an error. ``keys_may_help``: no answer, and nothing tells that
+    keys are beside the point (a refused connection is; an encrypted hub is not)."""
+
+    def __init__(self, message: str, keys_may_help: bool = False) -> None:
+        super().__init__(message)
+        self.keys_may_help = keys_may_help
 
 
 class BadEndpoint(ControlError):
@@ -32,6 +38,7 @@ def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, ti
     sock.linger = 0
     if keys is not None:
         apply_client_keys(sock, keys)
+    watch = watch_connection(context, sock)      # before connect: its first events say why a hub is silent
     try:
         try:
             connect_any(sock, endpoint)
@@ -44,9 +51,13 @@ def request(endpoint: str, cmd: str, keys: Optional[Dict[str, bytes]] = None, ti
         try:
             sock.send(encode({"type": "request", "cmd": cmd, "nonce": nonce}))
         except zmq.Again:
-            raise ControlError(_no_answer(endpoint, timeout_s)) from None
+            raise no_answer(endpoint, timeout_s, watch, keys is not None) from None
         reply = _await_reply(sock, nonce, timeout_s, endpoint)
+        if reply is None:
+            raise no_answer(endpoint, timeout_s, watch, keys is not None)
     finally:
+        if watch is not None:
+            watch.close()
         sock.close(0)
     if not reply["ok"]:
         raise ControlError(f"the hub refused {cmd}: {reply.get('error', 'no reason given')}")
@@ -84,7 +95,8 @@ def refusals_after_start(endpoint: str, keys: Optional[Dict[str, bytes]] = None,
         time.sleep(0.1)
 
 
-def _await_reply(sock: zmq.Socket, nonce: int, timeout_s: float, endpoint: str) -> Dict[str, Any]:
+def _await_reply(sock: zmq.Socket, nonce: int, timeout_s: float, endpoint: str) -> Optional[Dict[str, Any]]:
+    """The reply to ``nonce``, or None when none came within ``timeout_s``."""
     poller = zmq.Poller()
     poller.register(sock, zmq.POLLIN)
     while poller.poll(timeout_s * 1000.0):
@@ -94,13 +106,51 @@ def _await_reply(sock: zmq.Socket, nonce: int, timeout_s: float, endpoint: str) 
             raise ControlError(str(err)) from None
         if reply.get("nonce") == nonce:
             return reply
-    raise ControlError(_no_answer(endpoint, timeout_s))
+    return None
 
 
-def _no_answer(endpoint: str, timeout_s: float) -> str:
-    return (f"no answer from the hub at {endpoint} within {timeout_s:g} s (is it running, and is that its "
-            "control port, the one it printed after `listening control`? A secure hub needs --keys with an "
-            f"operator key it lists; a hub run with --insecure needs no keys). {family_hint(endpoint)}").rstrip()
+def no_answer(endpoint: str, timeout_s: float, watch: Optional[ConnectionWatch] = None,
+              keyed: bool = False) -> ControlError:
+    """No reply: what the connection's events tell (refused, no keys for an encrypted hub, ...), else every
+    question. A dead hub was answered with `try again with --keys`: keys do not help where nothing listens."""
+    start = f"no answer from the hub at {endpoint} within {timeout_s:g} s"
+    found = connection_cause(watch, keyed) if watch is not None else None
+    if found is None:
+        return ControlError(f"{start} (is it running, and is that its control port, the one it printed after "
+                            "`listening control`? A secure hub needs --keys with an operator key it lists; a hub "
+                            f"run with --insecure needs no keys). {family_hint(endpoint)}".rstrip(),
+                            keys_may_help=True)
+    cause, keys_may_help = found
+    return ControlError(f"{start}: {cause} {family_hint(endpoint)}".rstrip(), keys_may_help=keys_may_help)
+
+
+def connection_cause(watch: ConnectionWatch, keyed: bool) -> Optional[Tuple[str, bool]]:
+    """(the likeliest cause, whether operator keys may be the fix), from the connection's events."""
+    watch.read()
+    failed = watch.handshake_failed
+    if failed == "protocol" and watch.protocol_error == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:
+        if keyed:
+            return "the hub is not encrypted (it runs --insecure): run ctl without --keys.", False
+        return ("the hub is encrypted: give --keys, a folder holding hub.key and operators/<name>.key_secret "
+                "(khepri keys init made it)."), True
+    if failed == "auth":
+        return ("the hub refused this operator key: does the hub's key folder list it in operators/? (The hub "
+                "reads its keys when it starts.)"), True
+    if failed is not None:
+        return ("the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key.", True) \
+            if keyed else (f"something there accepted the connection, then dropped it in ZeroMQ's handshake "
+                           f"({failed}): is that the hub's address and control port?", False)
+    if watch.handshake_ok:
+        return ("connected, but nothing answers: is that the hub's control port, the one it printed after "
+                "`listening control`, and not its robots port? (a hub too busy to answer needs a longer "
+                "--timeout)"), False
+    if watch.refused and not watch.connected:
+        return ("nothing accepts a connection there (refused or unreachable): is the hub running, and is that "
+                "its control port, the one it printed after `listening control`?"), False
+    if not watch.connected:
+        return ("no answer at that address at all: is it the hub PC's, is that PC on this network, or does a "
+                "firewall drop the connection?"), False
+    return None
 
 
 def status_table(status: Dict[str, Any]) -> str:

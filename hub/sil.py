@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -141,6 +142,16 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def exit_text(code: int) -> str:
+    """``exited with code 1``, or for a signal ``was killed by SIGKILL (exit code -9)``: -9 reads as a bug."""
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name} (exit code {code})"
+        except ValueError:
+            pass
+    return f"exited with code {code}"
+
+
 def stop_failure(out: Path, count: int) -> Optional[str]:
     """The first agent's account of its behaviour's ``stop()`` raising at the end of the run (the agent logs
     it and stops the wheels all the same; ``khepri sim run`` reports the same bug as an error)."""
@@ -245,7 +256,7 @@ class SilSession:
                 why = self._crash_line(i)
                 if why:
                     return f"agent {i}: behaviour crashed: {why}; the agent exited with code {agent.returncode}"
-                return f"agent {i} exited with code {agent.returncode}"
+                return f"agent {i} {exit_text(agent.returncode)}"
         return None
 
     def _check_answering(self, missing: List[int]) -> None:

@@ -140,6 +140,10 @@ class TransportEvaluator(Evaluator):
         after_s = self.last_time - self.closed_at
         if after_s >= settle_s + PUSH_JUDGED_AFTER_S:
             return []
+        limit_s = self.scenario.time_limit_s
+        if self.last_time + 2.0 / self.scenario.physics.control_hz < limit_s:   # crashed, killed, stopped
+            return [f"the run ended {after_s:.1f} s after the cage closed, at {self.last_time:.1f} s of its "
+                    f"{limit_s:g} s time limit (see its stop_reason): the push was not judged"]
         settle = f" (the cage settles for {settle_s:g} s before it pushes)" if settle_s > 0 else ""
         return [f"the run ended {after_s:.1f} s after the cage closed{settle}, too soon to judge the push: "
                 f"give it a longer time limit (time_limit_s, --time-limit)"]

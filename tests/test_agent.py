@@ -652,7 +652,8 @@ def test_localhost_and_either_loopback_reach_the_hub_whichever_family_it_listens
     with start_ipv6_lab(bind, len(hosts), make_scenario) as hub:
         if bind == "localhost":
             port = hub.endpoints["robots"].rsplit(":", 1)[1]
-            assert hub.lines[0] == f"listening robots tcp://127.0.0.1:{port} and tcp://[::1]:{port}"
+            listening = [line for line in hub.lines if line.startswith("listening ")]
+            assert listening[0] == f"listening robots tcp://127.0.0.1:{port} and tcp://[::1]:{port}"
         port = hub.endpoints["robots"].rsplit(":", 1)[1]
         agents = [spawn_agent(host, i, tmp_path / f"agent{i}.log", extra=["--port", port])
                   for i, host in enumerate(hosts)]

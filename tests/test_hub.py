@@ -106,8 +106,9 @@ def test_status_before_any_agent_shows_robots_never_seen(three_robots):
         assert not any(r["connected"] for r in status["robots"])
         assert all(r["last_seen_s"] is None for r in status["robots"])
         assert "never" in status_table(status)
-        assert hub.lines[:2] == [f"listening robots {hub.endpoints['robots']}",
-                                 f"listening control {hub.endpoints['control']}"]
+        assert hub.lines[0].startswith("hub: source sim ")           # said first: which robots these are
+        assert hub.lines[1:3] == [f"listening robots {hub.endpoints['robots']}",
+                                  f"listening control {hub.endpoints['control']}"]
 
 
 def test_the_status_tables_columns_stay_in_line_for_long_ids_and_counts():

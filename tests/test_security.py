@@ -35,6 +35,18 @@ def secure_hub(keys, make_scenario):
         yield hub
 
 
+def test_ctl_without_keys_at_an_encrypted_hub_is_told_to_give_them_and_where_they_are(secure_hub, keys):
+    """ctl's silence had one message with every question; the connection's events now say which."""
+    port = secure_hub.endpoints["control"].rsplit(":", 1)[1]
+    said = subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "estop", "--port", port],
+                          capture_output=True, text=True, cwd=keys.parent, timeout=60,
+                          env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+    assert said.returncode == 1 and "E-STOP NOT DELIVERED" in said.stderr, said.stderr
+    assert "the hub is encrypted: give --keys" in said.stderr, said.stderr
+    assert said.stderr.rstrip().endswith("This folder has operator keys in keys/: try again with --keys keys.")
+    assert secure_hub.status()["mode"] != "estop"
+
+
 def test_keys_init_makes_private_secrets_and_refuses_to_overwrite(keys):
     secrets = (keys / "hub.key_secret", keys / "robots" / "robot-1.key_secret", keys / "operators" / "alice.key_secret")
     for path in secrets:
@@ -415,6 +427,26 @@ def test_a_waiting_agent_names_the_key_mix_up_that_keeps_the_hub_silent(secure_h
         in said["unlisted"], said
     assert "still trying: the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key" \
         in said["another hub's key"], said
+
+
+def test_a_waiting_agent_whose_hub_stopped_says_the_hub_closed_the_connection(make_scenario, first_waiting_line):
+    """An agent connected to a hub that was then killed said `connected to the hub ..., but it sends robot 0
+    nothing: is robot 0 in the hub's lab, and is no other agent connected as robot 0?` until its next socket:
+    an operator went looking for a second agent."""
+    from onboard.agent.link import HubLink
+
+    config = parse_config({"source": {"type": "sim"}, "security": {"insecure": True},
+                           "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}})
+    with HubThread(config, scenario=make_scenario(robots={"count": 2})) as hub:
+        endpoint = hub.endpoints["robots"]
+        link = HubLink(9, endpoint)
+        deadline = time.monotonic() + 5.0
+        while not link.watch.handshake_ok and time.monotonic() < deadline:
+            link.watch.read()
+            time.sleep(0.02)
+        assert link.watch.handshake_ok                 # the connection was up while the hub ran
+    said = first_waiting_line(link)
+    assert f"still trying: the hub at {endpoint} closed the connection" in said and "did the hub stop" in said, said
 
 
 def test_a_waiting_agent_says_the_hub_is_not_encrypted_or_does_not_know_the_robot(make_scenario, keys,

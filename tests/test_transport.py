@@ -901,6 +901,23 @@ def test_a_run_stopped_soon_after_its_cage_closed_is_not_blamed_on_friction():
     assert soon.startswith("the run ended 4.") and "settles for 10 s" in soon and "--time-limit" in soon
 
 
+def test_a_run_that_ended_before_its_time_limit_is_not_told_to_take_a_longer_one():
+    """A sil run whose agent was killed 0.6 s after closure said `give it a longer time limit` of a run whose
+    limit was 250 s. A run that stopped early (crashed, killed, Ctrl-C) is not judged, and says so."""
+    scenario = load_scenario("lab-6")
+    result = Simulation(scenario, seed=1).run(time_limit_s=68.0)    # as if stopped at 68 s
+    (soon,) = [f for f in result["failures"] if "after the cage closed" in f]
+    assert soon.endswith(f"of its {scenario.time_limit_s:g} s time limit (see its stop_reason): the push was not "
+                         "judged") and "--time-limit" not in soon
+
+
+def test_sil_says_an_agent_killed_by_a_signal_by_its_name():
+    from hub.sil import exit_text
+
+    assert exit_text(-9) == "was killed by SIGKILL (exit code -9)" and exit_text(1) == "exited with code 1"
+    assert exit_text(-200) == "exited with code -200"
+
+
 def test_the_stuck_hint_does_not_offer_reinforce_push_when_all_the_robots_are_too_weak(make_scenario):
     from sim_backend.transport_metrics import TransportEvaluator
 

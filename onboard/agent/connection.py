@@ -15,7 +15,7 @@ from zmq.utils.monitor import parse_monitor_message
 
 _ADDRESSES = itertools.count()     # inproc names must be unique per context; id() values are reused
 
-EVENTS = (zmq.EVENT_CONNECTED | zmq.EVENT_CONNECT_DELAYED | zmq.EVENT_CONNECT_RETRIED
+EVENTS = (zmq.EVENT_CONNECTED | zmq.EVENT_CONNECT_DELAYED | zmq.EVENT_CONNECT_RETRIED | zmq.EVENT_DISCONNECTED
           | zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
           | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH)
 _HANDSHAKE_FAILED = {zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL: "no detail",
@@ -41,8 +41,9 @@ class ConnectionWatch:
             sock.disable_monitor()       # a monitor with no reader could block libzmq's I/O thread
             raise
         self.connected = False         # TCP got through at least once
-        self.refused = False           # a connection attempt failed (refused, unreachable) and is retried
-        self.handshake_ok = False      # a ZMTP handshake completed (keys accepted, or none needed)
+        self.refused = False           # since the last connection, an attempt failed (refused, unreachable)
+        self.handshake_ok = False      # the connection is up: a ZMTP handshake completed (keys accepted, or none)
+        self.dropped = False           # a connection that was up has been closed (the hub stopped, or its PC)
         self.handshake_failed: Optional[str] = None     # the last failure: "protocol", "auth", "no detail"
         self.protocol_error: Optional[int] = None       # its ZMTP error, for "protocol"
 
@@ -61,11 +62,16 @@ class ConnectionWatch:
 
     def _note(self, kind: int, value: int) -> None:
         if kind == zmq.EVENT_CONNECTED:
-            self.connected = True
+            self.connected, self.refused = True, False
         elif kind == zmq.EVENT_CONNECT_RETRIED:
             self.refused = True
         elif kind == zmq.EVENT_HANDSHAKE_SUCCEEDED:
-            self.handshake_ok, self.handshake_failed = True, None
+            self.handshake_ok, self.handshake_failed, self.dropped = True, None, False
+        elif kind == zmq.EVENT_DISCONNECTED:
+            # What held before (a handshake that went through) is past: a hub killed after it had connected
+            # was said as "connected, but it sends robot 0 nothing" until the agent's next socket.
+            self.dropped = self.dropped or self.handshake_ok
+            self.handshake_ok = False
         elif kind in _HANDSHAKE_FAILED:
             self.handshake_failed = _HANDSHAKE_FAILED[kind]
             self.protocol_error = value if kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL else None
@@ -80,6 +86,10 @@ class ConnectionWatch:
             return (f"connected to the hub at {address}, but it sends robot {robot_id} nothing: is robot "
                     f"{robot_id} in the hub's lab, and is no other agent connected as robot {robot_id}? "
                     "The hub's console says which")
+        if self.dropped:
+            now = " and nothing accepts a new one (refused or unreachable)" if self.refused else ""
+            return (f"the hub at {address} closed the connection{now}: did the hub stop, or its PC? Start it "
+                    "again: this agent reconnects by itself")
         if self.refused and not self.connected:
             return (f"nothing accepts a connection at {address} (refused or unreachable): is the hub running, "
                     "and are --hub and --port the host and robots port it printed when it started?")
