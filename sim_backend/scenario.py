@@ -402,7 +402,7 @@ def load_scenario(name_or_path: str) -> Scenario:
     path = resolve(name_or_path)
     data = read_yaml(path, "scenario")
     if data is None:
-        raise ConfigError(path.name, "the file is empty (a scenario is a mapping of keys such as behaviour: and "
+        raise ConfigError(str(path), "the file is empty (a scenario is a mapping of keys such as behaviour: and "
                                      "robots:; {} takes every default)")
     return _parse_file(data, path, default_name=path.stem)
 

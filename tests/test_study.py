@@ -220,6 +220,17 @@ def test_a_bad_study_file_is_refused_with_the_field_named(tmp_path, capsys, text
     assert not (tmp_path / "out").exists()
 
 
+def test_an_empty_file_is_named_by_its_path_once(tmp_path, capsys):
+    """`empty.yaml: empty.yaml: the file is empty`, its folder dropped; every other error names the path."""
+    (tmp_path / "bad").mkdir()
+    write(tmp_path / "bad" / "empty.yaml", "")
+    study = write(tmp_path / "bad" / "se.yaml", "scenarios: [empty.yaml]\nseeds: [1]\n")
+    assert main(["study", str(study), "--dry-run"]) == 2
+    said = capsys.readouterr().err.strip()
+    assert said == f"khepri: error: {study}: scenarios[0]: {tmp_path / 'bad' / 'empty.yaml'}: the file is empty (a " \
+                   "scenario is a mapping of keys such as behaviour: and robots:; {} takes every default)", said
+
+
 @pytest.mark.parametrize("options, message", [
     (["--executor", "spark"], "--executor: must be local, dask or dask:ADDRESS"),
     (["--scenarios", "paper-25-straight"], "--scenarios: not in the study: paper-25-straight"),

@@ -44,7 +44,7 @@ def load_study_file(path: Path, reps: Optional[int] = None) -> StudySpec:
     """A study file; ``reps`` (``--reps``) replaces its seeds, or gives them when the file has none."""
     data = read_yaml(path, "study")
     if data is None:
-        raise ConfigError(path.name, "the file is empty (a study needs at least its scenarios)")
+        raise ConfigError(str(path), "the file is empty (a study needs at least its scenarios)")
     if reps is not None:
         check_reps("--reps", reps)
     if reps is not None and isinstance(data, dict):
