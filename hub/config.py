@@ -218,8 +218,6 @@ class LabConfig:
                 raise ConfigError("geofence", f"must be [xmin, ymin, xmax, ymax] with min < max (got "
                                               f"{[float(v) for v in self.geofence]})")
         check_range("watchdog_s", self.watchdog_s, 0.0, 10.0, low_open=True)
-        if self.source.type != "sim":          # the sim source's agents run at the scenario's rate: build_hub
-            check_watchdog(self.watchdog_s, self.run.control_hz, "run.control_hz")
         if not self.security.insecure and not str(self.security.keys).strip():
             raise ConfigError("security.keys", "is empty: name the key folder `khepri keys init` made (default keys)")
         if self.record is not None and not str(self.record).strip():
@@ -247,8 +245,14 @@ def min_watchdog_s(control_hz: float) -> float:
     return WATCHDOG_TELEMETRY_PERIODS / min(control_hz, IDLE_TELEMETRY_HZ)
 
 
-def check_watchdog(watchdog_s: float, control_hz: float, rate_field: str) -> None:
+def check_watchdog(watchdog_s: float, control_hz: float, rate_field: str, written: bool = True) -> None:
+    """``written``: watchdog_s is in the config; else it is the default, and the rate is what the user set."""
     least = min_watchdog_s(control_hz)
+    if watchdog_s < least - 1e-9 and not written:     # the error named a key the config did not have
+        raise ConfigError(rate_field, f"{control_hz:g} Hz needs a watchdog_s of at least {least:g} s, and watchdog_s "
+                          f"is {watchdog_s:g} s by default: add watchdog_s: {least:g} to the config (agents send "
+                          f"telemetry once per loop, and the hub counts a robot silent for watchdog_s as not "
+                          f"connected)")
     if watchdog_s < least - 1e-9:
         raise ConfigError("watchdog_s", f"must be at least {least:g} s (got {watchdog_s:g}): agents send telemetry "
                           f"at {min(control_hz, IDLE_TELEMETRY_HZ):g} Hz ({rate_field} {control_hz:g}, and "
@@ -281,6 +285,10 @@ def parse_config(data: Any) -> LabConfig:
         raise ConfigError("", f"a lab config must be a mapping of keys (got {type(data).__name__})")
     check_unknown_source_keys(data.get("source"))
     config = from_mapping(LabConfig, data, "")
+    # Whether watchdog_s was written or is the default: a rate too fast for the default is the rate's to say.
+    config.watchdog_written = "watchdog_s" in data       # read again for a sim source (hub/factory.py)
+    if config.source.type != "sim":          # the sim source's agents run at the scenario's rate: build_hub
+        check_watchdog(config.watchdog_s, config.run.control_hz, "run.control_hz", config.watchdog_written)
     check_source_fields(data.get("source") or {}, config.source.type)
     check_run_fields(data.get("run") or {}, config.source.type)
     return config

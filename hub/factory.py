@@ -183,7 +183,8 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     spec = RobotSpec() if scenario is None else RobotSpec(max_wheel_speed_m_s=scenario.robots.max_wheel_speed_m_s)
     control_hz = scenario.physics.control_hz if scenario is not None else run.control_hz
     if scenario is not None:       # the config checked watchdog_s against run.control_hz, which sim replaces
-        check_watchdog(config.watchdog_s, control_hz, f"{scenario.name}: physics.control_hz")
+        check_watchdog(config.watchdog_s, control_hz, f"{scenario.name}: physics.control_hz",
+                       getattr(config, "watchdog_written", True))
     seed = config.source.seed if config.source.seed is not None else getattr(scenario, "seed", None)
     return RunTemplate(name, params, control_hz, lockstep=config.source.type == "sim" and config.source.lockstep,
                        spec=dict(spec.__dict__), seed=seed)

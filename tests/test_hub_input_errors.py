@@ -333,6 +333,11 @@ def test_a_watchdog_shorter_than_the_agents_telemetry_period_is_refused():
     assert info.value.field == "watchdog_s" and "at least 0.6 s (got 0.5)" in info.value.problem
     assert parse_config(mocap_config({"kh0": 0}, watchdog_s=0.3)).watchdog_s == 0.3
     assert parse_config(mocap_config({"kh0": 0}, run={"behaviour": "aggregate", "control_hz": 50})).watchdog_s == 0.3
+    # A rate too slow for the default watchdog_s named watchdog_s, a key the config did not have.
+    with pytest.raises(ConfigError) as info:
+        parse_config(mocap_config({"kh0": 0}, run={"behaviour": "aggregate", "control_hz": 5}))
+    assert info.value.field == "run.control_hz" and info.value.problem.startswith(
+        "5 Hz needs a watchdog_s of at least 0.6 s, and watchdog_s is 0.3 s by default: add watchdog_s: 0.6")
 
 
 def test_a_watchdog_too_short_for_the_sim_scenario_stops_the_hub(tmp_path):
