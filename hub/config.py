@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
-from hub.mocap_options import check_mock_options, did_you_mean
+from hub.mocap_options import DEGENERATE_QUATERNION, check_mock_options, did_you_mean
 from onboard.config import ConfigError, check_range, from_mapping, join
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
@@ -108,6 +108,10 @@ def mock_bodies(where: str, value: Any) -> List[Tuple[str, str]]:
         if not match:
             raise ConfigError(where, f"entry {i + 1} ({entry!r}) must be name(x,y,z,qw,qx,qy,qz): a name, then "
                                      "7 numbers in brackets; entries are separated by ;")
+        qw, qx, qy, qz = (float(v) for v in match.group(2).split(",")[3:])
+        if qw * qw + qx * qx + qy * qy + qz * qz < DEGENERATE_QUATERNION:
+            raise ConfigError(where, f"entry {i + 1} ({entry!r}): its quaternion qw,qx,qy,qz is not a rotation "
+                                     "(1,0,0,0 faces +x; 0.7071,0,0,0.7071 faces +y)")
         bodies.append((match.group(1), entry))
     if not bodies:
         raise ConfigError(where, "has no body: give name(x,y,z,qw,qx,qy,qz) entries separated by ;")

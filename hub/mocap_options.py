@@ -24,6 +24,11 @@ READ_OPTIONS: Dict[str, tuple] = {
     "fzmotion": ("local_IP", "local_port", "hostname", "remote_port"),
 }
 
+# A quaternion this far from unit length (its squared norm) is no orientation: all zeros, as some systems give
+# for a body they lost. Its yaw would read as 0, facing +x: the hub takes it as no pose (hub/sources.py), and a
+# mock body written so is refused (hub/config.py).
+DEGENERATE_QUATERNION = 0.25
+
 
 def unread_option_notes(system: str, options: Iterable[str]) -> List[str]:
     """One sentence per option ``system`` does not read (none for a system this table does not know)."""

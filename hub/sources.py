@@ -14,7 +14,7 @@ from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from hub.mocap_options import known_systems_hint, unread_option_notes
+from hub.mocap_options import DEGENERATE_QUATERNION, known_systems_hint, unread_option_notes
 from onboard.config import ConfigError
 
 
@@ -97,6 +97,8 @@ def pose_from_mocap(position, quaternion_wxyz, up_axis: str) -> Tuple[float, flo
     the floor is x-z, and the z-up world is (x, -z, y). Yaw is the heading of the body's x axis on the floor.
     """
     w, qx, qy, qz = quaternion_wxyz
+    if w * w + qx * qx + qy * qy + qz * qz < DEGENERATE_QUATERNION:    # e.g. all zeros: no orientation
+        return float(position[0]), float(-position[2] if up_axis == "y" else position[1]), math.nan
     # The body's x axis expressed in the mocap frame: the first column of the rotation matrix.
     ax = 1.0 - 2.0 * (qy * qy + qz * qz)
     ay = 2.0 * (qx * qy + w * qz)
@@ -143,7 +145,10 @@ def yaws_from_mocap(quaternions_wxyz: np.ndarray, up_axis: str) -> np.ndarray:
     else:
         along = qx * qy
         along += w * qz                        # ay / 2
-    return np.arctan2(along, 0.5 - across)
+    yaws = np.arctan2(along, 0.5 - across)
+    # A quaternion far from unit length (all zeros: a body some systems lost) has no yaw: NaN, no pose.
+    yaws[w * w + qx * qx + across < DEGENERATE_QUATERNION] = np.nan
+    return yaws
 
 
 class _WakeUp:

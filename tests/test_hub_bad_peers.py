@@ -138,6 +138,7 @@ def test_an_empty_lab_file_is_refused_not_taken_as_defaults(tmp_path, content):
     ("kh0(0,0,0,1,0,0,0),kh1(1,0,0,1,0,0,0)", "entry 1 ("),
     ("kh0(0,0,0,1,0,0,0);kh1(a,0,0,1,0,0,0)", "entry 2 ('kh1(a,0,0,1,0,0,0)')"),
     (" ; ", "has no body"),
+    ("kh0(0,0,0.05,0,0,0,0)", "entry 1 ('kh0(0,0,0.05,0,0,0,0)'): its quaternion qw,qx,qy,qz is not a rotation"),
 ])
 def test_a_mock_body_the_mock_would_skip_is_refused(rigid_bodies, problem):
     """The mock skips an entry it cannot parse, and the robot was never placed, with no word of why."""

@@ -223,6 +223,13 @@ def test_yaws_read_only_for_the_rows_sent_are_those_of_the_latest_frame_that_had
         hub.settle_yaws(np.array([0, 1]))
         assert hub.sensors.frames([0, 1]).poses == [None, pytest.approx((0.5, 0.0, 0.0), abs=1e-4)]
         assert list(poses_record(broken)["bodies"]) == ["1"]
+        # All zeros, as some systems give for a body they lost: it was read as a yaw of 0, facing +x.
+        lost = source._convert(100.03, {"kh0": FakeBody((0.3, 0, 0), (0.0,) * 4),
+                                        "kh1": FakeBody((0.5, 0, 0), quarter_turns(0))})
+        hub.on_pose_frame(lost)
+        hub.settle_yaws(np.array([0, 1]))
+        assert hub.sensors.frames([0, 1]).poses[0] is None and list(poses_record(lost)["bodies"]) == ["1"]
+        assert math.isnan(pose_from_mocap((0.3, 0, 0), (0.0,) * 4, "z")[2])
     finally:
         source.close()
         hub.source.close()
