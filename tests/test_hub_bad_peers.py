@@ -133,6 +133,15 @@ def test_an_empty_lab_file_is_refused_not_taken_as_defaults(tmp_path, content):
     assert load_config(path).source.type == "sim"
 
 
+def test_a_mock_without_rigid_bodies_is_refused_rather_than_placing_no_robot():
+    for options in (None, {}, {"frequency": "50"}):
+        config = mocap_config({"kh0": 0})
+        config["source"]["options"] = options
+        with pytest.raises(ConfigError) as info:
+            parse_config(config)
+        assert info.value.field == "source.options.rigid_bodies" and "is required for the mock" in info.value.problem
+
+
 @pytest.mark.parametrize("rigid_bodies, problem", [
     ("kh0(0,0,0)", "entry 1 ('kh0(0,0,0)') must be name(x,y,z,qw,qx,qy,qz)"),
     ("kh0(0,0,0,1,0,0,0),kh1(1,0,0,1,0,0,0)", "entry 1 ("),
