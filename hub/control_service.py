@@ -102,7 +102,7 @@ class ControlService:
         if hub.mode == "estop":
             return False, {"error": "the e-stop is latched: `khepri ctl clear` first"}
         if hub.mode == "run":
-            return True, {"note": "already running"}
+            return True, nothing_done(f"nothing to start: run {hub.run_id} is already going")
         if hub.mode == "idle":
             hub.run_id = uuid.uuid4().hex[:12]
             hub.estop_at = None             # a new run: the last e-stop's acknowledgement times are history

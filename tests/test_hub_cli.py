@@ -233,6 +233,10 @@ def test_ctl_stop_and_clear_with_nothing_to_do_say_so(tmp_path):
                                                   "note": "nothing to stop: no run is going"}
         started = json.loads(ctl("start --json"))
         assert started["command"] == "start" and started["refused"] == [] and "note" in started
+        # A second start, like a second stop, says it did nothing (it said "ok (already running)").
+        again = ctl("start")
+        assert re.fullmatch(r"start: nothing to start: run [0-9a-f]{12} is already going", again), again
+        assert json.loads(ctl("start --json"))["nothing_done"] is True
     finally:
         codes = stop_processes([hub])
         hub_log.close()
