@@ -66,7 +66,7 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
         if isinstance(source, ReplaySource):
             say_unplaced_replay_robots(source, ids, log)
         if keyring is not None:
-            say_missing_keys(ids, keyring, log)
+            say_missing_keys(ids, keyring, log, ids_from=lab_ids_origin(config))
         if recorder is None and config.record is not None:
             path = record_path(config)
             recorder = open_recorder(path, {"source": source.description, "behaviour": run.behaviour},
@@ -133,7 +133,7 @@ def say_unplaced_replay_robots(source: ReplaySource, ids: List[int], log: Callab
             f"{'them' if several else 'it'}, so {'they stay' if several else 'it stays'} held{has}")
 
 
-def say_missing_keys(ids: List[int], keyring: KeyRing, log: Callable[[str], None]) -> None:
+def say_missing_keys(ids: List[int], keyring: KeyRing, log: Callable[[str], None], ids_from: str = "robots") -> None:
     """A lab robot whose key the hub does not hold can never connect, and the hub never hears from it (its
     handshake is refused before any message): said once at start, not left to a robot that stays silent."""
     keyed = set(keyring.robots.values())
@@ -144,9 +144,18 @@ def say_missing_keys(ids: List[int], keyring: KeyRing, log: Callable[[str], None
         log(f"hub: robot{'s' if several else ''} {which} of this lab ha{'ve' if several else 's'} no key in "
             f"{keyring.folder / 'robots'}, so cannot connect (add {'their keys' if several else 'its key'} with "
             f"`khepri keys add {keyring.folder} --robots {robots_option(missing)}`, which leaves the other keys "
-            f"as they are, or take {'them' if several else 'it'} off robots)")
+            f"as they are, or take {'them' if several else 'it'} off {ids_from})")
     if not keyring.operators:
-        log(f"hub: no operator key in {keyring.folder / 'operators'}: `khepri ctl` cannot reach this hub")
+        log(f"hub: no operator key in {keyring.folder / 'operators'}: `khepri ctl` cannot reach this hub (add one "
+            f"with `khepri keys add {keyring.folder} --operator NAME`, then restart the hub)")
+
+
+def lab_ids_origin(config: LabConfig) -> str:
+    """Where the lab's robot ids come from, for "take it off ...": the robots list, else the source's own."""
+    if config.robots is not None:
+        return "robots"
+    return {"motioncapture": "source.bodies", "sim": "the scenario (or list robots)"}.get(
+        config.source.type, "robots")
 
 
 def robots_option(ids: List[int]) -> str:

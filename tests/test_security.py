@@ -81,7 +81,20 @@ def test_lab_robots_without_a_key_are_said_at_start(keys, make_scenario):
         said = [line for line in hub.lines if "no key" in line]
     assert said == [f"hub: robot 2 of this lab has no key in {keys / 'robots'}, so cannot connect (add its key "
                     f"with `khepri keys add {keys} --robots 2,`, which leaves the other keys as they are, or take "
-                    f"it off robots)"]
+                    f"it off the scenario (or list robots))"]      # robots: not in this config, so not "off robots"
+
+
+def test_a_hub_without_operator_keys_says_how_to_add_one(tmp_path, make_scenario):
+    folder = tmp_path / "keys"
+    init_keys(folder, [0, 1], [])
+    for secret in (folder / "operators").glob("*"):
+        secret.unlink()
+    config = parse_config({"source": {"type": "sim"}, "security": {"keys": str(folder)},
+                           "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}})
+    with HubThread(config, scenario=make_scenario(robots={"count": 2}), operator_keys=None) as hub:
+        said = [line for line in hub.lines if "operator key" in line]
+    assert said == [f"hub: no operator key in {folder / 'operators'}: `khepri ctl` cannot reach this hub (add one "
+                    f"with `khepri keys add {folder} --operator NAME`, then restart the hub)"], hub.lines
 
 
 def test_a_hub_started_right_after_another_in_one_process_gets_the_zap_endpoint(keys):
