@@ -42,6 +42,8 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     # Checked before the source connects: with a motion-capture system that does not answer, a missing
     # run.behaviour or key folder was said only after the connection timed out.
     run = run_template(config, scenario)
+    if recorder is None and config.record is not None:
+        record_path(config)         # a bad name ({tim}, an existing file), said before a connection's timeout
     keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
     exposed = exposed_secret(Path(config.security.keys) / "hub.key_secret") if keyring else None
     if exposed:

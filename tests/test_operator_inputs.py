@@ -61,6 +61,21 @@ def test_a_mistyped_time_placeholder_in_record_is_refused(record, tmp_path, monk
     assert record_path(config, now=1_790_000_000.0).name.startswith("run-2026")
 
 
+def test_a_bad_record_name_is_said_before_the_motion_capture_is_asked_to_connect():
+    """It came after `hub: connecting to ...`: with a system that does not answer, only after its timeout."""
+    from hub.config import parse_config
+    from hub.factory import build_hub
+
+    config = parse_config({"source": {"type": "motioncapture", "system": "mock", "bodies": {"kh0": 0},
+                                      "options": {"rigid_bodies": "kh0(0,0,0.05,1,0,0,0)"}},
+                           "security": {"insecure": True}, "run": {"behaviour": "aggregate"},
+                           "record": "logs/run-{tim}.mcap"})
+    said = []
+    with pytest.raises(ConfigError, match="is not something the hub fills in"):
+        build_hub(config, log=said.append)
+    assert not any("connecting to" in line for line in said), said
+
+
 def test_a_doubled_time_placeholder_in_record_is_refused(tmp_path, monkeypatch):
     """`record: run-{{time}}.mcap` (a Jinja or str.format habit) recorded to `run-{20261128-...}.mcap`: the inner
     {time} was filled in and the outer braces kept in the file name."""
