@@ -9,9 +9,14 @@ from __future__ import annotations
 import math
 from typing import List
 
+import numpy as np
+
 from .run_events import follow_progress
 
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
+# Two robots' centres closer than this on the floor cannot be (a KheperaIV is 0.14 m across): said once.
+OVERLAP_M = 0.07
+OVERLAP_CHECK_S = 30.0
 NO_POSE_YET_WARNING_S = 2.0    # warn when no frame has placed a robot this long after start...
 NO_POSE_YET_REPEAT_S = 30.0    # ...and again this often while none does
 
@@ -36,6 +41,8 @@ class Housekeeping:
             self.recorder.write("/hub/status", self.control.status(now))
         follow_progress(self)
         self._say_when_finished(now)
+        if now >= self.overlap_check_at:
+            self._say_overlapping_robots(now)
 
     def _say_when_finished(self, now: float) -> None:
         """Once per run, when every connected robot says its job is done (the behaviour's ``finished``, which
@@ -48,6 +55,29 @@ class Housekeeping:
             self._finished_said = self.run_id
             self.log(f"hub: run {self.run_id}: every connected robot ({len(connected)}) reports its job finished; "
                      "`khepri ctl stop` ends the run")
+
+    def _say_overlapping_robots(self, now: float) -> None:
+        """Two robots whose bodies lie closer on the floor than two robots can: the wrong ``source.up_axis``
+        (a Z-up system read as Y-up puts every robot on one line, at minus its height) or one body mapped
+        twice. Nothing else tells: the hub serves the poses, and the robots steer by them. Said once; looked at
+        every second until two robots are placed, then every OVERLAP_CHECK_S (it costs 0.1-0.2 ms at 100 robots,
+        which a pose frame due then would wait for)."""
+        rows = np.flatnonzero(self.sensors.present)
+        self.overlap_check_at = now + (1.0 if len(rows) < 2 else OVERLAP_CHECK_S)
+        if len(rows) < 2:
+            return
+        xy = self.poses[rows, :2]
+        apart = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+        apart[np.diag_indices(len(rows))] = np.inf
+        i, j = np.unravel_index(int(np.argmin(apart)), apart.shape)
+        if apart[i, j] >= OVERLAP_M:
+            return
+        self.overlap_check_at = math.inf
+        first, second = self.ids[int(rows[i])], self.ids[int(rows[j])]
+        self.log(f"hub: warning: robots {first} and {second} are {apart[i, j]:.2f} m apart on the floor, closer "
+                 f"than two robots can be: is source.up_axis ({self.config.source.up_axis}) right for this system "
+                 "(z: Vicon, Qualisys; y: OptiTrack Motive's default), and is each body its own robot in "
+                 "source.bodies?")
 
     def _expire_stale_poses(self, now: float) -> None:
         """Bodies not seen for ``source.stale_s`` lose their pose, and their robots are held, also when no

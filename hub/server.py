@@ -109,6 +109,8 @@ class Hub(Downlink, Uplink, Housekeeping):
         self.progress = progress          # the sim source's object and waypoints (hub/progress.py), else None
         self.arrival_said: Optional[str] = None      # the run whose arrival at its last waypoint was said
         self.placed_a_robot = False       # some frame has held a pose for one of this lab's robots
+        # When to look next for two robots on one spot (housekeeping); only real motion capture can put them there.
+        self.overlap_check_at = 0.0 if config.source.type == "motioncapture" else math.inf
         self.mode = "idle"
         self.run_id: Optional[str] = None
         self.estop_at: Optional[float] = None

@@ -61,7 +61,7 @@ def check_boolean(where: str, value: Any) -> bool:
     and 1 would all switch the setting on."""
     if isinstance(value, bool):
         return value
-    raise ConfigError(where, f"must be true or false (got {value!r})")
+    raise ConfigError(where, f"must be true or false (got {_as_written(value)})")
 
 
 def _number(value: float) -> str:
@@ -117,13 +117,13 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     if tp is int:
         number = as_integer(value)
         if number is None:
-            raise ConfigError(where, f"must be an integer (got {value!r})")
+            raise ConfigError(where, f"must be an integer (got {_as_written(value)})")
         return number
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(where, f"must be a number (got {value!r})")
+            raise ConfigError(where, f"must be a number (got {_as_written(value)})")
         if not math.isfinite(value):
-            raise ConfigError(where, f"must be a finite number (got {value!r})")
+            raise ConfigError(where, f"must be a finite number (got {_as_written(value)})")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
@@ -131,7 +131,7 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
         return value
     if origin in (list, tuple) or tp in (list, tuple):
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(where, f"must be a list (got {value!r})")
+            raise ConfigError(where, f"must be a list (got {_as_written(value)})")
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(value) != len(args):
                 raise ConfigError(where, f"must have {len(args)} items (got {len(value)})")
@@ -141,7 +141,7 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
         return tuple(items) if (origin is tuple or tp is tuple) else items
     if origin is dict or tp is dict:
         if not isinstance(value, Mapping):
-            raise ConfigError(where, f"must be a mapping (got {value!r})")
+            raise ConfigError(where, f"must be a mapping (got {_as_written(value)})")
         if len(args) == 2:         # Dict[str, float]: every value checked, as a field of that type would be
             return {key: coerce(item, args[1], join(where, key)) for key, item in value.items()}
         return dict(value)
@@ -149,10 +149,12 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
 
 
 def _as_written(value: Any) -> str:
-    """A value for an error line. YAML reads an unquoted 2024-01-01 as a date, and its repr
-    ``datetime.date(2024, 1, 1)`` hid that a pair of quotes is all it needs."""
+    """A value for an error line; true, false and null as YAML writes them. YAML reads an unquoted 2024-01-01
+    as a date, and its repr ``datetime.date(2024, 1, 1)`` hid that a pair of quotes is all it needs."""
     if isinstance(value, (datetime.date, datetime.datetime)):
         return f"{value.isoformat()}, which YAML reads as a date: put it in quotes"
+    if value is None or isinstance(value, bool):     # as the file says it: true, not Python's True
+        return {None: "null", True: "true", False: "false"}[value]
     return repr(value)
 
 

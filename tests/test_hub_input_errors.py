@@ -207,7 +207,8 @@ def test_reset_each_run_must_be_true_or_false(tmp_path, value):
     assert parse_config({"source": {"type": "sim", "reset_each_run": False}}).source.reset_each_run is False
     with pytest.raises(ConfigError) as info:
         parse_config(sim_config(source={"type": "sim", "reset_each_run": value}))
-    assert str(info.value) == f"source.reset_each_run: must be true or false (got {value!r})"
+    shown = "null" if value is None else repr(value)      # as YAML writes it, not Python's None
+    assert str(info.value) == f"source.reset_each_run: must be true or false (got {shown})"
     if value == "sometimes":          # on the command line: one line naming the field, exit code 2
         config = tmp_path / "lab.yaml"
         config.write_text(yaml.safe_dump(sim_config(source={"type": "sim", "reset_each_run": value})))

@@ -763,3 +763,21 @@ def test_a_hub_console_with_no_log_keeps_no_lines_once_the_hub_is_built():
     for n in range(3):
         console(f"hub: line {n}")
     assert console.early is None and printed[-1] == "hub: line 2"
+
+
+@pytest.mark.parametrize("up_axis, bodies, warned", [
+    ("y", "kh0(0,0,0.05,1,0,0,0);kh1(0,0.4,0.05,1,0,0,0)", True),     # Z-up positions read as Y-up: one spot
+    ("z", "kh0(0,0,0.05,1,0,0,0);kh1(0,0.4,0.05,1,0,0,0)", False)])
+def test_two_robots_on_one_spot_make_the_hub_ask_about_up_axis(up_axis, bodies, warned):
+    """A wrong up_axis put robots on top of each other and the hub served it without a word."""
+    with HubThread(mock_config(bodies, up_axis=up_axis)) as hub:
+        deadline = time.monotonic() + (5.0 if warned else 2.5)
+        while time.monotonic() < deadline and not any("apart on the floor" in line for line in hub.lines):
+            time.sleep(0.05)
+        said = [line for line in hub.lines if "apart on the floor" in line]
+    if warned:
+        assert said == [f"hub: warning: robots 0 and 1 are 0.00 m apart on the floor, closer than two robots can "
+                        f"be: is source.up_axis (y) right for this system (z: Vicon, Qualisys; y: OptiTrack "
+                        f"Motive's default), and is each body its own robot in source.bodies?"], hub.lines
+    else:
+        assert said == [], said

@@ -152,6 +152,7 @@ SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such
 
 @pytest.mark.parametrize(("data", "field", "message"), [
     ({"robots": {"count": 0}}, "robots.count", "robots.count: must be >= 1 (got 0)"),
+    ({"robots": {"count": True}}, "robots.count", "robots.count: must be an integer (got true)"),   # YAML's, not True
     ({"robots": {"count": 2.5}}, "robots.count", "robots.count: must be an integer (got 2.5)"),
     ({"robot": {"count": 6}}, "robot", "robot: unknown key (known: arena, behaviour, comm, description, "
      "faults, name, object, params, path, physics, robots, seed, sensors, time_limit_s)"),
