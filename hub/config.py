@@ -80,11 +80,6 @@ class SourceConfig:
             # The mock backend parses it in C++ (a bad one is a traceback there) and spins without a wait at
             # 0 or below, starving the hub.
             check_mock_frequency(join(join(where, "options"), "frequency"), self.options["frequency"])
-        if self.type == "motioncapture" and self.system == "mock" and "rigid_bodies" not in self.options:
-            # The mock then has no bodies at all: the hub ran, saying only that no robot was in the frames.
-            raise ConfigError(join(join(where, "options"), "rigid_bodies"),
-                              "is required for the mock, which has no bodies without it: give name(x,y,z,qw,qx,qy,qz) "
-                              "entries separated by ;, one per body in source.bodies, e.g. kh0(0,0,0.05,1,0,0,0)")
         if self.type == "motioncapture" and self.system == "mock" and "rigid_bodies" in self.options:
             # The mock skips an entry it cannot parse without a word: the robot would just never be placed.
             bodies = mock_bodies(join(join(where, "options"), "rigid_bodies"), self.options["rigid_bodies"])
@@ -300,6 +295,12 @@ def parse_config(data: Any) -> LabConfig:
         check_watchdog(config.watchdog_s, config.run.control_hz, "run.control_hz", config.watchdog_written)
     check_source_fields(data.get("source") or {}, config.source.type)
     check_run_fields(data.get("run") or {}, config.source.type)
+    source = config.source
+    if source.type == "motioncapture" and source.system == "mock" and "rigid_bodies" not in source.options:
+        # The mock then has no bodies at all: the hub ran, saying only that no robot was in the frames.
+        raise ConfigError("source.options.rigid_bodies", "is required for the mock, which has no bodies without it: "
+                          "give name(x,y,z,qw,qx,qy,qz) entries separated by ;, one per body in source.bodies, e.g. "
+                          "kh0(0,0,0.05,1,0,0,0)")
     return config
 
 

@@ -141,7 +141,8 @@ def test_a_mock_frequency_that_is_not_a_whole_rate_is_refused(frequency):
     with pytest.raises(ConfigError) as info:
         parse_config(config)
     assert info.value.field == "source.options.frequency"
-    assert parse_config({**config, "source": {**config["source"], "options": {"frequency": "100"}}})
+    good = {"frequency": "100", "rigid_bodies": "kh0(0,0,0,1,0,0,0)"}
+    assert parse_config({**config, "source": {**config["source"], "options": good}})
 
 
 @pytest.mark.parametrize("key, hint", [("frequncy", "; did you mean frequency?"), ("hostname", "")])
