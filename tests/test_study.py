@@ -289,6 +289,7 @@ def test_the_local_pool_runs_every_run_and_writes_its_files(local_study):
         result = results[f"{GOOD}/seed-{seed}"]
         assert result["seed"] == seed and result["failed"] is False and result["sim_time_s"] == 4.0
         fingerprint = result["study"].pop("scenario_sha1")
+        assert len(result["study"].pop("scenario_sha1_full")) == 16
         code_fingerprint = result["study"].pop("behaviour_sha1")
         assert result["study"] == {"cell": GOOD, "scenario": "lab-6", "overrides": {"behaviour": "transport"},
                                    "time_limit_s": 4.0}
@@ -1319,6 +1320,44 @@ def test_resume_warns_about_finished_runs_of_a_scenario_file_edited_since(tmp_pa
         err = capsys.readouterr().err
         assert "warning: 1 run already in" in err and "ran a scenario that has changed since (cells mine)" in err
         assert "(cells mine) and is kept; use another --out, or delete those cells' folders, to run it again" in err
+
+
+def test_resume_does_not_warn_of_an_edit_that_changes_no_run(tmp_path, capsys):
+    """A new description, or the scenario's own time limit where the study sets the limit, warned that the
+    scenario had changed and told the user to throw the runs away. Runs recorded before (their scenario_sha1
+    the fingerprint of every field) are still taken as the scenario they ran."""
+    write_gathering(tmp_path / "mine.yaml", "mine", time_limit_s=20)
+    study = write(tmp_path / "edits.yaml", "scenarios: [mine.yaml]\nreps: 1\ntime_limit_s: 2\n")
+    out = tmp_path / "out"
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
+    original = (tmp_path / "mine.yaml").read_text()
+    edited = original.replace("time_limit_s: 20", "time_limit_s: 21")
+    write(tmp_path / "mine.yaml", edited + "description: six robots gather\n")
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", "--dry-run"]) == 0
+    assert "changed since" not in capsys.readouterr().err
+    result_path = out / "mine" / "seed-1" / "result.json"
+    result = json.loads(result_path.read_text())
+    assert result["study"]["scenario_sha1"] != result["study"]["scenario_sha1_full"]
+    old_style = dict(result["study"], scenario_sha1=result["study"].pop("scenario_sha1_full"))
+    write(result_path, json.dumps(dict(result, study=old_style)))         # as a run recorded before
+    write(tmp_path / "mine.yaml", original)           # the very scenario file that run ran
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", "--dry-run"]) == 0
+    assert "changed since" not in capsys.readouterr().err
+    write(tmp_path / "mine.yaml", original.replace("count: 6", "count: 4"))   # a change that changes the run
+    main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", "--dry-run"])
+    assert "ran a scenario that has changed since (cells mine)" in capsys.readouterr().err
+
+
+def test_the_report_takes_runs_from_before_and_after_the_fingerprint_change_as_one_version(known_study):
+    for seed in (1, 2, 3):
+        path = known_study / "paper-25-straight" / f"seed-{seed}" / "result.json"
+        data = json.loads(path.read_text())
+        # seed 1 as recorded before 2026-11-29 (every field), the others after (both fingerprints)
+        data["study"].update({"scenario_sha1": "full"} if seed == 1 else
+                             {"scenario_sha1": "runs", "scenario_sha1_full": "full"})
+        write(path, json.dumps(data))
+    write_study_outputs(known_study, figures=False)
+    assert "## Mixed versions" not in (known_study / "report.md").read_text()
 
 
 def test_resume_warns_about_finished_runs_of_a_behaviour_edited_since(tmp_path, capsys, monkeypatch):

@@ -78,9 +78,25 @@ class RunSpec:
     @property
     def scenario_sha1(self) -> str:
         """A fingerprint of the scenario as run (every default filled in, overrides applied): a resumed study
-        can tell a finished run of an edited scenario file from one of the scenario it would run now."""
-        text = json.dumps(self.scenario_data, sort_keys=True, default=str)
-        return hashlib.sha1(text.encode("utf-8")).hexdigest()[:16]
+        can tell a finished run of an edited scenario file from one of the scenario it would run now. Only what
+        changes a run counts: not the description, nor the scenario's time_limit_s when the study sets the limit
+        (the run records that apart, and a change of it is said apart)."""
+        data = {key: value for key, value in self.scenario_data.items() if key != "description"}
+        if self.time_limit_s is not None:
+            data.pop("time_limit_s", None)
+        return _fingerprint(data)
+
+    @property
+    def full_scenario_sha1(self) -> str:
+        """The fingerprint of every field, description included, which runs recorded as scenario_sha1 before
+        2026-11-29 (an edited description then warned that the scenario had changed): a study resumed across
+        that change compares old runs with it."""
+        return _fingerprint(self.scenario_data)
+
+
+def _fingerprint(data: Dict[str, Any]) -> str:
+    text = json.dumps(data, sort_keys=True, default=str)
+    return hashlib.sha1(text.encode("utf-8")).hexdigest()[:16]
 
 
 @functools.cache

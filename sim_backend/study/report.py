@@ -176,8 +176,7 @@ def version_section(cells: List[Cell]) -> List[str]:
             version = (result.get("study") or {}).get("behaviour_sha1")
             if version:
                 by_behaviour.setdefault(str(result.get("behaviour")), Counter())[version] += 1
-        scenarios = Counter(str((r.get("study") or {}).get("scenario_sha1")) for r in cell.results.values()
-                            if (r.get("study") or {}).get("scenario_sha1"))
+        scenarios = scenario_versions([r.get("study") or {} for r in cell.results.values()])
         if len(scenarios) > 1:
             lines.append(f"- `{cell.name}`: {len(scenarios)} versions of its scenario ({versions_text(scenarios)})")
     for behaviour, versions in sorted(by_behaviour.items()):
@@ -190,6 +189,15 @@ def version_section(cells: List[Cell]) -> List[str]:
             "**These results come from different versions of the code or scenarios** (`behaviour_sha1`, "
             "`scenario_sha1` in each result.json): a statistic over them describes none of the versions. Delete "
             "the runs of the versions you do not want and run the same command again.", "", *lines, ""]
+
+
+def scenario_versions(studies: List[Dict[str, Any]]) -> Counter:
+    """How many runs ran each version of a cell's scenario. Runs recorded before 2026-11-29 have only the full
+    fingerprint (description included) as scenario_sha1; later ones record it as scenario_sha1_full too, so
+    a cell holding both is compared by that one."""
+    recorded = [study for study in studies if study.get("scenario_sha1")]
+    key = "scenario_sha1" if all(study.get("scenario_sha1_full") for study in recorded) else "scenario_sha1_full"
+    return Counter(str(study.get(key) or study["scenario_sha1"]) for study in recorded)
 
 
 def versions_text(versions: Counter) -> str:

@@ -53,6 +53,7 @@ def with_study_fields(result: Dict[str, Any], spec: RunSpec, failed: bool) -> Di
     result["failed"] = failed
     result["study"] = {"cell": spec.cell, "scenario": spec.scenario, "overrides": spec.overrides,
                        "time_limit_s": spec.time_limit_s, "scenario_sha1": spec.scenario_sha1,
+                       "scenario_sha1_full": spec.full_scenario_sha1,
                        "behaviour_sha1": spec.behaviour_sha1}
     return result
 
@@ -146,7 +147,8 @@ def has_run_shape(data: Dict[str, Any]) -> bool:
     if study is not None:
         if not isinstance(study, dict) or not isinstance(study.get("overrides") or {}, dict):
             return False
-        if not all(isinstance(study.get(key), (str, type(None))) for key in ("behaviour_sha1", "scenario_sha1")):
+        if not all(isinstance(study.get(key), (str, type(None)))
+                   for key in ("behaviour_sha1", "scenario_sha1", "scenario_sha1_full")):
             return False
         limit = study.get("time_limit_s")
         if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, float))):
