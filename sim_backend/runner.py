@@ -201,11 +201,10 @@ class Simulation:
         """A robot whose agent is down: wheels stopped, and what the radio brings it is lost (its agent's socket
         is gone), until a new behaviour starts on it that knows nothing of the old one, as a restarted agent."""
         for index, back_at in list(self.restarting.items()):
-            if t + 1e-9 < back_at:
-                self.frame.inboxes[index] = []
-                continue
-            del self.restarting[index]
-            self.behaviours[index] = make_behaviours(self.behaviour_class, [self.robots[index]], self.params)[0]
+            self.frame.inboxes[index] = []         # what reached it while it was down (up to the step before)
+            if t + 1e-9 >= back_at:
+                del self.restarting[index]
+                self.behaviours[index] = make_behaviours(self.behaviour_class, [self.robots[index]], self.params)[0]
 
     def _step_behaviours(self, alive: np.ndarray) -> None:
         robots, commands, i, clock, down = self.robots, [], 0, time.perf_counter, self.restarting
