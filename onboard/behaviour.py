@@ -95,8 +95,9 @@ def telemetry_of(behaviour: Behaviour, robot_id: int) -> Dict[str, Any]:
     try:
         return plain_json(data)
     except TypeError as exc:    # a value JSON has no form for: name its field here, in sim run as on a robot
-        # A fresh exception, without plain_json's frames: the line to point at is the user's return, not ours.
-        raise BehaviourError(robot_id, "telemetry()", TypeError(str(exc))) from None
+        # A fresh exception, without plain_json's frames: the line to point at is the user's method, not ours.
+        raise BehaviourError(robot_id, "telemetry()",
+                             TypeError(f"{exc}{defined_at(type(behaviour).telemetry)}")) from None
     except RecursionError:      # plain_json's walk is recursive, as are JSON's encoders
         raise BehaviourError(robot_id, "telemetry()", TypeError(
             "telemetry nests lists or mappings hundreds of levels deep, which JSON cannot carry")) from None
@@ -157,6 +158,16 @@ def _json_key(key: Any, where: str) -> str:
         return json.dumps(key)
     raise TypeError(f"{where} has the key {key!r}, {a_kind(key)}, which JSON cannot carry: use a "
                     f"string")
+
+
+def defined_at(function: Any) -> str:
+    """`` (returned by telemetry() at flock.py:40)``: where a method that returned a bad value is written, for
+    an error found after it returned (no traceback leads there); "" when Python cannot tell."""
+    try:
+        path, line = inspect.getsourcefile(function), inspect.getsourcelines(function)[1]
+    except (OSError, TypeError):
+        return ""
+    return f" (returned by {function.__name__}() at {os.path.basename(path or '?')}:{line})"
 
 
 class BehaviourError(RuntimeError):

@@ -266,7 +266,8 @@ def test_telemetry_the_wire_cannot_carry_fails_in_simulation_too(buggy, capsys):
     assert run("sim", "run", buggy("set"), "--no-plot", "--out", "set") == 1
     err = capsys.readouterr().err
     assert "robot 0, telemetry(): TypeError: telemetry['neighbours'] is a set, which JSON cannot carry" in err
-    assert "behaviour.py" not in err                  # not a line of khepri's own: the user's code is not in it
+    assert "onboard/behaviour.py" not in err and " at behaviour.py" not in err    # no line of khepri's own,
+    assert "(returned by telemetry() at buggy_behaviour.py:" in err                 # but the user's method
     assert run("sim", "run", buggy("none"), "--no-plot", "--out", "none") == 0   # numpy and NaN are fine
 
 
@@ -276,7 +277,8 @@ def test_sil_names_the_telemetry_field_the_wire_cannot_carry_as_sim_run_does(bug
     assert run("sil", buggy("set"), "--no-plot", "--no-record", "--out", "sil-set") == 1
     err = capsys.readouterr().err
     assert "agent 0: behaviour crashed: robot 0, telemetry(): TypeError: telemetry['neighbours'] is a set, which " \
-        "JSON cannot carry: send dicts, lists, strings, numbers, booleans or None (at t = " in err   # whole, not cut
+        "JSON cannot carry: send dicts, lists, strings, numbers, booleans or None (returned by telemetry() at " \
+        "buggy_behaviour.py:" in err and ") (at t = " in err                                      # whole, not cut
     assert json.loads((tmp_path / "sil-set" / "result.json").read_text())["stop_reason"] == "crashed"
 
 

@@ -72,7 +72,7 @@ def assert_empty_trajectory(npz) -> None:
 @pytest.mark.parametrize("bug, call", [("step_at_0", "robot 1, step(): RuntimeError: deliberate crash at "
                                                       "crashy_behaviour.py:19"),
                                        ("telemetry_at_0", "robot 0, telemetry(): TypeError: telemetry['seen'] "
-                                                          "is a set")])
+                                                          "is a set")])     # and where telemetry() is: below
 def test_a_crash_at_the_first_step_is_reported_with_its_plot_and_video(crashy, tmp_path, capsys, bug, call):
     """Plotting the run's zero samples raised IndexError in plots.py, so khepri's own traceback came out
     instead of the summary and the crash report."""
@@ -81,6 +81,8 @@ def test_a_crash_at_the_first_step_is_reported_with_its_plot_and_video(crashy, t
     assert "0.0 s simulated" in out and "stopped: crashed" in out and "video: out/run.gif" in out
     assert f"khepri: error: the run crashed: {call}" in err and "(at t = 0.0 s)" in err
     assert "Traceback" not in err
+    if bug == "telemetry_at_0":     # found after it returned, so no traceback points at the user's file: it did not
+        assert "(returned by telemetry() at crashy_behaviour.py:23)" in err, err
     assert_empty_trajectory(tmp_path / "out" / "trajectory.npz")
     assert (tmp_path / "out" / "trajectory.png").stat().st_size > 0
 
