@@ -55,7 +55,9 @@ class ControlService:
     def execute(self, cmd: str, sender: str = "operator") -> Tuple[bool, Dict[str, Any]]:
         ok, extra = self._execute(cmd, sender)
         if cmd != "status" and self.hub.recorder is not None:
-            self.hub.recorder.write("/control", {"cmd": cmd, "sender": sender, "ok": ok, **extra})
+            # With the hub's mode and run after it: a start that resumed a run keeps its run_id, a new run a new one.
+            self.hub.recorder.write("/control", {"cmd": cmd, "sender": sender, "ok": ok, **extra,
+                                                 "mode": self.hub.mode, "run_id": self.hub.run_id})
         return ok, extra
 
     def _execute(self, cmd: str, sender: str) -> Tuple[bool, Dict[str, Any]]:

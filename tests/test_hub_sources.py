@@ -689,6 +689,11 @@ def test_log_info_tells_each_e_stop_with_its_clear_and_the_start_that_resumed_th
         rf"e-stop:    {clock} by (.+) in run {run}; cleared {clock} by \1; run resumed {clock} by \1", lines[0]), lines
     assert re.fullmatch(rf"e-stop:    {clock} by .+ \(no run going\); not cleared in the log", lines[1]), lines
     assert summarise(log, use_index=False).estops == summary.estops        # the walk, as for a killed hub's log
+    # Each /control record carries the hub's mode and run after it: the resuming start keeps the run's id.
+    control = [(r.payload["cmd"], r.payload["mode"], r.payload["run_id"]) for r in read_log(log, topics=["/control"])]
+    assert control == [("start", "run", run), ("estop", "estop", run), ("estop", "estop", run),
+                       ("clear", "hold", run), ("start", "run", run), ("stop", "idle", None),
+                       ("estop", "estop", None)], control
 
 
 def log_console(path):
