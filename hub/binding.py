@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import errno
+import socket
 from typing import List
 
 import zmq
 
-from onboard.agent.link import endpoint_candidates, use_ipv6
+from onboard.agent.link import endpoint_candidates, tcp_host, unbracket, use_ipv6
 from onboard.config import ConfigError
 
 # A loopback this PC does not have (a container without IPv6): ZeroMQ says "No such device" or "Cannot assign".
@@ -40,3 +41,30 @@ def bind_error(err: zmq.ZMQError, bind: str, port: int, port_field: str) -> Conf
     reason = (err.strerror or str(err)).split(" (addr=")[0]     # pyzmq appends the endpoint; we name it ourselves
     return ConfigError("network.bind", f"cannot listen on {bind!r}: {reason} (give an address of this PC, "
                        "e.g. 127.0.0.1 or ::1, or * for all IPv4 interfaces, :: for all IPv6 and IPv4 ones)")
+
+
+def check_ports_free(bind: str, ports: List[tuple]) -> None:
+    """Before a motion-capture system is asked to connect (seconds, with a slow one): ConfigError naming the
+    port field when another process (a hub left running) already listens on it. ``ports``: (field, port)
+    pairs; port 0 (any free port) is not looked at. What cannot be told here is left to the real bind."""
+    for field, port in ports:
+        if port and any(_taken(address) for address in endpoint_candidates(f"tcp://{tcp_host(bind)}:{port}")):
+            raise ConfigError(f"network.{field}", f"port {port} on {bind} is already in use")
+
+
+def _taken(address: str) -> bool:
+    """Whether binding ``tcp://host:port`` fails with "address in use", tried as libzmq binds (SO_REUSEADDR)."""
+    host, _, port = address[len("tcp://"):].rpartition(":")
+    host = unbracket(host)
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    host = {"*": "0.0.0.0"}.get(host, host)
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            probe.bind((host, int(port)))
+    except OSError as err:
+        return err.errno == errno.EADDRINUSE
+    except ValueError:
+        return False
+    return False
+

@@ -12,6 +12,7 @@ from onboard.behaviour import build_params, get_behaviour
 from onboard.config import ConfigError, folder_not_file
 from onboard.hal import RobotSpec
 
+from .binding import check_ports_free
 from .config import LabConfig, check_watchdog
 from .console import as_console
 from .housekeeping import format_ids
@@ -44,6 +45,8 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     run = run_template(config, scenario)
     if recorder is None and config.record is not None:
         record_path(config)         # a bad name ({tim}, an existing file), said before a connection's timeout
+    net = config.network            # likewise a port another process (a hub left running) listens on
+    check_ports_free(net.bind, [("robot_port", net.robot_port), ("control_port", net.control_port)])
     keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
     exposed = exposed_secret(Path(config.security.keys) / "hub.key_secret") if keyring else None
     if exposed:

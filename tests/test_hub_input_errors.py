@@ -72,6 +72,24 @@ def test_a_port_in_use_names_the_port_field(tmp_path, taken_port, role):
     assert line.endswith(f"port {taken_port} on 127.0.0.1 is already in use")
 
 
+@pytest.mark.parametrize("bind", ["127.0.0.1", "*", "localhost"])
+def test_a_port_in_use_is_said_before_the_motion_capture_is_asked_to_connect(taken_port, bind):
+    """A hub left running held the port: the new hub connected to the motion capture first (seconds, with a slow
+    system), then failed to bind."""
+    from hub.config import parse_config
+    from hub.factory import build_hub
+
+    config = parse_config({"source": {"type": "motioncapture", "system": "mock", "bodies": {"kh0": 0},
+                                      "options": {"rigid_bodies": "kh0(0,0,0.05,1,0,0,0)"}},
+                           "network": {"bind": bind, "robot_port": taken_port, "control_port": 0},
+                           "security": {"insecure": True}, "run": {"behaviour": "aggregate"}})
+    said = []
+    with pytest.raises(ConfigError) as info:
+        build_hub(config, log=said.append)
+    assert info.value.field == "network.robot_port" and "is already in use" in info.value.problem
+    assert not any("connecting to" in line for line in said), said
+
+
 def test_a_failed_bind_leaves_no_socket_open(taken_port):
     """The robot socket binds, the control socket cannot: the robot port is free again afterwards."""
     robot_port = free_port()
