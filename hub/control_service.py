@@ -158,6 +158,8 @@ class ControlService:
         run_id = hub.run_id
         hub.mode = "idle"
         hub.run_id = None
+        for robot in hub.ids:      # the ended run's messages still queued (a robot out of reach) are no one's now:
+            hub.relay.clear(robot)  # a robot that connected while idle got them, with no way to tell their run
         hub.send_command_to_all("stop")
         hub._hold_sim_wheels(time.monotonic())
         if run_id is None:

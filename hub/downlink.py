@@ -130,6 +130,8 @@ class Downlink:
         for robot in self.robots.values():
             if robot.routing is not None:
                 self.send_command(robot, cmd, reason)
+            else:   # an older command waiting for a robot away (a run's start) is stale now: its hello gets
+                robot.pending = None    # what holds then (a start of an ended run was re-sent to a new agent)
 
     def send_command(self, robot: RobotLink, cmd: str, reason: str = "") -> None:
         message: Dict[str, Any] = {"type": "command", "cmd": cmd}

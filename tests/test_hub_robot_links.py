@@ -137,3 +137,53 @@ def test_the_mocap_rate_falls_to_zero_soon_after_the_frames_stop():
     assert fast.current(2.0 + 0.1) == pytest.approx(200.0, rel=0.05) and fast.current(2.0 + 0.6) == 0.0
     assert slow.current(3.0 + 1.5) == pytest.approx(1.0, rel=0.05)     # 1 Hz: a 1.5 s gap is not silence yet
     assert slow.current(3.0 + 2.1) == 0.0
+
+
+def next_command(sock: zmq.Socket, within_s: float = 1.0):
+    """The next command the hub sends on ``sock`` within ``within_s``, or None."""
+    deadline = time.monotonic() + within_s
+    while sock.poll(max(0.0, deadline - time.monotonic()) * 1000.0):
+        message = decode(sock.recv(), "hub", accept=DOWNLINK_TYPES)
+        if message["type"] == "command":
+            return message
+    return None
+
+
+def test_a_start_an_agent_left_unacknowledged_is_not_sent_to_the_next_one_once_the_run_ended():
+    """An agent got `start`, went away without acknowledging it, and the run was stopped while it was away:
+    the next agent for that robot was sent the ended run's `start`, again every 0.25 s."""
+    with HubThread(parse_config(LAB)) as hub:
+        first = dealer(hub.endpoints["robots"])
+        say(first, "agent-a")
+        hub.wait_until(lambda s: s["robots"][0]["connected"])
+        hub.request("start")
+        assert next_command(first)["cmd"] == "start"          # and never acknowledged
+        first.close(0)
+        deadline = time.monotonic() + 5.0                       # the hub finds the connection gone when it sends
+        while hub.hub.robots[0].routing is not None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert hub.hub.robots[0].routing is None
+        hub.request("stop")
+        second = dealer(hub.endpoints["robots"])
+        try:
+            say(second, "agent-b")
+            command = next_command(second, within_s=1.0)
+            assert command is None or command["cmd"] != "start", command
+        finally:
+            second.close(0)
+
+
+def test_stopping_a_run_drops_the_radio_messages_it_left_queued():
+    """A robot that connected after a run had been stopped got that run's queued broadcasts at once, and nothing
+    told it which run they came from (their sent_s start from 0 each run)."""
+    from hub.factory import build_hub
+
+    hub = build_hub(parse_config(LAB), log=lambda line: None)
+    try:
+        hub.control.execute("start")
+        hub.relay.submit(1, 2.0, {"hello": 1}, 20, [0])
+        assert hub.relay.pending(0)
+        hub.control.execute("stop")
+        assert not hub.relay.pending(0)
+    finally:
+        hub.close()
