@@ -88,6 +88,7 @@ class DropLog:
     _last_detail: Dict[str, str] = field(default_factory=dict)
     _quiet_s: Dict[str, float] = field(default_factory=dict)
     _suppressed: Dict[str, int] = field(default_factory=dict)
+    _hidden_reasons: Dict[str, Dict[str, int]] = field(default_factory=dict)   # sender -> reason -> count
 
     def count(self, reason: str, sender: str) -> None:
         """Count a drop without a log line (the caller says it its own way)."""
@@ -99,15 +100,21 @@ class DropLog:
         self.count(reason, sender)
         now = time.monotonic()
         since = now - self._last_line.get(sender, -math.inf)
-        if since < self._quiet_s.get(sender, 1.0):
+        # A new problem from a sender is said within a second, however long its last repeated one made it wait:
+        # on loopback every agent is one sender, and one agent's repeats hid another's new mistakes.
+        quiet = self._quiet_s.get(sender, 1.0) if self._last_detail.get(sender) == detail else 1.0
+        if since < quiet:
             self._suppressed[sender] = self._suppressed.get(sender, 0) + 1
+            hidden = self._hidden_reasons.setdefault(sender, {})
+            hidden[reason] = hidden.get(reason, 0) + 1
             return
         more = self._suppressed.pop(sender, 0)
+        self._hidden_reasons.pop(sender, None)
         suffix = f" (+{more} more from this sender in the last {_span(since)})" if more else ""
         self._said(sender, now, detail)
         self.log(f"hub: dropped {reason}: {detail}{suffix}")
         if len(self._last_line) > 10_000:   # a flood of fake senders must not grow memory without bound
-            for table in (self._last_line, self._last_detail, self._quiet_s, self._suppressed):
+            for table in (self._last_line, self._last_detail, self._quiet_s, self._suppressed, self._hidden_reasons):
                 table.clear()
 
     def _said(self, sender: str, now: float, detail: str) -> None:
@@ -126,9 +133,11 @@ class DropLog:
             if since < self._quiet_s.get(sender, 1.0):
                 continue
             more = self._suppressed.pop(sender)
+            hidden = self._hidden_reasons.pop(sender, {})
+            reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(hidden.items()))
             self._said(sender, now, self._last_detail.get(sender, ""))
             self.log(f"hub: dropped {more} more message{'s' if more > 1 else ''} from {sender} in the last "
-                     f"{_span(since)} (`khepri ctl status` counts drops by reason)")
+                     f"{_span(since)} ({reasons}; `khepri ctl status` counts drops by reason)")
 
     @property
     def total(self) -> int:

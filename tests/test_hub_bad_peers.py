@@ -101,9 +101,29 @@ def test_drops_a_burst_hid_are_said_when_its_second_is_over():
     assert len(lines) == 1
     drops.flush(start + 1.5)
     assert lines[1] == ("hub: dropped 3 more messages from robot:3 at 10.0.0.3 in the last second "
-                        "(`khepri ctl status` counts drops by reason)")
+                        "(bad message 3; `khepri ctl status` counts drops by reason)")
     drops.flush(start + 3.0)                        # said once
     assert len(lines) == 2 and drops.counts == {"bad message": 4}
+
+
+def test_a_new_mistake_from_a_sender_whose_repeats_are_muted_is_still_said():
+    """The same bad message again and again makes its sender wait longer for a line (up to a minute); on
+    loopback every agent is that one sender, so another agent's new mistake went unsaid, and the line after
+    the quiet time gave no reason."""
+    lines = []
+    drops = DropLog(lines.append)
+    sender, start = "peer at 127.0.0.1", time.monotonic()
+    drops.drop("unknown robot", sender, "from peer at 127.0.0.1: robot 42 is not in this lab")
+    # As after a few repeats: its last line 1.5 s ago, its quiet time grown to 8 s.
+    drops._last_line[sender], drops._quiet_s[sender] = start - 1.5, 8.0
+    drops.drop("unknown robot", sender, "from peer at 127.0.0.1: robot 42 is not in this lab")    # hidden
+    assert len(lines) == 1
+    drops.drop("bad message", sender, "from peer at 127.0.0.1: hello.driver: is required")
+    assert lines[-1].startswith("hub: dropped bad message: from peer at 127.0.0.1: hello.driver: is required")
+    drops.drop("bad message", sender, "from peer at 127.0.0.1: wheels.right: is required")   # within its second
+    drops.flush(time.monotonic() + 1.5)
+    assert lines[-1].endswith("(bad message 1; `khepri ctl status` counts drops by reason)"), lines
+    assert drops.counts == {"unknown robot": 2, "bad message": 2}
 
 
 def test_a_robot_without_a_rigid_body_is_refused():
