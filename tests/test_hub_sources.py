@@ -781,8 +781,8 @@ def test_two_robots_on_one_spot_make_the_hub_ask_about_up_axis(up_axis, bodies, 
             time.sleep(0.05)
         said = [line for line in hub.lines if "apart on the floor" in line]
     if warned:
-        assert said == [f"hub: warning: robots 0 and 1 are 0.00 m apart on the floor, closer than two robots can "
-                        f"be: is source.up_axis (y) right for this system (z: Vicon, Qualisys; y: OptiTrack "
-                        f"Motive's default), and is each body its own robot in source.bodies?"], hub.lines
+        assert said == ["hub: warning: robots 0 and 1 are 0.00 m apart on the floor, closer than two robots can "
+                        "be: is source.up_axis (y) right for this system (z: Vicon, Qualisys; y: OptiTrack "
+                        "Motive's default), and is each body its own robot in source.bodies?"], hub.lines
     else:
         assert said == [], said
