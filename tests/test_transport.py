@@ -12,6 +12,7 @@ from onboard.behaviours.transport.approach import first_travel, seed_heading
 from onboard.behaviours.transport.caged import ON_ITS_WAY_WAIT_S
 from onboard.behaviours.transport.estimator import (
     encloses,
+    median_turn,
     normal_displacement,
     ring_centroid,
     ring_rotation,
@@ -175,6 +176,16 @@ def test_centroid_and_rotation_from_the_cage_ring():
     reference = {i: (math.cos(a), math.sin(a)) for i, a in enumerate((0.0, 1.5, 3.0, 4.5))}
     turned = {i: (math.cos(a + 0.3), math.sin(a + 0.3)) for i, a in enumerate((0.0, 1.5, 3.0, 4.5))}
     assert ring_rotation(turned, reference, (0, 0), (0, 0)) == pytest.approx(0.3)
+
+
+def test_the_turn_of_an_object_turned_half_round_is_not_read_as_no_turn():
+    """Turned about 180 degrees, some edges read +179 and others -179: the median of the sorted values fell
+    between them, near 0, and paper-25-straight_rot seed 7 pushed its last legs with the estimate 0.35 m off."""
+    reference = {k: 0.0 for k in "abcdef"}
+    now = dict(zip("abcdef", map(math.radians, (179.0, -179.5, 178.5, -178.0, 179.5, 0.5))))   # f: an outlier
+    assert abs(math.degrees(median_turn((now, reference)))) == pytest.approx(179.75, abs=1.0)
+    small = dict(zip("abcd", (0.31, 0.29, 0.30, 0.33)))          # within half a turn: the plain median
+    assert median_turn((small, {k: 0.0 for k in "abcd"})) == pytest.approx(0.305, abs=1e-12)
 
 
 def test_a_reading_turns_back_into_the_distance_it_came_from():

@@ -118,6 +118,15 @@ def median_turn(*pairs: Tuple[Dict[Any, float], Dict[Any, float]]) -> Optional[f
     turns = sorted(wrap_angle(now[k] - reference[k]) for now, reference in pairs for k in now if k in reference)
     if len(turns) < 2:
         return None
+    if turns[-1] - turns[0] > math.pi:
+        # Spread over more than half a turn: about half a turn from the reference (a box turned twice by 90
+        # degrees), some edges read +179 degrees and others -179, and the median of the sorted values fell
+        # between them, near 0 (paper-25-straight_rot seed 7 then pushed with its estimate 0.35 m off). Each
+        # turn is taken about their circular mean instead; turns within half a turn are left as they were.
+        mean = math.atan2(sum(map(math.sin, turns)), sum(map(math.cos, turns)))
+        turns = sorted(mean + wrap_angle(turn - mean) for turn in turns)
+        middle = len(turns) // 2
+        return wrap_angle(turns[middle] if len(turns) % 2 else (turns[middle - 1] + turns[middle]) / 2.0)
     middle = len(turns) // 2          # the median of the sorted turns (np.median's value, without numpy)
     return turns[middle] if len(turns) % 2 else (turns[middle - 1] + turns[middle]) / 2.0
 
