@@ -136,10 +136,12 @@ def connection_cause(watch: ConnectionWatch, keyed: bool) -> Optional[Tuple[str,
     if failed == "auth":
         return ("the hub refused this operator key: does the hub's key folder list it in operators/? (The hub "
                 "reads its keys when it starts.)"), True
-    if failed is not None:
-        return ("the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key.", True) \
-            if keyed else (f"something there accepted the connection, then dropped it in ZeroMQ's handshake "
-                           f"({failed}): is that the hub's address and control port?", False)
+    if failed is not None and keyed:
+        return "the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key.", True
+    if failed is not None:      # libzmq says "no detail" as often as "mechanism mismatch" for this, by timing
+        return (f"the hub dropped the connection in ZeroMQ's handshake ({failed}), as an encrypted hub does to a "
+                "ctl without keys: give --keys, a folder holding hub.key and operators/<name>.key_secret (khepri "
+                "keys init made it); or is that not the hub's control port?"), True
     if watch.handshake_ok:
         return ("connected, but nothing answers: is that the hub's control port, the one it printed after "
                 "`listening control`, and not its robots port? (a hub too busy to answer needs a longer "
