@@ -122,7 +122,7 @@ def checked_result(evaluator: Evaluator, fields: Any, result: Dict[str, Any]) ->
         raise refuse(f"{taken[0]!r} is a result.json field the simulator writes: give the evaluator's "
                      f"own another name")
     try:
-        json.dumps(fields, default=_plain_number)
+        json.dumps(fields, default=json_default)
     except (TypeError, ValueError, RecursionError):
         try:
             plain_json(fields, "result()")     # names the first value JSON cannot hold
@@ -134,8 +134,9 @@ def checked_result(evaluator: Evaluator, fields: Any, result: Dict[str, Any]) ->
     return fields
 
 
-def _plain_number(value: Any) -> Any:
-    """numpy numbers and arrays, which result.json is written with (sim_backend/outputs.py)."""
+def json_default(value: Any) -> Any:
+    """``json.dumps``'s ``default`` for result.json (sim_backend/outputs.py writes it so): numpy numbers, booleans
+    and arrays as Python's."""
     if isinstance(value, (np.generic, np.ndarray)):
         return value.tolist()
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")

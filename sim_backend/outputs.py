@@ -8,6 +8,7 @@ from typing import Any, Dict, Optional
 
 import numpy as np
 
+from .metrics import json_default
 from .runner import Simulation
 
 
@@ -17,7 +18,7 @@ def write_run(sim: Simulation, result: Dict[str, Any], out_dir: Path, video: Opt
     files = {"result": out_dir / "result.json", "trajectory": out_dir / "trajectory.npz"}
     arrays = sim.trajectory_arrays()
     np.savez_compressed(files["trajectory"], **arrays)
-    files["result"].write_text(json.dumps(result, indent=2, default=_json_default) + "\n")
+    files["result"].write_text(json.dumps(result, indent=2, default=json_default) + "\n")
     if not plot:     # an earlier run's plot in this folder must not pass for this run's
         (out_dir / "trajectory.png").unlink(missing_ok=True)
     if plot or video is not None:
@@ -32,16 +33,6 @@ def write_run(sim: Simulation, result: Dict[str, Any], out_dir: Path, video: Opt
             files["video"] = video
             plots.write_video(arrays, video, title=title)
     return files
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.bool_):
-        return bool(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 class ProgressBar:
