@@ -67,4 +67,3 @@ def _taken(address: str) -> bool:
     except ValueError:
         return False
     return False
-

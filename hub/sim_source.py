@@ -142,4 +142,3 @@ def refuse_agent_restarts(scenario: Scenario) -> None:
             raise ConfigError(f"faults[{i}].restart_after_s", "agent restarts are simulated by `khepri sim run` "
                               "(and studies) only; with the hub, stop the robot's agent and start it again "
                               "(docs/lab.md: a restarted agent joins the run at once)")
-
