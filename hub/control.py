@@ -8,6 +8,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import zmq
 
+from onboard.agent import connection
 from onboard.agent.connection import ConnectionWatch, watch_connection
 from onboard.agent.link import endpoint_candidates, family_hint, use_ipv6
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
@@ -126,30 +127,29 @@ def no_answer(endpoint: str, timeout_s: float, watch: Optional[ConnectionWatch] 
 
 def connection_cause(watch: ConnectionWatch, keyed: bool) -> Optional[Tuple[str, bool]]:
     """(the likeliest cause, whether operator keys may be the fix), from the connection's events."""
-    watch.read()
-    failed = watch.handshake_failed
-    if failed == "protocol" and watch.protocol_error == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:
+    kind = watch.kind()
+    if kind == connection.MECHANISM_MISMATCH:
         if keyed:
             return "the hub is not encrypted (it runs --insecure): run ctl without --keys.", False
         return ("the hub is encrypted: give --keys, a folder holding hub.key and operators/<name>.key_secret "
                 "(khepri keys init made it)."), True
-    if failed == "auth":
+    if kind == connection.KEY_REFUSED:
         return ("the hub refused this operator key: does the hub's key folder list it in operators/? (The hub "
                 "reads its keys when it starts.)"), True
-    if failed is not None and keyed:
+    if kind == connection.HANDSHAKE_DROPPED and keyed:
         return "the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key.", True
-    if failed is not None:      # libzmq says "no detail" as often as "mechanism mismatch" for this, by timing
-        return (f"the hub dropped the connection in ZeroMQ's handshake ({failed}), as an encrypted hub does to a "
-                "ctl without keys: give --keys, a folder holding hub.key and operators/<name>.key_secret (khepri "
-                "keys init made it); or is that not the hub's control port?"), True
-    if watch.handshake_ok:
+    if kind == connection.HANDSHAKE_DROPPED:  # libzmq says "no detail" as often as "mechanism mismatch", by timing
+        return (f"the hub dropped the connection in ZeroMQ's handshake ({watch.detail()}), as an encrypted hub "
+                "does to a ctl without keys: give --keys, a folder holding hub.key and operators/<name>.key_secret "
+                "(khepri keys init made it); or is that not the hub's control port?"), True
+    if kind == connection.CONNECTED_SILENT:
         return ("connected, but nothing answers: is that the hub's control port, the one it printed after "
                 "`listening control`, and not its robots port? (a hub too busy to answer needs a longer "
                 "--timeout)"), False
-    if watch.refused and not watch.connected:
+    if kind == connection.REFUSED:
         return ("nothing accepts a connection there (refused or unreachable): is the hub running, and is that "
                 "its control port, the one it printed after `listening control`?"), False
-    if not watch.connected:
+    if kind == connection.NO_ANSWER:
         return ("no answer at that address at all: is it the hub PC's, is that PC on this network, or does a "
                 "firewall drop the connection?"), False
     return None

@@ -21,6 +21,15 @@ EVENTS = (zmq.EVENT_CONNECTED | zmq.EVENT_CONNECT_DELAYED | zmq.EVENT_CONNECT_RE
 _HANDSHAKE_FAILED = {zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL: "no detail",
                      zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "protocol",
                      zmq.EVENT_HANDSHAKE_FAILED_AUTH: "auth"}
+# What a silent peer's events point to (ConnectionWatch.kind).
+KEY_REFUSED = "key refused"                   # the peer's authenticator refused our CURVE key
+MECHANISM_MISMATCH = "mechanism mismatch"     # one side encrypted, the other not
+HANDSHAKE_DROPPED = "handshake dropped"       # the handshake failed otherwise (a wrong server key, ...)
+CONNECTED_SILENT = "connected, silent"        # the connection is up, and nothing comes over it
+CLOSED = "closed"                             # a connection that was up has been closed
+CLOSED_AND_REFUSED = "closed, refused"        # ... and nothing accepts a new one
+REFUSED = "refused"                           # never connected: refused or unreachable
+NO_ANSWER = "no answer"                       # never connected, and no refusal either (a firewall, a wrong host)
 MAX_EVENTS_READ = 1000       # per call: a socket retrying every 0.1 s makes a few dozen between two reads
 
 
@@ -76,34 +85,55 @@ class ConnectionWatch:
             self.handshake_failed = _HANDSHAKE_FAILED[kind]
             self.protocol_error = value if kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL else None
 
+    def kind(self) -> Optional[str]:
+        """The likeliest reason the peer is silent, as one of the ``KINDS``, or None when the events do not
+        tell. The agent and ``khepri ctl`` each say it in their own words (their flags and hints differ)."""
+        self.read()
+        if self.handshake_failed is not None:
+            if self.handshake_failed == "auth":
+                return KEY_REFUSED
+            mismatch = self.protocol_error == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH
+            if self.handshake_failed == "protocol" and mismatch:
+                return MECHANISM_MISMATCH
+            return HANDSHAKE_DROPPED
+        if self.handshake_ok:
+            return CONNECTED_SILENT
+        if self.dropped:
+            return CLOSED_AND_REFUSED if self.refused else CLOSED
+        if self.refused and not self.connected:
+            return REFUSED
+        if not self.connected:
+            return NO_ANSWER
+        return None
+
     def likely_cause(self, robot_id: int, address: str, keyed: bool) -> Optional[str]:
         """What most likely keeps the hub silent, or None when the events do not tell (then the agent asks
         its general questions)."""
-        self.read()
-        if self.handshake_failed is not None:
-            return self._handshake_cause(robot_id, keyed)
-        if self.handshake_ok:
+        kind = self.kind()
+        if kind in (KEY_REFUSED, MECHANISM_MISMATCH, HANDSHAKE_DROPPED):
+            return self._handshake_cause(kind, robot_id, keyed)
+        if kind == CONNECTED_SILENT:
             return (f"connected to the hub at {address}, but it sends robot {robot_id} nothing: is robot "
                     f"{robot_id} in the hub's lab, and is no other agent connected as robot {robot_id}? "
                     "The hub's console says which")
-        if self.dropped:
-            now = " and nothing accepts a new one (refused or unreachable)" if self.refused else ""
+        if kind in (CLOSED, CLOSED_AND_REFUSED):
+            now = " and nothing accepts a new one (refused or unreachable)" if kind == CLOSED_AND_REFUSED else ""
             return (f"the hub at {address} closed the connection{now}: did the hub stop, or its PC? Start it "
                     "again: this agent reconnects by itself")
-        if self.refused and not self.connected:
+        if kind == REFUSED:
             return (f"nothing accepts a connection at {address} (refused or unreachable): is the hub running, "
                     "and are --hub and --port the host and robots port it printed when it started?")
-        if not self.connected:
+        if kind == NO_ANSWER:
             return (f"no answer at {address} yet: is that the hub PC's address, is it on this network, or does "
                     "a firewall drop the connection?")
         return None
 
-    def _handshake_cause(self, robot_id: int, keyed: bool) -> str:
-        if self.handshake_failed == "auth":
+    def _handshake_cause(self, kind: str, robot_id: int, keyed: bool) -> str:
+        if kind == KEY_REFUSED:
             return (f"the hub refused robot {robot_id}'s key: does the hub's key folder hold "
                     f"robots/robot-{robot_id}.key, the pair of this robot's key_secret? (The hub reads its keys "
                     "when it starts: restart it after `khepri keys add`)")
-        if self.handshake_failed == "protocol" and self.protocol_error == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:
+        if kind == MECHANISM_MISMATCH:
             if keyed:
                 return "the hub is not encrypted (it runs --insecure): start the agent without --keys"
             return ("the hub is encrypted: start the agent with --keys, a folder holding hub.key and "
@@ -111,9 +141,9 @@ class ConnectionWatch:
         if keyed:
             return ("the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key "
                     "(the keys of another hub, or of an older `khepri keys init`?)")
-        return f"the hub dropped the connection in its handshake ({self._detail()})"
+        return f"the hub dropped the connection in its handshake ({self.detail()})"
 
-    def _detail(self) -> str:
+    def detail(self) -> str:
         if self.protocol_error is not None:
             return f"ZMTP error {self.protocol_error:#x}"
         return "no detail given"
