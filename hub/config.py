@@ -343,16 +343,15 @@ def load_config(path: Path) -> LabConfig:
         # Not the defaults: an empty file is more likely a failed copy than a wish for lab-6 in simulation.
         raise ConfigError("--config", f"{path} is empty; hub/examples/lab.yaml is a commented example "
                                       "(`khepri hub --demo` runs the defaults)")
-    if isinstance(data, dict) and "source" in data and data["source"] in (None, {}):
-        # Its lines commented out: taking the defaults would serve simulated lab-6 robots to a real lab.
-        raise ConfigError("source", "is empty: give source.type (motioncapture, sim or replay) and its fields; "
-                                    "hub/examples/lab.yaml shows each")
     try:
+        if isinstance(data, dict) and "source" in data and data["source"] in (None, {}):
+            # Its lines commented out: taking the defaults would serve simulated lab-6 robots to a real lab.
+            raise ConfigError("source", "is empty: give source.type (motioncapture, sim or replay) and its fields; "
+                                        "hub/examples/lab.yaml shows each")
         return parse_config(data)
     except ConfigError as err:
-        if err.field:
-            raise
-        raise ConfigError(str(path), err.problem) from None     # the whole file is wrong: name it
+        # The file is named too: a lab keeps several configs, and the hub's console scrolls.
+        raise ConfigError(f"{path}: {err.field}" if err.field else str(path), err.problem) from None
 
 
 def demo_config() -> LabConfig:

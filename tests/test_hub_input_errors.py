@@ -33,11 +33,12 @@ def khepri(*args, timeout=60):
 
 
 def one_error_line(run, field):
-    """The run failed with exit code 2 and a single `khepri: error: <field>: ...` line, no traceback."""
+    """The run failed with exit code 2 and a single `khepri: error: [<config file>: ]<field>: ...` line, no
+    traceback."""
     assert run.returncode == 2, (run.returncode, run.stderr)
     assert "Traceback" not in run.stderr, run.stderr
     last = run.stderr.strip().splitlines()[-1]
-    assert last.startswith(f"khepri: error: {field}: "), run.stderr
+    assert re.match(rf"khepri: error: (\S+\.yaml: )?{re.escape(field)}: ", last), run.stderr
     return last
 
 
@@ -231,7 +232,8 @@ def test_reset_each_run_must_be_true_or_false(tmp_path, value):
     if value == "sometimes":          # on the command line: one line naming the field, exit code 2
         config = tmp_path / "lab.yaml"
         config.write_text(yaml.safe_dump(sim_config(source={"type": "sim", "reset_each_run": value})))
-        one_error_line(khepri("hub", "--config", str(config)), "source.reset_each_run")
+        said = one_error_line(khepri("hub", "--config", str(config)), "source.reset_each_run")
+        assert said.startswith(f"khepri: error: {config}: source.reset_each_run: ")   # which of a lab's configs
 
 
 def test_run_control_hz_under_a_sim_source_is_refused_rather_than_ignored():
