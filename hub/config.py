@@ -214,6 +214,9 @@ class LabConfig:
     geofence: Optional[Tuple[float, float, float, float]] = None   # [xmin, ymin, xmax, ymax], metres
     watchdog_s: float = DEFAULT_WATCHDOG_S   # hub side: an agent silent this long is "not connected"
     record: Optional[str] = None    # MCAP file for everything in and out
+    # Not a key: whether watchdog_s was written or is the default. A rate too fast for the default is then the
+    # rate's to say (the sim source's rate is the scenario's, checked again in hub/factory.py).
+    watchdog_written: bool = field(default=True, init=False, repr=False)
 
     def validate(self, where: str) -> None:
         if self.geofence is not None:
@@ -289,8 +292,7 @@ def parse_config(data: Any) -> LabConfig:
         raise ConfigError("", f"a lab config must be a mapping of keys (got {type(data).__name__})")
     check_unknown_source_keys(data.get("source"))
     config = from_mapping(LabConfig, data, "")
-    # Whether watchdog_s was written or is the default: a rate too fast for the default is the rate's to say.
-    config.watchdog_written = "watchdog_s" in data       # read again for a sim source (hub/factory.py)
+    config.watchdog_written = "watchdog_s" in data
     if config.source.type != "sim":          # the sim source's agents run at the scenario's rate: build_hub
         check_watchdog(config.watchdog_s, config.run.control_hz, "run.control_hz", config.watchdog_written)
     check_source_fields(data.get("source") or {}, config.source.type)

@@ -198,7 +198,7 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     control_hz = scenario.physics.control_hz if scenario is not None else run.control_hz
     if scenario is not None:       # the config checked watchdog_s against run.control_hz, which sim replaces
         check_watchdog(config.watchdog_s, control_hz, f"{scenario.name}: physics.control_hz",
-                       getattr(config, "watchdog_written", True))
+                       config.watchdog_written)
     seed = config.source.seed if config.source.seed is not None else getattr(scenario, "seed", None)
     return RunTemplate(name, params, control_hz, lockstep=config.source.type == "sim" and config.source.lockstep,
                        spec=dict(spec.__dict__), seed=seed)
