@@ -134,6 +134,27 @@ def checked_result(evaluator: Evaluator, fields: Any, result: Dict[str, Any]) ->
     return fields
 
 
+def result_text(result: Dict[str, Any]) -> str:
+    """result.json's text, as ``sim run``, ``sil`` and a study write it: numpy values as Python's, and NaN or
+    infinity as null. JSON has neither, and Python's json writes a bare NaN that strict readers (jq, a
+    browser, pandas in some modes) refuse; a physics blow-up or an evaluator's NaN must not make the file
+    unreadable."""
+    return json.dumps(finite(result), indent=2, default=json_default, allow_nan=False) + "\n"
+
+
+def finite(value: Any) -> Any:
+    """``value`` with every non-finite float (also inside numpy arrays, lists and dicts) made None."""
+    if isinstance(value, dict):
+        return {key: finite(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite(item) for item in value]
+    if isinstance(value, (np.generic, np.ndarray)):
+        return finite(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def json_default(value: Any) -> Any:
     """``json.dumps``'s ``default`` for result.json (sim_backend/outputs.py writes it so): numpy numbers, booleans
     and arrays as Python's."""

@@ -1,14 +1,13 @@
 """Writing a finished run to disk: result.json, trajectory.npz, trajectory.png and an optional video."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Any, Dict, Optional
 
 import numpy as np
 
-from .metrics import json_default
+from .metrics import result_text
 from .runner import Simulation
 
 
@@ -18,7 +17,7 @@ def write_run(sim: Simulation, result: Dict[str, Any], out_dir: Path, video: Opt
     files = {"result": out_dir / "result.json", "trajectory": out_dir / "trajectory.npz"}
     arrays = sim.trajectory_arrays()
     np.savez_compressed(files["trajectory"], **arrays)
-    files["result"].write_text(json.dumps(result, indent=2, default=json_default) + "\n")
+    files["result"].write_text(result_text(result))
     if not plot:     # an earlier run's plot in this folder must not pass for this run's
         (out_dir / "trajectory.png").unlink(missing_ok=True)
     if plot or video is not None:

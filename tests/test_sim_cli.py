@@ -351,3 +351,22 @@ def test_a_run_under_a_second_says_its_wall_time_in_digits_that_count():
               "real_time_factor": 212.53, "stop_reason": "time limit"}
     assert "8.0 s simulated in 0.038 s (212.53x real time)" in summary_line(result)
     assert "in 1.2 s" in summary_line({**result, "wall_time_s": 1.234})
+
+
+def test_result_json_writes_nan_and_infinity_as_null(tmp_path):
+    """A physics blow-up or an evaluator's NaN wrote a bare NaN into result.json, which strict JSON readers
+    refuse; sim run, sil and a study write the file with the same function."""
+    import numpy as np
+
+    from sim_backend.metrics import result_text
+    from sim_backend.study.worker import write_result
+
+    result = {"seed": 1, "stop_reason": "time_limit", "final_position_error_m": float("nan"),
+              "waypoints": [{"error": np.float64(np.inf)}], "samples": np.array([1.0, -np.inf])}
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda name: pytest.fail(f"result.json holds {name}"))
+
+    assert strict(result_text(result)) == {"seed": 1, "stop_reason": "time_limit", "final_position_error_m": None,
+                                           "waypoints": [{"error": None}], "samples": [1.0, None]}
+    assert strict(write_result(result, tmp_path / "run").read_text())["final_position_error_m"] is None

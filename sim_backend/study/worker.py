@@ -6,7 +6,6 @@ A run never raises: whatever goes wrong becomes a result with ``failed: true`` a
 """
 from __future__ import annotations
 
-import json
 import os
 import secrets
 import shutil
@@ -18,6 +17,7 @@ from typing import Any, Dict
 from onboard.jsontext import parse_json
 from onboard.plugins import import_user_modules
 
+from ..metrics import result_text
 from .grid import RunSpec
 
 RESULT_FILE = "result.json"
@@ -101,20 +101,12 @@ def write_result(result: Dict[str, Any], run_dir: Path) -> Path:
     handle = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(handle, "w", encoding="utf-8") as stream:
-            stream.write(json.dumps(result, indent=2, default=json_value) + "\n")
+            stream.write(result_text(result))
         os.replace(temporary, target)
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
     return target
-
-
-def json_value(value: Any) -> Any:
-    """numpy scalars and arrays inside a result, as JSON values."""
-    for method in ("tolist", "item"):
-        if hasattr(value, method):
-            return getattr(value, method)()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 def read_result(run_dir: Path) -> Dict[str, Any]:
