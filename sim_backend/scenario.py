@@ -63,6 +63,10 @@ def check_point(where: str, point: Tuple[float, float]) -> None:
 # Sensing is all pairs (N x N every step) and every robot hears every broadcast in range: 5000 robots would
 # take hours per simulated minute. The bound turns a typo (count: 100000000000) into an error, not a hang.
 MAX_ROBOTS = 5000
+# Masses beyond these are typos (a KheperaIV is 0.54 kg; the paper's heaviest payload 4 kg): from about 1e150 kg
+# pymunk's step gives NaN poses, and a run went on with a NaN object to a NaN final error.
+MAX_OBJECT_MASS_KG = 1e6
+MAX_ROBOT_MASS_KG = 1e3
 
 
 @dataclass
@@ -79,7 +83,7 @@ class RobotsSpec:
         check_range(join(where, "count"), self.count, 1, MAX_ROBOTS)
         check_range(join(where, "max_wheel_speed_m_s"), self.max_wheel_speed_m_s, 0.0, 2.0, low_open=True)
         check_range(join(where, "traction"), self.traction, 0.0, 3.0, low_open=True)
-        check_range(join(where, "mass_kg"), self.mass_kg, 0.0, low_open=True)
+        check_range(join(where, "mass_kg"), self.mass_kg, 0.0, MAX_ROBOT_MASS_KG, low_open=True)
 
 
 @dataclass
@@ -122,7 +126,7 @@ class ObjectSpec:
     def validate(self, where: str) -> None:
         if self.shape not in SHAPES:
             raise ConfigError(join(where, "shape"), f"must be one of {', '.join(SHAPES)} (got {self.shape!r})")
-        check_range(join(where, "mass"), self.mass, 0.0, low_open=True)
+        check_range(join(where, "mass"), self.mass, 0.0, MAX_OBJECT_MASS_KG, low_open=True)
         check_range(join(where, "friction"), self.friction, 0.0, 5.0)
         check_range(join(where, "scale"), self.scale, 0.0, 100.0, low_open=True)
         check_point(join(where, "position"), self.position)
@@ -173,8 +177,11 @@ def validate_dimensions(spec: Any, where: str) -> None:
             check_point(join(join(where, "vertices"), i), vertex)
         fault = outline_fault(spec.vertices)
         crossing = fault is not None and fault.startswith("edges")   # a bow-tie's area is 0 too: this says why
-        if abs(polygon_area(spec.vertices)) < 1e-6 and not crossing:
-            raise ConfigError(join(where, "vertices"), "the polygon has no area (collinear or repeated points)")
+        area = abs(polygon_area(spec.vertices))
+        if area < 1e-6 and not crossing:    # a 1 mm triangle was said to be collinear
+            raise ConfigError(join(where, "vertices"), "the polygon has no area (collinear or repeated points)"
+                              if area < 1e-12 else f"the polygon's area is {area:.1g} m², under 1 mm x 1 mm: too "
+                              "small for an object (are the vertices in metres?)")
         if crossing:
             raise ConfigError(join(where, "vertices"), f"{fault}: the outline must be a simple polygon, not meeting "
                               "itself (split such a shape into compound parts)")

@@ -185,6 +185,12 @@ SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such
     # Outlines that meet themselves without crossing: they used to build an object of two pieces, or a spike.
     ({"object": {"shape": "polygon", "vertices": [[0, 0], [2, 0], [2, 2], [1, 0], [0, 2]]}}, "object.vertices",
      "object.vertices: edges 0 and 2 touch" + SIMPLE),
+    ({"object": {"shape": "polygon", "vertices": [[0, 0], [0.001, 0], [0, 0.001]]}}, "object.vertices",
+     "object.vertices: the polygon's area is 5e-07 m², under 1 mm x 1 mm: too small for an object (are the vertices "
+     "in metres?)"),
+    ({"object": {"mass": 1e300}}, "object.mass", "object.mass: must be <= 1e+06 (got 1e+300)"),
+    ({"robots": {"mass_kg": 1e200}}, "robots.mass_kg", "robots.mass_kg: must be <= 1000 (got 1e+200)"),
+    ({"params": {"k_t_push": -60}}, "params.k_t_push", "params.k_t_push: must be >= 0 (got -60)"),
     ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [1, 1], [1, 3], [1, 1], [0, 1]]}},
      "object.vertices", "object.vertices: the outline turns back on itself at vertex 3 (a spike of no width)"),
     ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [1, 0], [1, 1]]}}, "object.vertices",
