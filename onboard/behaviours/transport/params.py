@@ -18,6 +18,7 @@ IMPROVEMENT_FLAGS = ("pipeline_allocation", "equalise_spacing", "hold_yaw_while_
                      "keep_contact", "reinforce_push", "seed_from_rear", "keep_gap_while_caging",
                      "surface_estimate", "pace_formation", "regroup_when_cut_off", "head_start")
 SMALL_CAGE_YAW = ("auto", "edges", "contact_normals")
+GAINS = ("k_t_caging", "k_cp_effective", "k_cp_other", "k_f_push", "k_t_push", "k_cr", "k_f_rotate", "k_r")
 
 
 @dataclass
@@ -158,6 +159,10 @@ class TransportParams:
                      "travel_speed_m_s", "travel_fast_beyond_m", "position_tolerance_m", "rotation_tolerance_deg",
                      "seed_approach_radius_m", "barrier_stall_s"):
             check_range(f"{where}.{name}", getattr(self, name), 0.0, low_open=True)
+        # The gains of u_t, u_cp, u_f, u_cr and u_r: 0 switches a term off (a study may want that), a negative
+        # gain turns it round (the robots drive away from their targets), which no run wants.
+        for name in GAINS:
+            check_range(f"{where}.{name}", getattr(self, name), 0.0)
         check_range(f"{where}.proximity_threshold", self.proximity_threshold, 0.0, 1.0, low_open=True)
         check_range(f"{where}.theta_p_deg", self.theta_p_deg, 0.0, 180.0)
         for name in ("orientation_tolerance_deg", "rotation_tolerance_deg"):     # |yaw error| is at most 180
