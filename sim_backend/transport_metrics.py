@@ -28,6 +28,11 @@ STUCK_BELOW_M = 0.05            # a closed cage that moved the object less than 
 # A push is judged stuck only when the run went on this long after the cage settled (the stall detection's own
 # window, reinforce_when_stalled_s): a run stopped sooner (a short --time-limit) did not get to push.
 PUSH_JUDGED_AFTER_S = 15.0
+# Progress toward the next waypoint: its distance this much shorter, or its yaw error this much smaller, than
+# the best so far. An object still making progress when the time limit came was not stuck, however little it
+# had moved (a turn in place moves it not at all).
+PROGRESS_M = 0.01
+PROGRESS_RAD = math.radians(1.0)
 CAGE_STATES = ("caged", "settle", "push", "rotate", "done")
 
 
@@ -46,6 +51,8 @@ class TransportEvaluator(Evaluator):
         self.phase_steps: Dict[tuple, int] = {}      # (phase, waypoint) -> control steps spent in it
         self.next_spacing_sample = 0.0
         self.last_time = 0.0
+        self.best_toward: Tuple[int, float, float] = (-1, math.inf, math.inf)   # waypoint, distance, yaw error
+        self.progress_at: Optional[float] = None      # when the object last got nearer its next waypoint
 
     def warnings(self, params: Any) -> List[str]:
         return transport_warnings(self.scenario, self.world, params)
@@ -73,9 +80,19 @@ class TransportEvaluator(Evaluator):
                 self.rotators.setdefault(t["waypoint"], []).append(i)
         self._count_steps(transporting, reports)
         self._check_waypoints(time_s, live, reports)
+        self._note_progress(time_s)
         if transporting and time_s >= self.next_spacing_sample:
             self.next_spacing_sample = time_s + SPACING_SAMPLE_PERIOD_S
             self.spacings.extend(self._adjacent_distances(live))
+
+    def _note_progress(self, time_s: float) -> None:
+        k = len(self.reached)
+        if not self.scenario.path or k >= len(self.scenario.path):
+            return
+        distance, yaw_error = waypoint_error(self.world.object_pose(), self.scenario.path[k])
+        index, best_distance, best_yaw = self.best_toward
+        if index != k or distance < best_distance - PROGRESS_M or yaw_error < best_yaw - PROGRESS_RAD:
+            self.best_toward, self.progress_at = (k, distance, yaw_error), time_s
 
     def _count_steps(self, transporting: List[int], reports: Dict[int, Dict[str, Any]]) -> None:
         # Per waypoint and phase, how many control steps were spent (to average the robot counts).
@@ -147,6 +164,38 @@ class TransportEvaluator(Evaluator):
         settle = f" (the cage settles for {settle_s:g} s before it pushes)" if settle_s > 0 else ""
         return [f"the run ended {after_s:.1f} s after the cage closed{settle}, too soon to judge the push: "
                 f"give it a longer time limit (time_limit_s, --time-limit)"]
+
+    def _still_going_hint(self, truth: np.ndarray) -> List[str]:
+        """An object still getting nearer its next waypoint when the time limit came: the run was short, not
+        stuck (a box turned 171° of a 180° turn in place was said to be held by floor friction)."""
+        if self.progress_at is None or self.last_time - self.progress_at >= PUSH_JUDGED_AFTER_S:
+            return []
+        if self.last_time + 2.0 / self.scenario.physics.control_hz < self.scenario.time_limit_s:
+            return []       # stopped early: its stop_reason says why
+        k = len(self.reached)
+        distance, yaw_error = waypoint_error(truth, self.scenario.path[k])
+        return [f"the object was still on its way when the run reached its {self.scenario.time_limit_s:g} s time "
+                f"limit ({distance:.2f} m and {math.degrees(yaw_error):.0f}° from waypoint {k + 1}, nearer "
+                f"{self.last_time - self.progress_at:.0f} s before the end): give it a longer time limit "
+                "(time_limit_s, --time-limit)"]
+
+    def _turn_hint(self, truth: np.ndarray) -> List[str]:
+        """An object that stands at its next waypoint but not at its yaw: the turn is what failed, which floor
+        friction against the pushers does not explain (u_r and u_cr turn it, after the push)."""
+        params = self.scenario.params
+        k = len(self.reached)
+        distance, yaw_error = waypoint_error(truth, self.scenario.path[k])
+        yaw_tol = math.radians(float(params.get("orientation_tolerance_deg", 5.72)))
+        if distance > float(params.get("push_tolerance_m", 0.1)) or yaw_error <= yaw_tol \
+                or not judges_yaw(self.scenario.object):
+            return []
+        turned = abs(wrap_angle(truth[2] - self.pose_at_closure[2])) if self.pose_at_closure is not None else 0.0
+        off = [name for name in ("k_r", "k_cr") if float(params.get(name, 1.0)) == 0.0]
+        why = (f"{' and '.join('params.' + name for name in off)} {'is' if len(off) == 1 else 'are'} 0" if off else
+               f"{len(self.members)} members turning it against its floor friction: more robots or less friction")
+        return [f"the object stands {distance:.2f} m from waypoint {k + 1} but {math.degrees(yaw_error):.0f}° off "
+                f"its yaw, having turned {math.degrees(turned):.0f}° since the cage closed; the members turn it "
+                f"with u_r and u_cr (params.k_r, params.k_cr): {why}"]
 
     def _stuck_hint(self, truth: np.ndarray) -> List[str]:
         """Why a closed cage may not have got anywhere: said when the object hardly moved after closure."""
@@ -227,7 +276,8 @@ class TransportEvaluator(Evaluator):
             })
             if caged and not done:
                 failures.append(f"reached {len(waypoints)} of {len(scenario.path)} waypoints")
-                failures.extend(self._too_soon_hint() or self._stuck_hint(truth))
+                failures.extend(self._too_soon_hint() or self._still_going_hint(truth) or self._turn_hint(truth)
+                                or self._stuck_hint(truth))
             failures.extend(self._outside_tolerance(waypoints, d_tol, yaw_tol if judge_yaw else math.inf))
         out["failures"] = failures
         out["faults_fired"] = dead          # not failures: a run that loses a robot may still complete

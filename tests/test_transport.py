@@ -1135,3 +1135,46 @@ def test_result_json_says_whether_the_closed_cage_really_encloses_the_object(mak
     result = evaluator.result()
     assert result["caged"] and result["cage_encloses_object"] is encloses
     assert any("without enclosing the object" in line for line in result["failures"]) is not encloses
+
+
+def test_a_turn_in_place_cut_short_by_the_time_limit_is_not_blamed_on_friction(make_scenario):
+    """A box that had turned 171° of a 180° turn in place when the time limit came was said to be held by
+    `1.5 N of floor friction`: the stuck hint measured only how far the centroid moved, which a turn in
+    place does not. An object still getting nearer its waypoint was only short of time."""
+    from sim_backend.transport_metrics import PUSH_JUDGED_AFTER_S, TransportEvaluator
+
+    scenario = make_scenario(behaviour="transport", robots={"count": 10}, time_limit_s=107,
+                             object={"shape": "box", "size": [0.5, 0.8], "mass": 0.5}, path=[[0, 0, 180]])
+    evaluator = TransportEvaluator.__new__(TransportEvaluator)
+    evaluator.scenario, evaluator.pose_at_closure, evaluator.members = scenario, (0.0, 0.0, 0.0), [0, 1, 2, 3]
+    evaluator.reached, evaluator.last_time = {}, 107.0
+    truth = (0.02, 0.0, math.radians(-171))
+    evaluator.progress_at = 106.9
+    (hint,) = evaluator._still_going_hint(truth)
+    assert hint.startswith("the object was still on its way when the run reached its 107 s time limit (0.02 m and "
+                           "9° from waypoint 1") and "--time-limit" in hint
+    evaluator.progress_at = 107.0 - PUSH_JUDGED_AFTER_S     # no nearer for as long as a stall is judged after
+    assert evaluator._still_going_hint(truth) == []
+    evaluator.progress_at, evaluator.last_time = 50.0, 52.0  # stopped early: the stop_reason says why
+    assert evaluator._still_going_hint(truth) == []
+
+
+def test_a_turn_that_did_not_happen_names_the_rotation_gains_not_the_floor_friction(make_scenario):
+    from sim_backend.transport_metrics import TransportEvaluator
+
+    def hint(params, truth=(0.0, 0.0, 0.0)):
+        scenario = make_scenario(behaviour="transport", robots={"count": 10}, params=params,
+                                 object={"shape": "box", "size": [0.5, 0.8], "mass": 0.5}, path=[[0, 0, 90]])
+        evaluator = TransportEvaluator.__new__(TransportEvaluator)
+        evaluator.scenario, evaluator.pose_at_closure, evaluator.members = scenario, (0.0, 0.0, 0.0), [0, 1, 2, 3]
+        evaluator.reached = {}
+        return evaluator._turn_hint(truth)
+
+    (zero,) = hint({"k_r": 0, "k_cr": 0})
+    assert zero == ("the object stands 0.00 m from waypoint 1 but 90° off its yaw, having turned 0° since the cage "
+                    "closed; the members turn it with u_r and u_cr (params.k_r, params.k_cr): params.k_r and "
+                    "params.k_cr are 0")
+    (weak,) = hint({}, truth=(0.03, 0.0, math.radians(30)))
+    assert "60° off its yaw, having turned 30°" in weak and "4 members turning it against its floor friction" in weak
+    assert hint({}, truth=(0.5, 0.0, 0.0)) == []       # not at the waypoint: the push is what failed
+    assert hint({}, truth=(0.0, 0.0, math.radians(88))) == []     # within the yaw tolerance
