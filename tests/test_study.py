@@ -1536,3 +1536,14 @@ def test_a_study_target_that_is_not_a_study_file_says_what_it_is(tmp_path, monke
     monkeypatch.chdir(tmp_path)
     assert main(["study", target, "--dry-run"]) == 2
     assert capsys.readouterr().err.startswith(f"khepri: error: {said}")
+
+
+def test_a_transport_cell_whose_runs_all_failed_keeps_the_transport_tables(tmp_path):
+    """lab-6 runs all stopped by a wall-clock limit were listed under "other behaviours", with `ended by` and
+    `time to finish` columns, while summary.csv counted them as transport cells (time to cage, n = 0)."""
+    study = write(tmp_path / "s.yaml", "scenarios: [lab-6]\nreps: 1\ntime_limit_s: 30\n")
+    main(["study", str(study), "--out", str(tmp_path / "out"), "--workers", "1", "--no-figures",
+          "--wall-limit", "0.01"])
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "(other behaviours)" not in report and "## Outcome per cell" in report
+    assert "| lab-6 |" in report.split("## Outcome per cell")[1]

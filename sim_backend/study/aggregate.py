@@ -77,6 +77,14 @@ class Cell:
     def has_path(self) -> bool:
         return any("completed" in r for r in self.ok)
 
+    @property
+    def cages(self) -> bool:
+        """Its runs cage an object: a run says so, or it reproduces a paper case, or its runs (failed ones too,
+        which say nothing of caging) ran the transport behaviour."""
+        results = list(self.results.values())
+        return (self.case != PaperCase() or any("caged" in r for r in results)
+                or any(r.get("behaviour") == "transport" for r in results))
+
     def time_limits_s(self) -> List[float]:
         """The time limits its runs ran with, where the study replaced the scenario's own (``--time-limit``, a
         study's ``time_limit_s``, or an override of ``time_limit_s``)."""
@@ -268,9 +276,7 @@ def time_metrics(cell: Cell) -> List[str]:
     the cell is not missing from a table of times: wall_time_s always; the time to cage for a cell that cages
     (said by a run, or known from its paper case or its transport behaviour when every run failed before
     saying); the time to complete when it has a path, or may have one (its runs all failed)."""
-    results = list(cell.results.values())
-    caging = (cell.case != PaperCase() or any("caged" in r for r in results)
-              or any(r.get("behaviour") == "transport" for r in results))
+    caging = cell.cages
     without_path = cell.case.irregular or (bool(cell.ok) and not cell.has_path)
     times = ["wall_time_s"]
     if caging:

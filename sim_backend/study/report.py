@@ -220,8 +220,9 @@ def warning_section(cells: List[Cell]) -> List[str]:
 
 
 def is_transport(cell: Cell) -> bool:
-    """A cell whose runs report caging (the transport's evaluator): the transport tables apply to it."""
-    return cell.has_path or any("caged" in r for r in cell.ok)
+    """A cell whose runs report caging (the transport's evaluator), or would have, had they not all failed: the
+    transport tables apply to it (a lab-6 cell whose runs all failed was listed among "other behaviours")."""
+    return cell.has_path or cell.cages
 
 
 def outcome_table(cells: List[Cell]) -> List[str]:

@@ -18,6 +18,7 @@ from onboard.jsontext import parse_json
 from onboard.plugins import import_user_modules
 
 from ..metrics import result_text
+from ..scenario import Scenario
 from .grid import RunSpec
 
 RESULT_FILE = "result.json"
@@ -64,7 +65,7 @@ def failed_result(spec: RunSpec, reason: str, trace: str = "") -> Dict[str, Any]
         "scenario": str(spec.scenario_data.get("name", spec.scenario)),
         "seed": spec.seed,
         "robots": (spec.scenario_data.get("robots") or {}).get("count"),
-        "behaviour": spec.scenario_data.get("behaviour"),
+        "behaviour": spec.scenario_data.get("behaviour") or Scenario.behaviour,   # the report's tables go by it
         "error": reason,
     }
     if trace:
