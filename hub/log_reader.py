@@ -196,6 +196,10 @@ class LogReader:
         if file.read(len(MCAP_MAGIC)) == MCAP_MAGIC:
             self.complete = True
             self.readable_bytes = offset + len(MCAP_MAGIC)
+            extra = self.file_bytes - self.readable_bytes
+            if extra > 0:       # `cat a.mcap b.mcap`: b was dropped without a word, and the file passed --check
+                self.damaged.append(f"{extra} bytes after the log's end at byte {self.readable_bytes}, not read "
+                                    "(two logs joined with cat? each log must be a file of its own)")
         else:
             self.readable_bytes = offset
             self.stop_reason = f"the footer at byte {offset} is not followed by the MCAP magic bytes"

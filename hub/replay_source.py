@@ -209,8 +209,8 @@ class ReplaySource(PoseSource):
         """How far the replay has got, in log time: ``played_s`` of ``total_s`` (None for a log cut short), and
         ``percent`` of that, or for a log cut short of the file's bytes read."""
         played = 0.0 if self.played_stamp is None else self.played_stamp - self.first_stamp
-        if self.finished:
-            percent = 100.0
+        if self.finished and self.total_s is not None:
+            percent = 100.0     # a log cut short: as far as its bytes were read (it said 100 % of a file 32 % read)
         elif self.total_s is not None:
             percent = 100.0 * played / self.total_s if self.total_s > 0 else 0.0
         else:

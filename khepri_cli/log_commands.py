@@ -17,7 +17,8 @@ def add_log(groups) -> None:
     info.add_argument("files", nargs="+", metavar="FILE",
                       help="an .mcap log written by the hub (several: one summary each, logs/*.mcap)")
     info.add_argument("--json", action="store_true",
-                      help="print the summary as JSON (several files: a list of them, in the order given)")
+                      help="print the summary as JSON (several files: a list of them, in the order given; a file "
+                           "that cannot be read is {\"path\": ..., \"error\": ...} there)")
     info.add_argument("--check", action="store_true",
                       help="read every record, check every chunk's CRC and decode every JSON message, also in a "
                            "complete log (slower; by default a complete log is summarised from its index); exit "
@@ -49,6 +50,8 @@ def cmd_info(args: argparse.Namespace) -> int:
         except ConfigError as err:
             say(f"khepri: error: {err}")
             code = 2
+            # One entry per file given, in order: a list without it paired the next file's summary with its name.
+            summaries.append({"path": name, "error": str(err)})
     if args.json:
         print(json.dumps(summaries, indent=2))
     return code

@@ -695,3 +695,22 @@ def test_a_huge_or_unnamed_metadata_value_is_shown_short_and_whole_in_json(tmp_p
     assert "metadata:  (empty key) = 1" in lines
     shown = subprocess.run([*KHEPRI, "log", "info", str(path), "--json"], capture_output=True, text=True, env=ENV)
     assert json.loads(shown.stdout)["metadata"]["notes"] == "x" * 1_000_000
+
+
+def test_bytes_after_a_logs_end_are_said_and_fail_the_check(tmp_path):
+    """`cat a.mcap b.mcap > both.mcap` summarised as `complete`, exit 0 under --check: the second log, 500 kB of
+    a run, was dropped without a word. In a --json list an unreadable file kept no place, so the next file's
+    summary stood where a script expected it."""
+    first = write_log(tmp_path / "a.mcap", every_topic_records())
+    second = write_log(tmp_path / "b.mcap", every_topic_records())
+    joined = tmp_path / "both.mcap"
+    joined.write_bytes(first.read_bytes() + second.read_bytes())
+    summary = summarise(joined)
+    assert not summary.truncated and summary.readable_bytes == first.stat().st_size
+    (said,) = summary.damaged_records
+    assert said.startswith(f"{second.stat().st_size} bytes after the log's end at byte {first.stat().st_size}")
+    assert run_khepri(joined, "--check").returncode == 1
+    (tmp_path / "empty.mcap").write_bytes(b"")
+    listed = json.loads(run_khepri(first, tmp_path / "empty.mcap", second, "--json").stdout)
+    assert [entry["path"] for entry in listed] == [str(first), str(tmp_path / "empty.mcap"), str(second)]
+    assert listed[1]["error"].startswith(f"{tmp_path / 'empty.mcap'}: empty file")
