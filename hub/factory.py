@@ -52,11 +52,13 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     if exposed:
         log(f"hub: warning: {exposed}")
     if config.source.type == "sim":
-        from .sim_source import SimSource
+        from .sim_source import SimSource, not_simulated_here
 
         source: PoseSource = SimSource(scenario, config.source.seed, config.source.frame_hz)
         seed = source.hub_seed
         log(f"hub: source {source.description}: the simulator plays the robots and the motion capture")
+        for line in not_simulated_here(scenario):
+            log(f"hub: warning: {line}")
     elif config.source.type == "motioncapture":
         src = config.source
         source = MotionCaptureSource(context, src.system, src.options, src.bodies, src.up_axis, log,

@@ -31,6 +31,7 @@ from .lockstep import UNRESPONSIVE_AFTER_STEPS, Lockstep
 from .runner import print_now
 from .security import init_keys
 from .sil_report import SilRecording, agents_total, sil_figures
+from .sim_source import not_simulated_here
 
 CONNECT_TIMEOUT_S = 60.0
 
@@ -209,10 +210,7 @@ class SilSession:
         behaviour_cls = get_behaviour(scenario.behaviour)       # the agents build these same params
         self.warnings = evaluator_call(self.evaluator, "warnings",
                                        build_params(behaviour_cls, mission_params(behaviour_cls, scenario)))
-        if scenario.comm.latency_s > 0:
-            self.warnings = [*self.warnings, f"comm.latency_s ({scenario.comm.latency_s:g} s) is not simulated "
-                             "in sil: the hub relays a broadcast with the next frame, one control step later, as "
-                             "it does in the lab (where the radio's own delay adds to that)"]
+        self.warnings = [*self.warnings, *not_simulated_here(scenario)]
         self.recording = SilRecording(scenario, self.source.world)
         self.round_trips: List[float] = []
         self.missing_answers = 0

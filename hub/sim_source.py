@@ -134,6 +134,27 @@ class SimSource(PoseSource):
         return int(math.floor(self.steps / self.substeps_per_control + 1e-9))
 
 
+def not_simulated_here(scenario: Scenario) -> List[str]:
+    """The scenario's sensing faults that ``khepri sim run`` simulates and the hub's sim source does not: said
+    before a run (``sil`` and a hub with this source), as a run's result would otherwise differ in silence (a
+    behaviour's code for a missing pose never ran in sil)."""
+    comm, sensors = scenario.comm, scenario.sensors
+    said = []
+    if comm.latency_s > 0:
+        said.append(f"comm.latency_s ({comm.latency_s:g} s) is not simulated by the hub's sim source: the hub "
+                    "relays a broadcast with the next frame, one control step later, as it does in the lab (where "
+                    "the radio's own delay adds to that)")
+    if sensors.pose_dropout > 0 or sensors.pose_latency_s > 0:
+        named = [f"{name} ({value:g}{unit})" for name, value, unit in
+                 (("sensors.pose_dropout", sensors.pose_dropout, ""),
+                  ("sensors.pose_latency_s", sensors.pose_latency_s, " s")) if value > 0]
+        said.append(f"{' and '.join(named)} {'are' if len(named) > 1 else 'is'} not simulated by the hub's sim "
+                    "source: every robot gets its true pose (with the scenario's pose noise) in every frame. In the "
+                    "lab, a body the motion capture misses for longer than source.stale_s has no pose and its "
+                    "robot is held; `khepri sim run` simulates both")
+    return said
+
+
 def refuse_agent_restarts(scenario: Scenario) -> None:
     """A fault that restarts a robot's agent is the simulator's: here the agents are processes of their own
     (``khepri sil`` or real robots), and the world cannot restart them."""

@@ -67,12 +67,16 @@ def test_the_warnings_go_by_the_time_limit_the_run_gets(tmp_path):
     lab6 = load_scenario("lab-6")
     scenario = lab6.with_overrides(robots=dataclasses.replace(lab6.robots, count=3), time_limit_s=60.0,
                                    faults=[Fault(robot=1, at_s=100.0)],
-                                   comm=dataclasses.replace(lab6.comm, latency_s=0.3))
+                                   comm=dataclasses.replace(lab6.comm, latency_s=0.3),
+                                   sensors=dataclasses.replace(lab6.sensors, pose_dropout=0.6))
     result = run_sil(scenario, tmp_path, SilOptions(plot=False, record=False, time_limit_s=1.0))
     assert [w for w in result.get("warnings", []) if w.startswith("faults")] == [
         "faults[0].at_s: 100 s is not before the time limit (1 s): robot 1 never fails"]
     # The hub relays with the next frame: a radio delay the scenario asks for was ignored without a word.
-    assert [w for w in result["warnings"] if w.startswith("comm.latency_s (0.3 s) is not simulated in sil")]
+    assert [w for w in result["warnings"] if w.startswith("comm.latency_s (0.3 s) is not simulated by the hub's")]
+    # Nor were lost poses: a behaviour's code for a missing pose never ran in sil, and nothing said so.
+    (dropout,) = [w for w in result["warnings"] if w.startswith("sensors.pose_dropout (0.6) is not simulated")]
+    assert "source.stale_s" in dropout and "held" in dropout
 
 
 def test_a_realtime_run_stops_at_its_time_limit_as_lockstep_does(tmp_path):
