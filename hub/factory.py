@@ -11,6 +11,7 @@ import zmq
 from onboard.behaviour import build_params, get_behaviour
 from onboard.config import ConfigError, folder_not_file
 from onboard.hal import RobotSpec
+from onboard.protocol_schema import MAX_PAYLOAD_BYTES
 
 from .binding import check_ports_free
 from .config import LabConfig, check_watchdog
@@ -74,6 +75,11 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
             say_unplaced_replay_robots(source, ids, log)
         if keyring is not None:
             say_missing_keys(ids, keyring, log, ids_from=lab_ids_origin(config))
+        if config.relay.max_bytes < MAX_PAYLOAD_BYTES:
+            # The agents do not know this limit: a behaviour tried in `sim run` (8192 bytes) sends as it did there.
+            log(f"hub: relay.max_bytes is {config.relay.max_bytes}: a broadcast over it is dropped here, and its "
+                f"behaviour is not told (in `khepri sim run` a payload may be {MAX_PAYLOAD_BYTES} bytes; the "
+                "transport's tuple-space messages are up to 6000)")
         if recorder is None and config.record is not None:
             path = record_path(config)
             recorder = open_recorder(path, {"source": source.description, "behaviour": run.behaviour},

@@ -4,7 +4,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Optional
+from typing import Any, Callable, Dict, List, Optional
 
 import zmq
 
@@ -75,6 +75,9 @@ class RobotLink:
         }
 
 
+KNOWN_PROBLEMS = 16      # per sender: the problems whose lines count as repeats (a lab's robots, a few kinds)
+
+
 @dataclass
 class DropLog:
     """Counts every dropped message by reason and sender, and says them without flooding the console: at most
@@ -85,7 +88,8 @@ class DropLog:
     on_drop: Optional[Callable[[str, str], None]] = None
     counts: Dict[str, int] = field(default_factory=dict)
     _last_line: Dict[str, float] = field(default_factory=dict)
-    _last_detail: Dict[str, str] = field(default_factory=dict)
+    _last_detail: Dict[str, str] = field(default_factory=dict)     # the last key said, per sender
+    _known: Dict[str, List[str]] = field(default_factory=dict)     # the keys a sender's lines said lately
     _quiet_s: Dict[str, float] = field(default_factory=dict)
     _suppressed: Dict[str, int] = field(default_factory=dict)
     _hidden_reasons: Dict[str, Dict[str, int]] = field(default_factory=dict)   # sender -> reason -> count
@@ -96,13 +100,17 @@ class DropLog:
         if self.on_drop is not None:
             self.on_drop(reason, sender)
 
-    def drop(self, reason: str, sender: str, detail: str) -> None:
+    def drop(self, reason: str, sender: str, detail: str, key: Optional[str] = None) -> None:
+        """``key``: what makes two drops the same problem, when ``detail`` varies (a size); default ``detail``."""
         self.count(reason, sender)
         now = time.monotonic()
         since = now - self._last_line.get(sender, -math.inf)
+        key = detail if key is None else key
         # A new problem from a sender is said within a second, however long its last repeated one made it wait:
-        # on loopback every agent is one sender, and one agent's repeats hid another's new mistakes.
-        quiet = self._quiet_s.get(sender, 1.0) if self._last_detail.get(sender) == detail else 1.0
+        # on loopback every agent is one sender, and one agent's repeats hid another's new mistakes. A problem
+        # said lately is not new: four stray agents on one PC, or two kinds of message in turn, are each said
+        # once a second for ever when only the last one counts.
+        quiet = self._quiet_s.get(sender, 1.0) if key in self._known.get(sender, ()) else 1.0
         if since < quiet:
             self._suppressed[sender] = self._suppressed.get(sender, 0) + 1
             hidden = self._hidden_reasons.setdefault(sender, {})
@@ -111,17 +119,22 @@ class DropLog:
         more = self._suppressed.pop(sender, 0)
         self._hidden_reasons.pop(sender, None)
         suffix = f" (+{more} more from this sender in the last {_span(since)})" if more else ""
-        self._said(sender, now, detail)
+        self._said(sender, now, key)
         self.log(f"hub: dropped {reason}: {detail}{suffix}")
         if len(self._last_line) > 10_000:   # a flood of fake senders must not grow memory without bound
-            for table in (self._last_line, self._last_detail, self._quiet_s, self._suppressed, self._hidden_reasons):
+            for table in (self._last_line, self._last_detail, self._known, self._quiet_s, self._suppressed,
+                          self._hidden_reasons):
                 table.clear()
 
-    def _said(self, sender: str, now: float, detail: str) -> None:
-        """The same detail again doubles the sender's quiet time; a new one starts it over at a second."""
-        again = self._last_detail.get(sender) == detail
+    def _said(self, sender: str, now: float, key: str) -> None:
+        """A problem said lately doubles the sender's quiet time; a new one starts it over at a second."""
+        known = self._known.setdefault(sender, [])
+        again = key in known
         self._quiet_s[sender] = min(REPEAT_QUIET_MAX_S, 2 * self._quiet_s.get(sender, 1.0)) if again else 1.0
-        self._last_line[sender], self._last_detail[sender] = now, detail
+        if not again:
+            known.append(key)
+            del known[:-KNOWN_PROBLEMS]
+        self._last_line[sender], self._last_detail[sender] = now, key
 
     def flush(self, now: float) -> None:
         """Say the drops a burst hid once its quiet time is over, not only with that sender's next drop, which

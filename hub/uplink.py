@@ -165,7 +165,10 @@ class Uplink:
         size = check_payload_size(payload)
         receivers = self.sensors.receivers_of(robot.id) if self.mode_for(robot)[0] == "run" else []
         if not self.relay.submit(robot.id, message["sent_s"], payload, size, receivers):
-            self.drops.drop("refused broadcast", f"robot {robot.id}", f"{size} bytes > relay.max_bytes")
+            # Its behaviour is not told (a broadcast has no answer): the line names the robot and the limit.
+            self.drops.drop("refused broadcast", f"robot {robot.id}",
+                            f"robot {robot.id}'s broadcast of {size} bytes, over relay.max_bytes "
+                            f"({self.relay.max_bytes}); its behaviour is not told", key="over relay.max_bytes")
         elif self.recorder is not None:
             self.recorder.write(robot_topic(robot.id, "broadcast"), message)
             self.recorder.write(robot_topic(robot.id, "relay"), {"receivers": receivers})

@@ -216,3 +216,29 @@ def test_a_sender_repeating_one_bad_message_is_said_less_and_less_often(monkeypa
     clock[0] += 1
     drops.drop("bad message", "peer at 10.0.0.9", "something else again")   # a new detail: a second again
     assert lines[-1] == "hub: dropped bad message: something else again (+1 more from this sender in the last second)"
+
+
+def test_problems_said_in_turn_are_repeats_too(monkeypatch):
+    """Four stray agents on one PC (one sender: their address) claim robots 1, 3, 5 and 6 in turn, and an agent
+    pointed at the control port sends hello and telemetry in turn: with only the last problem remembered, each
+    was new, and the console got a line every second for as long as the hub ran. A refused broadcast's size
+    changes from message to message: the same problem, said with the robot and the limit."""
+    clock = [1000.0]
+    monkeypatch.setattr("hub.links.time.monotonic", lambda: clock[0])
+    lines = []
+    drops = DropLog(lines.append)
+    for second in range(64):
+        clock[0] = 1000.0 + second
+        for robot in (1, 3, 5, 6):
+            drops.drop("unknown robot", "peer at 127.0.0.1", f"peer at 127.0.0.1 claimed robot {robot}, which is "
+                       "not in this lab")
+        drops.flush(clock[0])
+    assert len(lines) <= 12, lines          # each one's first line, then 1, 2, 4, ... s apart: not 64
+    lines.clear()
+    for second in range(64):
+        clock[0] = 2000.0 + second
+        drops.drop("refused broadcast", "robot 2", f"robot 2's broadcast of {1000 + second} bytes, over "
+                   "relay.max_bytes (500)", key="over relay.max_bytes")
+        drops.flush(clock[0])
+    assert len(lines) <= 8 and lines[0] == "hub: dropped refused broadcast: robot 2's broadcast of 1000 bytes, over " \
+        "relay.max_bytes (500)", lines

@@ -270,6 +270,20 @@ def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
             "(the others' IR sees them; range and bearing and the radio do not)") in said
 
 
+def test_a_relay_limit_below_the_simulators_is_said_at_start():
+    """relay.max_bytes 500 dropped every 1000-byte broadcast at the hub; the behaviour and its agent were never
+    told, and the drop lines named neither robot nor limit. The agents cannot know the limit: the hub says it."""
+    from hub.factory import build_hub
+
+    said = []
+    build_hub(parse_config(sim_config(relay={"max_bytes": 500})), log=said.append).close()
+    assert [line for line in said if line.startswith("hub: relay.max_bytes is 500: a broadcast over it is dropped "
+                                                     "here, and its behaviour is not told")]
+    said.clear()
+    build_hub(parse_config(sim_config()), log=said.append).close()
+    assert not [line for line in said if "relay.max_bytes" in line]
+
+
 def test_a_transport_lab_without_the_objects_start_is_refused_rather_than_left_idle():
     """On motion capture nothing fills in transport's object_estimate: every robot stayed idle, with no word."""
     from hub.factory import run_template
