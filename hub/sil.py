@@ -226,7 +226,9 @@ class SilSession:
         if problem:
             raise ConfigError("sil", f"{problem}; see the agent logs in {self.out / 'agents'}")
         self.hub.control.execute("start", "sil")
-        lockstep.wait_for(lambda: all(r.pending is None for r in self.hub.robots.values()), 10.0, "start acks")
+        # An agent whose behaviour's __init__ raised exits without acknowledging: not a 10 s wait for it.
+        lockstep.wait_for(lambda: all(r.pending is None for r in self.hub.robots.values())
+                          or self._dead_agent() is not None, 10.0, "start acks")
         started = time.perf_counter()
         error = None
         try:
