@@ -848,3 +848,14 @@ def test_loop_figures_count_the_current_run_only(scripted, tmp_path):
         assert second["loop"]["steps"] < first["loop"]["steps"], (first["loop"], second["loop"])
     finally:
         stop_processes([process])
+
+
+def test_an_agent_given_the_control_port_is_told_so_while_it_waits(make_scenario, first_waiting_line):
+    """Its bad-message line said the control port had answered, and its waiting line, every 10 s, that it was
+    connected to a hub that sends robot 0 nothing: is robot 0 in the hub's lab? Both now name the port."""
+    with start_ipv6_lab("127.0.0.1", 2, make_scenario) as hub:
+        control = hub.endpoints["control"]
+        waiting = first_waiting_line(HubLink(0, control))
+    assert f"what answers at {control} is not a hub's robots port" in waiting, waiting
+    assert "the hub's control port answered; agents connect to its robots port" in waiting, waiting
+    assert "sends robot 0 nothing" not in waiting

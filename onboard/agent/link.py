@@ -271,6 +271,7 @@ class HubLink:
         self.watch = watch_connection(self.context, self.socket)    # before connect: its first events count
         self.socket.connect(self.address)
         self.heard = False                 # the hub has spoken on this socket (see unsent)
+        self.only_bad: Optional[str] = None     # what it said, while all of it was unreadable (likely_cause)
         self.poller = zmq.Poller()
         self.poller.register(self.socket, zmq.POLLIN)
 
@@ -298,6 +299,8 @@ class HubLink:
     def likely_cause(self) -> Optional[str]:
         """Why the hub is silent on this connection, as far as ZeroMQ's events tell (see connection.py), with
         the address family's hint when the connection never got through (a hub on ::1 only, say)."""
+        if self.only_bad is not None:     # the control port, say: "connected, but it sends nothing" was wrong
+            return f"what answers at {self.address} is not a hub's robots port: its last message was {self.only_bad}"
         if self.watch is None:
             return None
         cause = self.watch.likely_cause(self.robot_id, self.address, self.keys is not None)
@@ -339,12 +342,16 @@ class HubLink:
                 data = self.socket.recv(zmq.NOBLOCK)
             except zmq.Again:
                 break
+            first = not self.heard
             self.heard = True
             try:
                 # Frames keep their neighbours as the decoder's numpy columns: the devices use them as they are.
                 out.append(decode(data, "hub", accept=DOWNLINK_TYPES, neighbour_columns=True))
+                self.only_bad = None
             except ProtocolError as err:
                 self._bad(str(err))
+                if first or self.only_bad is not None:
+                    self.only_bad = str(err)
         return out
 
     def _bad(self, detail: str) -> None:
