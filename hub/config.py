@@ -236,7 +236,9 @@ class LabConfig:
             for i, rid in enumerate(self.robots):
                 check_robot_id(f"robots[{i}]", rid)
             if len(set(self.robots)) != len(self.robots):
-                raise ConfigError("robots", "lists a robot id twice")
+                twice = sorted({rid for rid in self.robots if self.robots.count(rid) > 1})
+                raise ConfigError("robots", f"lists robot id{'s' if len(twice) > 1 else ''} "
+                                            f"{', '.join(map(str, twice))} twice")
             if self.source.type == "motioncapture":
                 check_every_robot_has_a_body(self.robots, self.source.bodies)
 

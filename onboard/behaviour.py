@@ -80,7 +80,8 @@ def telemetry_of(behaviour: Behaviour, robot_id: int) -> Dict[str, Any]:
     try:
         reported = behaviour.telemetry()
         if type(reported) is not dict and not isinstance(reported, Mapping):   # a plain dict skips the ABC check
-            raise TypeError(f"telemetry() must return a dict (got {type(reported).__name__})")
+            raise TypeError(f"telemetry() must return a dict (got {type(reported).__name__})"
+                            f"{defined_at(type(behaviour).telemetry)}")
         data = dict(reported)
     except USER_CODE_ERRORS as exc:
         raise BehaviourError(robot_id, "telemetry()", exc) from exc

@@ -214,8 +214,13 @@ def _module_name(name: str, base: str) -> str:
                                           "nor a .py file")
         return name
     path = Path(base, name)
+    if path.is_dir():
+        raise ConfigError("--import", f"{path} is a folder: give the .py file that holds your behaviour")
     if not path.is_file():
         raise ConfigError("--import", f"no such file: {path}")
+    if path.suffix != ".py":      # a scenario given to --import said "No module named 'flock7'"
+        raise ConfigError("--import", f"{path.name} is not a .py file: --import takes the Python file that holds "
+                                      "your behaviour (a scenario goes after the command, e.g. sim run FILE.yaml)")
     if not path.stem.isidentifier():
         raise ConfigError("--import", f"{path.name}: a module's file name must be a Python identifier")
     _check_name_is_free(path)

@@ -378,7 +378,10 @@ def test_sys_exit_in_step_is_a_crash_named_like_any_other_in_sim_and_sil(buggy, 
 
 def test_telemetry_that_is_not_a_dict_is_said_so(buggy, tmp_path, capsys):
     assert run("sim", "run", buggy("telemetry_list"), "--no-plot", "--out", "tl") == 1
-    assert "robot 0, telemetry(): TypeError: telemetry() must return a dict (got list)" in capsys.readouterr().err
+    said = capsys.readouterr().err
+    # Where: a value found wrong after telemetry() returned has no traceback leading to the user's line.
+    assert "robot 0, telemetry(): TypeError: telemetry() must return a dict (got list) (returned by telemetry() at " \
+        "buggy_behaviour.py:" in said, said
 
 
 PLAIN_TELEMETRY = {"state": "ok", "seen": 0, "numpy": 1.5, "x": None, "finished": False}   # the buggy one's

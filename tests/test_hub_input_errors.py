@@ -270,6 +270,12 @@ def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
             "(the others' IR sees them; range and bearing and the radio do not)") in said
 
 
+def test_a_robot_listed_twice_is_named():
+    with pytest.raises(ConfigError) as info:
+        parse_config(sim_config(robots=[1, 1, 2, 4, 4]))
+    assert str(info.value) == "robots: lists robot ids 1, 4 twice"
+
+
 def test_a_relay_limit_below_the_simulators_is_said_at_start():
     """relay.max_bytes 500 dropped every 1000-byte broadcast at the hub; the behaviour and its agent were never
     told, and the drop lines named neither robot nor limit. The agents cannot know the limit: the hub says it."""

@@ -50,6 +50,7 @@ def restore_sys_path(monkeypatch):
 def test_a_module_name_a_file_path_and_what_goes_wrong(tmp_path, monkeypatch):
     (tmp_path / "lab").mkdir()
     (tmp_path / "lab" / "plugin_by_path.py").write_text("LOADED = True\n")
+    (tmp_path / "lab" / "flock7.yaml").write_text("name: flock7\n")     # a scenario given to --import
     (tmp_path / "plugin_by_name.py").write_text("LOADED = True\n")
     (tmp_path / "plugin_broken.py").write_text("x = (\n")
     (tmp_path / "plugin_raises.py").write_text("1 / 0\n")
@@ -58,6 +59,8 @@ def test_a_module_name_a_file_path_and_what_goes_wrong(tmp_path, monkeypatch):
     for name, problem in [("plugin_broken", f"plugin_broken.py:1: {syntax_error_message('x = (')}"),
                           ("no_such_plugin", "cannot import 'no_such_plugin': No module named 'no_such_plugin'"),
                           ("lab/absent.py", f"no such file: {tmp_path / 'lab' / 'absent.py'}"),
+                          ("lab/", f"{tmp_path / 'lab'} is a folder: give the .py file"),
+                          ("lab/flock7.yaml", "flock7.yaml is not a .py file: --import takes the Python file"),
                           (".relative", "'.relative' is neither a module name"),
                           ("", "'' is neither a module name")]:
         with pytest.raises(ConfigError) as caught:
