@@ -250,5 +250,6 @@ def replay_text(replay: Dict[str, Any]) -> str:
     else:
         text = f"{played:.1f} s played{rate}"
     if replay.get("passed_over"):       # latest-only at a high rate: not every recorded frame was fed
-        text += f", {replay['passed_over']} frames passed over to keep up"
+        passed = replay['passed_over']
+        text += f", {passed} frame{'s' if passed != 1 else ''} passed over to keep up"
     return f"replay: {'ended: ' if replay.get('ended') else ''}{text}"

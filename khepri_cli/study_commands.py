@@ -64,6 +64,8 @@ def cmd_study(args: argparse.Namespace) -> int:
         refuse_another_study(out, spec.name)
     if args.dry_run:
         check_scheduler_name(choice)
+        if out.exists() and not out.is_dir():      # said as the real run would say it (a dry run makes no folder)
+            raise ConfigError("--out", f"{out} is a file, not a folder")
         return print_dry_run(runs, out, args.retry_failed)
     from khepri_cli.sim_commands import require_out_folder
     from sim_backend.study.driver import study_lock

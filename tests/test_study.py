@@ -1547,3 +1547,25 @@ def test_a_transport_cell_whose_runs_all_failed_keeps_the_transport_tables(tmp_p
     report = (tmp_path / "out" / "report.md").read_text()
     assert "(other behaviours)" not in report and "## Outcome per cell" in report
     assert "| lab-6 |" in report.split("## Outcome per cell")[1]
+
+
+def test_a_repeated_scenario_or_seed_is_named_and_a_null_override_reads_null():
+    with pytest.raises(ConfigError) as info:
+        parse_study({"scenarios": ["lab-6", "irregular-clover", "lab-6"], "reps": 1})
+    assert str(info.value) == "scenarios: lists a scenario twice: lab-6"
+    with pytest.raises(ConfigError) as info:
+        parse_study({"scenarios": ["lab-6"], "seeds": [1, 2, 2, 3, 3]})
+    assert str(info.value) == "seeds: lists seed 2, 3 twice"
+    from sim_backend.study.aggregate import overrides_text
+    from sim_backend.study.grid import cell_name
+
+    # `params: [null]` made the folder lab-6@params=None and summary.csv's overrides `params=None`.
+    assert cell_name("lab-6", {"params": None, "params.head_start": True}) == "lab-6@params=null@params.head_start=True"
+    assert overrides_text({"params": None}) == "params=null"
+
+
+def test_a_dry_run_into_a_file_is_refused_as_the_run_would_be(tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    study = write(tmp_path / "s.yaml", "scenarios: [lab-6]\nreps: 1\n")
+    assert main(["study", str(study), "--dry-run", "--out", str(tmp_path / "afile")]) == 2
+    assert f"--out: {tmp_path / 'afile'} is a file, not a folder" in capsys.readouterr().err

@@ -308,8 +308,8 @@ def overrides_text(overrides: Dict[str, Any]) -> str:
 
 
 def override_value_text(value: Any) -> str:
-    if isinstance(value, (dict, list, tuple)):
-        return json.dumps(value, separators=(",", ":"))
+    if isinstance(value, (dict, list, tuple)) or value is None:
+        return json.dumps(value, separators=(",", ":"))      # None as null, as the study file and JSON say it
     return str(value)
 
 

@@ -284,6 +284,8 @@ def value_text(value: Any) -> str:
         return ",".join(f"{key}={value_text(item)}" for key, item in value.items())
     if isinstance(value, (list, tuple)):
         return ",".join(value_text(v) for v in value)
+    if value is None:
+        return "null"      # as the study file says it (was params=None); booleans stay True: folders of old studies
     return format(value, "g") if isinstance(value, float) else str(value)
 
 

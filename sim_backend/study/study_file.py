@@ -103,7 +103,8 @@ def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
             check_not_relative_to_cwd(f"scenarios[{i}]", item, base_dir)
         names.append(str(beside.resolve()) if is_file else item)
     if len(set(names)) != len(names):
-        raise ConfigError("scenarios", "lists a scenario twice")
+        twice = next(item for item, name in zip(value, names) if names.count(name) > 1)
+        raise ConfigError("scenarios", f"lists a scenario twice: {twice}")
     return names
 
 
@@ -141,7 +142,8 @@ def parse_seeds(data: Dict[str, Any]) -> List[int]:
         if seed is None or seed < 0:
             raise ConfigError(f"seeds[{i}]", f"must be an integer >= 0 (got {value[i]!r})")
     if len(set(seeds)) != len(seeds):
-        raise ConfigError("seeds", "lists a seed twice")
+        twice = sorted({seed for seed in seeds if seeds.count(seed) > 1})
+        raise ConfigError("seeds", f"lists seed {', '.join(map(str, twice))} twice")
     return seeds
 
 
