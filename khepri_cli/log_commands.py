@@ -94,8 +94,10 @@ def cmd_console(args: argparse.Namespace) -> int:
         when = datetime.fromtimestamp(record.stamp_s).astimezone().strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
         print(f"{when}  {message}")
         count += 1
+    damaged_end = not reader.complete and not reader.cut_short    # log info calls it DAMAGED: so is it here
     if not reader.complete:         # a killed hub's log: its last lines are not there, and the reader is told
-        say(f"khepri: {args.file}: the log ends early ({reader.stop_reason}): the lines printed are those "
+        ends = "is damaged at its end" if damaged_end else "ends early"
+        say(f"khepri: {args.file}: the log {ends} ({reader.stop_reason}): the lines printed are those "
             "recovered up to there")
     if reader.damaged:              # skipped chunks may have held console lines: said, not left to be missed
         say(f"khepri: {args.file}: damaged, {len(reader.damaged)} part(s) skipped ({reader.damaged[0]}"
@@ -104,7 +106,7 @@ def cmd_console(args: argparse.Namespace) -> int:
     if not count:
         say(f"khepri: {args.file}: no console lines in this log (/hub/log: recorded by hubs since 2026-11-29)")
         return 1
-    return 1 if reader.damaged else 0
+    return 1 if reader.damaged or damaged_end else 0
 
 
 def log_path(name: str) -> Path:

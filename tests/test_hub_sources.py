@@ -3,6 +3,7 @@ import json
 import math
 import os
 import re
+import struct
 import subprocess
 import sys
 import time
@@ -733,6 +734,16 @@ def test_the_hubs_console_lines_are_in_its_log_and_log_console_prints_them(tmp_p
     shown_damaged = log_console(damaged)
     assert shown_damaged.returncode == 1 and f"khepri: {damaged}: damaged, " in shown_damaged.stderr, shown_damaged
     assert "console lines in them are missing" in shown_damaged.stderr
+    # A record after the last chunk damaged in a file that ends closed: log info says DAMAGED (written to its
+    # end, damaged since), and this said only that the log ends early, exit 0.
+    bad_end = tmp_path / "bad-end.mcap"
+    data = bytearray(log.read_bytes())
+    summary_start = struct.unpack_from("<Q", data, len(data) - 8 - 20)[0]     # the footer's summary_start
+    data[summary_start] = 0                                                  # opcode 0: not a record
+    bad_end.write_bytes(bytes(data))
+    shown_end = log_console(bad_end)
+    assert shown_end.returncode == 1 and f"khepri: {bad_end}: the log is damaged at its end (" in shown_end.stderr, \
+        shown_end
     with open(log, "rb") as file:       # Foxglove's Log panel reads foxglove.Log messages
         reader = make_reader(file)
         schema, channel, message = next(reader.iter_messages(topics=["/hub/log"]))
