@@ -230,7 +230,8 @@ class PhysicsSpec:
     iterations: int = 10      # pymunk solver iterations
 
     def validate(self, where: str) -> None:
-        check_range(join(where, "dt_s"), self.dt_s, 0.0, 0.05, low_open=True)
+        # From 0.1 ms: a finer step is a typo, not a wish (1e-7 s would take a day for a 600 s run).
+        check_range(join(where, "dt_s"), self.dt_s, 1e-4, 0.05)
         # At least 0.1 Hz: a slower rate (1e-300 passed the old "> 0") made a control period longer than any
         # run, which then ended after 0 steps as if it had succeeded.
         check_range(join(where, "control_hz"), self.control_hz, MIN_CONTROL_HZ, 100.0)

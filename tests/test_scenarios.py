@@ -191,6 +191,7 @@ SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such
     ({"object": {"mass": 1e300}}, "object.mass", "object.mass: must be <= 1e+06 (got 1e+300)"),
     ({"robots": {"mass_kg": 1e200}}, "robots.mass_kg", "robots.mass_kg: must be <= 1000 (got 1e+200)"),
     ({"params": {"k_t_push": -60}}, "params.k_t_push", "params.k_t_push: must be >= 0 (got -60)"),
+    ({"physics": {"dt_s": 1e-7}}, "physics.dt_s", "physics.dt_s: must be >= 0.0001 (got 1e-07)"),
     ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [1, 1], [1, 3], [1, 1], [0, 1]]}},
      "object.vertices", "object.vertices: the outline turns back on itself at vertex 3 (a spike of no width)"),
     ({"object": {"shape": "polygon", "vertices": [[0, 0], [1, 0], [1, 0], [1, 1]]}}, "object.vertices",
