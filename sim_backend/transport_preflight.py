@@ -94,6 +94,7 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
         found.append("object.friction: 0: nothing stops the object once it is pushed, so it slides past its "
                      "waypoints")
     found += _faults(scenario)
+    found += _tolerance_covers_legs(scenario, params)
     found += _too_heavy(scenario)
     found += _radians_for_degrees(scenario)
     for name in ("cruise_speed_m_s", "travel_speed_m_s"):
@@ -102,6 +103,23 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
             found.append(f"params.{name}: {speed:g} m/s is above the robots' top wheel speed "
                          f"({spec.max_wheel_speed_m_s:g} m/s): every command is scaled down to it")
     return found
+
+
+def _tolerance_covers_legs(scenario: Any, params: Any) -> List[str]:
+    """A waypoint position tolerance as long as the leg to it: the object is "at" the waypoint where the leg
+    starts (push_tolerance_m 2 with 0.3 m legs: completed, 0.9 m from the goal, nobody having pushed)."""
+    tolerance = getattr(params, "push_tolerance_m", None)
+    if tolerance is None or scenario.object is None or not scenario.path:
+        return []
+    start = tuple(scenario.object.position)
+    for i, waypoint in enumerate(scenario.path):
+        leg = math.hypot(waypoint[0] - start[0], waypoint[1] - start[1])
+        start = (waypoint[0], waypoint[1])
+        if leg > 0.0 and tolerance >= leg:       # a turn in place (no leg) is judged by its yaw
+            return [f"params.push_tolerance_m: {tolerance:g} m is as long as the leg to path[{i}] ({leg:.2f} m) or "
+                    "longer: the object counts as at that waypoint before it has moved, so `completed` and the "
+                    "position errors say nothing of the push. Keep it well under the legs (default 0.1 m)"]
+    return []
 
 
 def push_force_n(robots: Any) -> float:

@@ -323,3 +323,12 @@ def test_a_cage_whose_members_behind_the_object_cannot_slide_it_is_warned_about(
     along = behind_share(np.array([[-0.5, -0.4], [0.5, -0.4], [0.5, 0.4], [-0.5, 0.4]]), 0.07, 0.0)
     across = behind_share(np.array([[-0.5, -0.4], [0.5, -0.4], [0.5, 0.4], [-0.5, 0.4]]), 0.07, 90.0)
     assert across > along
+
+
+def test_a_position_tolerance_as_long_as_a_leg_is_warned_about(make_scenario):
+    """push_tolerance_m 2 with 0.3 m legs: `completed: true`, 0.9 m from the goal, no robot having pushed."""
+    legs = [[0.0, 0.3, 0], [0.0, 0.6, 0], [0.0, 0.6, 10]]       # the last one a turn in place: no leg to judge
+    assert Simulation(transport(make_scenario, path=legs)).warnings == []
+    assert Simulation(transport(make_scenario, path=legs, params={"push_tolerance_m": 0.29})).warnings == []
+    (warning,) = Simulation(transport(make_scenario, path=legs, params={"push_tolerance_m": 0.3})).warnings
+    assert warning.startswith("params.push_tolerance_m: 0.3 m is as long as the leg to path[0] (0.30 m) or longer")
