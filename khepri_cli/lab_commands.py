@@ -349,7 +349,7 @@ def _add_sil(groups) -> None:
                                         "figures), trajectory.npz/png and the MCAP log.")
     sil.add_argument("scenario", help="built-in scenario name or YAML file")
     sil.add_argument("--out", type=folder_arg, help="output folder (default out/sil-<scenario>-seed<N>)")
-    sil.add_argument("--seed", type=int, help="random seed (default: the scenario's)")
+    sil.add_argument("--seed", help="random seed (default: the scenario's)")
     sil.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
     sil.add_argument("--realtime", action="store_true", help="pace by the wall clock instead of lockstep")
     sil.add_argument("--no-record", action="store_true", help="skip the MCAP log")
@@ -368,14 +368,14 @@ def cmd_sil(args: argparse.Namespace) -> int:
         print_evaluation_error,
         print_summary,
         require_out_folder,
+        seed_value,
     )
     from sim_backend.scenario import load_scenario
 
-    if args.seed is not None and args.seed < 0:
-        raise ConfigError("--seed", f"must be >= 0 (got {args.seed})")     # numpy seeds are non-negative
+    given_seed = seed_value(args.seed)
     scenario = load_scenario(args.scenario)
     check_time_limit(args.time_limit)
-    seed = scenario.seed if args.seed is None else args.seed
+    seed = scenario.seed if given_seed is None else given_seed
     out = args.out or Path("out") / f"sil-{scenario.name}-seed{seed}"
 
     require_out_folder(out, RUN_FILES + ("hub.log", "hub.mcap"))     # what sil writes there

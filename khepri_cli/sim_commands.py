@@ -37,7 +37,7 @@ def add_sim(groups) -> None:
                               description="Run SCENARIO (a built-in name or a YAML file) and write result.json, "
                                           "trajectory.npz and trajectory.png to --out.")
     run.add_argument("scenario", help="built-in scenario name (see `khepri sim list`) or path to a YAML file")
-    run.add_argument("--seed", type=seed_value, help="random seed (default: the scenario's)")
+    run.add_argument("--seed", help="random seed (default: the scenario's)")
     run.add_argument("--out", type=folder_arg, help="output folder (default: out/<scenario>-seed<N>)")
     run.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
     run.add_argument("--wall-limit", type=float, metavar="S",
@@ -58,13 +58,19 @@ def add_sim(groups) -> None:
     show.set_defaults(func=cmd_show)
 
 
-def seed_value(text: str) -> int:
+def seed_value(text: Optional[str]) -> Optional[int]:
+    """``--seed`` as given (a string: argparse's own error would print the usage, not the one line every other
+    bad input gets), or None; ConfigError naming ``--seed``. Numpy's seeds are whole numbers >= 0."""
+    from onboard.config import ConfigError
+
+    if text is None:
+        return None
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 0 (got {text!r})") from None
+        raise ConfigError("--seed", f"must be a whole number >= 0 (got {text!r})") from None
     if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0 (got {value})")
+        raise ConfigError("--seed", f"must be >= 0 (got {value})")
     return value
 
 
@@ -96,7 +102,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if problem:
         print(f"khepri: error: --video: {problem}", file=sys.stderr)
         return 2
-    sim = Simulation(scenario.with_time_limit(args.time_limit), seed=args.seed)
+    sim = Simulation(scenario.with_time_limit(args.time_limit), seed=seed_value(args.seed))
     out = args.out or Path("out") / f"{scenario.name}-seed{sim.seed}"
     problem = out_folder_problem(out, RUN_FILES)
     if problem:                 # said now, not after a long run whose results could not be written
