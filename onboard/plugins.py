@@ -61,6 +61,11 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
             warnings.append(f"{name}: registers the behaviour {', '.join(registered)} and imports "
                             f"{', '.join(missing)}: it runs in simulation but will fail on a robot, which has only "
                             "onboard/ (put an evaluator in a module of its own)")
+        newer = syntax_after_python_39(getattr(loaded, "__file__", None)) if registered else None
+        if newer:
+            warnings.append(f"{name}: registers the behaviour {', '.join(registered)} and {newer}, which Python "
+                            "3.9 cannot run: it runs here but will fail on a robot with Python 3.9 (khepri's "
+                            "onboard code keeps to 3.9)")
         extra = packages_robots_lack(loaded, base) if registered else []
         if extra:
             warnings.append(f"{name}: registers the behaviour {', '.join(registered)} and imports "
@@ -147,6 +152,43 @@ def imports_robots_lack(path: Optional[str], _seen: Optional[set] = None) -> Lis
             found += [name if " (in " in name else f"{name} (in {beside.name})"
                       for name in imports_robots_lack(str(beside), seen)]
     return found
+
+
+def syntax_after_python_39(path: Optional[str]) -> Optional[str]:
+    """Where the file at ``path`` uses what Python 3.9 cannot run, said as ``uses ... at file:line``, or None:
+    syntax of 3.10 and later (``match``, ...), and ``X | Y`` in a type annotation, which 3.9 parses but cannot
+    evaluate (a Params dataclass's ``float | None`` fails as its class is made, or when khepri reads its hints)."""
+    if not path:
+        return None
+    try:
+        source = Path(path).read_text(encoding="utf-8")
+        tree = ast.parse(source)
+    except (OSError, SyntaxError, ValueError):
+        return None
+    where = Path(path).name
+    try:
+        ast.parse(source, feature_version=(3, 9))
+    except SyntaxError as err:
+        return f"uses syntax of a newer Python at {where}:{err.lineno} ({err.msg})"
+    for node in ast.walk(tree):
+        for annotation in _annotations(node):
+            union = next((n for n in ast.walk(annotation) if isinstance(n, ast.BinOp)
+                          and isinstance(n.op, ast.BitOr)), None)
+            if union is not None:
+                return (f"uses `X | Y` in a type annotation at {where}:{union.lineno} (write Optional[X] or "
+                        "Union[X, Y] from typing)")
+    return None
+
+
+def _annotations(node: ast.AST) -> List[ast.AST]:
+    if isinstance(node, ast.AnnAssign):
+        return [node.annotation]
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+        arguments = node.args
+        every = [*arguments.posonlyargs, *arguments.args, *arguments.kwonlyargs, arguments.vararg, arguments.kwarg]
+        return [a.annotation for a in every if a is not None and a.annotation is not None] + \
+            ([node.returns] if node.returns is not None else [])
+    return []
 
 
 def _top_level_imports(path: Optional[str]) -> List[str]:

@@ -321,3 +321,37 @@ def test_a_behaviour_module_that_imports_a_lab_pc_package_is_warned_about(tmp_pa
     assert warnings == ["pc_only: registers the behaviour pc-only and imports mcap, which a robot does not have "
                         "(it has the standard library, numpy, pyzmq, pyyaml and filterpy): it runs in simulation "
                         "but will fail on a robot unless installed there too"]
+
+
+def test_a_behaviour_written_for_a_newer_python_than_the_robots_is_warned_about(tmp_path):
+    """A behaviour with `match` or `speed: float | None` in its Params ran in `sim run` and `sil` here without a
+    word, and would fail at import on a robot with Python 3.9."""
+    import textwrap
+
+    from onboard.plugins import syntax_after_python_39
+
+    union = tmp_path / "union_params.py"
+    union.write_text("from __future__ import annotations\n" + DRIVE_BEHAVIOUR.format(name="union-params")
+                     + "\n\ndef gain(x: float | None = None) -> float:\n    return x or 1.0\n")
+    assert syntax_after_python_39(str(union)) == ("uses `X | Y` in a type annotation at union_params.py:21 (write "
+                                                  "Optional[X] or Union[X, Y] from typing)")
+    matching = tmp_path / "matching.py"
+    matching.write_text(textwrap.dedent("""\
+        def pick(x):
+            match x:
+                case 0:
+                    return 1
+        """))
+    assert syntax_after_python_39(str(matching)).startswith("uses syntax of a newer Python at matching.py:")
+    plain = tmp_path / "plain.py"
+    plain.write_text(DRIVE_BEHAVIOUR.format(name="plain") + "\n\ndef size(x: 'int | None', y: list[int]) -> int:\n"
+                     "    return 1 if x | 1 else 0\n")      # a string annotation, list[int] and | in code: all 3.9's
+    assert syntax_after_python_39(str(plain)) is None
+    try:
+        warnings = import_user_modules(["union_params"], str(tmp_path))
+    finally:
+        sys.modules.pop("union_params", None)
+    assert warnings == ["union_params: registers the behaviour union-params and uses `X | Y` in a type annotation at "
+                        "union_params.py:21 (write Optional[X] or Union[X, Y] from typing), which Python 3.9 "
+                        "cannot run: it runs here but will fail on a robot with Python 3.9 (khepri's onboard code "
+                        "keeps to 3.9)"]
