@@ -315,7 +315,13 @@ class Hub(Downlink, Uplink, Housekeeping):
         xmin, ymin, xmax, ymax = fence
         x, y = self.poses[:, 0], self.poses[:, 1]
         outside = present & ((x < xmin) | (x > xmax) | (y < ymin) | (y > ymax))
-        for row in np.nonzero(outside & ~self.outside_fence)[0]:
+        newly = np.nonzero(outside & ~self.outside_fence)[0]
+        if len(newly) > 1 and outside.sum() == present.sum():    # one line, and the likely cause, not one each
+            self.log(f"hub: every robot is outside the geofence {list(fence)} (robot {self.ids[newly[0]]} at "
+                     f"({x[newly[0]]:.2f}, {y[newly[0]]:.2f})): stopped; is the geofence in the motion capture's "
+                     "frame and metres?")
+            newly = newly[:0]
+        for row in newly:
             self.log(f"hub: robot {self.ids[row]} is outside the geofence at ({x[row]:.2f}, {y[row]:.2f}): stopped")
         self.outside_fence = outside
 

@@ -94,7 +94,10 @@ def test_robots_outside_the_geofence_are_held(three_robots, tmp_path):
             time.sleep(1.0)
             after = hub.hub.source.world.robot_poses()
             assert np.abs(after - before).max() < 1e-3, "a fenced robot moved"
-            assert any(" is outside the geofence at (" in line for line in hub.lines)   # it never was inside
+            # It never was inside; nor was any robot: one line, with the likely cause, not one per robot.
+            (fenced,) = [line for line in hub.lines if "outside the geofence" in line]
+            assert fenced.startswith("hub: every robot is outside the geofence [-0.5, -2.0, 2.0, 2.0] (robot 0 "
+                                     "at (") and "is the geofence in the motion capture's frame" in fenced, fenced
         finally:
             stop_processes(agents)
 
