@@ -585,6 +585,25 @@ def test_a_seed_whose_agent_restarts_bids_no_more_and_another_robot_takes_its_sl
     assert seed_task.epoch >= 1 and board.owner(seed_task)["robot"] != 4   # re-opened, and taken by another
 
 
+def test_a_robot_whose_agent_restarts_while_attaching_gives_its_slot_back():
+    """lab-6 seed 4, robot 0 restarted at 50 s while it was attaching: the swarm still said it owned its slot,
+    its heartbeats kept it alive so nobody re-opened the slot, and its new bids were void while it owned one.
+    The branch stalled and the cage never closed. The restarted robot now re-opens the task it never took."""
+    from sim_backend.scenario import Fault
+
+    scenario = load_scenario("lab-6").with_overrides(faults=[Fault(robot=0, at_s=50.0, restart_after_s=3.0)])
+    sim = Simulation(scenario, seed=4)
+    while sim.step_index * sim.period < 49.5:
+        sim.step()
+    before = sim.behaviours[0]
+    assert before.state in ("travel", "attach") and before.task is not None, before.state
+    held = before.task.tid
+    result = sim.run()
+    assert result["caged"] and result["completed"], result["failures"]
+    board = sim.behaviours[1].board
+    assert board.task(held).epoch > before.task.epoch        # re-opened as a new epoch
+
+
 def test_i_d_grows_only_when_no_open_target_gets_a_bid():
     """Out of robots: a target this member opened has waited 3 T_a without a bid. While idle robots are
     bidding for another open target (they bid for the nearest one only, so targets wait their turn), that is

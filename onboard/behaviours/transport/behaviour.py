@@ -93,6 +93,7 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
         self.shoving_object = False              # attach: pressed on the object below the contact reading
         self.object_seen_at = -math.inf          # attach: when the IR last saw the object
         self.given_back: Dict[str, float] = {}   # tid -> until when this robot does not bid for it again
+        self.taken: Set[Tuple[str, int]] = set()  # (tid, epoch) of every task this behaviour object took
         self.reinforcing = False                 # idle, reinforce_push: behind the cage and pushing
         self.closed_seen_at: Optional[float] = None     # idle: when this spare first saw the cage closed
         self.stall_watch = ProgressWatch(STALL_PROGRESS_M)   # idle: the cage's progress (_push_stalled)
@@ -211,7 +212,7 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
             # the behaviour was a member, dead or not): a bid would only hold off the robots that can take
             # the task. It stays a spare.
             pass
-        elif not self._take_won_task(now):
+        elif not self._release_earlier_tasks() and not self._take_won_task(now):
             task = self._nearest_open_task(now)
             if task is not None:
                 self._bid(task, now)
@@ -265,6 +266,21 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
         toward = c.unit((self.hint[0] - percept.x, self.hint[1] - percept.y))
         self._drive(c.add(toward, self._avoid(), c.scale(percept.obstacle_vector, -1.0)))
 
+    def _release_earlier_tasks(self) -> bool:
+        """A restarted agent: the space says this robot owns a task that this behaviour never took (its run
+        before the restart did, and was attaching or travelling). Its heartbeats keep it alive, so nobody
+        re-opens the task, and the swarm voids its bids while it owns one: the branch stalled, and two
+        restarted lab-6 runs never closed their cage. Re-open the task as a new epoch, as attach_timeout_s
+        does. In a run without restarts every task a robot owns, it took: nothing changes. True if it did."""
+        released = False
+        for tid in self.board.owned_by(self.robot.id):
+            task = self.board.task(tid)
+            if task is not None and (tid, task.epoch) not in self.taken:
+                task.epoch += 1
+                self.board.put_task(task)
+                released = True
+        return released
+
     def _take_won_task(self, now: float) -> bool:
         """After T_a with a valid bid stored, the robot whose id is stored takes the task -- whichever open
         task that is, even if another one is nearer now."""
@@ -276,6 +292,7 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
             if won and now - self.bid_seen[key] >= self.params.allocation_time_s:
                 task = task_from(fields)
                 self.board.take(task, self.robot.id, float(best["bid"]))
+                self.taken.add((task.tid, task.epoch))
                 self.task = task
                 self.state = "seed" if task.branch == "S" else "travel"
                 self.progress, self.seed_still = (math.inf, now), (None, now)

@@ -170,6 +170,11 @@ class TaskBoard(Liveness):
             self._open_at, self._open = revisions, found
         return self._open
 
+    def owned_by(self, robot: int) -> List[str]:
+        """The tids ``robot`` validly owns (the owner entry's epoch is its live, uncancelled task's)."""
+        self._index_owners()
+        return list(self._owned.get(robot, ()))
+
     def busy(self, robot: Any, except_tid: str = "") -> bool:
         if f"member/{robot}" in self.space:        # a member, or one that died in the cage: it bids no more
             return True
