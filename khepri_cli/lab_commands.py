@@ -84,7 +84,19 @@ def cmd_hub(args: argparse.Namespace) -> int:
         # Name the option the user typed, or with --demo (which has no config file) the one that would change it.
         if option and (getattr(args, option) is not None or (args.demo and option != "record")):
             raise ConfigError("--" + option.replace("_", "-"), err.problem) from None
+        if args.config is not None and err.field.split(".")[0].split("[")[0] in lab_config_keys():
+            # A key of the file, found wrong as the hub starts (a keys folder, the run's params): name the file
+            # too, as load_config does for what it finds.
+            raise ConfigError(f"{args.config}: {err.field}", err.problem) from None
         raise
+
+
+def lab_config_keys() -> set:
+    from dataclasses import fields
+
+    from hub.config import LabConfig
+
+    return {f.name for f in fields(LabConfig) if f.init}
 
 
 def keys_here_hint() -> str:

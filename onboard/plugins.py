@@ -169,7 +169,11 @@ def syntax_after_python_39(path: Optional[str]) -> Optional[str]:
     try:
         ast.parse(source, feature_version=(3, 9))
     except SyntaxError as err:
-        return f"uses syntax of a newer Python at {where}:{err.lineno} ({err.msg})"
+        # The parser names where it gave up (after a match block); the statement itself is where to look.
+        match = getattr(ast, "Match", None)
+        found = next((n for n in ast.walk(tree) if match is not None and isinstance(n, match)), None)
+        line = err.lineno if found is None else found.lineno
+        return f"uses syntax of a newer Python at {where}:{line} ({err.msg})"
     for node in ast.walk(tree):
         for annotation in _annotations(node):
             union = next((n for n in ast.walk(annotation) if isinstance(n, ast.BinOp)

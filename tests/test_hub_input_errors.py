@@ -270,6 +270,18 @@ def test_sim_robots_beyond_the_scenarios_are_refused_at_start():
             "(the others' IR sees them; range and bearing and the radio do not)") in said
 
 
+def test_a_config_value_found_wrong_as_the_hub_starts_names_the_file_too(tmp_path):
+    """load_config names the file; what the hub finds wrong later (the key folder, the watchdog against the
+    scenario's rate) gave the key alone, so a lab with several configs could not tell which."""
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump(sim_config(security={"keys": str(tmp_path / "nokeys")})))
+    said = one_error_line(khepri("hub", "--config", str(config)), "security.keys")
+    assert said.startswith(f"khepri: error: {config}: security.keys: no such folder: "), said
+    config.write_text(yaml.safe_dump(sim_config(watchdog_s=0.2)))
+    said = one_error_line(khepri("hub", "--config", str(config)), "watchdog_s")
+    assert said.startswith(f"khepri: error: {config}: watchdog_s: must be at least 0.3 s"), said
+
+
 def test_a_robot_listed_twice_is_named():
     with pytest.raises(ConfigError) as info:
         parse_config(sim_config(robots=[1, 1, 2, 4, 4]))

@@ -341,8 +341,12 @@ def test_a_behaviour_written_for_a_newer_python_than_the_robots_is_warned_about(
             match x:
                 case 0:
                     return 1
-        """))
-    assert syntax_after_python_39(str(matching)).startswith("uses syntax of a newer Python at matching.py:")
+
+
+        def after():
+            return 2
+        """))      # the parser gave up at `def after` (line 7): the match is what to point at
+    assert syntax_after_python_39(str(matching)).startswith("uses syntax of a newer Python at matching.py:2 (")
     plain = tmp_path / "plain.py"
     plain.write_text(DRIVE_BEHAVIOUR.format(name="plain") + "\n\ndef size(x: 'int | None', y: list[int]) -> int:\n"
                      "    return 1 if x | 1 else 0\n")      # a string annotation, list[int] and | in code: all 3.9's

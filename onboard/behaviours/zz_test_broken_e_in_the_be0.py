@@ -1,0 +1,4 @@
+from onboard.behaviour import register
+
+
+def half_written(:
