@@ -1094,7 +1094,8 @@ def test_a_lockstep_sim_source_is_refused_by_the_hub_command(tmp_path, capsys):
     assert main(["hub", "--config", str(config)]) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err
-    assert err.strip().splitlines()[-1].startswith("khepri: error: source.lockstep: khepri hub paces the simulation")
+    assert err.strip().splitlines()[-1].startswith(f"khepri: error: {config}: source.lockstep: khepri hub paces the "
+                                                   "simulation")
 
 
 def test_a_record_path_ending_in_a_slash_is_refused_not_written_as_a_file(tmp_path, capsys):

@@ -1,4 +1,0 @@
-from onboard.behaviour import register
-
-
-def half_written(:
