@@ -34,6 +34,7 @@ from onboard.config import ConfigError
 ROBOT_DOMAIN = "robots"
 OPERATOR_DOMAIN = "operators"
 ROBOT_KEY = re.compile(r"^robot-(\d+)\.key$")
+MAX_OPERATOR_NAME = 64
 HUB_KEYS_FIELD = "security.keys"   # what the hub's key errors name: the lab config's key
 REFUSAL_LOG_S = 60.0    # a refused key is logged at most this often per peer address and socket
 HANDSHAKE_LOG_S = 10.0  # a failed CURVE handshake is logged at most this often per peer address and socket
@@ -130,6 +131,10 @@ def check_operator_names(operators: List[str]) -> None:
     for name in operators:
         if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
             raise ConfigError("--operator", f"use letters, digits, '.', '_' or '-' only (got {name!r})")
+        if name[0] in ".-":     # `.`/`..` made `...key`; `-x` cannot be given back to `ctl --operator`
+            raise ConfigError("--operator", f"must start with a letter, a digit or '_' (got {name!r})")
+        if len(name) > MAX_OPERATOR_NAME:     # its .key_secret must fit a file name (checked before writing)
+            raise ConfigError("--operator", f"at most {MAX_OPERATOR_NAME} characters (got {len(name)})")
 
 
 def stale_keys(folder: Path, keep: List[Path]) -> List[Path]:
@@ -145,6 +150,12 @@ def load_keyring(folder: Path) -> KeyRing:
     if problem:
         raise ConfigError(HUB_KEYS_FIELD, problem)
     public, secret = _load_pair(folder / "hub.key_secret", "hub", HUB_KEYS_FIELD)
+    if _load_public(folder / "hub.key", HUB_KEYS_FIELD) != public:
+        # What robots and operators are given: with another key there, every client is refused, and each
+        # was told its hub.key was not this hub's (it was this folder's hub.key).
+        raise ConfigError(HUB_KEYS_FIELD, f"{folder / 'hub.key'} is not the public key of {folder / 'hub.key_secret'} "
+                                          "(copied from another key folder?): robots and operators given it could "
+                                          "not connect; copy the pair from one `khepri keys init`")
     ring = KeyRing(folder, public, secret)
     holders: Dict[bytes, Path] = {public: folder / "hub.key"}
     for path in sorted((folder / "robots").glob("robot-*.key")):
@@ -410,6 +421,13 @@ def _load_pair(path: Path, who: str, where: str):
         raise ConfigError(where, f"{path}: not a key file ({err})") from None
     if secret is None:
         raise ConfigError(where, f"{path}: holds no secret key")
+    try:
+        derived = zmq.curve_public(secret)
+    except (zmq.ZMQError, ValueError):
+        raise ConfigError(where, f"{path}: its secret key is not a CURVE key") from None
+    if derived != public:      # an edited file: the clients would be told the wrong public key
+        raise ConfigError(where, f"{path}: its public key is not its secret key's pair (an edited file? make the "
+                                 f"keys again with `khepri keys init --force`)")
     return public, secret
 
 

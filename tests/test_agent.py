@@ -859,3 +859,18 @@ def test_an_agent_given_the_control_port_is_told_so_while_it_waits(make_scenario
     assert f"what answers at {control} is not a hub's robots port" in waiting, waiting
     assert "the hub's control port answered; agents connect to its robots port" in waiting, waiting
     assert "sends robot 0 nothing" not in waiting
+
+
+def test_a_keyed_agent_the_hub_ignores_is_asked_whether_its_key_is_its_own():
+    """robots/robot-3.key_secret held robot 2's key: the hub said `robot 2 claimed to be robot 3`, the agent only
+    whether robot 3 was in the lab or another agent had its id."""
+    from onboard.agent.connection import ConnectionWatch
+
+    watch = ConnectionWatch.__new__(ConnectionWatch)
+    watch.read = lambda: None
+    watch.connected, watch.refused, watch.handshake_ok, watch.dropped = True, False, True, False
+    watch.handshake_failed, watch.protocol_error = None, None
+    keyed = watch.likely_cause(3, "tcp://hub:5560", keyed=True)
+    assert "and is robots/robot-3.key_secret robot 3's own key (not another robot's)?" in keyed, keyed
+    assert watch.likely_cause(3, "tcp://hub:5560", keyed=False).endswith(
+        "is robot 3 in the hub's lab, and is no other agent connected as robot 3? The hub's console says which")

@@ -477,3 +477,26 @@ def test_a_waiting_agent_says_the_hub_is_not_encrypted_or_does_not_know_the_robo
                           "--keys"), keyed
     assert f"still trying: connected to the hub at {endpoint}, but it sends robot 9 nothing: is robot 9 in the " \
            "hub's lab, and is no other agent connected as robot 9?" in stranger, stranger
+
+
+def test_a_hub_key_copied_from_another_folder_is_refused_naming_both_files(keys, tmp_path):
+    """The hub started with another folder's hub.key beside its secret; every agent and ctl given that hub.key
+    was refused, and each was told its hub.key was not this hub's (it was this folder's own hub.key)."""
+    other = tmp_path / "other"
+    init_keys(other, [0], ["bob"])
+    (keys / "hub.key").write_bytes((other / "hub.key").read_bytes())
+    with pytest.raises(ConfigError) as info:
+        load_keyring(keys)
+    assert info.value.field == "security.keys" and info.value.problem.startswith(
+        f"{keys / 'hub.key'} is not the public key of {keys / 'hub.key_secret'} (copied from another key folder?)")
+
+
+def test_operator_names_that_would_not_come_back_through_ctl_are_refused(tmp_path):
+    """`--operator -dash` was made, and ctl's hint `--operator -dash` then failed; `.` made `...key`; a name
+    too long for its .key_secret failed half way through `keys init --force`, after the old keys were gone."""
+    for name, problem in [("-dash", "must start with a letter, a digit or '_'"), (".", "must start with"),
+                          ("q" * 248, "at most 64 characters (got 248)")]:
+        with pytest.raises(ConfigError) as info:
+            init_keys(tmp_path / "k", [0], [name])
+        assert info.value.field == "--operator" and problem in info.value.problem, info.value
+        assert not (tmp_path / "k").exists()

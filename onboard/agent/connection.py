@@ -113,9 +113,14 @@ class ConnectionWatch:
         if kind in (KEY_REFUSED, MECHANISM_MISMATCH, HANDSHAKE_DROPPED):
             return self._handshake_cause(kind, robot_id, keyed)
         if kind == CONNECTED_SILENT:
-            return (f"connected to the hub at {address}, but it sends robot {robot_id} nothing: is robot "
-                    f"{robot_id} in the hub's lab, and is no other agent connected as robot {robot_id}? "
-                    "The hub's console says which")
+            # A key is one robot's: another robot's key file speaks for that robot, and the hub drops the claim.
+            questions = [f"is robot {robot_id} in the hub's lab", f"is no other agent connected as robot {robot_id}"]
+            if keyed:
+                questions.append(f"is robots/robot-{robot_id}.key_secret robot {robot_id}'s own key (not another "
+                                 "robot's)")
+            asked = ", ".join(questions[:-1]) + ", and " + questions[-1]
+            return (f"connected to the hub at {address}, but it sends robot {robot_id} nothing: {asked}? The hub's "
+                    "console says which")
         if kind in (CLOSED, CLOSED_AND_REFUSED):
             now = " and nothing accepts a new one (refused or unreachable)" if kind == CLOSED_AND_REFUSED else ""
             return (f"the hub at {address} closed the connection{now}: did the hub stop, or its PC? Start it "
