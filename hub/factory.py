@@ -8,6 +8,7 @@ from typing import Any, Callable, Dict, List, Optional
 
 import zmq
 
+from onboard.agent.link import exposed_secret
 from onboard.behaviour import build_params, get_behaviour
 from onboard.config import ConfigError, folder_not_file
 from onboard.hal import RobotSpec
@@ -17,8 +18,8 @@ from .binding import check_ports_free
 from .config import LabConfig, check_watchdog
 from .console import as_console
 from .housekeeping import format_ids
+from .keyfiles import KeyRing, load_keyring
 from .replay_source import ReplaySource
-from .security import KeyRing, exposed_secret, load_keyring
 from .sensors import SensingModel
 from .server import Hub, RunTemplate
 from .sources import MotionCaptureSource, PoseSource

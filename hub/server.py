@@ -28,9 +28,10 @@ from .console import as_console
 from .control_service import ControlService
 from .downlink import Downlink
 from .housekeeping import MOCAP_SILENT_S, Housekeeping
+from .keyfiles import KeyRing
 from .links import VIRTUAL_DRIVERS, DropLog, RateMeter, RobotLink, SparseFrames
 from .relay import RadioRelay
-from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HandshakeWatch, HubAuthenticator, KeyRing, make_curve_server
+from .security import OPERATOR_DOMAIN, ROBOT_DOMAIN, HandshakeWatch, HubAuthenticator, make_curve_server
 from .sensors import SensingModel, VirtualSensors
 from .sources import PoseFrame, PoseSource
 from .uplink import Uplink

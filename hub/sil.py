@@ -27,9 +27,9 @@ from sim_backend.scenario import Scenario
 from .config import DEFAULT_WATCHDOG_S, min_watchdog_s, parse_config
 from .factory import build_hub
 from .harness import spawn_agent, stop_processes
+from .keyfiles import init_keys
 from .lockstep import UNRESPONSIVE_AFTER_STEPS, Lockstep
 from .runner import print_now
-from .security import init_keys
 from .sil_report import SilRecording, agents_total, sil_figures
 from .sim_source import not_simulated_here
 

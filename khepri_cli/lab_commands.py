@@ -153,7 +153,7 @@ def _add_ctl(groups) -> None:
 
 def cmd_ctl(args: argparse.Namespace) -> int:
     from hub.control import BadEndpoint, ControlError, refusals_after_start, request, status_table
-    from hub.security import operator_client_keys
+    from hub.keyfiles import operator_client_keys
     from onboard.agent.link import hub_endpoint, resolve_problem, unresolvable_host
 
     port = DEFAULT_CONTROL_PORT if args.port is None else args.port
@@ -256,7 +256,7 @@ def _add_keys(groups) -> None:
 
 
 def cmd_keys_init(args: argparse.Namespace) -> int:
-    from hub.security import check_operator_names, init_keys, stale_keys
+    from hub.keyfiles import check_operator_names, init_keys, stale_keys
     from khepri_cli.sim_commands import out_folder_problem
 
     args.folder = key_folder(args.folder)
@@ -281,7 +281,7 @@ def cmd_keys_init(args: argparse.Namespace) -> int:
 
 
 def cmd_keys_add(args: argparse.Namespace) -> int:
-    from hub.security import add_keys, revoked_secrets
+    from hub.keyfiles import add_keys, revoked_secrets
 
     args.folder = key_folder(args.folder)
     if args.robots is None and not args.operator:

@@ -759,7 +759,7 @@ def test_a_hub_address_with_its_port_in_it_is_refused_not_waited_for(command):
 
 def test_key_errors_name_the_config_key_or_the_option_they_come_from(tmp_path):
     """Both said `keys: ...`: the hub's config key is security.keys, and ctl's option is --keys."""
-    from hub.security import init_keys
+    from hub.keyfiles import init_keys
 
     keys = tmp_path / "keys"
     init_keys(keys, [0], ["alice"])
@@ -776,7 +776,7 @@ def test_key_errors_name_the_config_key_or_the_option_they_come_from(tmp_path):
 
 def test_an_operator_name_the_folder_lacks_names_the_operator_option(tmp_path):
     """`--operator bob` in a folder of alice's key said `--keys: no operator key 'bob'`: the folder was right."""
-    from hub.security import init_keys, operator_client_keys
+    from hub.keyfiles import init_keys, operator_client_keys
 
     keys = tmp_path / "keys"
     init_keys(keys, [0], ["alice"])
@@ -836,7 +836,7 @@ def test_the_hubs_missing_key_hint_keys_exactly_the_labs_robots():
     """For a lab of robot 3 alone, the hub said `keys init ... --robots 3`: a count, which keys robots 0, 1, 2.
     (The hint is `keys add` now, for the robots without a key; the same option.)"""
     from hub.factory import say_missing_keys
-    from hub.security import KeyRing
+    from hub.keyfiles import KeyRing
     from khepri_cli.lab_commands import parse_robot_ids
 
     for ids in ([3], [0], [0, 1, 2], [2, 5]):

@@ -13,7 +13,8 @@ import zmq
 from hub.config import parse_config
 from hub.control import ControlError, request
 from hub.harness import HubThread, spawn_agent, stop_processes
-from hub.security import HubAuthenticator, add_keys, init_keys, load_keyring, operator_client_keys
+from hub.keyfiles import add_keys, init_keys, load_keyring, operator_client_keys
+from hub.security import HubAuthenticator
 from onboard.agent.link import load_robot_keys
 from onboard.config import ConfigError
 from onboard.protocol import encode
@@ -295,7 +296,7 @@ def test_a_refused_key_is_logged_once_with_the_peers_address(secure_hub, keys):
 def test_a_key_added_while_the_hub_runs_is_refused_with_the_fix(secure_hub, keys):
     """`keys add KEYS --robots 6,` with the hub running: the hub loads its keys at start, and said the new robot's
     key was `not in keys/robots`, where it was. It names the file and says to restart the hub."""
-    from hub.security import add_keys
+    from hub.keyfiles import add_keys
 
     add_keys(keys, [6], [])
     sock = client(secure_hub.endpoints["robots"], (*[load_robot_keys(keys, 6)[k] for k in ("public", "secret")],
@@ -500,3 +501,22 @@ def test_operator_names_that_would_not_come_back_through_ctl_are_refused(tmp_pat
             init_keys(tmp_path / "k", [0], [name])
         assert info.value.field == "--operator" and problem in info.value.problem, info.value
         assert not (tmp_path / "k").exists()
+
+
+def test_a_key_this_user_may_not_read_is_said_so_naming_the_field(keys, monkeypatch):
+    """A hub run as a service account on root's 0700 key folder said `Permission denied: k/hub.key_secret` with no
+    field, and an unreadable secret was called `not a key file`."""
+    import zmq.auth
+
+    def refuse(path):
+        raise PermissionError(13, "Permission denied", path)
+
+    monkeypatch.setattr(zmq.auth, "load_certificate", refuse)
+    with pytest.raises(ConfigError) as info:
+        load_keyring(keys)
+    assert info.value.field == "security.keys"
+    assert info.value.problem == (f"{keys / 'hub.key_secret'}: this user may not read it (permission denied): run "
+                                  "as the user that made the keys, or give this one read access")
+    with pytest.raises(ConfigError) as info:
+        operator_client_keys(keys)
+    assert info.value.field == "--keys" and "alice.key_secret: this user may not read it" in info.value.problem
