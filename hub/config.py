@@ -88,8 +88,9 @@ class SourceConfig:
             names = [name for name, _ in bodies]
             for name in self.bodies:
                 if name not in names:
+                    listed = ", ".join(map(repr, names))     # quoted: 'kh0 ' with its space showed as kh0
                     raise ConfigError(join(join(where, "bodies"), name),
-                                      f"the mock has no body {name!r} (its rigid_bodies: {', '.join(names)})")
+                                      f"the mock has no body {name!r} (its rigid_bodies: {listed})")
         if self.type == "replay" and not self.file:
             raise ConfigError(join(where, "file"), "a replay source needs file: <log.mcap>")
 

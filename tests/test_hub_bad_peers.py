@@ -183,7 +183,7 @@ def test_a_body_the_mock_does_not_have_is_named_and_spaces_after_a_semicolon_do_
     config["source"]["options"]["rigid_bodies"] = "kh0(0,0,0,1,0,0,0)"
     with pytest.raises(ConfigError) as info:
         parse_config(config)
-    assert str(info.value) == "source.bodies.kh1: the mock has no body 'kh1' (its rigid_bodies: kh0)"
+    assert str(info.value) == "source.bodies.kh1: the mock has no body 'kh1' (its rigid_bodies: 'kh0')"
     config["source"]["options"]["rigid_bodies"] = "kh0(0,0,0,1,0,0,0); kh1(0.5,0,0,1,0,0,0)"
     with HubThread(parse_config(config)) as hub:       # the mock names the second body " kh1" if given as is
         hub.request("start")
