@@ -9,6 +9,8 @@ import sys
 
 from onboard.config import ConfigError, check_range
 
+from .signals import sigterm_as_ctrl_c
+
 
 def add_lab_benches(bench_commands) -> None:
     """Register ``khepri bench hub`` and ``khepri bench estop`` under the bench group."""
@@ -68,7 +70,9 @@ def cmd_bench_hub(args: argparse.Namespace) -> int:
 
     check_bench_options(args)
     try:
-        result = bench_hub(args.robots, args.rate, args.seconds, telemetry_hz=args.telemetry_hz, record=args.record)
+        with sigterm_as_ctrl_c():       # `kill` cleans up the hub, its agents and the temporary folder
+            result = bench_hub(args.robots, args.rate, args.seconds, telemetry_hz=args.telemetry_hz,
+                               record=args.record)
     except (ControlError, RuntimeError) as err:     # the hub did not start, answer or send: said, not a traceback
         print(f"khepri: error: bench hub: {err}", file=sys.stderr)
         return 1
@@ -77,9 +81,13 @@ def cmd_bench_hub(args: argparse.Namespace) -> int:
         return 0
     load = "".join((f", agents sending telemetry at {args.telemetry_hz:g} Hz" if args.telemetry_hz > 0 else "",
                     ", recording to MCAP" if args.record else ""))
-    print(f"hub with {args.robots} robots at {args.rate:g} Hz for {args.seconds:g} s{load}: "
-          f"mocap-frame-to-agent latency p50 {result['latency_p50_ms']:.3f} ms, p99 {result['latency_p99_ms']:.3f} ms; "
-          f"hub CPU {result['hub_cpu_percent']:.1f} % of a core ({result['frames_received']} frames received)")
+    robots = f"{args.robots} robot{'s' if args.robots != 1 else ''}"
+    dropped = result["hub_drops"] + result["frames_dropped"]     # a loaded hub's: said, not left to --json readers
+    print(f"hub with {robots} at {args.rate:g} Hz for {args.seconds:g} s{load}: "
+          f"mocap-frame-to-agent latency p50 {result['latency_p50_ms']:.3f} ms, p99 {result['latency_p99_ms']:.3f} ms "
+          f"(the last robot of each frame's burst: p50 {result['last_robot_p50_ms']:.3f} ms); "
+          f"hub CPU {result['hub_cpu_percent']:.1f} % of a core ({result['frames_received']} frames received"
+          f"{f', {dropped} dropped' if dropped else ''})")
     return 0
 
 
@@ -108,7 +116,8 @@ def cmd_bench_estop(args: argparse.Namespace) -> int:
     check_range("--robots", args.robots, 1, MAX_ESTOP_ROBOTS)
     check_range("--repeats", args.repeats, 1, MAX_ESTOP_REPEATS)
     try:
-        result = bench_estop(args.robots, args.repeats)
+        with sigterm_as_ctrl_c():       # `kill` stops the agent processes and removes their logs' folder
+            result = bench_estop(args.robots, args.repeats)
     except (ControlError, RuntimeError) as err:     # the hub or an agent did not start or answer: said
         print(f"khepri: error: bench estop: {err}", file=sys.stderr)
         return 1

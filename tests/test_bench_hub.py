@@ -8,7 +8,8 @@ import hub.bench
 from khepri_cli.main import build_parser, main
 from onboard.config import ConfigError
 
-FIGURES = {"latency_p50_ms": 0.5, "latency_p99_ms": 0.9, "hub_cpu_percent": 7.0, "frames_received": 1200}
+FIGURES = {"latency_p50_ms": 0.5, "latency_p99_ms": 0.9, "hub_cpu_percent": 7.0, "frames_received": 1200,
+           "last_robot_p50_ms": 0.6, "hub_drops": 0, "frames_dropped": 0}
 
 
 @pytest.fixture
@@ -101,3 +102,27 @@ def test_a_hub_that_stops_answering_during_the_bench_is_one_line(monkeypatch, ca
     captured = capsys.readouterr()
     assert captured.out == ""
     assert captured.err == "khepri: error: bench hub: no answer from the hub at tcp://127.0.0.1:5 within 5 s\n"
+
+
+def test_a_killed_bench_cleans_up_its_hub_and_temporary_folder(tmp_path):
+    """`kill` (SIGTERM) of `bench hub --record` left /tmp/khepri-bench-hub-* with its log, config and MCAP file
+    (Ctrl-C cleaned up); `bench estop` left its agents' logs the same way."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    env = dict(os.environ, TMPDIR=str(tmp_path), PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    bench = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "bench", "hub", "--robots", "5", "--rate", "50",
+                              "--seconds", "60", "--record"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+    deadline = time.monotonic() + 30
+    while not list(tmp_path.glob("khepri-bench-hub-*/bench.mcap")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert list(tmp_path.glob("khepri-bench-hub-*")), "the bench never started its hub"
+    bench.send_signal(signal.SIGTERM)
+    _, err = bench.communicate(timeout=60)
+    assert bench.returncode == 130 and "interrupted" in err, err
+    assert not list(tmp_path.glob("khepri-bench-hub-*")), list(tmp_path.iterdir())
