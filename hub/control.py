@@ -122,7 +122,10 @@ def no_answer(endpoint: str, timeout_s: float, watch: Optional[ConnectionWatch] 
                             f"run with --insecure needs no keys). {family_hint(endpoint)}".rstrip(),
                             keys_may_help=True)
     cause, keys_may_help = found
-    return ControlError(f"{start}: {cause} {family_hint(endpoint)}".rstrip(), keys_may_help=keys_may_help)
+    # The address family matters only where nothing answered: not after a handshake, whose cause is known.
+    never_reached = watch.kind() in (connection.REFUSED, connection.NO_ANSWER)
+    hint = family_hint(endpoint) if never_reached else ""
+    return ControlError(f"{start}: {cause} {hint}".rstrip(), keys_may_help=keys_may_help)
 
 
 def connection_cause(watch: ConnectionWatch, keyed: bool) -> Optional[Tuple[str, bool]]:
