@@ -67,3 +67,11 @@ def _taken(address: str) -> bool:
     except ValueError:
         return False
     return False
+
+
+def is_loopback(host: str) -> bool:
+    """localhost, 127.x.x.x, or ::1 however written: bare, in brackets as in a URL ([::1], as the hub writes its
+    own addresses), or in full; the hub binds each of them."""
+    from onboard.agent.link import ipv6_literal
+
+    return host == "localhost" or host.startswith("127.") or ipv6_literal(host) == "::1"

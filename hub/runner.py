@@ -9,6 +9,7 @@ from typing import Callable
 from onboard.config import ConfigError
 from onboard.console import flush_quietly, say, stop_signals
 
+from .binding import is_loopback
 from .config import LabConfig
 from .factory import build_hub
 from .run_events import end_by_signal
@@ -52,6 +53,11 @@ def serve_hub(config: LabConfig, log: Callable[[str], None] = print_now) -> int:
     hub = build_hub(config, log=log)
     if config.security.insecure:     # after the config's own errors: a refused config serves nobody
         say(INSECURE_WARNING)
+        bind = config.network.bind
+        if not is_loopback(bind):       # the banner says "only on loopback": this is not
+            where = "every network interface" if bind in ("*", "0.0.0.0", "::") else bind
+            say(f"hub: INSECURE and not on loopback: listening on {where} (network.bind {bind}), and "
+                "security.keys is not used")
     stop = {"requested": False, "signal": None}
 
     def request_stop(signum, frame):

@@ -50,6 +50,7 @@ OVERRIDING_OPTIONS = {"network.bind": "bind", "network.robot_port": "robot_port"
 
 
 def cmd_hub(args: argparse.Namespace) -> int:
+    from hub.binding import is_loopback
     from hub.config import demo_config, load_config, parse_config
     from hub.runner import serve_hub
 
@@ -106,14 +107,6 @@ def keys_here_hint() -> str:
     if operators.is_dir() and any(operators.glob("*.key_secret")):
         return " This folder has operator keys in keys/: try again with --keys keys."
     return ""
-
-
-def is_loopback(host: str) -> bool:
-    """localhost, 127.x.x.x, or ::1 however written: bare, in brackets as in a URL ([::1], as the hub writes its
-    own addresses), or in full; the hub binds each of them."""
-    from onboard.agent.link import ipv6_literal
-
-    return host == "localhost" or host.startswith("127.") or ipv6_literal(host) == "::1"
 
 
 # --- agent ----------------------------------------------------------------------------------------------------

@@ -73,6 +73,26 @@ def test_the_demo_hub_listens_on_the_ipv6_loopback_written_either_way(bind, tmp_
     assert re.search(r"listening robots tcp://\[::1\]:\d+\n", log_path.read_text()), log_path.read_text()
 
 
+def test_an_insecure_hub_off_loopback_says_where_it_listens(tmp_path):
+    """The banner says to run insecure "only on loopback"; a config binding every interface with --insecure
+    started with that banner alone."""
+    config = tmp_path / "lab.yaml"
+    config.write_text(yaml.safe_dump({"source": {"type": "sim", "scenario": "lab-6"},
+                                      "network": {"bind": "0.0.0.0", "robot_port": 0, "control_port": 0}}))
+    log_path = tmp_path / "hub.log"
+    with open(log_path, "w") as log:
+        hub = spawn("hub", "--config", str(config), "--insecure", log=log)
+    try:
+        deadline = time.monotonic() + 30
+        while log_path.read_text().count("listening ") < 2:
+            assert hub.poll() is None and time.monotonic() < deadline, log_path.read_text()
+            time.sleep(0.1)
+    finally:
+        stop_processes([hub])
+    assert "hub: INSECURE and not on loopback: listening on every network interface (network.bind 0.0.0.0)" in \
+        log_path.read_text(), log_path.read_text()
+
+
 def hub_ports(log_path: Path, hub: subprocess.Popen) -> dict:
     """The robots and control ports a hub on port 0 bound, read from its `listening` lines."""
     deadline = time.monotonic() + 30
