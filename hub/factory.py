@@ -18,7 +18,7 @@ from .binding import check_ports_free
 from .config import LabConfig, check_watchdog
 from .console import as_console
 from .housekeeping import format_ids
-from .keyfiles import KeyRing, load_keyring
+from .keyfiles import KeyRing, load_keyring, writable_by_others
 from .replay_source import ReplaySource
 from .sensors import SensingModel
 from .server import Hub, RunTemplate
@@ -50,9 +50,10 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     net = config.network            # likewise a port another process (a hub left running) listens on
     check_ports_free(net.bind, [("robot_port", net.robot_port), ("control_port", net.control_port)])
     keyring = None if config.security.insecure else load_keyring(Path(config.security.keys))
-    exposed = exposed_secret(Path(config.security.keys) / "hub.key_secret") if keyring else None
-    if exposed:
-        log(f"hub: warning: {exposed}")
+    if keyring:
+        folder = Path(config.security.keys)
+        for warning in filter(None, (exposed_secret(folder / "hub.key_secret"), writable_by_others(folder))):
+            log(f"hub: warning: {warning}")
     if config.source.type == "sim":
         from .sim_source import SimSource, not_simulated_here
 

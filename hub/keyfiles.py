@@ -9,6 +9,7 @@ Key folder (``khepri keys init DIR``)::
 """
 from __future__ import annotations
 
+import os
 import re
 import sys
 from dataclasses import dataclass, field
@@ -102,12 +103,24 @@ def _refuse_files_in_the_way(folder: Path, targets: List[Path]) -> None:
 
 
 def _create_pairs(targets: List[Path]) -> List[Path]:
+    """The pairs, made under a private umask: the secret was written with the umask's mode and then made 0600,
+    and under umask 000 the folders and public keys came out writable by everyone (who could swap a key)."""
     created = []
-    for path in targets:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        public, secret = zmq.auth.create_certificates(str(path.parent), path.stem)
-        Path(secret).chmod(0o600)
-        created += [Path(public), Path(secret)]
+    previous = os.umask(0o077)
+    try:
+        for path in targets:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            public, secret = zmq.auth.create_certificates(str(path.parent), path.stem)
+            Path(public).chmod(0o644)        # readable: the robots and operators are given copies
+            Path(secret).chmod(0o600)
+            created += [Path(public), Path(secret)]
+    finally:
+        os.umask(previous)
+    folders = {path.parent for path in targets} | {path.parent.parent for path in targets if path.name != "hub.key"}
+    for folder in folders:
+        mode = folder.stat().st_mode & 0o777
+        if mode & 0o022:            # the key folder made beforehand, under the caller's umask
+            folder.chmod(mode & ~0o022)
     return created
 
 
@@ -238,3 +251,22 @@ def load_public(path: Path, where: str) -> bytes:
     if not _is_file(path, where):
         raise ConfigError(where, f"no public key {path}" + (" (a folder)" if path.is_dir() else ""))
     return _certificate(path, where)[0]
+
+
+def writable_by_others(folder: Path) -> Optional[str]:
+    """A warning when others than the owner may write where the hub reads the keys it accepts: whoever can
+    add or swap a public key in robots/ or operators/ is let in at the hub's next start. None when private
+    (or on a system without POSIX modes)."""
+    if os.name != "posix":
+        return None
+    places = [folder, folder / "robots", folder / "operators", folder / "hub.key"]
+    places += sorted((folder / "robots").glob("*.key")) + sorted((folder / "operators").glob("*.key"))
+    for place in places:
+        try:
+            mode = place.stat().st_mode & 0o777
+        except OSError:
+            continue
+        if mode & 0o022:
+            return (f"{place} can be written by other users (mode {mode:04o}): anyone who can write there can add "
+                    f"or swap a key this hub accepts when it next starts; run `chmod go-w {place}`")
+    return None

@@ -522,3 +522,24 @@ def test_a_key_this_user_may_not_read_is_said_so_naming_the_field(keys, monkeypa
     with pytest.raises(ConfigError) as info:
         operator_client_keys(keys)
     assert info.value.field == "--keys" and "alice.key_secret: this user may not read it" in info.value.problem
+
+
+def test_keys_made_under_an_open_umask_are_not_writable_by_others_and_a_writable_folder_is_warned(tmp_path):
+    """Under umask 000 `keys init` made 0777 folders and 0666 public keys: anyone on the lab PC could add or
+    swap a key the hub accepts at its next start, and nothing said so."""
+    from hub.keyfiles import writable_by_others
+
+    previous = os.umask(0)
+    try:
+        init_keys(tmp_path / "k", [0, 1], ["alice"])
+    finally:
+        os.umask(previous)
+    folder = tmp_path / "k"
+    for path in [folder, folder / "robots", folder / "operators", *folder.rglob("*.key")]:
+        assert not stat.S_IMODE(path.stat().st_mode) & 0o022, (path, oct(path.stat().st_mode))
+    for path in folder.rglob("*.key_secret"):
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600, path
+    assert writable_by_others(folder) is None
+    (folder / "operators").chmod(0o777)
+    assert writable_by_others(folder).startswith(f"{folder / 'operators'} can be written by other users (mode "
+                                                 "0777): anyone who can write there can add or swap a key")
