@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 from pathlib import Path
 from typing import List
@@ -315,10 +316,13 @@ MAX_KEYED_ROBOTS = 10_000     # a key pair is two files: beyond this a typo, not
 
 def parse_robot_ids(text: str) -> List[int]:
     """``--robots``: a count N (ids 0..N-1) or a list of ids like ``0,1,5``."""
-    try:
-        numbers = [int(part) for part in text.split(",") if part.strip()]
-    except ValueError:
-        raise ConfigError("--robots", f"give a count like 6 or ids like 0,1,5 (got {text!r})") from None
+    parts = [part.strip() for part in text.split(",")]
+    if len(parts) > 1 and not parts[-1]:
+        parts.pop()         # `5,`: a list of one id
+    # ASCII digits only: int() reads '٣' as 3, and `3,,4` lost an id typed between the commas.
+    if not all(re.fullmatch(r"-?[0-9]+", part) for part in parts):
+        raise ConfigError("--robots", f"give a count like 6 or ids like 0,1,5 (got {text!r})")
+    numbers = [int(part) for part in parts]
     if "," not in text and numbers:
         if numbers[0] == 0:     # a count of none: most likely robot 0 was meant
             raise ConfigError("--robots", "0 is a count of no robots (a single number is a count N: ids 0..N-1); "

@@ -812,8 +812,10 @@ def keys_init(*args):
     ("0,99999999", "robot ids must be 0..999999 (got 99999999)"),
     ("0", "for robot id 0 alone, give --robots 0, (a list of one id)"),
     ("-2", "the robot count must be >= 1 (got -2)"),
-    (",", "give at least one robot id (got ',')"),
+    (",", "give a count like 6 or ids like 0,1,5 (got ',')"),
     ("1,1", "lists robot 1 twice (got '1,1')"),      # was keyed as robot 1 alone: a typo for 1,2 went unseen
+    ("3,,4", "give a count like 6 or ids like 0,1,5 (got '3,,4')"),      # an id lost between the commas
+    ("\u0663,", "give a count like 6 or ids like 0,1,5"),                 # an Arabic-Indic 3, which int() took
 ])
 def test_keys_init_refuses_robots_no_hub_would_take(tmp_path, robots, problem):
     line = one_error_line(keys_init(tmp_path / "keys", "--robots", robots), "--robots")
