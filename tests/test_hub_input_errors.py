@@ -815,7 +815,7 @@ def keys_init(*args):
     (",", "give a count like 6 or ids like 0,1,5 (got ',')"),
     ("1,1", "lists robot 1 twice (got '1,1')"),      # was keyed as robot 1 alone: a typo for 1,2 went unseen
     ("3,,4", "give a count like 6 or ids like 0,1,5 (got '3,,4')"),      # an id lost between the commas
-    ("\u0663,", "give a count like 6 or ids like 0,1,5"),                 # an Arabic-Indic 3, which int() took
+    ("\u0663,", "give a count like 6 or ids like 0,1,5 (got '\u0663,')"),   # an Arabic-Indic 3: int() took it
 ])
 def test_keys_init_refuses_robots_no_hub_would_take(tmp_path, robots, problem):
     line = one_error_line(keys_init(tmp_path / "keys", "--robots", robots), "--robots")
