@@ -113,6 +113,8 @@ def mock_bodies(where: str, value: Any) -> List[Tuple[str, str]]:
         if qw * qw + qx * qx + qy * qy + qz * qz < DEGENERATE_QUATERNION:
             raise ConfigError(where, f"entry {i + 1} ({entry!r}): its quaternion qw,qx,qy,qz is not a rotation "
                                      "(1,0,0,0 faces +x; 0.7071,0,0,0.7071 faces +y)")
+        if any(name == match.group(1) for name, _ in bodies):     # the mock took the first, said nothing
+            raise ConfigError(where, f"entry {i + 1} ({entry!r}): the body {match.group(1)!r} is given twice")
         bodies.append((match.group(1), entry))
     if not bodies:
         raise ConfigError(where, "has no body: give name(x,y,z,qw,qx,qy,qz) entries separated by ;")

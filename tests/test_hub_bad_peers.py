@@ -168,6 +168,7 @@ def test_a_mock_without_rigid_bodies_is_refused_rather_than_placing_no_robot():
     ("kh0(0,0,0,1,0,0,0);kh1(a,0,0,1,0,0,0)", "entry 2 ('kh1(a,0,0,1,0,0,0)')"),
     (" ; ", "has no body"),
     ("kh0(0,0,0.05,0,0,0,0)", "entry 1 ('kh0(0,0,0.05,0,0,0,0)'): its quaternion qw,qx,qy,qz is not a rotation"),
+    ("kh0(0,0,0,1,0,0,0);kh0(1,0,0,1,0,0,0)", "entry 2 ('kh0(1,0,0,1,0,0,0)'): the body 'kh0' is given twice"),
 ])
 def test_a_mock_body_the_mock_would_skip_is_refused(rigid_bodies, problem):
     """The mock skips an entry it cannot parse, and the robot was never placed, with no word of why."""
