@@ -13,8 +13,8 @@ import numpy as np
 import pymunk.autogeometry
 from matplotlib.path import Path as MplPath
 
+from .object_spec import ObjectPart, ObjectSpec
 from .outline import polygon_area
-from .scenario import ObjectPart, ObjectSpec
 
 Point = Tuple[float, float]
 CIRCLE_OUTLINE_SEGMENTS = 32

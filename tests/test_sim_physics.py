@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from onboard.geometry import neighbour_mask, pairwise_range_bearing
+from sim_backend.object_spec import ObjectSpec
 from sim_backend.runner import Simulation
-from sim_backend.scenario import ObjectSpec
 from sim_backend.sensing import ir_response
 from sim_backend.shapes import build_geometry
 from sim_backend.world import World
