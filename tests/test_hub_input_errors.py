@@ -839,7 +839,7 @@ def test_the_hubs_missing_key_hint_keys_exactly_the_labs_robots():
     (The hint is `keys add` now, for the robots without a key; the same option.)"""
     from hub.factory import say_missing_keys
     from hub.keyfiles import KeyRing
-    from khepri_cli.lab_commands import parse_robot_ids
+    from khepri_cli.keys_commands import parse_robot_ids
 
     for ids in ([3], [0], [0, 1, 2], [2, 5]):
         lines = []

@@ -165,7 +165,7 @@ def test_keys_init_names_the_folder_it_cannot_write(tmp_path, capsys, folder, pr
 def test_any_os_error_on_a_path_is_one_line_but_one_without_a_path_keeps_its_traceback(tmp_path, capsys,
                                                                                         monkeypatch):
     """hub --record, a keys folder's subfolder and the like: the file system's refusal, without a traceback."""
-    import khepri_cli.lab_commands as lab
+    import khepri_cli.keys_commands as lab
 
     too_long = str(tmp_path / ("k" * 300))
 
