@@ -10,7 +10,6 @@ from onboard.config import ConfigError
 from onboard.protocol import MAX_ROBOT_ID
 
 
-# --- keys -----------------------------------------------------------------------------------------------------
 def add_keys_commands(groups) -> None:
     keys = groups.add_parser("keys", help="CURVE key pairs for the hub, robots and operators",
                              description="Manage the lab's CURVE keys (see docs/lab.md).")
