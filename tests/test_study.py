@@ -1569,3 +1569,26 @@ def test_a_dry_run_into_a_file_is_refused_as_the_run_would_be(tmp_path, capsys):
     study = write(tmp_path / "s.yaml", "scenarios: [lab-6]\nreps: 1\n")
     assert main(["study", str(study), "--dry-run", "--out", str(tmp_path / "afile")]) == 2
     assert f"--out: {tmp_path / 'afile'} is a file, not a folder" in capsys.readouterr().err
+
+
+def test_the_report_says_seeds_and_code_keeps_the_papers_unreached_waypoints_and_tells_run_warnings_apart(
+        known_study):
+    """An audit of the committed report: it never said which seeds or code ran; waypoints no run reached lost
+    the paper's numbers beside them (rows 2-9 went missing); and a slow step() on a busy machine was listed
+    as what the simulator said before the runs would doom them."""
+    seed1 = known_study / "paper-25-straight/seed-1/result.json"
+    result = json.loads(seed1.read_text())
+    result["warnings"] = ["robot 3's step() took 0.52 s of wall time at t = 195.9 s (said once a run): ...",
+                          "object.mass: a cage of about 6 ..."]
+    seed1.write_text(json.dumps(result))
+    write_study_outputs(known_study, figures=False)
+    report = (known_study / "report.md").read_text()
+    assert "Seeds: 1-4 (1 cell), 1, 2 (1 cell). Behaviour code: " in report, report
+    table = report.split("### paper-25-straight")[1].split("###")[0]
+    rows = [line for line in table.split("\n\n")[1].splitlines() if line[2:3].isdigit()]
+    assert [row.split(" | ")[0] for row in rows] == [f"| {k}" for k in range(10)]     # the paper's 10 waypoints
+    assert rows[5].startswith("| 5 | 0 | – | ") and rows[5].split(" | ")[3] != "–"    # ours empty, the paper's not
+    warnings = report.split("## Warnings")[1].split("\n## ")[0]
+    before, during = warnings.split("Said during some runs")
+    assert "object.mass: a cage of about 6" in before and "wall time" not in before
+    assert "- `paper-25-straight` (seed 1): robot 3's step() took 0.52 s of wall time" in during

@@ -132,6 +132,11 @@ class Cell:
     def waypoint_indices(self) -> List[int]:
         return sorted({w["index"] for r in self.ok for w in r.get("waypoints") or [] if "index" in w})
 
+    def compared_waypoints(self) -> List[int]:
+        """The waypoints our runs reached or the paper gives errors for: a waypoint no run reached keeps the
+        paper's numbers beside an empty ours (the rows of waypoints 5-9 went missing without a word)."""
+        return sorted(set(self.waypoint_indices()) | set(paper.error_waypoints(self.case)))
+
     def rate(self, predicate) -> Optional[float]:
         ok = self.ok
         return sum(1 for r in ok if predicate(r)) / len(ok) if ok else None

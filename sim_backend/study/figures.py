@@ -26,6 +26,7 @@ EFFECTIVE_ROWS = (("effective_pushers", "effective pushers"), ("effective_rotato
 PAPER_STYLE = {"hatch": "///", "alpha": 0.35}
 DPI = 110
 FEW_RUNS = 10
+SYMLOG_BELOW = 0.01    # errors.png: linear below this (m or rad), logarithmic above
 
 
 def panel_of(cell: Cell) -> str:
@@ -80,15 +81,15 @@ def short_label(cell: Cell) -> str:
 def plot_times(cells: List[Cell], target: Path) -> Path:
     figure, axes = plt.subplots(1, 2, figsize=(max(8, 1.3 * len(cells) + 4), 5), squeeze=False)
     for ax, key, title in ((axes[0, 0], "time_to_cage_s", "time to cage"),
-                           (axes[0, 1], "time_to_complete_s", "time to complete the path (after caging)")):
+                           (axes[0, 1], "time_to_complete_s", "time to complete (after caging)")):
         shown = [c for c in cells if c.values(key) or paper_time_s(c, key) is not None]
-        if key == "time_to_complete_s":
-            shown = [c for c in shown if c.has_path]
+        if key == "time_to_complete_s":     # a cell whose runs all failed keeps the paper's diamond
+            shown = [c for c in shown if c.has_path or paper_time_s(c, key) is not None]
         for i, cell in enumerate(shown):
             values = cell.values(key)
-            if values:
+            if values:     # one colour: a colour per cell, with no legend, read as a meaning it did not have
                 ax.boxplot([values], positions=[i], widths=0.5, patch_artist=True,
-                           boxprops={"facecolor": colour(i), "alpha": 0.6}, medianprops={"color": "black"})
+                           boxprops={"facecolor": colour(0), "alpha": 0.6}, medianprops={"color": "black"})
             reference = paper_time_s(cell, key)
             if reference is not None:
                 ax.plot([i], [reference], "D", color="red", markersize=8,
@@ -99,8 +100,12 @@ def plot_times(cells: List[Cell], target: Path) -> Path:
         ax.set_title(title)
         ax.set_ylabel("simulated time (s)")
         ax.grid(axis="y", alpha=0.3)
-        if ax.get_legend_handles_labels()[1]:
-            ax.legend(loc="best")
+        handles, labels = ax.get_legend_handles_labels()
+        if any(cell.values(key) for cell in shown):
+            handles.insert(0, plt.Rectangle((0, 0), 1, 1, color=colour(0), alpha=0.6))
+            labels.insert(0, "ours (median, quartiles, whiskers)")
+        if handles:
+            ax.legend(handles, labels, loc="best", fontsize=8)
     return save(figure, target)
 
 
@@ -115,14 +120,20 @@ def plot_waypoint_rows(cells: List[Cell], rows, target: Path, with_paper: bool) 
             ax = axes[row, column]
             for s, cell in enumerate(members):
                 draw_series(ax, cell, metric, s, len(members), width, with_paper)
-            set_waypoint_axis(ax, members)
+            set_waypoint_axis(ax, members, with_paper)
+            if with_paper:
+                # Linear to 1 cm, logarithmic above: the paper's 100-robot errors (2-6 m) set a linear axis that
+                # flattened ours (1-40 mm) onto its zero line.
+                ax.set_yscale("symlog", linthresh=SYMLOG_BELOW)
+                ax.set_ylim(0.0, ax.get_ylim()[1] * 1.5)     # errors are never negative; room above the top box
+                label = f"{label}\n(log scale above {SYMLOG_BELOW:g})"
             ax.set_ylabel(label)
             ax.set_xlabel("waypoint")
             ax.grid(axis="y", alpha=0.3)
             if row == 0:
                 ax.set_title(panel)
         # Only the series that have a box here: a cell that reached no waypoint has nothing to point at.
-        shown = [s for s, c in enumerate(members) if c.waypoint_indices()]
+        shown = [s for s, c in enumerate(members) if c.waypoint_indices() or (with_paper and c.compared_waypoints())]
         handles = [plt.Rectangle((0, 0), 1, 1, color=colour(s), alpha=0.6) for s in shown]
         labels = [series_label(members[s]) for s in shown]
         if with_paper and any(c.case.robots for c in members):
@@ -135,7 +146,7 @@ def plot_waypoint_rows(cells: List[Cell], rows, target: Path, with_paper: bool) 
 
 def draw_series(ax, cell: Cell, metric: str, s: int, count: int, width: float, with_paper: bool) -> None:
     slots = 2 if with_paper else 1
-    indices = cell.waypoint_indices()
+    indices = cell.compared_waypoints() if with_paper else cell.waypoint_indices()
     for index in indices:
         left = index - 0.4 + (s * slots) * width + width / 2
         values = cell.waypoint_values(index, metric)
@@ -151,10 +162,12 @@ def draw_series(ax, cell: Cell, metric: str, s: int, count: int, width: float, w
                        medianprops={"color": "black"})
 
 
-def set_waypoint_axis(ax, members: List[Cell]) -> None:
-    last = max((i for cell in members for i in cell.waypoint_indices()), default=None)
+def set_waypoint_axis(ax, members: List[Cell], with_paper: bool) -> None:
+    last = max((i for cell in members for i in (cell.compared_waypoints() if with_paper
+                                                 else cell.waypoint_indices())), default=None)
+    if not any(cell.waypoint_indices() for cell in members):
+        ax.text(0.5, 0.9, "no waypoint reached", transform=ax.transAxes, ha="center", color="grey")
     if last is None:
-        ax.text(0.5, 0.5, "no waypoint reached", transform=ax.transAxes, ha="center", color="grey")
         return
     ax.set_xticks(list(range(last + 1)), [str(t) for t in range(last + 1)])
     ax.set_xlim(-0.6, last + 0.6)

@@ -74,6 +74,13 @@ def error_values(case: PaperCase, waypoint: int, metric: str) -> Tuple[float, ..
     return error_samples().get((case.robots, case.path, waypoint, metric), ())
 
 
+def error_waypoints(case: PaperCase) -> List[int]:
+    """The waypoints the paper gives errors for in this case (none for a case that is not the paper's)."""
+    if case.robots is None:
+        return []
+    return sorted({key[2] for key in error_samples() if key[:2] == (case.robots, case.path)})
+
+
 @lru_cache(maxsize=1)
 def quoted_numbers() -> dict:
     """data/paper-times.yaml: medians quoted in the paper's text."""

@@ -19,6 +19,7 @@ from .aggregate import (
     write_summary_csv,
 )
 from .driver import UNWRITABLE_KEY, outcome_text, read_study
+from .provenance import code_text, seeds_text, version_section, warning_section
 from .text import counted
 
 # Every file ``write_figures`` may draw. One this aggregation does not draw is removed: it would show an earlier
@@ -115,6 +116,7 @@ def header(results: StudyResults, study: Dict[str, Any]) -> List[str]:
         lines += [f"**{len(missing)} of the {len(planned)} runs the commands above asked for have no "
                   f"result yet** (not run, or interrupted): {shown}. Running the same command again runs them.",
                   ""]
+    lines += [f"Seeds: {seeds_text(results.cells)}. {code_text(results.cells)}", ""]
     paper_note = (" Paper: medians from the paper (times quoted in its text; errors from its per-run data)."
                   if compares_with_the_paper(results.cells) else "")
     lines += ["Values are medians over the runs that did not fail, with the interquartile range in brackets."
@@ -163,60 +165,6 @@ def missing_runs(results: StudyResults, study: Dict[str, Any]) -> Tuple[List[str
     planned = study.get("planned")
     planned = [d for d in planned if isinstance(d, str)] if isinstance(planned, list) else []
     return planned, [d for d in planned if d not in present]
-
-
-def version_section(cells: List[Cell]) -> List[str]:
-    """Runs that ran different versions of their behaviour's code (``study.behaviour_sha1``: workers with other
-    checkouts, or the code edited between two commands) or of their cell's scenario (``study.scenario_sha1``):
-    their statistics mix what no single version would give."""
-    lines = []
-    by_behaviour: Dict[str, Counter] = {}
-    for cell in cells:
-        for result in cell.results.values():
-            version = (result.get("study") or {}).get("behaviour_sha1")
-            if version:
-                by_behaviour.setdefault(str(result.get("behaviour")), Counter())[version] += 1
-        scenarios = scenario_versions([r.get("study") or {} for r in cell.results.values()])
-        if len(scenarios) > 1:
-            lines.append(f"- `{cell.name}`: {len(scenarios)} versions of its scenario ({versions_text(scenarios)})")
-    for behaviour, versions in sorted(by_behaviour.items()):
-        if len(versions) > 1:
-            lines.insert(0, f"- behaviour `{behaviour}`: {len(versions)} versions of its code "
-                            f"({versions_text(versions)})")
-    if not lines:
-        return []
-    return ["## Mixed versions", "",
-            "**These results come from different versions of the code or scenarios** (`behaviour_sha1`, "
-            "`scenario_sha1` in each result.json): a statistic over them describes none of the versions. Delete "
-            "the runs of the versions you do not want and run the same command again.", "", *lines, ""]
-
-
-def scenario_versions(studies: List[Dict[str, Any]]) -> Counter:
-    """How many runs ran each version of a cell's scenario. Runs recorded before 2026-11-29 have only the full
-    fingerprint (description included) as scenario_sha1; later ones record it as scenario_sha1_full too, so
-    a cell holding both is compared by that one."""
-    recorded = [study for study in studies if study.get("scenario_sha1")]
-    key = "scenario_sha1" if all(study.get("scenario_sha1_full") for study in recorded) else "scenario_sha1_full"
-    return Counter(str(study.get(key) or study["scenario_sha1"]) for study in recorded)
-
-
-def versions_text(versions: Counter) -> str:
-    return ", ".join(f"`{version}` {counted(count, 'run')}" for version, count in versions.most_common())
-
-
-def warning_section(cells: List[Cell]) -> List[str]:
-    """What the simulator said before the runs would doom them (result.json ``warnings``), once per cell."""
-    lines = []
-    for cell in cells:
-        seen: List[str] = []
-        for result in cell.results.values():
-            seen += [w for w in result.get("warnings") or [] if isinstance(w, str) and w not in seen]
-        lines += [f"- `{cell.name}`: {warning}" for warning in seen]
-    if not lines:
-        return []
-    said = "Said before the runs started: what the simulator knew would doom, or often spoil, these cells' runs."
-    return ["## Warnings", "", said, "",
-            *lines, ""]
 
 
 def is_transport(cell: Cell) -> bool:
@@ -314,13 +262,13 @@ def spacing_text(cell: Cell) -> str:
 
 
 def error_tables(cells: List[Cell]) -> List[str]:
-    if not any(cell.waypoint_indices() for cell in cells):
+    if not any(cell.compared_waypoints() for cell in cells):
         return []                  # no cell follows a path: no waypoint, no table, no heading
     lines = ["## Errors per waypoint, ours vs the paper", "",
              "`n` = our runs that reached the waypoint. Paper: median over its runs (MISTLab/SwarmHaul "
              "`Errors.csv`).", ""]
     for cell in cells:
-        indices = cell.waypoint_indices()
+        indices = cell.compared_waypoints()
         if not indices:
             continue
         lines += [f"### {cell.name}", "",
