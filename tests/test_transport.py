@@ -1197,3 +1197,14 @@ def test_a_turn_that_did_not_happen_names_the_rotation_gains_not_the_floor_frict
     assert "60° off its yaw, having turned 30°" in weak and "4 members turning it against its floor friction" in weak
     assert hint({}, truth=(0.5, 0.0, 0.0)) == []       # not at the waypoint: the push is what failed
     assert hint({}, truth=(0.0, 0.0, math.radians(88))) == []     # within the yaw tolerance
+
+
+def test_spares_keep_helping_a_three_robot_cage_that_lost_a_member_mid_push():
+    """lab-6-payload seed 4: the 3-robot cage lost robot 0 at 76 s, mid-push. The spares reinforcing it stopped
+    (they helped only a cage of three live members), the two left could not move the 4.3 kg box, and it
+    stood 0.28 m short until the time limit. The spares now help a cage that went down to two."""
+    from sim_backend.scenario import Fault
+
+    scenario = load_scenario("lab-6-payload").with_overrides(faults=[Fault(robot=0, at_s=76.0)])
+    result = Simulation(scenario, seed=4).run()
+    assert result["completed"] and result["final_position_error_m"] < 0.06, result["failures"]
