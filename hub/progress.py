@@ -16,6 +16,9 @@ if TYPE_CHECKING:
     from .server import Hub
 
 
+STALL_SAY_S = 60.0      # simulated seconds without progress before the console says the push may have stalled
+
+
 class RunProgress:
     """The sim source's object and waypoints during a run, judged by the behaviour's evaluator."""
 
@@ -25,6 +28,7 @@ class RunProgress:
         self.attached = False         # khepri sil feeds an evaluator of its own: the hub only reads it
         self.start_s = 0.0            # the simulated time the run started at: the evaluator's zero
         self.observed_step = -1       # the last control step observed
+        self.stall_said: Optional[float] = None   # the stall said (its evaluator's progress_at), once each
         self.start(0.0)               # before the first run: nothing reached yet
 
     def attach(self, evaluator: Any) -> None:
@@ -55,7 +59,29 @@ class RunProgress:
                 evaluator_call(self.evaluator, "on_step", hub.source.time_s - self.start_s, run_telemetry(hub))
             except EvaluatorError as err:
                 self._give_up(err)
+        self._say_a_stall(hub)
         return True
+
+    def _say_a_stall(self, hub: Hub) -> None:
+        """Once per stall: the object has come no nearer its next waypoint for STALL_SAY_S since the cage closed
+        (the transport evaluator's ``progress_at``). A cage that lost a pusher stood still for minutes, every
+        robot reporting `push`, and nothing on the console said so."""
+        since = getattr(self.evaluator, "progress_at", None)
+        if not isinstance(since, float) or since == self.stall_said:
+            return
+        if hub.mode != "run":       # e-stopped or stopped: the robots were told to stand; not a stall
+            self.stall_said = since
+            return
+        now = hub.source.time_s - self.start_s
+        if now - since < STALL_SAY_S:
+            return
+        self.stall_said = since
+        status = self.status() or {}
+        away = status.get("distance_m")
+        where = f", {away:.2f} m from waypoint {status['target'] + 1}" if away is not None else ""
+        self.log(f"hub: run {hub.run_id}: the object has come no nearer its next waypoint for {now - since:.0f} s of "
+                 f"simulated time{where}: the push may have stalled (`ctl status` shows each robot; `ctl stop` ends "
+                 "the run)")
 
     def _give_up(self, err: EvaluatorError) -> None:
         """A user's evaluator that raises costs the waypoint count, not the hub."""

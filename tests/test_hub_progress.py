@@ -139,3 +139,34 @@ def test_an_arrival_that_is_not_a_completion_leads_with_the_outcome():
     follow_progress(hub)
     assert lines == ["hub: run r1: NOT completed, although the object passed all 3 waypoints: waypoint 1 was "
                      "passed with the object 0.101 m from it (tolerance 0.100 m); `khepri ctl stop` ends the run"]
+
+
+def test_a_push_that_stalls_is_said_once_on_the_hubs_console():
+    """A cage that lost a pusher stood still for minutes, every robot reporting `push`, and the hub said nothing."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from hub.progress import STALL_SAY_S, RunProgress
+    from sim_backend.scenario import load_scenario
+
+    scenario = load_scenario("lab-6-payload")
+    world = SimpleNamespace(object_pose=lambda: np.array([0.0, 0.59, 0.0]))
+    lines = []
+    progress = RunProgress("transport", scenario, world, lines.append)
+    progress.evaluator = SimpleNamespace(progress_at=80.0, waypoints_reached=lambda: 2)
+    hub = SimpleNamespace(mode="run", run_id="3dd9336fcb0a", source=SimpleNamespace(time_s=80.0 + STALL_SAY_S - 1))
+    progress._say_a_stall(hub)
+    assert lines == []
+    hub.source.time_s = 80.0 + STALL_SAY_S + 1
+    progress._say_a_stall(hub)
+    progress._say_a_stall(hub)                     # once per stall
+    assert lines == ["hub: run 3dd9336fcb0a: the object has come no nearer its next waypoint for 61 s of simulated "
+                     "time, 0.31 m from waypoint 3: the push may have stalled (`ctl status` shows each robot; "
+                     "`ctl stop` ends the run)"], lines
+    progress.evaluator.progress_at, hub.mode = 200.0, "estop"      # a new stall, while e-stopped: not said
+    hub.source.time_s = 200.0 + 2 * STALL_SAY_S
+    progress._say_a_stall(hub)
+    hub.mode = "run"
+    progress._say_a_stall(hub)
+    assert len(lines) == 1
