@@ -86,7 +86,11 @@ class Uplink:
         if same_agent:
             self.log(f"hub: robot {robot.id}'s agent reconnected from {robot.peer or '?'}")
         else:
-            self.log(f"hub: robot {robot.id} connected from {robot.peer or '?'}")
+            # A new agent during a run starts it afresh: a restarted one knows nothing of its old self (for the
+            # transport, it stays a spare). The operator saw only "connected" and the robot driving again.
+            joins = (f": it joins run {self.run_id} with a new behaviour (it knows nothing of the run so far)"
+                     if self.mode == "run" and self.run_id is not None else "")
+            self.log(f"hub: robot {robot.id} connected from {robot.peer or '?'}{joins}")
 
     def _rival(self, robot: RobotLink, peer: Optional[str], sender: str, now: float) -> None:
         """A second connection speaks for a robot whose connection is alive (two agents started with one --id,

@@ -187,3 +187,22 @@ def test_stopping_a_run_drops_the_radio_messages_it_left_queued():
         assert not hub.relay.pending(0)
     finally:
         hub.close()
+
+
+def test_an_agent_that_joins_a_run_is_said_to_start_it_afresh(tmp_path):
+    """A restarted agent rejoined the running run with only `robot 0 connected from ...`, and the robot drove
+    again with a behaviour that knew nothing of the run: the operator had no word of either."""
+    with HubThread(parse_config(LAB)) as hub:
+        first = spawn_agent(hub.endpoints["robots"], 1, tmp_path / "first.log")
+        late = None
+        try:
+            hub.wait_until(lambda s: s["robots"][1]["connected"])
+            hub.request("start")
+            run_id = hub.status()["run_id"]
+            late = spawn_agent(hub.endpoints["robots"], 0, tmp_path / "late.log")
+            (joined,) = wait_for_lines(hub, "robot 0 connected from")
+        finally:
+            stop_processes([p for p in (first, late) if p is not None])
+    assert joined == (f"hub: robot 0 connected from 127.0.0.1: it joins run {run_id} with a new behaviour (it knows "
+                      "nothing of the run so far)"), joined
+    assert lines_with(hub, "robot 1 connected from") == ["hub: robot 1 connected from 127.0.0.1"]
