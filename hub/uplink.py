@@ -141,7 +141,17 @@ class Uplink:
         elif self.mode == "estop":
             self.send_command(robot, "estop", "operator e-stop")
         elif self.run_id is None and robot.run_id is not None:
-            self.send_command(robot, "stop", "the hub has no run")   # e.g. the hub restarted mid-run
+            self._stop_unknown_run(robot)                   # e.g. the hub restarted mid-run
+
+    def _stop_unknown_run(self, robot: RobotLink) -> None:
+        """An agent in a run this hub never started (the hub was restarted mid-run): stopped, and said once per
+        run. The new hub's console said only that robots connected, and its log had no trace of the run."""
+        if robot.run_id not in self.unknown_runs_said:
+            self.unknown_runs_said.add(robot.run_id)
+            self.log(f"hub: robot {robot.id} was in run {robot.run_id}, which this hub did not start (was the hub "
+                     "restarted during it?): its robots are told to stop. With real robots the object is where "
+                     "that run left it, not at the mission's start: check the run's params before `ctl start`")
+        self.send_command(robot, "stop", "the hub has no run")
 
     def _on_telemetry(self, robot: RobotLink, message: Dict[str, Any], now: float) -> None:
         error = message.get("error")
@@ -158,7 +168,7 @@ class Uplink:
             # hellos were lost while it reconnected, and a connected agent says no more hellos, so its
             # telemetry is where the hub learns it (a command already in flight is retried on its own).
             if self.run_id is None:
-                self.send_command(robot, "stop", "the hub has no run")
+                self._stop_unknown_run(robot)
             elif self.mode != "idle":
                 self.send_command(robot, "start")
         if self.recorder is not None:

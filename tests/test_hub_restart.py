@@ -107,8 +107,13 @@ def test_agents_survive_a_hub_restart(tmp_path):
     finally:
         agent_codes = stop_processes(agents)
         hub_code = stop_processes([hub])
+        said = hub.stdout.read()
         hub.stdout.close()
     assert agent_codes == [0, 0] and hub_code == [0]
+    # The new hub says, once, that its robots were in a run it did not start (its console said only that they
+    # connected, and its log had no trace of the run).
+    unknown = [line for line in said.splitlines() if "which this hub did not start" in line]
+    assert len(unknown) == 1 and unknown[0].startswith("hub: robot "), said
 
 
 def test_a_hub_stopped_with_sigterm_tells_its_agents_to_stop_their_run(tmp_path):
