@@ -1208,3 +1208,18 @@ def test_spares_keep_helping_a_three_robot_cage_that_lost_a_member_mid_push():
     scenario = load_scenario("lab-6-payload").with_overrides(faults=[Fault(robot=0, at_s=76.0)])
     result = Simulation(scenario, seed=4).run()
     assert result["completed"] and result["final_position_error_m"] < 0.06, result["failures"]
+
+
+def test_an_estimate_after_a_long_pause_does_not_run_ahead_at_the_last_velocity():
+    """After an 11 s e-stop a member's first estimate jumped 0.3 m ahead of the box for a step: the filter
+    predicted over the whole pause at the velocity the box had before it. A pause now forgets the velocity."""
+    sim = Simulation(load_scenario("lab-6"), seed=1)
+    while sim.step_index * sim.period < 76.0:             # pushing, the box moving at several cm/s
+        sim.step()
+    member = next(b for b in sim.behaviours if b.state == "push")
+    now = sim.step_index * sim.period
+    before = member.filter.pose
+    moving = math.hypot(member.filter.kf.x[3], member.filter.kf.x[4])
+    assert moving > 0.005, moving                         # the case: a box in motion when the robots were held
+    after = member._estimate_object(now + 11.0)
+    assert math.hypot(after[0] - before[0], after[1] - before[1]) < 0.02, (before, after)

@@ -31,6 +31,9 @@ EDGE_FACTOR = 1.5             # edges between cage neighbours longer than 1.5 I_
 # A cage of fewer members than this (but not a small one) reads the yaw from its members' contact normals and
 # the edges between them together (_sparse_cage).
 SPARSE_CAGE_MEMBERS = 10
+# A gap this long between two estimates is a pause (the robot was held), not a step: a spare that watches a
+# stalled push estimates once a second (reinforce.py STALL_CHECK_S), and those gaps stay predicted as before.
+PAUSED_AFTER_S = 3.0
 T = TypeVar("T")
 
 
@@ -192,7 +195,12 @@ class ObjectEstimation:
 
     def _estimate_object(self, now: float) -> Tuple[float, float, float]:
         """C_o and yaw from the live members' shared positions, filtered (constant-velocity Kalman)."""
-        self.filter.predict(max(now - self.estimated_at, 1e-3))
+        gap = now - self.estimated_at
+        if gap > PAUSED_AFTER_S:
+            # The robot was held (an e-stop, the hub gone): predicting over the pause at the last velocity
+            # carried the estimate 0.3 m ahead for a step after an 11 s e-stop. Its motion since is unknown.
+            self.filter.halt()
+        self.filter.predict(max(gap, 1e-3))
         self.estimated_at = now
         ring = self._member_positions(now)
         changed = ring.keys() != self.offset_members

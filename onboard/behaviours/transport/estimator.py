@@ -216,6 +216,10 @@ class ObjectFilter:
             r[2, 2] = 1e6
         kf.update(np.array([x, y, measured_yaw]), R=r)
 
+    def halt(self) -> None:
+        """Forget the velocities (keeping the pose and the covariance): after a pause whose motion is unknown."""
+        self.kf.x[3:6] = 0.0
+
     def move_to(self, x: float, y: float) -> None:
         """Put the position at (x, y), keeping the yaw, the velocities and the covariance."""
         self.kf.x[0], self.kf.x[1] = x, y
