@@ -86,8 +86,9 @@ class ConnectionWatch:
             self.protocol_error = value if kind == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL else None
 
     def kind(self) -> Optional[str]:
-        """The likeliest reason the peer is silent, as one of the ``KINDS``, or None when the events do not
-        tell. The agent and ``khepri ctl`` each say it in their own words (their flags and hints differ)."""
+        """The likeliest reason the peer is silent, as one of the constants above (``KEY_REFUSED`` ...
+        ``NO_ANSWER``), or None when the events do not tell. The agent and ``khepri ctl`` each say it in their
+        own words (their flags and hints differ)."""
         self.read()
         if self.handshake_failed is not None:
             if self.handshake_failed == "auth":
