@@ -9,11 +9,12 @@ from typing import List
 from onboard.config import ConfigError
 from onboard.protocol import MAX_ROBOT_ID
 
+from .parsing import command_group
+
 
 def add_keys_commands(groups) -> None:
-    keys = groups.add_parser("keys", help="CURVE key pairs for the hub, robots and operators",
-                             description="Manage the lab's CURVE keys (see docs/lab.md).")
-    commands = keys.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+    commands = command_group(groups, "keys", "CURVE key pairs for the hub, robots and operators",
+                             "Manage the lab's CURVE keys (see docs/lab.md).")
     init = commands.add_parser("init", help="create hub, robot and operator key pairs",
                                description="Create FOLDER/hub.key(_secret), FOLDER/robots/robot-<id>.key(_secret) and "
                                            "FOLDER/operators/<name>.key(_secret).")

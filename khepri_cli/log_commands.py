@@ -5,12 +5,13 @@ import argparse
 import json
 from pathlib import Path
 
+from .parsing import command_group
+
 
 def add_log(groups) -> None:
     """Register the ``log`` command group."""
-    log = groups.add_parser("log", help="inspect hub recordings (MCAP logs)",
-                            description="Inspect the MCAP logs the hub records (see docs/recording.md).")
-    commands = log.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+    commands = command_group(groups, "log", "inspect hub recordings (MCAP logs)",
+                             "Inspect the MCAP logs the hub records (see docs/recording.md).")
     info = commands.add_parser("info", help="summarise a log: duration, robots, message counts, drops",
                                description="Print a log's start, duration, robots, messages per topic, dropped "
                                            "frames by reason, and whether the file was cut short (a killed hub).")

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
+from .parsing import command_group
 from .signals import sigterm_as_ctrl_c
 
 
@@ -29,9 +30,8 @@ def folder_arg(text: str) -> Path:
 
 
 def add_sim(groups) -> None:
-    sim = groups.add_parser("sim", help="run scenarios in the physics simulator",
-                            description="Run scenarios in the pymunk simulator.")
-    commands = sim.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+    commands = command_group(groups, "sim", "run scenarios in the physics simulator",
+                             "Run scenarios in the pymunk simulator.")
 
     run = commands.add_parser("run", help="run one scenario headless and write results",
                               description="Run SCENARIO (a built-in name or a YAML file) and write result.json, "
@@ -75,8 +75,7 @@ def seed_value(text: Optional[str]) -> Optional[int]:
 
 
 def add_bench(groups):
-    bench = groups.add_parser("bench", help="measure speed", description="Benchmarks that print numbers.")
-    commands = bench.add_subparsers(dest="command", metavar="SUBCOMMAND", required=True)
+    commands = command_group(groups, "bench", "measure speed", "Benchmarks that print numbers.")
     sim = commands.add_parser("sim", help="simulator steps/s and real-time factor",
                               description="Simulate the paper's boxes with 25, 50 and 100 robots and print "
                                           "physics steps per second, the real-time factor (wall and CPU "
