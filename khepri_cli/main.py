@@ -224,7 +224,8 @@ def _run(argv: Optional[List[str]]) -> int:
     except BehaviourError as err:     # the user's behaviour raised (before a run could start, or in an agent)
         what = "the robot's driver failed" if isinstance(err.exc, DriverError) else "the behaviour failed"
         say(f"khepri: error: {what}: {err}")
-        say("\n".join(err.lines))
+        if not getattr(err, "traceback_logged", False):      # an agent logged it already, line by line
+            say("\n".join(err.lines))
         return 1
     except EvaluatorError as err:     # a user's evaluator raised before the run could start (__init__, warnings)
         say(f"khepri: error: the evaluator failed: {err}")

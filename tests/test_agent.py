@@ -273,6 +273,7 @@ def test_an_exception_in_the_behaviour_stops_the_wheels_and_ends_the_agent(scrip
     thread.join(timeout=1.0)
     link.close()
     assert failure and "behaviour bug" in str(failure[0])
+    assert failure[0].traceback_logged           # the agent logged it: khepri's last line does not repeat it
     scripted.pump(0.2)
     wheels = [m for m in scripted.received if m["type"] == "wheels"]
     assert any(m["left"] == 0.2 for m in wheels), "the behaviour never drove"
@@ -874,3 +875,24 @@ def test_a_keyed_agent_the_hub_ignores_is_asked_whether_its_key_is_its_own():
     assert "and is robots/robot-3.key_secret robot 3's own key (not another robot's)?" in keyed, keyed
     assert watch.likely_cause(3, "tcp://hub:5560", keyed=False).endswith(
         "is robot 3 in the hub's lab, and is no other agent connected as robot 3? The hub's console says which")
+
+
+def test_khepri_agent_does_not_print_a_logged_traceback_twice(monkeypatch, capsys):
+    """`khepri agent` printed the crash's traceback in the agent's lines and again after `khepri: error:`."""
+    import khepri_cli.lab_commands as lab
+    from khepri_cli.main import main
+    from onboard.behaviour import BehaviourError
+
+    def crash(args):
+        try:
+            [][1]
+        except IndexError as exc:
+            err = BehaviourError(0, "step()", exc)
+        err.traceback_logged = True
+        raise err
+
+    monkeypatch.setattr(lab, "cmd_agent", crash)
+    assert main(["agent", "--id", "0", "--driver", "sim"]) == 1
+    said = capsys.readouterr().err
+    assert said.startswith("khepri: error: the behaviour failed: robot 0, step(): IndexError") and \
+        said.count("\n") == 1, said

@@ -270,6 +270,7 @@ class Agent:
         self.log(f"agent {self.robot_id}: {self.error}")
         for line in err.lines:
             self.log(f"agent {self.robot_id}:   {line}")
+        err.traceback_logged = True       # khepri's last line does not print the same traceback again
         self.send_telemetry(stepped=False)
         raise err
 
