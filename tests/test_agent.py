@@ -896,3 +896,23 @@ def test_khepri_agent_does_not_print_a_logged_traceback_twice(monkeypatch, capsy
     said = capsys.readouterr().err
     assert said.startswith("khepri: error: the behaviour failed: robot 0, step(): IndexError") and \
         said.count("\n") == 1, said
+
+
+def test_an_agent_says_when_its_run_goes_on_after_a_hold():
+    """Its log said `estop: operator e-stop`, then `hold: e-stop cleared`, and nothing when the run went on:
+    it read as a robot that never moved again."""
+    from onboard.agent.loop import Agent
+    from onboard.drivers.sim import SimDriver
+
+    lines = []
+    link = HubLink(3, "tcp://127.0.0.1:9")
+    try:
+        agent = Agent(3, link, lambda a: SimDriver(link.send, lambda: a.state.sim), log=lines.append)
+        agent.run = {"run_id": "r1"}
+        agent.state.mode = "run"
+        for mode, reason in (("estop", "operator e-stop"), ("hold", "e-stop cleared"), ("run", "")):
+            agent.apply_mode(mode, reason)
+    finally:
+        link.close()
+    assert lines[-3:] == ["agent 3: estop: operator e-stop", "agent 3: hold: e-stop cleared",
+                          "agent 3: run r1 goes on (was hold)"], lines

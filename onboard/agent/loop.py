@@ -202,6 +202,9 @@ class Agent:
             self.driver.close_gate()      # hold, estop and idle never leave a wheel turning
         if mode in ("estop", "hold"):
             self.log(f"agent {self.robot_id}: {mode}{': ' + reason if reason else ''}")
+        elif mode == "run" and self.state.mode in ("estop", "hold") and self.run is not None:
+            # Said as the hold was: a log that ended at "hold: e-stop cleared" read as a robot that never moved again.
+            self.log(f"agent {self.robot_id}: run {self.run.get('run_id')} goes on (was {self.state.mode})")
         self.state.mode = mode
         self.state.reason = reason
 
