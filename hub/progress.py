@@ -39,6 +39,7 @@ class RunProgress:
         """A new run: a fresh evaluator, its clock at 0, on ``world`` when the run has a new one (the sim source
         sets the world back to the scenario's start for each run, unless told not to: hub/new_run.py)."""
         self.start_s = clock_s
+        self.stall_said = None
         if world is not None:
             self.world = world
         if self.attached:
