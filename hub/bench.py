@@ -101,11 +101,15 @@ def _start_hub(config: Path) -> Tuple[subprocess.Popen, Dict[str, str]]:
         hub = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "hub", "--config", str(config)],
                                stdout=log, stderr=subprocess.STDOUT, env=env)
     deadline = time.monotonic() + 30.0
-    while log_path.read_text(encoding="utf-8").count("listening ") < 2:
-        if hub.poll() is not None or time.monotonic() > deadline:
-            hub.kill()
-            raise RuntimeError(f"the hub did not start: {log_path.read_text(encoding='utf-8')[-500:]}")
-        time.sleep(0.05)
+    try:
+        while log_path.read_text(encoding="utf-8").count("listening ") < 2:
+            if hub.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"the hub did not start: {log_path.read_text(encoding='utf-8')[-500:]}")
+            time.sleep(0.05)
+    except BaseException:       # also Ctrl-C or a kill while it starts: the hub process must not outlive us
+        hub.kill()
+        hub.wait(timeout=10.0)
+        raise
     return hub, dict(LISTENING.findall(log_path.read_text(encoding="utf-8")))
 
 

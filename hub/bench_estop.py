@@ -83,9 +83,10 @@ def bench_estop(robots: int, repeats: int = 3, connect_timeout_s: Optional[float
     result = EstopBench(robots)
     with tempfile.TemporaryDirectory(prefix="khepri-bench-estop-") as tmp, \
             HubThread(config, scenario=bench_scenario(robots)) as hub:
-        agents = [spawn_agent(hub.endpoints["robots"], i, Path(tmp) / f"agent-{i}.log", extra=["--quiet"])
-                  for i in range(robots)]
-        try:
+        agents: List = []
+        try:       # spawned inside: a Ctrl-C or a kill while they start stops those already started
+            for i in range(robots):
+                agents.append(spawn_agent(hub.endpoints["robots"], i, Path(tmp) / f"agent-{i}.log", extra=["--quiet"]))
             _wait_for_all(hub, "connected", lambda r: r["connected"], connect_timeout_s)
             for _ in range(repeats):
                 result.trials.append(_one_estop(hub))

@@ -119,10 +119,36 @@ def test_a_killed_bench_cleans_up_its_hub_and_temporary_folder(tmp_path):
                               "--seconds", "60", "--record"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              text=True)
     deadline = time.monotonic() + 30
-    while not list(tmp_path.glob("khepri-bench-hub-*/bench.mcap")) and time.monotonic() < deadline:
-        time.sleep(0.2)
+    # Killed as its hub process starts (it has read its config and said its first line, and is not yet
+    # listening): that hub was left running, orphaned.
+    def hub_started():
+        logs = list(tmp_path.glob("khepri-bench-hub-*/bench.log"))
+        return logs and logs[0].stat().st_size > 0
+
+    while not hub_started() and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert list(tmp_path.glob("khepri-bench-hub-*")), "the bench never started its hub"
     bench.send_signal(signal.SIGTERM)
     _, err = bench.communicate(timeout=60)
     assert bench.returncode == 130 and "interrupted" in err, err
     assert not list(tmp_path.glob("khepri-bench-hub-*")), list(tmp_path.iterdir())
+    # Nor its hub process, killed while the bench waited for it to listen (it was left running, orphaned).
+    deadline = time.monotonic() + 10
+    while processes_mentioning(str(tmp_path)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not processes_mentioning(str(tmp_path)), processes_mentioning(str(tmp_path))
+
+
+def processes_mentioning(text: str) -> list:
+    """The command lines of this machine's processes that contain ``text`` (from /proc)."""
+    from pathlib import Path
+
+    found = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            words = cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if text in words:
+            found.append(words)
+    return found
