@@ -179,15 +179,14 @@ class TransportEvaluator(Evaluator):
                 f"{self.last_time - self.progress_at:.0f} s before the end): give it a longer time limit "
                 "(time_limit_s, --time-limit)"]
 
-    def _turn_hint(self, truth: np.ndarray) -> List[str]:
+    def _turn_hint(self, truth: np.ndarray, d_tol: float, yaw_tol: float) -> List[str]:
         """An object that stands at its next waypoint but not at its yaw: the turn is what failed, which floor
-        friction against the pushers does not explain (u_r and u_cr turn it, after the push)."""
+        friction against the pushers does not explain (u_r and u_cr turn it, after the push). The tolerances are
+        result()'s (``yaw_tol`` infinite for an object whose yaw is not judged)."""
         params = self.scenario.params
         k = len(self.reached)
         distance, yaw_error = waypoint_error(truth, self.scenario.path[k])
-        yaw_tol = math.radians(float(params.get("orientation_tolerance_deg", 5.72)))
-        if distance > float(params.get("push_tolerance_m", 0.1)) or yaw_error <= yaw_tol \
-                or not judges_yaw(self.scenario.object):
+        if distance > d_tol or yaw_error <= yaw_tol:
             return []
         turned = abs(wrap_angle(truth[2] - self.pose_at_closure[2])) if self.pose_at_closure is not None else 0.0
         off = [name for name in ("k_r", "k_cr") if float(params.get(name, 1.0)) == 0.0]
@@ -261,6 +260,7 @@ class TransportEvaluator(Evaluator):
             waypoints = [self.reached[k] for k in sorted(self.reached)]
             done = len(waypoints) == len(scenario.path)
             judge_yaw = judges_yaw(scenario.object)     # not a disc's
+            judged_yaw_tol = yaw_tol if judge_yaw else math.inf
             within = all(w["position_error_m"] <= d_tol and (not judge_yaw or w["orientation_error_rad"] <= yaw_tol)
                          for w in waypoints)
             truth = self.world.object_pose()
@@ -276,9 +276,10 @@ class TransportEvaluator(Evaluator):
             })
             if caged and not done:
                 failures.append(f"reached {len(waypoints)} of {len(scenario.path)} waypoints")
-                failures.extend(self._too_soon_hint() or self._still_going_hint(truth) or self._turn_hint(truth)
+                failures.extend(self._too_soon_hint() or self._still_going_hint(truth)
+                                or self._turn_hint(truth, d_tol, judged_yaw_tol)
                                 or self._stuck_hint(truth))
-            failures.extend(self._outside_tolerance(waypoints, d_tol, yaw_tol if judge_yaw else math.inf))
+            failures.extend(self._outside_tolerance(waypoints, d_tol, judged_yaw_tol))
         out["failures"] = failures
         out["faults_fired"] = dead          # not failures: a run that loses a robot may still complete
         return out

@@ -1187,7 +1187,7 @@ def test_a_turn_that_did_not_happen_names_the_rotation_gains_not_the_floor_frict
         evaluator = TransportEvaluator.__new__(TransportEvaluator)
         evaluator.scenario, evaluator.pose_at_closure, evaluator.members = scenario, (0.0, 0.0, 0.0), [0, 1, 2, 3]
         evaluator.reached = {}
-        return evaluator._turn_hint(truth)
+        return evaluator._turn_hint(truth, 0.1, math.radians(5.72))    # result()'s defaults
 
     (zero,) = hint({"k_r": 0, "k_cr": 0})
     assert zero == ("the object stands 0.00 m from waypoint 1 but 90° off its yaw, having turned 0° since the cage "
