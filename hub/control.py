@@ -115,7 +115,8 @@ def no_answer(endpoint: str, timeout_s: float, watch: Optional[ConnectionWatch] 
     """No reply: what the connection's events tell (refused, no keys for an encrypted hub, ...), else every
     question. A dead hub was answered with `try again with --keys`: keys do not help where nothing listens."""
     start = f"no answer from the hub at {endpoint} within {timeout_s:g} s"
-    found = connection_cause(watch, keyed) if watch is not None else None
+    kind = watch.kind() if watch is not None else None      # read once: the cause and the hint say one thing
+    found = connection_cause(kind, watch, keyed) if watch is not None else None
     if found is None:
         return ControlError(f"{start} (is it running, and is that its control port, the one it printed after "
                             "`listening control`? A secure hub needs --keys with an operator key it lists; a hub "
@@ -123,14 +124,13 @@ def no_answer(endpoint: str, timeout_s: float, watch: Optional[ConnectionWatch] 
                             keys_may_help=True)
     cause, keys_may_help = found
     # The address family matters only where nothing answered: not after a handshake, whose cause is known.
-    never_reached = watch.kind() in (connection.REFUSED, connection.NO_ANSWER)
-    hint = family_hint(endpoint) if never_reached else ""
+    hint = family_hint(endpoint) if kind in (connection.REFUSED, connection.NO_ANSWER) else ""
     return ControlError(f"{start}: {cause} {hint}".rstrip(), keys_may_help=keys_may_help)
 
 
-def connection_cause(watch: ConnectionWatch, keyed: bool) -> Optional[Tuple[str, bool]]:
-    """(the likeliest cause, whether operator keys may be the fix), from the connection's events."""
-    kind = watch.kind()
+def connection_cause(kind: Optional[str], watch: ConnectionWatch, keyed: bool) -> Optional[Tuple[str, bool]]:
+    """(the likeliest cause, whether operator keys may be the fix), from what the connection's events said
+    (``watch.kind()``)."""
     if kind == connection.MECHANISM_MISMATCH:
         if keyed:
             return "the hub is not encrypted (it runs --insecure): run ctl without --keys.", False
