@@ -210,10 +210,10 @@ class ReplaySource(PoseSource):
         ``percent`` of that, or for a log cut short of the file's bytes read."""
         played = 0.0 if self.played_stamp is None else self.played_stamp - self.first_stamp
         if self.finished and self.total_s is not None:
-            percent = 100.0     # a log cut short: as far as its bytes were read (it said 100 % of a file 32 % read)
+            percent = 100.0     # a whole log, played to its end
         elif self.total_s is not None:
             percent = 100.0 * played / self.total_s if self.total_s > 0 else 0.0
-        else:
+        else:       # a log cut short, also once ended: as far as its bytes were read (not 100 % of a file 32 % read)
             percent = 100.0 * self.reader.readable_bytes / max(1, self.reader.file_bytes)
         return {"played_s": round(played, 3), "total_s": None if self.total_s is None else round(self.total_s, 3),
                 "percent": round(min(percent, 100.0), 1), "rate": self.rate, "ended": self.finished,
