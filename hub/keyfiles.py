@@ -41,8 +41,7 @@ class KeyRing:
 def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: bool = False) -> List[Path]:
     """Create the hub, robot and operator key pairs. Refuses to overwrite existing keys unless ``force``; with
     it, the folder holds exactly the new set afterwards (``stale_keys`` names what ``force`` removes)."""
-    targets = [folder / "hub.key"] + [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
-        + [folder / "operators" / f"{name}.key" for name in operators]
+    targets = [folder / "hub.key"] + _peer_keys(folder, robot_ids, operators)
     _refuse_files_in_the_way(folder, targets)
     existing = [p for p in targets if p.exists()]
     if existing and not force:
