@@ -135,7 +135,7 @@ def plot_waypoint_rows(cells: List[Cell], rows, target: Path, with_paper: bool) 
             if row == 0:
                 ax.set_title(panel)
         # Only the series that have a box here: a cell that reached no waypoint has nothing to point at.
-        shown = [s for s, c in enumerate(members) if c.waypoint_indices() or (with_paper and c.compared_waypoints())]
+        shown = [s for s, c in enumerate(members) if plotted_waypoints(c, with_paper)]
         handles = [plt.Rectangle((0, 0), 1, 1, color=colour(s), alpha=0.6) for s in shown]
         labels = [series_label(members[s]) for s in shown]
         if with_paper and any(c.case.robots for c in members):
@@ -148,7 +148,7 @@ def plot_waypoint_rows(cells: List[Cell], rows, target: Path, with_paper: bool) 
 
 def draw_series(ax, cell: Cell, metric: str, s: int, count: int, width: float, with_paper: bool) -> None:
     slots = 2 if with_paper else 1
-    indices = cell.compared_waypoints() if with_paper else cell.waypoint_indices()
+    indices = plotted_waypoints(cell, with_paper)
     for index in indices:
         left = index - 0.4 + (s * slots) * width + width / 2
         values = cell.waypoint_values(index, metric)
@@ -164,9 +164,13 @@ def draw_series(ax, cell: Cell, metric: str, s: int, count: int, width: float, w
                        medianprops={"color": "black"})
 
 
+def plotted_waypoints(cell: Cell, with_paper: bool) -> List[int]:
+    """The waypoints a cell has boxes at: those its runs reached, and beside the paper's, those it gives."""
+    return cell.compared_waypoints() if with_paper else cell.waypoint_indices()
+
+
 def set_waypoint_axis(ax, members: List[Cell], with_paper: bool) -> None:
-    last = max((i for cell in members for i in (cell.compared_waypoints() if with_paper
-                                                 else cell.waypoint_indices())), default=None)
+    last = max((i for cell in members for i in plotted_waypoints(cell, with_paper)), default=None)
     if not any(cell.waypoint_indices() for cell in members):
         ax.text(0.5, 0.9, "no waypoint reached", transform=ax.transAxes, ha="center", color="grey")
     if last is None:
