@@ -88,7 +88,7 @@ class DropLog:
     on_drop: Optional[Callable[[str, str], None]] = None
     counts: Dict[str, int] = field(default_factory=dict)
     _last_line: Dict[str, float] = field(default_factory=dict)
-    _last_detail: Dict[str, str] = field(default_factory=dict)     # the last key said, per sender
+    _last_key: Dict[str, str] = field(default_factory=dict)        # the last problem said, per sender
     _known: Dict[str, List[str]] = field(default_factory=dict)     # the keys a sender's lines said lately
     _quiet_s: Dict[str, float] = field(default_factory=dict)
     _suppressed: Dict[str, int] = field(default_factory=dict)
@@ -122,7 +122,7 @@ class DropLog:
         self._said(sender, now, key)
         self.log(f"hub: dropped {reason}: {detail}{suffix}")
         if len(self._last_line) > 10_000:   # a flood of fake senders must not grow memory without bound
-            for table in (self._last_line, self._last_detail, self._known, self._quiet_s, self._suppressed,
+            for table in (self._last_line, self._last_key, self._known, self._quiet_s, self._suppressed,
                           self._hidden_reasons):
                 table.clear()
 
@@ -134,7 +134,7 @@ class DropLog:
         if not again:
             known.append(key)
             del known[:-KNOWN_PROBLEMS]
-        self._last_line[sender], self._last_detail[sender] = now, key
+        self._last_line[sender], self._last_key[sender] = now, key
 
     def flush(self, now: float) -> None:
         """Say the drops a burst hid once its quiet time is over, not only with that sender's next drop, which
@@ -148,7 +148,7 @@ class DropLog:
             more = self._suppressed.pop(sender)
             hidden = self._hidden_reasons.pop(sender, {})
             reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(hidden.items()))
-            self._said(sender, now, self._last_detail.get(sender, ""))
+            self._said(sender, now, self._last_key.get(sender, ""))
             self.log(f"hub: dropped {more} more message{'s' if more > 1 else ''} from {sender} in the last "
                      f"{_span(since)} ({reasons}; `khepri ctl status` counts drops by reason)")
 
