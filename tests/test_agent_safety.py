@@ -2,6 +2,7 @@
 commands from a thread of the behaviour's own during an e-stop. A real agent process with the kh4 driver
 (against the compiled stand-in libkhepera, whose call log shows every speed command) and a scripted hub."""
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -98,6 +99,8 @@ def test_a_step_that_never_returns_has_the_wheels_stopped_and_sigterm_still_ends
         stop_processes([agent])
     said = (tmp_path / "agent.log").read_text()
     assert "step() has run for" in said and "exiting without it" in said
+    # Where it waits, for the behaviour's author: its own line that called time.sleep(), not the library's.
+    assert re.search(r"step\(\) has run for .*; it is at stuck_after_three\.py:1[12], in step\(\)", said), said
 
 
 def test_wheel_commands_from_a_behaviours_own_thread_do_not_pass_an_estop(tmp_path, stub_library, hub):

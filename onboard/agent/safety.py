@@ -16,8 +16,11 @@ SIGTERM, SIGHUP) and the step still has not returned a second later.
 from __future__ import annotations
 
 import os
+import sys
+import sysconfig
 import threading
 import time
+from types import FrameType
 from typing import Callable, List, Optional
 
 from onboard.drivers import Driver, DriverError
@@ -107,6 +110,7 @@ class StepWatchdog:
         self.driver, self.limit_s, self.stop_requested = driver, limit_s, stop_requested
         self.log, self.robot_id = log, robot_id
         self.started_at: Optional[float] = None
+        self.step_thread: Optional[int] = None
         self.stops_wheels = True
         self.tripped = False
         self._running = threading.Event()
@@ -125,6 +129,7 @@ class StepWatchdog:
         """A step starts. ``stops_wheels`` False in lockstep: the simulated wheels wait for the step's answer,
         and a slow step (a loaded machine) that lost its wheel commands made the run depend on the load."""
         self.stops_wheels = stops_wheels
+        self.step_thread = threading.get_ident()
         self.started_at = time.monotonic()
 
     def end(self) -> None:
@@ -151,7 +156,8 @@ class StepWatchdog:
                 what = "wheels stopped" if self.stops_wheels else "lockstep: its simulated wheels wait for it; " \
                     "a robot's would stop here"
                 self.log(f"agent {self.robot_id}: the behaviour's step() has run for {now - started:.2f} s: "
-                         f"{what} (e-stop and the hub's watchdog act between steps only: step() must return)")
+                         f"{what} (e-stop and the hub's watchdog act between steps only: step() must return)"
+                         + self._where())
             if self.stop_requested():
                 stop_asked_at = stop_asked_at or now
                 if now - stop_asked_at > STUCK_EXIT_AFTER_S:
@@ -159,6 +165,13 @@ class StepWatchdog:
                     self.log(f"agent {self.robot_id}: asked to stop, but step() has not returned for "
                              f"{now - started:.1f} s: exiting without it")
                     os._exit(1)
+
+    def _where(self) -> str:
+        """Where the stuck step is, for its author: a bare "has run for 0.26 s" left them to guess which of
+        their loops waits for ever."""
+        frame = sys._current_frames().get(self.step_thread) if self.step_thread is not None else None
+        place = code_place(frame)
+        return f"; it is at {place}" if place else ""
 
     def _end_if_a_driver_call_hangs(self, now: float) -> None:
         called = self.driver.call_started
@@ -176,3 +189,27 @@ class StepWatchdog:
             self.driver.close_gate_within(STOP_LOCK_WAIT_S)
         except DriverError as err:
             self.log(f"agent {self.robot_id}: cannot stop the wheels: {err}")
+
+
+_LIBRARY_DIRS = tuple(os.path.normcase(os.path.realpath(path)) + os.sep for path in
+                      {sysconfig.get_paths()[name] for name in ("stdlib", "platstdlib", "purelib", "platlib")})
+
+
+def code_place(frame: Optional[FrameType]) -> str:
+    """'wander.py:42, in step()': the innermost frame of code that is not Python's library or an installed
+    package (a behaviour waiting in time.sleep() is shown at its own line that called it); the innermost frame
+    when all of them are."""
+    innermost = frame
+    while frame is not None:
+        if not os.path.normcase(os.path.realpath(frame.f_code.co_filename)).startswith(_LIBRARY_DIRS):
+            break
+        frame = frame.f_back
+    frame = frame or innermost
+    if frame is None:
+        return ""
+    path = frame.f_code.co_filename
+    try:
+        shown = os.path.relpath(path) if not os.path.relpath(path).startswith("..") else path
+    except ValueError:          # another drive (Windows)
+        shown = path
+    return f"{shown}:{frame.f_lineno}, in {frame.f_code.co_name}()"
