@@ -64,7 +64,6 @@ class Downlink:
         vectorised pass (:meth:`VirtualSensors.frames`); each frame is then a header pack, a slice of the
         neighbour records and, only when it carries messages, a reason or sim readings, a small JSON tail
         (docs/protocol.md). Nothing per neighbour happens in Python, and recording waits until all are sent."""
-        self.settle_yaws(np.fromiter((self.row[robot.id] for robot in robots), dtype=np.intp, count=len(robots)))
         batch = self.sensors.frames([robot.id for robot in robots])
         clock_s, stamp = self.clock_s, self.last_frame_stamp
         ages = np.maximum(now - self.seen_at.take(batch.rows), 0.0).tolist()

@@ -127,8 +127,6 @@ class Hub(Downlink, Uplink, Housekeeping):
         self._next_status_record = 0.0
         self._frame_ids: Optional[List[int]] = None
         self._frame_rows: Tuple[np.ndarray, Optional[List[int]]] = (np.zeros(0, dtype=np.intp), None)
-        self._yaw_frame: Optional[PoseFrame] = None       # the frame whose yaws are still to be read...
-        self._yaw_row = np.full(len(self.ids), -1, dtype=np.intp)    # ...the row of each robot there, or -1
 
     # --- sockets --------------------------------------------------------------------------------------
     def bind(self) -> Dict[str, str]:
@@ -263,17 +261,7 @@ class Hub(Downlink, Uplink, Housekeeping):
             self._frame_rows = (np.asarray(rows, dtype=np.intp), keep)
         rows, keep = self._frame_rows
         self.placed_a_robot = self.placed_a_robot or len(rows) > 0
-        if frame.yaw_reader is None:
-            self.poses[rows] = frame.poses if keep is None else frame.poses[keep]
-            self._yaw_row[rows] = -1
-        else:           # motion capture: positions now, each yaw when its row is sent (settle_yaws)
-            left = self._yaw_row >= 0
-            left[rows] = False
-            if left.any():          # robots this frame misses keep the last frame's yaw: read it before it goes
-                self.settle_yaws(np.flatnonzero(left))
-            self.poses[rows, :2] = frame.poses[:, :2] if keep is None else frame.poses[keep, :2]
-            self._yaw_frame = frame
-            self._yaw_row[rows] = np.arange(len(frame.ids)) if keep is None else keep
+        self.poses[rows] = frame.poses if keep is None else frame.poses[keep]
         self.seen_at[rows] = frame.stamp
         self.killed = set(frame.killed)
         self.extras = frame.extras
@@ -285,7 +273,8 @@ class Hub(Downlink, Uplink, Housekeeping):
             self.log(f"hub: {sparse}")
         present = frame.stamp - self.seen_at <= self.stale_s
         for rid in self.killed:
-            present[self.row[rid]] = False
+            if rid in self.row:     # a fault may kill a robot of the scenario that this lab does not serve
+                present[self.row[rid]] = False
         self.sensors.update(self.poses, present)
         self._check_geofence(present)
         self._hold_sim_wheels(frame.stamp)
@@ -298,17 +287,6 @@ class Hub(Downlink, Uplink, Housekeeping):
         rng = np.random.default_rng(self.noise_seed)
         self.sensors.restart(rng)
         self.relay.rng = rng
-
-    def settle_yaws(self, rows: np.ndarray) -> None:
-        """Read the yaws of these robots (hub rows) that the last motion-capture frame has and nobody read yet.
-        A body whose orientation is not finite gets a NaN yaw, so its frames carry no pose (VirtualSensors)."""
-        pending = self._yaw_row[rows]
-        unread = rows[pending >= 0]
-        if len(unread):
-            yaws = self._yaw_frame.yaw_at(self._yaw_row[unread])
-            self.poses[unread, 2] = yaws
-            self.sensors.poses[unread, 2] = yaws
-            self._yaw_row[unread] = -1
 
     def _check_geofence(self, present: np.ndarray) -> None:
         fence = self.config.geofence
@@ -372,7 +350,7 @@ class Hub(Downlink, Uplink, Housekeeping):
 def poses_record(frame: PoseFrame) -> Dict[str, Any]:
     """``/mocap/poses`` in the recorder's schema: robot id -> [x, y, z, qx, qy, qz, qw], world frame, z up."""
     bodies = {}
-    for rid, (x, y, yaw) in zip(frame.ids, frame.complete().tolist()):
+    for rid, (x, y, yaw) in zip(frame.ids, frame.poses.tolist()):
         if not math.isfinite(yaw):
             continue            # an orientation the system could not give: no pose, as with an occluded body
         # "+ 0.0": a value rounded to -0.0 is written as 0.0 (a log reader need not know of signed zeros).

@@ -22,28 +22,10 @@ from onboard.config import ConfigError
 class PoseFrame:
     stamp: float                    # hub monotonic time when the frame arrived (s)
     ids: List[int]                  # robots seen in this frame
-    poses: np.ndarray               # (len(ids), 3) x, y (m), yaw (rad), world frame; yaw NaN until read
+    poses: np.ndarray               # (len(ids), 3) x, y (m), yaw (rad), world frame, all finite
     clock_s: Optional[float] = None     # sim source: simulated time of the frame
     extras: Dict[int, Dict[str, Any]] = field(default_factory=dict)   # sim source: per-robot IR and odometry
     killed: Tuple[int, ...] = ()    # sim source: robots a scenario fault has killed
-    # Motion capture: reads the yaw of the given rows from the SDK's bodies. Reading a body's orientation costs
-    # about 1.4 µs in Python (five C calls); a 100-robot frame sends to about 17 robots, and the others need
-    # only positions, so the yaws are read when a row is sent (``yaw_at``) or recorded (``complete``).
-    yaw_reader: Optional[Callable[[np.ndarray], np.ndarray]] = None
-
-    def yaw_at(self, indices: np.ndarray) -> np.ndarray:
-        """The yaw of these rows, read from the SDK while it is NaN (not read yet, or not finite)."""
-        if self.yaw_reader is not None:
-            unread = indices[np.isnan(self.poses[indices, 2])]
-            if len(unread):
-                self.poses[unread, 2] = self.yaw_reader(unread)
-        return self.poses[indices, 2]
-
-    def complete(self) -> np.ndarray:
-        """``poses`` with every yaw read (a body whose orientation is not finite keeps a NaN yaw)."""
-        if self.yaw_reader is not None:
-            self.yaw_at(np.arange(len(self.ids)))
-        return self.poses
 
 
 class SourceRestartError(RuntimeError):
@@ -97,7 +79,8 @@ def pose_from_mocap(position, quaternion_wxyz, up_axis: str) -> Tuple[float, flo
     the floor is x-z, and the z-up world is (x, -z, y). Yaw is the heading of the body's x axis on the floor.
     """
     w, qx, qy, qz = quaternion_wxyz
-    if w * w + qx * qx + qy * qy + qz * qz < DEGENERATE_QUATERNION:    # e.g. all zeros: no orientation
+    if not (w * w + qx * qx + qy * qy + qz * qz >= DEGENERATE_QUATERNION and math.isfinite(w + qx + qy + qz)):
+        # All zeros (a body some systems lost), or a component that is not finite: no orientation.
         return float(position[0]), float(-position[2] if up_axis == "y" else position[1]), math.nan
     # The body's x axis expressed in the mocap frame: the first column of the rotation matrix.
     ax = 1.0 - 2.0 * (qy * qy + qz * qz)
@@ -108,20 +91,9 @@ def pose_from_mocap(position, quaternion_wxyz, up_axis: str) -> Tuple[float, flo
     return float(position[0]), float(position[1]), math.atan2(ay, ax)
 
 
-class _YawReader:
-    """The yaws of some of a frame's bodies (the SDK's objects, kept with the frame)."""
-
-    def __init__(self, bodies: List[Any], up_axis: str):
-        self.bodies, self.up_axis = bodies, up_axis
-
-    def __call__(self, rows: np.ndarray) -> np.ndarray:
-        wxyz = [_WXYZ(self.bodies[k].rotation) for k in rows.tolist()]    # one C call per body for the four
-        return yaws_from_mocap(np.array(wxyz, dtype=float), self.up_axis)
-
-
 def floor_positions(positions: np.ndarray, up_axis: str) -> np.ndarray:
-    """Many bodies' (K, 3) mocap positions as (K, 3) world x, y and a yaw left NaN (the yaws are read when
-    needed: PoseFrame.yaw_reader, :func:`yaws_from_mocap`), with :func:`pose_from_mocap`'s axis convention."""
+    """Many bodies' (K, 3) mocap positions as (K, 3) world x, y and a yaw left NaN (:func:`yaws_from_mocap`
+    gives it), with :func:`pose_from_mocap`'s axis convention."""
     poses = np.empty((len(positions), 3))
     poses[:, :2] = positions[:, (0, 2) if up_axis == "y" else (0, 1)]
     if up_axis == "y":
@@ -146,8 +118,9 @@ def yaws_from_mocap(quaternions_wxyz: np.ndarray, up_axis: str) -> np.ndarray:
         along = qx * qy
         along += w * qz                        # ay / 2
     yaws = np.arctan2(along, 0.5 - across)
-    # A quaternion far from unit length (all zeros: a body some systems lost) has no yaw: NaN, no pose.
-    yaws[w * w + qx * qx + across < DEGENERATE_QUATERNION] = np.nan
+    # A quaternion far from unit length (all zeros: a body some systems lost) has no yaw: NaN, no pose. Nor has
+    # one with a component that is not finite (arctan2 made 135 degrees of [1, 0, 0, inf]).
+    yaws[(w * w + qx * qx + across < DEGENERATE_QUATERNION) | ~np.isfinite(w + qx + qy + qz)] = np.nan
     return yaws
 
 
@@ -282,11 +255,14 @@ class MotionCaptureSource(PoseSource):
 
     def _convert(self, stamp: float, bodies) -> PoseFrame:
         """One mocap frame as a :class:`PoseFrame`: listed bodies only (others are logged once and ignored),
-        in the world frame (:func:`floor_positions`, vectorised), occluded bodies (a non-finite position)
-        dropped. Only positions are read here; the yaws when the hub sends or records a row (``yaw_reader``).
+        in the world frame (:func:`floor_positions`, :func:`yaws_from_mocap`, vectorised), occluded bodies
+        (a position or an orientation that is not finite, or no rotation at all) dropped.
 
-        The SDK hands out one Python object per body, so reading their fields stays a loop; everything else is
-        numpy, and the name -> robot id lookup is redone only when the set of body names changes."""
+        Everything is read here, before the next ``waitForNextFrame``: the SDK's body objects and their arrays
+        are views into its own storage, which the next frame rewrites (Vicon and Qualisys rebuild it), so a yaw
+        read later came from a later frame, or from freed memory for a body that frame lacked. The SDK hands
+        out one Python object per body, so reading their fields stays a loop; everything else is numpy, and the
+        name -> robot id lookup is redone only when the set of body names changes."""
         names = tuple(bodies)
         if names != self._names:
             self._names, self._selection = names, self._select(names)
@@ -297,13 +273,14 @@ class MotionCaptureSource(PoseSource):
         if not values:
             return PoseFrame(stamp, [], np.zeros((0, 3)))
         positions = np.concatenate([body.position for body in values]).reshape(-1, 3)
-        poses = floor_positions(positions, self.up_axis)      # yaw NaN: read when needed
-        seen = np.isfinite(poses[:, :2]).all(axis=1)   # occluded bodies come as NaN in some systems
+        poses = floor_positions(positions, self.up_axis)
+        poses[:, 2] = yaws_from_mocap(np.array([_WXYZ(body.rotation) for body in values], dtype=float),
+                                      self.up_axis)
+        seen = np.isfinite(poses).all(axis=1)   # occluded bodies come as NaN in some systems, lost ones as zeros
         if not seen.all():
             ids = [rid for rid, ok in zip(ids, seen.tolist()) if ok]
-            values = [body for body, ok in zip(values, seen.tolist()) if ok]
             poses = poses[seen]
-        return PoseFrame(stamp, list(ids), poses, yaw_reader=_YawReader(values, self.up_axis))
+        return PoseFrame(stamp, list(ids), poses)
 
     def _select(self, names: Tuple[str, ...]) -> Tuple[List[int], Optional[List[int]]]:
         """Robot ids of the listed bodies among ``names``, in order, and their positions in ``names`` (None

@@ -145,14 +145,15 @@ def reference_convert(bodies, names_to_ids, up_axis):
     return ids, np.asarray(poses, dtype=float).reshape(-1, 3)
 
 
-def random_bodies(rng, names, occluded=()):
+def random_bodies(rng, names, occluded=(), unoriented=()):
+    """``unoriented`` bodies come with a quaternion of all zeros (as some systems give for a body they lost)."""
     bodies = {}
     for name in names:
         q = rng.normal(size=4)
         position = rng.uniform(-3.0, 3.0, 3)
         if name in occluded:
             position = np.full(3, np.nan)
-        bodies[name] = FakeBody(position, q / np.linalg.norm(q))
+        bodies[name] = FakeBody(position, np.zeros(4) if name in unoriented else q / np.linalg.norm(q))
     return bodies
 
 
@@ -166,6 +167,7 @@ def test_converting_rigid_bodies_matches_the_body_by_body_conversion(up_axis):
         frames = [
             random_bodies(rng, ["kh0", "kh1", "stray", "kh2", "kh3", "kh4", "kh5"]),
             random_bodies(rng, ["kh0", "kh1", "stray", "kh2", "kh3", "kh4", "kh5"], occluded={"kh2"}),
+            random_bodies(rng, ["kh0", "kh1", "kh2", "kh3", "kh4", "kh5"], unoriented={"kh1", "kh4"}),
             random_bodies(rng, ["kh5", "kh4", "kh0"]),                 # bodies left and changed order
             random_bodies(rng, ["kh0", "kh1", "kh2", "kh3", "kh4", "kh5", "other"]),
             random_bodies(rng, ["kh0", "kh1", "kh2", "kh3", "kh4", "kh5"]),
@@ -177,9 +179,7 @@ def test_converting_rigid_bodies_matches_the_body_by_body_conversion(up_axis):
             assert frame.stamp == 100.0 + k
             assert frame.ids == ids
             assert frame.poses.shape == (len(ids), 3)
-            assert np.isnan(frame.poses[:, 2]).all()          # yaws are read when a row is sent or recorded
-            np.testing.assert_allclose(frame.yaw_at(np.arange(len(ids))[::2]), poses[::2, 2], rtol=0, atol=1e-12)
-            np.testing.assert_allclose(frame.complete(), poses, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(frame.poses, poses, rtol=0, atol=1e-12)
     finally:
         source.close()
     ignored = [line for line in lines if "ignoring rigid body" in line]
@@ -195,42 +195,69 @@ def test_a_y_up_body_is_placed_on_the_z_up_floor():
     finally:
         source.close()
     assert frame.ids == [0]
-    np.testing.assert_allclose(frame.complete(), [[1.0, 2.0, math.pi / 2]], atol=1e-6)
+    np.testing.assert_allclose(frame.poses, [[1.0, 2.0, math.pi / 2]], atol=1e-6)
 
 
 def quarter_turns(k):
     return (math.cos(k * math.pi / 4), 0.0, 0.0, math.sin(k * math.pi / 4))     # k quarter turns about +z
 
 
-def test_yaws_read_only_for_the_rows_sent_are_those_of_the_latest_frame_that_had_the_body():
-    """Motion capture frames carry positions; a robot's yaw is read from the SDK's body when its frame is sent.
-    A robot that the next frame misses keeps the yaw of the frame that had it, and a body whose orientation
-    is not finite is sent and recorded without a pose, like an occluded one."""
+class RewrittenInPlace:
+    """The SDK as it is: ``rigidBodies`` hands out the same body objects every frame (views into its own
+    storage, which Vicon and Qualisys rebuild on each read), so a field read after the next frame is that
+    frame's."""
+
+    def __init__(self, names):
+        self.rigidBodies = {name: FakeBody((0.0, 0.0, 0.0), quarter_turns(0)) for name in names}
+
+    def next_frame(self, poses):
+        for name, (x, turns) in poses.items():
+            self.rigidBodies[name].position[:] = (x, 0.0, 0.0)
+            self.rigidBodies[name].rotation = FakeQuaternion(*quarter_turns(turns))
+
+
+def test_a_frame_keeps_its_own_yaws_when_the_sdk_rewrites_its_bodies_for_the_next():
+    """The yaws were read from the SDK's objects when a row was sent or recorded, after the reader thread had
+    moved on: frame N's positions went out and into the log with frame N+1's yaw (or, for a body frame N+1
+    lacked, with whatever its freed storage held)."""
+    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0);kh1(0.5,0,0,1,0,0,0)"), log=lambda line: None)
+    source = fake_source({"kh0": 0, "kh1": 1}, "z", [])
+    sdk = RewrittenInPlace(["kh0", "kh1"])
+    try:
+        sdk.next_frame({"kh0": (1.0, 1), "kh1": (2.0, 0)})
+        frame_n = source._convert(100.0, sdk.rigidBodies)
+        sdk.next_frame({"kh0": (1.1, -1), "kh1": (2.0, 2)})            # the reader thread is at frame N+1
+        hub.on_pose_frame(frame_n)
+        assert hub.sensors.frames([0, 1]).poses == [pytest.approx((1.0, 0.0, math.pi / 2), abs=1e-4),
+                                                    pytest.approx((2.0, 0.0, 0.0), abs=1e-4)]
+        x, _, _, _, _, qz, qw = poses_record(frame_n)["bodies"]["0"]
+        assert (x, 2.0 * math.atan2(qz, qw)) == pytest.approx((1.0, math.pi / 2), abs=1e-5)
+    finally:
+        source.close()
+        hub.source.close()
+
+
+def test_a_body_without_an_orientation_is_held_like_an_occluded_one():
+    """A body whose orientation is not finite or not a rotation (all zeros, as some systems give for a body they
+    lost) was sent without a pose, but its robot ran on in `run`, blind, and the others still heard it. It is
+    now left out of the frame: it keeps its last pose for stale_s, and is then held, as an occluded one is."""
     hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0);kh1(0.5,0,0,1,0,0,0)"), log=lambda line: None)
     source = fake_source({"kh0": 0, "kh1": 1}, "z", [])
     try:
+        hub.mode = "run"
         hub.on_pose_frame(source._convert(100.0, {"kh0": FakeBody((0, 0, 0), quarter_turns(1)),
                                                   "kh1": FakeBody((0.5, 0, 0), quarter_turns(2))}))
-        hub.settle_yaws(np.array([0]))
         assert hub.sensors.frames([0]).poses[0] == pytest.approx((0.0, 0.0, math.pi / 2), abs=1e-4)
-        hub.on_pose_frame(source._convert(100.01, {"kh0": FakeBody((0.1, 0, 0), quarter_turns(-1))}))
-        hub.settle_yaws(np.array([0, 1]))
-        poses = hub.sensors.frames([0, 1]).poses
-        assert poses[0] == pytest.approx((0.1, 0.0, -math.pi / 2), abs=1e-4)
-        assert poses[1] == pytest.approx((0.5, 0.0, math.pi), abs=1e-4)        # from the frame before
-        broken = source._convert(100.02, {"kh0": FakeBody((0.2, 0, 0), (math.nan,) * 4),
-                                          "kh1": FakeBody((0.5, 0, 0), quarter_turns(0))})
-        hub.on_pose_frame(broken)
-        hub.settle_yaws(np.array([0, 1]))
-        assert hub.sensors.frames([0, 1]).poses == [None, pytest.approx((0.5, 0.0, 0.0), abs=1e-4)]
-        assert list(poses_record(broken)["bodies"]) == ["1"]
-        # All zeros, as some systems give for a body they lost: it was read as a yaw of 0, facing +x.
-        lost = source._convert(100.03, {"kh0": FakeBody((0.3, 0, 0), (0.0,) * 4),
-                                        "kh1": FakeBody((0.5, 0, 0), quarter_turns(0))})
-        hub.on_pose_frame(lost)
-        hub.settle_yaws(np.array([0, 1]))
-        assert hub.sensors.frames([0, 1]).poses[0] is None and list(poses_record(lost)["bodies"]) == ["1"]
+        for k, broken in enumerate([(0.0,) * 4, (math.nan,) * 4, (1.0, 0.0, 0.0, math.inf)]):
+            frame = source._convert(101.0 + k, {"kh0": FakeBody((0.2, 0, 0), broken),
+                                                 "kh1": FakeBody((0.5, 0, 0), quarter_turns(0))})
+            assert frame.ids == [1] and list(poses_record(frame)["bodies"]) == ["1"], broken
+            hub.on_pose_frame(frame)            # a second after the last frame that had kh0: stale
+            assert hub.sensors.pose_of(0) is None and hub.sensors.receivers_of(1) == []
+            assert hub.mode_for(hub.robots[0]) == ("hold", "not tracked by motion capture")
+            assert hub.mode_for(hub.robots[1]) == ("run", "")
         assert math.isnan(pose_from_mocap((0.3, 0, 0), (0.0,) * 4, "z")[2])
+        assert math.isnan(pose_from_mocap((0.3, 0, 0), (1.0, 0.0, 0.0, math.inf), "z")[2])   # was 135 degrees
     finally:
         source.close()
         hub.source.close()
@@ -248,6 +275,20 @@ def test_stale_bodies_lose_their_pose_and_are_held():
         hub.on_pose_frame(PoseFrame(100.2, [0], both[:1]))           # now older than stale_s = 0.1 s
         assert hub.sensors.pose_of(1) is None and hub.sensors.receivers_of(0) == []
         assert hub.mode_for(hub.robots[1]) == ("hold", "not tracked by motion capture")
+    finally:
+        hub.source.close()
+
+
+def test_a_fault_killing_a_robot_this_lab_does_not_serve_is_ignored():
+    """A sim-source hub may serve some of the scenario's robots (`robots: [0, 1]` of lab-6); a scenario fault
+    that killed robot 5 raised KeyError in the hub's loop, which ended the hub."""
+    hub = build_hub(mock_config("kh0(0,0,0,1,0,0,0);kh1(0.5,0,0,1,0,0,0)"), log=lambda line: None)
+    try:
+        hub.mode = "run"
+        poses = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
+        hub.on_pose_frame(PoseFrame(100.0, [0, 1], poses, killed=(5, 1)))
+        assert hub.mode_for(hub.robots[0]) == ("run", "")
+        assert hub.mode_for(hub.robots[1]) == ("hold", "killed by a scenario fault")
     finally:
         hub.source.close()
 
