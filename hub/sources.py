@@ -200,6 +200,38 @@ def probe_mocap(system: str, options: Dict[str, str], timeout_s: float) -> None:
 _WXYZ = operator.attrgetter("w", "x", "y", "z")     # a motioncapture Quaternion's fields
 
 
+READ_RETRY_S = 0.1           # a failed read is tried again this much later
+FAILURE_LINE_MAX_S = 60.0    # while reads keep failing, a line at 1, 2, 4 ... s, then one a minute
+
+
+class ReadFailures:
+    """What the reader thread says while the motion-capture library fails: the first failure, then a count at
+    growing intervals, and one line when frames come again. A line per try (10 a second) buried the console
+    and the log of a hub whose motion capture was off for an hour."""
+
+    def __init__(self, log: Callable[[str], None]):
+        self.log = log
+        self.count = 0
+        self.since = 0.0
+        self.next_line = 0.0
+
+    def failed(self, err: Exception, now: float) -> None:
+        self.count += 1
+        if self.count == 1:
+            self.since, self.next_line = now, now + 1.0
+            self.log(f"hub: motion capture read failed: {err} (trying again every {READ_RETRY_S:g} s)")
+        elif now >= self.next_line:
+            self.log(f"hub: motion capture read failed {self.count} times in {now - self.since:.0f} s, the last "
+                     f"with: {err}; no frames meanwhile, so the robots are held")
+            self.next_line = now + min(2.0 * (now - self.since), FAILURE_LINE_MAX_S)
+
+    def read(self, now: float) -> None:
+        if self.count:
+            self.log(f"hub: motion capture frames again, after {self.count} failed "
+                     f"read{'' if self.count == 1 else 's'} over {now - self.since:.1f} s")
+            self.count = 0
+
+
 class MotionCaptureSource(PoseSource):
     """The ``motioncapture`` library in a reader thread (its ``waitForNextFrame`` blocks)."""
 
@@ -241,15 +273,17 @@ class MotionCaptureSource(PoseSource):
         return sorted(self.bodies.values())
 
     def _read(self) -> None:
+        failures = ReadFailures(self.log)
         while self.running:
             try:
                 self.mocap.waitForNextFrame()
                 stamp = time.monotonic()
                 bodies = self.mocap.rigidBodies
             except Exception as err:   # a network hiccup in the SDK must not kill the hub
-                self.log(f"hub: motion capture read failed: {err}")
-                time.sleep(0.1)
+                failures.failed(err, time.monotonic())
+                time.sleep(READ_RETRY_S)
                 continue
+            failures.read(stamp)
             self.frames.append(self._convert(stamp, bodies))
             self.wake.poke()
 

@@ -19,7 +19,7 @@ from hub.factory import build_hub
 from hub.harness import HubThread
 from hub.recording import Recorder, read_log
 from hub.server import UPLINK_SLICE, poses_record
-from hub.sources import MotionCaptureSource, PoseFrame, pose_from_mocap
+from hub.sources import MotionCaptureSource, PoseFrame, ReadFailures, pose_from_mocap
 from onboard.config import ConfigError
 from onboard.protocol import decode, encode
 
@@ -95,6 +95,35 @@ class FakeMocap:
 def fake_source(bodies, up_axis, lines):
     return MotionCaptureSource(zmq.Context.instance(), "fake", {}, bodies, up_axis, log=lines.append,
                                connect=lambda system, options: FakeMocap())
+
+
+class Unreachable:
+    """An SDK whose system has gone: every read raises."""
+    rigidBodies: dict = {}
+
+    def waitForNextFrame(self):
+        raise RuntimeError("recv failed: Connection refused")
+
+
+def test_a_library_that_keeps_failing_is_said_at_growing_intervals_not_ten_times_a_second():
+    lines = []
+    source = MotionCaptureSource(zmq.Context.instance(), "fake", {}, {"kh0": 0}, "z", log=lines.append,
+                                 connect=lambda system, options: Unreachable())
+    time.sleep(1.5)
+    source.close()
+    lines = [line for line in lines if "motion capture" in line]        # not "connecting to fake"
+    assert lines[0] == "hub: motion capture read failed: recv failed: Connection refused (trying again every 0.1 s)"
+    assert 2 <= len(lines) <= 3, lines        # the first, and a count after 1 s (one line per try: 15)
+    assert re.fullmatch(r"hub: motion capture read failed 1\d times in 1 s, the last with: recv failed: "
+                        r"Connection refused; no frames meanwhile, so the robots are held", lines[1]), lines
+    # Over an hour off, on the clock the reader thread passes: 1, 3, 9, 27, 81 s, then a line a minute.
+    said = []
+    failures = ReadFailures(said.append)
+    for k in range(36000):
+        failures.failed(RuntimeError("gone"), 1000.0 + k * 0.1)
+    failures.read(4600.0)
+    assert len(said) == 65 and said[-1] == "hub: motion capture frames again, after 36000 failed reads " \
+        "over 3600.0 s", said[-3:]
 
 
 def test_an_option_the_sdk_cannot_parse_is_one_line_naming_source_options():
