@@ -7,12 +7,14 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from hub.harness import ScriptedHub, stop_processes
+from onboard.agent.safety import StepWatchdog
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_kh4_driver import compile_stub, speed_commands  # noqa: E402
@@ -116,3 +118,53 @@ def test_wheel_commands_from_a_behaviours_own_thread_do_not_pass_an_estop(tmp_pa
         assert all(command == (0, 0) for command in after), f"moved during the e-stop: {after[:5]}"
     finally:
         stop_processes([agent])
+
+
+class PausingDriver:
+    """A driver whose ``call_started`` (which the step watchdog reads between taking a step's start time and
+    judging it) can hold the watchdog there once, to force the interleaving of a step that ends meanwhile."""
+    stoppable_from_any_thread = True
+    call_name = ""
+
+    def __init__(self):
+        self.stops = 0
+        self.armed = False
+        self.holding = threading.Event()
+        self.released = threading.Event()
+
+    @property
+    def call_started(self):
+        if self.armed:
+            self.armed = False
+            self.holding.set()
+            self.released.wait()
+        return None
+
+    def close_gate_within(self, wait_s):
+        self.stops += 1
+        return True
+
+
+def test_a_step_that_ends_as_the_watchdog_judges_it_does_not_spare_the_next_step():
+    """The watchdog took a slow step's start time, the step returned, and the watchdog then tripped on it again:
+    the wheels stopped once more, and its `tripped` flag, which only end() cleared, stayed set, so the next step
+    could hang with the wheels on."""
+    driver, said = PausingDriver(), []
+    watchdog = StepWatchdog(driver, 0.25, lambda: False, said.append, 0)
+    watchdog.start()
+    try:
+        watchdog.begin()                       # a slow step: 0.3 s, over the 0.25 s limit, so the wheels stop...
+        time.sleep(0.3)
+        assert driver.stops == 1, said
+        driver.armed = True
+        assert driver.holding.wait(2.0)        # ...and it returns while the watchdog holds its start time
+        watchdog.end()
+        driver.released.set()
+        time.sleep(0.1)
+        assert driver.stops == 1 and not watchdog.tripped, said
+        watchdog.begin()                       # this one hangs: stopped after 0.25 s
+        time.sleep(0.6)
+        assert driver.stops == 2, said
+    finally:
+        watchdog.end()
+        watchdog.stop()

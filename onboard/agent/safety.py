@@ -130,6 +130,7 @@ class StepWatchdog:
         and a slow step (a loaded machine) that lost its wheel commands made the run depend on the load."""
         self.stops_wheels = stops_wheels
         self.step_thread = threading.get_ident()
+        self.tripped = False        # a trip on the step before, after it had ended, must not spare this one
         self.started_at = time.monotonic()
 
     def end(self) -> None:
@@ -149,7 +150,9 @@ class StepWatchdog:
             if started is None:
                 stop_asked_at = None
                 continue
-            if not self.tripped and now - started > self.limit_s:
+            # started_at read again: the step may have ended since (a trip then stopped wheels for nothing,
+            # and its tripped flag, never reset by end(), let the next step hang with its wheels on).
+            if not self.tripped and now - started > self.limit_s and self.started_at == started:
                 self.tripped = True
                 if self.stops_wheels:
                     self._stop_wheels()
