@@ -521,6 +521,24 @@ def test_the_agents_neighbour_columns_are_read_only_as_in_the_simulator():
             column[...] = 0
 
 
+def test_a_pose_from_before_a_new_run_keeps_its_age():
+    """The clock restarts at 0 with each run, and the last frame's pose kept its stamp on the old run's clock:
+    in the new run's future, its age read 0, and a pose minutes old (motion capture lost the robot before the
+    run, so no frame since carried one) passed the behaviour's staleness checks as fresh."""
+    from onboard.agent.devices import HubPositioning, HubRangeAndBearing
+
+    state = HubState()
+    clock = AgentClock(state)
+    clock.started -= 300.0                                   # run 1 has gone for 300 s
+    apply_frame(state, {"seq": 1, "pose": [1.0, 2.0, 0.0], "neighbours": [[1, 2.0, 0.5]], "messages": []},
+                clock, 0.0)
+    clock.started -= 5.0                                     # 5 s later: frames without a pose since
+    clock.restart(False)                                     # run 2
+    pose = HubPositioning(state, clock).pose()
+    assert pose is not None and pose.age_s == pytest.approx(5.0, abs=0.05)
+    assert HubRangeAndBearing(state, clock).neighbours().age_s == pytest.approx(5.0, abs=0.05)
+
+
 def test_a_flooded_agent_keeps_the_newest_messages_and_counts_the_others():
     """A robot keeps Radio.INBOX_LIMIT messages between two steps, as the simulator does; the rest is counted,
     not lost without a trace."""

@@ -3,6 +3,7 @@ encoders). A behaviour gets the same :class:`onboard.hal.Robot` bundle as in the
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -45,8 +46,17 @@ class AgentClock(hal.Clock):
         self.started = time.monotonic()
 
     def restart(self, use_hub_clock: bool) -> None:
+        """A new run's clock, from 0. The pose and neighbours of the last frame keep their age: stamped on the old
+        run's clock they lay in the new one's future, where an age clamped to 0 made a pose minutes old (the
+        motion capture lost the robot before the run) read as fresh."""
+        before = self.now()
         self.use_hub_clock = use_hub_clock
         self.started = time.monotonic()
+        shift = self.now() - before
+        state = self.state
+        if state.pose is not None:
+            state.pose = dataclasses.replace(state.pose, stamp_s=state.pose.stamp_s + shift)
+        state.neighbours_at += shift
 
     def now(self) -> float:
         if self.use_hub_clock:
