@@ -22,7 +22,7 @@ from __future__ import annotations
 import bisect
 import json
 from collections import OrderedDict
-from typing import Any, Dict, Iterable, List, Optional, Tuple
+from typing import Any, Callable, Dict, Iterable, List, Optional, Tuple
 
 # The entries, their conflict rules and wire form live in stigmergy_entries; the public ones are imported
 # from here too (behaviours write `from onboard.stigmergy import TupleSpace, lowest_field`).
@@ -49,6 +49,9 @@ from .stigmergy_entries import (
 # What outgoing() sends, and when an accepted entry is relayed: the sending half, mixed into TupleSpace.
 from .stigmergy_outgoing import Outgoing
 
+#: ``check(key, value)``: what is wrong with a peer's entry, or None (``TupleSpace(check=...)``).
+ValueCheck = Callable[[str, Any], Optional[str]]
+
 __all__ = ["ConflictRule", "Entry", "Gossip", "TupleSpace", "default_rule", "lowest_field", "lowest_writer",
            "payload_bytes"]
 
@@ -60,7 +63,7 @@ class TupleSpace(Outgoing):
     def __init__(self, owner: int, max_entries_per_message: int = 24, resend_rounds: int = 3,
                  conflict_rules: Optional[Dict[str, ConflictRule]] = None, max_bytes: int = 6000,
                  relay_rounds: Optional[int] = None, relay_delay_steps: int = 0, relay_quorum: int = 0,
-                 anti_entropy_period: int = 1) -> None:
+                 anti_entropy_period: int = 1, check: Optional[ValueCheck] = None) -> None:
         """``resend_rounds``: how many messages carry an entry this robot wrote. The rest tunes traffic in
         dense swarms; the defaults keep the plain protocol (every accepted entry relayed ``resend_rounds``
         times at once, anti-entropy in every message):
@@ -76,6 +79,10 @@ class TupleSpace(Outgoing):
         - ``anti_entropy_period``: the round-robin share (repairs losses, informs newcomers) rides along in
           one ``outgoing()`` of this many (staggered by owner); the others carry only changed entries, and
           are empty when nothing changed.
+
+        ``check(key, value)`` says what is wrong with a peer's entry (a text), or None: an entry it finds wrong
+        is refused, neither stored nor relayed, and counted (``refused``, ``last_refusal``). Without it any
+        JSON value is taken; a behaviour gives one so that its readers may trust the shapes they read.
         """
         if max_entries_per_message < 1 or resend_rounds < 1 or max_bytes < 3:
             raise ValueError("max_entries_per_message and resend_rounds must be >= 1, max_bytes >= 3")
@@ -112,8 +119,11 @@ class TupleSpace(Outgoing):
         self._dirty: OrderedDict[str, int] = OrderedDict()   # key -> sends left; last = most recently changed
         self._order: List[str] = []                # round-robin order; keys are never removed, only appended
         self._cursor = 0
+        self._check = check
         self.rejected = 0
         self.last_rejected_sender: Optional[int] = None
+        self.refused = 0                           # well-formed entries that ``check`` refused...
+        self.last_refusal: Optional[str] = None    # ...and the last one: "robot 7's bid/S/0: bid is not ..."
         self.oversized = 0
         self.rule_errors = 0
 
@@ -175,6 +185,8 @@ class TupleSpace(Outgoing):
             too_deep = _too_deep(decoded)
         except RecursionError:      # hundreds of levels deep: json's own limit
             too_deep = True
+        except ValueError as err:   # NaN or an infinity (not JSON), a circular reference
+            raise ValueError(f"{key}: the value is not JSON, and peers could not read it ({err})") from None
         if too_deep:                # every peer would refuse it (_parse): say so here, where it is written
             raise ValueError(f"{key}: the value nests lists or mappings more than {MAX_VALUE_DEPTH} deep, and "
                              "peers refuse such entries")
@@ -277,14 +289,22 @@ class TupleSpace(Outgoing):
         if wire is None:
             try:
                 canonical = _canonical(value)
-            except (TypeError, ValueError):
-                self._reject(sender)
+            except ValueError:      # NaN or an infinity: the simulator's radio passes a peer's objects on
+                self._refuse(sender, key, "the value holds NaN or an infinity, which JSON cannot carry")
+                return None
+            except TypeError as err:
+                self._refuse(sender, key, f"the value is not JSON ({err})")
                 return None
             wire = _wire(key, canonical, timestamp, writer)
         if tie and wire == self._wire[key]:
             return None                            # duplicate after all (e.g. a tuple for a list)
         # Rules judge exactly what a replica would hold, a fresh JSON decode (a Gossip's values already are).
         judged = value if canonical is None else json.loads(canonical)
+        if self._check is not None:
+            problem = self._check(key, judged)
+            if problem is not None:
+                self._refuse(sender, key, problem)
+                return None
         if tie and self._resolve(key, local, _entry(judged, timestamp, writer)) is local:
             return None
         own = judged if canonical is not None else _copy(value)   # never the message's shared copy
@@ -345,3 +365,9 @@ class TupleSpace(Outgoing):
     def _reject(self, sender: Optional[int]) -> None:
         self.rejected += 1
         self.last_rejected_sender = sender
+
+    def _refuse(self, sender: Optional[int], key: str, problem: str) -> None:
+        self._reject(sender)
+        self.refused += 1
+        who = "a peer" if sender is None else f"robot {sender}"
+        self.last_refusal = f"{who}'s {key}: {problem}"

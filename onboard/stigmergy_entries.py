@@ -133,8 +133,10 @@ def _copy(decoded: Any) -> Any:
 
 
 # Compact and sorted: one text per JSON value, so equal values are equal strings on every replica.
-# Built once: json.dumps with non-default options would build a new encoder on every call.
-_canonical = json.JSONEncoder(separators=(",", ":"), sort_keys=True).encode
+# Built once: json.dumps with non-default options would build a new encoder on every call. NaN and infinities
+# are refused (ValueError): they are not JSON, and a robot's radio refuses them, so a put() of one failed only
+# at the robot's next broadcast, and never in the simulator, whose radio passes the replica's own texts on.
+_canonical = json.JSONEncoder(separators=(",", ":"), sort_keys=True, allow_nan=False).encode
 
 
 def _wire(key: str, canonical: str, timestamp: int, writer: int) -> str:

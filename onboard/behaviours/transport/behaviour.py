@@ -385,4 +385,7 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
             data["task"] = self.task.tid
         if self.filter is not None and member:      # a spare's estimate (reinforce.py) is its own business
             data["estimate"] = [round(v, 4) for v in self.filter.pose]
+        if self.space.refused:                      # peers' entries of a shape the readers cannot take (entries.py)
+            data["refused_entries"] = self.space.refused
+            data["last_refused"] = self.space.last_refusal[:200]
         return data

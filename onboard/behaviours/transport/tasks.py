@@ -1,6 +1,6 @@
 """Caging tasks, bids, owners, cage members and liveness, all kept in the replicated tuple space.
 
-Keys (values are small JSON mappings):
+Keys (values are small JSON mappings; a peer's entry of another shape is refused as it arrives, entries.py):
   task/<tid>    {"x", "y", "branch": "S"|"L"|"R", "index", "pred", "epoch", "cancelled"}  the caging target
   bid/<tid>/<e> {"robot", "bid"}      lowest bid wins (ties: lower robot id) -- conflict rule on "bid/"
   owner/<tid>   {"robot", "bid", "epoch"}  the robot that took the task; same conflict rule on "owner/"
@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from ...stigmergy import TupleSpace, lowest_field
+from .entries import entry_problem
 from .liveness import Liveness
 
 BRANCH_DIRECTION = {"L": 1, "R": -1, "S": 0}   # L grows counter-clockwise around the object, R clockwise
@@ -58,7 +59,7 @@ def new_space(owner: int) -> TupleSpace:
     first; the round-robin share rides along once a second)."""
     rule = lowest_field("bid", "robot")
     return TupleSpace(owner, conflict_rules={"bid/": rule, "owner/": rule}, relay_rounds=1, relay_delay_steps=7,
-                      relay_quorum=2, anti_entropy_period=10)
+                      relay_quorum=2, anti_entropy_period=10, check=entry_problem)
 
 
 class TaskBoard(Liveness):
