@@ -56,6 +56,15 @@ def folder_not_file(text: str) -> Optional[str]:
     return None
 
 
+MAX_NAME_LENGTH = 100     # a scenario's or study's name, which names folders (file systems allow 255 bytes)
+
+
+def has_control_character(text: str) -> bool:
+    """A NUL, newline, tab or other control character: in a name or path it made a folder named across lines,
+    or ended the command in a traceback ("embedded null byte")."""
+    return any(ord(char) < 32 or ord(char) == 127 for char in text)
+
+
 def check_boolean(where: str, value: Any) -> bool:
     """A true or false as it is; anything else refused naming ``where``. Not ``bool(value)``: "yes", "false", "0"
     and 1 would all switch the setting on."""

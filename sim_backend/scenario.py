@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from onboard.behaviour import build_params, get_behaviour, takes_param
-from onboard.config import ConfigError, check_range, from_mapping, join
+from onboard.config import MAX_NAME_LENGTH, ConfigError, check_range, from_mapping, has_control_character, join
 from onboard.yamlfile import read_yaml
 
 from .object_spec import ObjectSpec, check_extent, check_point
@@ -175,8 +175,12 @@ class Scenario:
     def validate(self, where: str) -> None:
         if not self.name.strip():
             raise ConfigError("name", "must not be empty")
-        if "/" in self.name or "\\" in self.name or self.name.strip(".") == "":
-            raise ConfigError("name", f"names the output folder: no / or \\, and not only dots (got {self.name!r})")
+        if "/" in self.name or "\\" in self.name or self.name.strip(".") == "" or has_control_character(self.name):
+            raise ConfigError("name", "names the output folder: no / or \\, no control characters, and not only "
+                                      f"dots (got {self.name!r})")
+        if len(self.name) > MAX_NAME_LENGTH:     # the folder name-seedN: "File name too long", blamed on --out
+            raise ConfigError("name", f"names the output folder: at most {MAX_NAME_LENGTH} characters (got "
+                                      f"{len(self.name)})")
         check_range("seed", self.seed, 0)   # numpy's generators reject negative seeds
         check_range("time_limit_s", self.time_limit_s, 0.0, low_open=True)
         behaviour_cls = get_behaviour(self.behaviour, "behaviour")

@@ -270,8 +270,13 @@ SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such
      "robots.spawn: x [-4.0, -2.0], y [-1.2, -0.6] lies outside the arena walls [-2, -2, 2, 2]"),
     ({"time_limit_s": 0}, "time_limit_s", "time_limit_s: must be > 0 (got 0)"),
     ({"name": "../../etc/evil"}, "name",
-     "name: names the output folder: no / or \\, and not only dots (got '../../etc/evil')"),
+     "name: names the output folder: no / or \\, no control characters, and not only dots (got '../../etc/evil')"),
     ({"name": ".."}, "name", None),
+    # A NUL ended `sim run` in a traceback ("embedded null byte"); a newline made a folder named across lines.
+    ({"name": "x\x00y"}, "name", "name: names the output folder: no / or \\, no control characters, and not only "
+                                  "dots (got 'x\\x00y')"),
+    ({"name": "a\nb"}, "name", None),
+    ({"name": "n" * 101}, "name", "name: names the output folder: at most 100 characters (got 101)"),
     ({"behaviour": "aggregate", "object": BOX, "path": [[1, 0, 0]]}, "path",
      "path: the aggregate behaviour does not follow a path (its params have no 'path'): the path would be ignored"),
     ({"object": {"shape": "circle", "radius": 0.2, "size": 0.3}}, "object.size",

@@ -1592,3 +1592,14 @@ def test_the_report_says_seeds_and_code_keeps_the_papers_unreached_waypoints_and
     before, during = warnings.split("Said during some runs")
     assert "object.mass: a cage of about 6" in before and "wall time" not in before
     assert "- `paper-25-straight` (seed 1): robot 3's step() took 0.52 s of wall time" in during
+
+
+def test_a_control_character_in_a_scenario_or_an_overlong_study_name_is_named():
+    """A NUL in `scenarios` ended `study --dry-run` in a traceback ("embedded null byte"), and a 300-character
+    name passed the dry run and failed the real one, blamed on --out."""
+    with pytest.raises(ConfigError) as info:
+        parse_study({"scenarios": ["lab-6", "a\x00.yaml"], "reps": 1})
+    assert str(info.value) == "scenarios[1]: holds a control character (got 'a\\x00.yaml')"
+    with pytest.raises(ConfigError) as info:
+        parse_study({"name": "n" * 300, "scenarios": ["lab-6"], "reps": 1})
+    assert str(info.value) == "name: names the study's folders: at most 100 characters (got 300)"

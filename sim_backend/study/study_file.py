@@ -11,7 +11,7 @@ import re
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from onboard.config import ConfigError, as_integer
+from onboard.config import MAX_NAME_LENGTH, ConfigError, as_integer, has_control_character
 from onboard.yamlfile import read_yaml
 from sim_backend.scenario import builtin_names
 
@@ -69,6 +69,8 @@ def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "stud
     name = data.get("name", default_name)
     if not isinstance(name, str) or not SAFE_NAME.match(name):
         raise ConfigError("name", f"must be a name of letters, digits and _.+- (got {name!r})")
+    if len(name) > MAX_NAME_LENGTH:
+        raise ConfigError("name", f"names the study's folders: at most {MAX_NAME_LENGTH} characters (got {len(name)})")
     listed = data.get("overrides")
     spec = StudySpec(name=name, scenarios=parse_scenario_list(data.get("scenarios"), base_dir),
                      seeds=parse_seeds(data), overrides={} if isinstance(listed, list) else parse_overrides(listed),
@@ -91,6 +93,8 @@ def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
     for i, item in enumerate(value):
         if not isinstance(item, str) or not item.strip():
             raise ConfigError(f"scenarios[{i}]", f"must be a scenario name or file (got {item!r})")
+        if has_control_character(item):      # a NUL ended the dry run in a traceback ("embedded null byte")
+            raise ConfigError(f"scenarios[{i}]", f"holds a control character (got {item!r})")
         # Files are relative to the study file, so a study folder can be moved as a whole; so is a file named
         # without .yaml (it used to be looked up in the current folder, so the study meant something else
         # depending on where it was run from).
