@@ -250,10 +250,9 @@ def first_sentence(text: str) -> str:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    import yaml
-
     from onboard.behaviour import build_params, get_behaviour
     from onboard.config import to_mapping
+    from onboard.yamlfile import dump_yaml
     from sim_backend.runner import Simulation
     from sim_backend.scenario import load_scenario
 
@@ -267,7 +266,7 @@ def cmd_show(args: argparse.Namespace) -> int:
     params = to_mapping(build_params(get_behaviour(scenario.behaviour, "behaviour"), scenario.params))
     shown["params"] = {key: value for key, value in params.items()
                        if (key not in MISSION_PARAMS or key in scenario.params) and not _non_finite(value)}
-    print(yaml.safe_dump(shown, sort_keys=False), end="")
+    print(dump_yaml(shown), end="")
     return 0
 
 

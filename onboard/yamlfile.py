@@ -63,6 +63,20 @@ StrictLoader.add_implicit_resolver(
 StrictLoader.add_constructor(_INT, StrictLoader.construct_yaml_int)
 
 
+class StrictDumper(yaml.SafeDumper):
+    """Writes what :class:`StrictLoader` reads back the same: a string that it would read as a number (``'1e3'``,
+    ``'0o10'``) is quoted. ``yaml.safe_dump`` quotes by YAML 1.1's rules and left ``name: 1e3`` bare, which
+    came back as the number 1000.0."""
+
+
+StrictDumper.yaml_implicit_resolvers = StrictLoader.yaml_implicit_resolvers
+
+
+def dump_yaml(data: Any) -> str:
+    """``data`` as YAML text that :func:`parse_yaml` reads back equal, keys in their order."""
+    return yaml.dump(data, Dumper=StrictDumper, sort_keys=False)
+
+
 def parse_yaml(text: str, where: str) -> Any:
     """``text`` as YAML; a syntax error or a repeated key is a ConfigError at ``where:LINE``."""
     try:

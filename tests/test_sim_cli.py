@@ -284,6 +284,18 @@ def test_sim_show_of_a_faithful_scenario_loads_again(tmp_path, capsys):
     assert "attach_timeout_s" not in yaml.safe_load((tmp_path / "shown.yaml").read_text())["params"]
 
 
+def test_sim_show_quotes_a_name_that_would_read_back_as_a_number(tmp_path, capsys):
+    """`name: '1e3'` was shown bare, as YAML 1.1 would not take it for a number; khepri's loader reads YAML 1.2
+    numbers, so the file shown was refused: `name: must be a string (got 1000.0)`."""
+    for name in ("1e3", "0o10", "-.5", "0x1F"):
+        scenario = tmp_path / "odd.yaml"
+        scenario.write_text(f"name: '{name}'\nbehaviour: aggregate\n")
+        assert main(["sim", "show", str(scenario)]) == 0
+        (tmp_path / "shown.yaml").write_text(capsys.readouterr().out)
+        assert main(["sim", "show", str(tmp_path / "shown.yaml")]) == 0, capsys.readouterr().err
+        assert f"name: '{name}'" in capsys.readouterr().out
+
+
 def test_sim_show_warns_as_sim_run_does_before_a_doomed_run(tmp_path, capsys):
     """A scenario could be checked with `sim show` and pass, then `sim run` warned that the box sat too close to
     a wall for the robots to get round it."""
