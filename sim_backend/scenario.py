@@ -61,6 +61,10 @@ class RobotsSpec:
         check_range(join(where, "mass_kg"), self.mass_kg, 0.0, MAX_ROBOT_MASS_KG, low_open=True)
 
 
+MAX_DISTANCE_NOISE_M = 10.0          # noise std (m) of ranges and of poses
+MAX_ANGLE_NOISE_RAD = 2.0 * math.pi  # noise std (rad) of bearings and headings: a full turn says nothing already
+
+
 @dataclass
 class CommSpec:
     range_m: float = 3.0            # d_C; the paper's simulations used 7 m
@@ -73,8 +77,9 @@ class CommSpec:
         check_range(join(where, "range_m"), self.range_m, 0.0, low_open=True)
         check_range(join(where, "drop"), self.drop, 0.0, 1.0)
         check_range(join(where, "latency_s"), self.latency_s, 0.0, 10.0)
-        check_range(join(where, "range_noise_m"), self.range_noise_m, 0.0)
-        check_range(join(where, "bearing_noise_rad"), self.bearing_noise_rad, 0.0)
+        # Upper bounds: far beyond any sensor, so that a typo (1e300) is said instead of a run that does nothing.
+        check_range(join(where, "range_noise_m"), self.range_noise_m, 0.0, MAX_DISTANCE_NOISE_M)
+        check_range(join(where, "bearing_noise_rad"), self.bearing_noise_rad, 0.0, MAX_ANGLE_NOISE_RAD)
 
 
 @dataclass
@@ -87,8 +92,10 @@ class SensorsSpec:
     pose_dropout: float = 0.0       # probability that a control step gets no new pose
 
     def validate(self, where: str) -> None:
-        for name in ("proximity_noise", "pose_noise_m", "pose_noise_rad", "pose_latency_s"):
-            check_range(join(where, name), getattr(self, name), 0.0)
+        # Upper bounds as in CommSpec: a proximity reading lies in [0, 1], and a pose 10 s late is useless.
+        for name, high in (("proximity_noise", 1.0), ("pose_noise_m", MAX_DISTANCE_NOISE_M),
+                           ("pose_noise_rad", MAX_ANGLE_NOISE_RAD), ("pose_latency_s", 10.0)):
+            check_range(join(where, name), getattr(self, name), 0.0, high)
         check_range(join(where, "pose_dropout"), self.pose_dropout, 0.0, 1.0)
 
 
