@@ -14,14 +14,8 @@ from onboard.behaviours.transport.params import TransportParams
 from onboard.hal import wrap_angle
 
 from .metrics import Evaluator, register_evaluator, waypoint_error
-from .transport_preflight import (
-    floor_friction_n,
-    judges_yaw,
-    push_force_n,
-    room_to_walls,
-    transport_warnings,
-    wall_room_needed,
-)
+from .transport_preflight import floor_friction_n, judges_yaw, push_force_n, transport_warnings
+from .wall_room import room_to_walls, wall_room_needed
 
 SPACING_SAMPLE_PERIOD_S = 1.0
 STUCK_BELOW_M = 0.05            # a closed cage that moved the object less than this got nowhere

@@ -21,7 +21,8 @@ from .object_hull import (
     object_hull,
 )
 from .recesses import widest_recess
-from .shapes import Geometry, dimension_field, extent_at
+from .shapes import Geometry, dimension_field
+from .wall_room import room_to_walls_warnings, wall_room_needed
 from .world import GRAVITY
 
 MIN_CAGE = 3                    # robots needed round an object to close a cage (Proposition 1)
@@ -80,6 +81,7 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
     if scenario.sensors.pose_dropout >= 1.0:
         found.append("sensors.pose_dropout: 1 loses every pose: no robot ever knows where it is, so none moves "
                      "with purpose")
+    found += _closer_than_robots(params, spec.radius_m)
     if world.geometry is not None and spacing is not None:
         hull = object_hull(world.geometry)      # once: the ring and the faces below are both read off it
         found += _cage_fits(hull, spacing, spec.radius_m)
@@ -89,7 +91,7 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
             found += _recess(scenario, world.geometry, hull, spec.radius_m)
             found += _thinner_than_a_robot(scenario, hull, spec.radius_m)
     if world.geometry is not None and scenario.arena.walls is not None:
-        found += _room_to_walls(scenario, world.geometry, wall_room_needed(spec))
+        found += room_to_walls_warnings(scenario, world.geometry, wall_room_needed(spec))
     if scenario.object is not None and not scenario.object.static and scenario.object.friction == 0.0:
         found.append("object.friction: 0: nothing stops the object once it is pushed, so it slides past its "
                      "waypoints")
@@ -119,6 +121,22 @@ def _tolerance_covers_legs(scenario: Any, params: Any) -> List[str]:
             return [f"params.push_tolerance_m: {tolerance:g} m is as long as the leg to path[{i}] ({leg:.2f} m) or "
                     "longer: the object counts as at that waypoint before it has moved, so `completed` and the "
                     "position errors say nothing of the push. Keep it well under the legs (default 0.1 m)"]
+    return []
+
+
+def _closer_than_robots(params: Any, robot_radius: float) -> List[str]:
+    """A spacing I_d, or a closing distance d_T, shorter than a robot is wide: neighbours cannot stand that close,
+    so the cage never closes (inter_robot_distance_m 1e-9 and closure_factor 1e-12 ran 150 s without a word)."""
+    spacing, factor = getattr(params, "inter_robot_distance_m", None), getattr(params, "closure_factor", None)
+    if spacing is None or factor is None:
+        return []
+    wide = 2.0 * robot_radius
+    if spacing < wide:
+        return [f"params.inter_robot_distance_m: {spacing:g} m is less than a robot is wide ({wide:.2f} m): cage "
+                "members cannot stand that close, so the cage cannot close"]
+    if factor * spacing < wide:
+        return [f"params.closure_factor: d_T = {factor:g} x I_d = {factor * spacing:.3g} m is less than a robot is "
+                f"wide ({wide:.2f} m): the two ends of the cage never come that close, so it cannot close"]
     return []
 
 
@@ -366,36 +384,3 @@ def _off_faces_deg(direction_deg: float, normals: List[float]) -> float:
 
 def _wrap_deg(angle: float) -> float:
     return (angle + 180.0) % 360.0 - 180.0
-
-
-def wall_room_needed(spec: Any) -> float:
-    """The room robots need between the object and a wall to cage it without caging the wall (see above)."""
-    return CAGE_GAP_M + 2.0 * (2.0 * spec.radius_m + spec.proximity_range_m)
-
-
-def room_to_walls(geometry: Geometry, walls: Any, x: float, y: float, yaw_rad: float) -> float:
-    """The gap between the object at (x, y, yaw) and the nearest of the arena walls."""
-    xmin, ymin, xmax, ymax = walls
-    left, bottom, right, top = extent_at(geometry, x, y, yaw_rad)
-    return min(left - xmin, bottom - ymin, xmax - right, ymax - top)
-
-
-def _room_to_walls(scenario: Any, geometry: Geometry, needed: float) -> List[str]:
-    """Robots must get all round the object at its start and at every waypoint without their IR seeing a
-    wall: the IR cannot tell a wall from the object, so robots attach to the wall and the cage closes on it."""
-    spec = scenario.object
-    poses = [("object.position", spec.position[0], spec.position[1], spec.yaw_deg)]
-    poses += [(f"path[{i}]", x, y, yaw) for i, (x, y, yaw) in enumerate(scenario.path)]
-    close = [(field_name, room_to_walls(geometry, scenario.arena.walls, x, y, math.radians(yaw_deg)))
-             for field_name, x, y, yaw_deg in poses]
-    close = [(field_name, room) for field_name, room in close if room < needed - 1e-9]
-    if not close:
-        return []
-    (field_name, room), others = close[0], close[1:]
-    where = "starts" if field_name == "object.position" else "would be at this waypoint"
-    also = "; also " + ", ".join(f"{name} ({gap:.2f} m)" for name, gap in others) if others else ""
-    return [f"{field_name}: the object {where} {room:.2f} m from an arena wall{also}. Robots need about "
-            f"{needed:.2f} m to cage it (their gap, then a body and the IR's reach for a member and again for the "
-            "robot rounding it): their IR cannot tell the wall from the object, so members attach to the wall "
-            "and the swarm's estimate of the object is pulled toward it (a 0.5 m box 0.5 m from a wall, pushed "
-            "along it: 0 of 3 runs delivered it)"]

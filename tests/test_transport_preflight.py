@@ -27,6 +27,17 @@ def test_no_builtin_scenario_is_warned_about():
         assert Simulation(load_scenario(name)).warnings == [], name
 
 
+@pytest.mark.parametrize("params, warning", [
+    ({"inter_robot_distance_m": 1e-9}, "params.inter_robot_distance_m: 1e-09 m is less than a robot is wide "
+                                       "(0.14 m): cage members cannot stand that close, so the cage cannot close"),
+    ({"closure_factor": 1e-12}, "params.closure_factor: d_T = 1e-12 x I_d = 4.5e-13 m is less than a robot is wide "
+                                "(0.14 m): the two ends of the cage never come that close, so it cannot close"),
+])
+def test_a_spacing_or_closing_distance_narrower_than_a_robot_is_warned_about(make_scenario, params, warning):
+    """Both ran 150 s without a word and never caged."""
+    assert warning in Simulation(transport(make_scenario, params=params)).warnings
+
+
 def test_an_object_smaller_than_the_cage_spacing_is_warned_about_with_a_spacing_that_fits(make_scenario):
     small = {"shape": "box", "size": [0.15, 0.15], "mass": 0.2, "position": [0, 0]}
     warnings = Simulation(transport(make_scenario, object=small)).warnings
