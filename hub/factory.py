@@ -268,6 +268,10 @@ def record_path(config: LabConfig, now: Optional[float] = None) -> Path:
         if braces != "{time}":      # a typo ({tim}, {Time}) named one fixed file: the next start stopped at `exists`
             raise ConfigError("record", f"{braces} is not something the hub fills in: only {{time}} is (the start "
                                         "time, e.g. logs/run-{time}.mcap)")
+    unpaired = record.replace("{time}", "")
+    if "{" in unpaired or "}" in unpaired:       # 'x-{time.mcap' was kept in the file name as written
+        raise ConfigError("record", f"{record}: a {{ or }} without its pair; only {{time}} is filled in (e.g. "
+                                    "logs/run-{time}.mcap)")
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
     text = str(config.record).replace("{time}", stamp)
     folder = folder_not_file(text)

@@ -48,7 +48,10 @@ def check_range(where: str, value: float, low: float = -math.inf, high: float = 
 def folder_not_file(text: str) -> Optional[str]:
     """Why the path ``text``, given for a file to write, names a folder ("X names a folder", "X is a folder"), or
     None. Checked on the text as typed: ``Path`` drops a trailing separator, so ``out.gif/``, a folder that does
-    not exist yet, became the file ``out.gif``."""
+    not exist yet, became the file ``out.gif``. An empty text names no file (``Path("")`` is the current folder,
+    which read "  is a folder")."""
+    if not text:
+        return "names no file (got an empty string)"
     if text.endswith(("/", os.sep)):
         return f"{text} names a folder"
     if Path(text).is_dir():

@@ -61,6 +61,18 @@ def test_a_mistyped_time_placeholder_in_record_is_refused(record, tmp_path, monk
     assert record_path(config, now=1_790_000_000.0).name.startswith("run-2026")
 
 
+@pytest.mark.parametrize("record", ["x-{time.mcap", "x-time}.mcap", "logs/{time}-{.mcap"])
+def test_an_unpaired_brace_in_record_is_refused(record, tmp_path, monkeypatch):
+    """`record: x-{time.mcap` recorded to a file of that very name, braces and all."""
+    from hub.config import parse_config
+    from hub.factory import record_path
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"record: .*: a \{ or \} without its pair; only \{time\} is filled in"):
+        record_path(parse_config({"record": record}))
+    assert not list(tmp_path.iterdir())
+
+
 def test_a_bad_record_name_is_said_before_the_motion_capture_is_asked_to_connect():
     """It came after `hub: connecting to ...`: with a system that does not answer, only after its timeout."""
     from hub.config import parse_config

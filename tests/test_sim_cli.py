@@ -203,6 +203,9 @@ def test_a_video_that_cannot_be_written_is_refused_before_the_run(tmp_path, caps
     assert f"khepri: error: --video: {slashed} names a folder; give a file name ending in .gif or .mp4" in \
         capsys.readouterr().err
     assert not (tmp_path / "clips").exists() and not (out / "result.json").exists()
+    assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", ""]) == 2   # was " is a folder"
+    assert "khepri: error: --video: names no file (got an empty string); give a file name ending in .gif or .mp4" \
+        in capsys.readouterr().err
     readonly = "/sys/khepri-run.gif"                           # sysfs: read-only, even for root
     assert main(["sim", "run", "lab-6", "--no-plot", "--out", str(out), "--video", readonly]) == 2
     assert f"--video: cannot write {readonly}" in capsys.readouterr().err
