@@ -60,6 +60,9 @@ def add_keys(folder: Path, robot_ids: List[int], operators: List[str]) -> List[P
     if not (folder / "hub.key").is_file():
         raise ConfigError("FOLDER", f"no hub key {folder / 'hub.key'}: make the lab's keys with "
                                     f"`khepri keys init {folder}` first")
+    # The new robots are told to take hub.key with them: one damaged was handed out, and refused only later, by
+    # the hub and by every agent.
+    _certificate(folder / "hub.key", "FOLDER")
     check_operator_names(operators)
     targets = _peer_keys(folder, robot_ids, operators)
     _refuse_files_in_the_way(folder, targets)

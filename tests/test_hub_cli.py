@@ -310,6 +310,19 @@ def test_keys_add_gives_a_revoked_robot_a_new_key_and_names_only_files_that_exis
         f"({keys / 'robots' / 'robot-2.key'}); to replace it, delete robot-2.key first"
 
 
+def test_keys_add_refuses_a_folder_whose_hub_key_is_damaged(tmp_path, capsys):
+    """It added the robot and told the user to give it hub.key, which the hub and every agent then refused."""
+    from khepri_cli.main import main
+
+    keys = tmp_path / "keys"
+    assert main(["keys", "init", str(keys), "--robots", "2"]) == 0
+    (keys / "hub.key").write_text("junk\n")
+    capsys.readouterr()
+    assert main(["keys", "add", str(keys), "--robots", "5,"]) == 2
+    assert capsys.readouterr().err.startswith(f"khepri: error: FOLDER: {keys / 'hub.key'}: not a key file")
+    assert not (keys / "robots" / "robot-5.key").exists()
+
+
 def test_keys_init_with_a_refused_operator_name_leaves_nothing_behind(tmp_path):
     refused = khepri("keys", "init", str(tmp_path / "keys"), "--operator", "ann/../bob")
     assert refused.returncode == 2 and "--operator: use letters" in refused.stderr
