@@ -149,9 +149,26 @@ def has_run_shape(data: Dict[str, Any]) -> bool:
     waypoints = data.get("waypoints")
     if waypoints is not None and not (isinstance(waypoints, list) and all(map(is_waypoint_record, waypoints))):
         return False
+    # `"completed": "maybe"` counted as completed, and `"final_position_error_m": "far"` was left out unsaid.
+    if any(not isinstance(data.get(key), (bool, type(None))) for key in RESULT_FLAGS):
+        return False
+    if not all(_number_or_none(data.get(key)) for key in RESULT_NUMBERS):
+        return False
     return isinstance(data.get("warnings") or [], list)
+
+
+RESULT_FLAGS = ("caged", "completed", "cage_encloses_object")
+RESULT_NUMBERS = ("robots", "sim_time_s", "wall_time_s", "time_to_cage_s", "time_to_complete_s", "cage_size",
+                  "final_position_error_m", "final_orientation_error_rad")
+WAYPOINT_NUMBERS = ("reached_s", "position_error_m", "orientation_error_rad", "centroid_estimation_error_m",
+                    "yaw_estimation_error_rad", "effective_pushers", "effective_rotators")
 
 
 def is_waypoint_record(record: Any) -> bool:
     index = record.get("index", 0) if isinstance(record, dict) else None
-    return isinstance(index, int) and not isinstance(index, bool)
+    return isinstance(index, int) and not isinstance(index, bool) \
+        and all(_number_or_none(record.get(key)) for key in WAYPOINT_NUMBERS)
+
+
+def _number_or_none(value: Any) -> bool:
+    return value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
