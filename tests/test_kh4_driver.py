@@ -277,6 +277,17 @@ def test_a_bare_library_name_found_only_in_the_current_folder_is_pointed_at(stub
     KheperaIV(library_path="./libkhepera.so").close()
 
 
+def test_a_library_option_naming_a_folder_or_a_file_that_is_no_library_says_so(tmp_path, monkeypatch):
+    """`--library c.yaml` (a calibration beside it) was told "./c.yaml is here: pass that", and `--library .`
+    was told of the loader's own search folder."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "c.yaml").write_text("gain: 1\n")
+    with pytest.raises(LibkheperaError, match=r"\./c\.yaml is here, but it is not a shared library"):
+        KheperaIV(library_path="c.yaml")
+    with pytest.raises(LibkheperaError, match=r"; \. is a folder: give the library file in it"):
+        KheperaIV(library_path=".")
+
+
 def test_a_library_without_a_needed_function_is_named(stub_log, tmp_path):
     library = compile_stub(tmp_path / "no-set-speed", "KH4_STUB_WITHOUT_SET_SPEED")
     with pytest.raises(LibkheperaError, match="has no function kh4_set_speed") as caught:

@@ -64,6 +64,22 @@ def resolve_library_path(library_path: Optional[str] = None) -> str:
     return library_path or os.environ.get(LIBRARY_ENV) or DEFAULT_LIBRARY
 
 
+def _found_instead(path: str) -> str:
+    """What is at ``path`` that the loader did not take: a folder (the loader named its own search path), or a
+    file of that bare name in the current folder, which the loader never searches (pass ./NAME), unless it is
+    no shared library at all (a calibration file given as --library was offered as the fix)."""
+    if os.path.isdir(path):
+        return f"; {path} is a folder: give the library file in it"
+    if os.sep in path or not os.path.isfile(path):
+        return ""
+    try:
+        with open(path, "rb") as file:
+            is_library = file.read(4) == b"\x7fELF"
+    except OSError:
+        is_library = False
+    return f"; ./{path} is here: pass that" if is_library else f"; ./{path} is here, but it is not a shared library"
+
+
 class Libkhepera:
     """The loaded library: each function declared with its C prototype, each return code checked."""
 
@@ -72,11 +88,10 @@ class Libkhepera:
         try:
             self._cdll = ctypes.CDLL(path)
         except OSError as err:
-            # A bare name is searched by the loader, never in the current folder: say so when it is there.
-            here = f"; ./{path} is here: pass that" if os.sep not in path and os.path.isfile(path) else ""
             # The default name found by no one: say where to give the path. A path given: it is that path.
             where = f"; pass --library PATH or set {LIBRARY_ENV}" if path == DEFAULT_LIBRARY else ""
-            raise LibkheperaError(f"cannot load libkhepera from {path!r} ({err}){here}{where}") from err
+            raise LibkheperaError(f"cannot load libkhepera from {path!r} ({err}){_found_instead(path)}{where}") \
+                from err
         self.functions = {name: self._bind(name, *signature) for name, signature in SIGNATURES.items()}
         for name, signature in OPTIONAL_SIGNATURES.items():
             if hasattr(self._cdll, name):
