@@ -26,9 +26,16 @@ def stop_signals() -> Tuple[int, ...]:
     return tuple(getattr(signal, name) for name in names if hasattr(signal, name))
 
 
+# Control characters but newline and tab, written as \xNN: a file name with \x01 printed as a name that exists
+# ("no such file: c.yaml"), and a robot's text could carry terminal escape sequences onto the operator's console.
+_VISIBLE = {code: f"\\x{code:02x}" for code in (*range(0, 9), *range(11, 32), 127)}
+
+
 def say(line: str, stream: Optional[TextIO] = None) -> None:
-    """Print ``line`` to ``stream`` (stderr), flushed; if the console is gone, drop it and silence the stream."""
+    """Print ``line`` to ``stream`` (stderr), flushed, control characters escaped; if the console is gone, drop
+    it and silence the stream."""
     stream = sys.stderr if stream is None else stream
+    line = line.translate(_VISIBLE)
     try:
         print(line, file=stream, flush=True)
     except BlockingIOError:                # a non-blocking stream that is full for now: this line only is lost

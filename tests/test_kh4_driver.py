@@ -214,6 +214,13 @@ def test_the_agent_names_a_missing_calibration_file_once(stub_library, stub_log,
     assert done.returncode == 2, done.stderr
     assert f"agent: error: --calibration: no such file: {tmp_path / 'absent.yaml'}\n" in done.stderr, done.stderr
     assert not stub_log.exists()
+    # A control character in the name is shown, not printed raw: "no such file: c.yaml" for c\x01.yaml, which
+    # exists, read as nonsense.
+    (tmp_path / "c.yaml").write_text("{}\n")
+    done = subprocess.run([sys.executable, "-m", "onboard.agent", "--id", "0", "--driver", "kh4", "--library",
+                           str(stub_library), "--calibration", "c\x01.yaml", "--hub", "tcp://127.0.0.1:9"],
+                          env=env, cwd=tmp_path, capture_output=True, text=True, timeout=30)
+    assert "agent: error: --calibration: no such file: c\\x01.yaml\n" in done.stderr, done.stderr
 
 
 def test_a_calibration_file_nested_thousands_deep_is_refused_naming_it(stub_library, stub_log, tmp_path):
