@@ -9,6 +9,11 @@ from typing import TYPE_CHECKING, Any, Callable, Deque, Optional, Set, Tuple
 from .log_format import UnrecordableMessage
 
 UNRECORDABLE = "unrecordable message"    # /hub/drops reason of a message the log could not hold (its topic: sender)
+# A disk that stalls (a network share, a dying card) holds the writer thread while the loop keeps queuing: about
+# 3000 messages a second for 100 robots at 120 Hz, a few kB each. Past this many waiting, new ones are left out
+# (counted, said once) rather than fill the lab PC's memory; and closing waits this long for the writer.
+MAX_QUEUED = 50_000
+CLOSE_WAIT_S = 10.0
 
 if TYPE_CHECKING:      # hub.recording offers this class too, so it cannot be imported from here at run time
     from .recording import Recorder
@@ -35,8 +40,13 @@ class BackgroundRecorder:
 
     def __init__(self, recorder: Recorder, idle_s: float = 0.05,
                  on_failure: Optional[Callable[[BaseException], None]] = None,
-                 on_skip: Optional[Callable[[BaseException], None]] = None):
+                 on_skip: Optional[Callable[[BaseException], None]] = None,
+                 on_behind: Optional[Callable[[int], None]] = None,
+                 max_queued: int = MAX_QUEUED, close_wait_s: float = CLOSE_WAIT_S):
         self.recorder = recorder
+        self.on_behind = on_behind              # told once, with the queue's length, when messages are left out
+        self.max_queued, self.close_wait_s = max_queued, close_wait_s
+        self.left_out = 0                       # messages not queued: the writer had fallen that far behind
         self.path = recorder.path
         self.on_failure = on_failure
         self.on_skip = on_skip                  # told once per topic of a message left out (from the writer thread)
@@ -53,19 +63,27 @@ class BackgroundRecorder:
     def write(self, topic: str, payload: dict, stamp_s: Optional[float] = None) -> None:
         if self._check():
             return
-        self._queue.append((topic, payload, None, time.time() if stamp_s is None else stamp_s))
+        self._append((topic, payload, None, time.time() if stamp_s is None else stamp_s))
 
     def write_later(self, topic: str, build: Callable[..., dict], args: Tuple[Any, ...],
                     stamp_s: Optional[float] = None) -> None:
         """Record ``build(*args)``, called in the writer thread: the arguments must not change afterwards."""
         if self._check():
             return
-        self._queue.append((topic, build, args, time.time() if stamp_s is None else stamp_s))
+        self._append((topic, build, args, time.time() if stamp_s is None else stamp_s))
 
     def count_drop(self, reason: str, sender: Optional[str] = None, stamp_s: Optional[float] = None) -> None:
         if self._check():
             return
-        self._queue.append((None, reason, sender, time.time() if stamp_s is None else stamp_s))
+        self._append((None, reason, sender, time.time() if stamp_s is None else stamp_s))
+
+    def _append(self, item: Tuple[Any, ...]) -> None:
+        if len(self._queue) >= self.max_queued:
+            self.left_out += 1
+            if self.left_out == 1 and self.on_behind is not None:
+                self.on_behind(len(self._queue))
+            return
+        self._queue.append(item)
 
     def kick(self) -> None:
         """Write what is queued now (from the writer thread)."""
@@ -83,7 +101,10 @@ class BackgroundRecorder:
         self._stopping = True
         self._kick.set()
         if self._thread is not threading.current_thread():
-            self._thread.join()
+            self._thread.join(self.close_wait_s)
+            if self._thread.is_alive():       # a stalled disk: closing the file would wait on it too
+                self._stalled()
+                return
         try:
             self.recorder.close()
         except Exception as err:
@@ -93,6 +114,16 @@ class BackgroundRecorder:
             if self.failure is None and self._error is None:
                 self._error = err         # reported below, once
         self._check()
+
+    def _stalled(self) -> None:
+        error = RuntimeError(f"the log's writer has not finished within {self.close_wait_s:g} s (a stalled disk?): "
+                             f"{self.path} may lack its last {len(self._queue)} messages and its end; "
+                             "`khepri log info` reads what it holds")
+        if self.on_failure is None:
+            raise error
+        if self.failure is None:
+            self.failure = str(error)
+            self.on_failure(error)
 
     def __enter__(self) -> BackgroundRecorder:
         return self

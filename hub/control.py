@@ -167,6 +167,8 @@ def status_table(status: Dict[str, Any]) -> str:
         lines.append(f"RECORDING STOPPED ({recording['path']}): {recording['error']}")
     elif recording:         # "am I recording, and where?" had only --json to answer it
         lines.append(f"recording: {recording['path']}")
+    if recording and recording.get("left_out"):
+        lines.append(f"RECORDING FELL BEHIND: {recording['left_out']} messages left out (the disk was too slow)")
     lines += robot_table(status["robots"])
     # Newer hubs' fields (docs/protocol.md): an older hub's reply has none of them, and gets no such line.
     if status.get("object"):

@@ -197,10 +197,12 @@ def nothing_done(why: str) -> Dict[str, Any]:
 
 
 def recording_status(recorder: Any) -> Optional[Dict[str, Any]]:
-    """None when the hub does not record; else the log's path and, once a write failed, why it stopped."""
+    """None when the hub does not record; else the log's path, once a write failed why it stopped, and how many
+    messages were left out while the disk fell behind."""
     if recorder is None:
         return None
-    return {"path": str(recorder.path), "error": getattr(recorder, "failure", None)}
+    return {"path": str(recorder.path), "error": getattr(recorder, "failure", None),
+            "left_out": getattr(recorder, "left_out", 0)}
 
 
 def refusal(err: ProtocolError) -> str:

@@ -76,7 +76,9 @@ class Hub(Downlink, Uplink, Housekeeping):
             # The loop only queues; a thread of its own writes. A write that fails (a full disk) ends the
             # recording, not the lab run: the robots keep being served, and the operator is told.
             recorder = BackgroundRecorder(recorder, on_failure=self._recording_failed, on_skip=lambda error: log(
-                f"hub: not recorded: {error} (left out of the log, counted in its drops; said once per topic)"))
+                f"hub: not recorded: {error} (left out of the log, counted in its drops; said once per topic)"),
+                on_behind=lambda queued: log(f"hub: RECORDING FALLS BEHIND: {queued} messages wait for the disk; "
+                                             "new ones are left out until it catches up (ctl status counts them)"))
         self.config, self.source, self.run, self.keyring, self.recorder = config, source, run, keyring, recorder
         self.log = as_console(log)            # every line it prints goes into the log too, as /hub/log
         self.log.record_to(recorder)

@@ -138,6 +138,9 @@ def test_the_status_table_says_where_the_hub_records_and_that_its_drop_counts_ar
     assert lines[-1] == "dropped since the hub started: bad message 2"
     status["recording"]["error"] = "disk full"
     assert status_table(status).splitlines()[1] == "RECORDING STOPPED (logs/run-1.mcap): disk full"
+    status["recording"] = {"path": "logs/run-1.mcap", "error": None, "left_out": 812}    # a stalled disk
+    assert status_table(status).splitlines()[1:3] == [
+        "recording: logs/run-1.mcap", "RECORDING FELL BEHIND: 812 messages left out (the disk was too slow)"]
     status["recording"] = None
     assert not [line for line in status_table(status).splitlines() if "record" in line.lower()]
 

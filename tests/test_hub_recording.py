@@ -103,3 +103,39 @@ def test_a_console_line_its_encoding_cannot_hold_is_escaped_in_that_encoding():
     stream = io.TextIOWrapper(raw, encoding="ascii", errors="strict", write_through=True)
     say("état \ud800", stream)
     assert raw.getvalue() == b"\\xe9tat \\ud800\n"
+
+
+class StalledDisk(Recorder):
+    """A real log whose writes hang until ``resume`` is set: a network share that stopped answering."""
+
+    def __init__(self, path):
+        super().__init__(path)
+        self.resume = threading.Event()
+
+    def write(self, topic, payload, stamp_s=None):
+        self.resume.wait()
+        super().write(topic, payload, stamp_s)
+
+
+def test_a_stalled_disk_neither_fills_memory_nor_hangs_the_hubs_way_out(tmp_path):
+    """The queue grew without bound while the writer waited on the disk, and close() waited for ever."""
+    disk = StalledDisk(tmp_path / "run.mcap")
+    behind, failures = [], []
+    recorder = BackgroundRecorder(disk, on_failure=failures.append, on_behind=behind.append, max_queued=100,
+                                  close_wait_s=0.5)
+    for i in range(250):
+        recorder.write("/robot/1/frame", {"i": i}, T0 + i)
+    recorder.kick()
+    assert recorder.left_out >= 149 and behind and behind[0] >= 99     # said once, when the first was left out
+    assert len(behind) == 1
+    started = time.monotonic()
+    recorder.close()
+    assert time.monotonic() - started < 2.0
+    assert len(failures) == 1 and "has not finished within 0.5 s (a stalled disk?)" in str(failures[0])
+    assert recorder.failure == str(failures[0])
+    disk.resume.set()                 # the share answers again: the write under way ends, and nothing after it
+    deadline = time.monotonic() + 5.0
+    while recorder._thread.is_alive() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    disk.flush()
+    assert [r.payload["i"] for r in read_log(tmp_path / "run.mcap") if r.topic == "/robot/1/frame"] == [0]
