@@ -557,3 +557,11 @@ def test_a_step_slower_than_the_watchdog_is_named_as_the_cause(tmp_path, monkeyp
     assert took and float(took.group(1)) >= 0.4, log
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["sil"]["dropped"]["unsent_at_agents"] >= 0      # counted (only once the hub has spoken)
+
+
+def test_a_wheel_speed_too_large_for_a_float_is_refused_as_a_nan_is():
+    """10 ** 400 raised OverflowError from math.isfinite, not the ValueError that names the wheel."""
+    from onboard.hal.devices import commanded_wheel_speeds
+
+    with pytest.raises(ValueError, match=r"set_speeds\(right_m_s=1000+\): wheel speeds must be finite numbers"):
+        commanded_wheel_speeds(0.1, 10 ** 400, 0.8)

@@ -92,7 +92,7 @@ def commanded_wheel_speeds(left_m_s: Any, right_m_s: Any, limit: float) -> tuple
     try:
         if math.isfinite(left_m_s) and math.isfinite(right_m_s):
             return clamp_wheel_speeds(float(left_m_s), float(right_m_s), limit)
-    except TypeError:
+    except (TypeError, OverflowError):     # OverflowError: an int too large for a float (10 ** 400)
         pass
     bad, value = ("left_m_s", left_m_s) if not _finite_number(left_m_s) else ("right_m_s", right_m_s)
     raise ValueError(f"set_speeds({bad}={value!r}): wheel speeds must be finite numbers (m/s)")
@@ -101,7 +101,7 @@ def commanded_wheel_speeds(left_m_s: Any, right_m_s: Any, limit: float) -> tuple
 def _finite_number(value: Any) -> bool:
     try:
         return math.isfinite(value)
-    except TypeError:
+    except (TypeError, OverflowError):
         return False
 
 
