@@ -135,10 +135,13 @@ class _WakeUp:
         self.writer = context.socket(zmq.PAIR)
         self.writer.connect(f"inproc://wake-{name}-{id(self)}")
         self.lock = threading.Lock()
+        self.closed = False
         self.zmq = zmq
 
     def poke(self) -> None:
         with self.lock:
+            if self.closed:       # a reader thread still in the SDK's wait when the source closed
+                return
             try:
                 self.writer.send(b"", self.zmq.NOBLOCK)
             except self.zmq.ZMQError:
@@ -152,8 +155,11 @@ class _WakeUp:
                 return
 
     def close(self) -> None:
-        self.reader.close(0)
-        self.writer.close(0)
+        """Under the poke's lock: a ZeroMQ socket must not be closed while another thread sends on it."""
+        with self.lock:
+            self.closed = True
+            self.reader.close(0)
+            self.writer.close(0)
 
 
 CONNECT_TIMEOUT_S = 10.0          # source.connect_timeout_s's default
