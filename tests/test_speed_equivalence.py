@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from onboard.behaviours.transport.entries import entry_problem
 from onboard.behaviours.transport.perception import NeighbourVectors, nearest
 from onboard.behaviours.transport.tasks import Task, TaskBoard, new_space, task_from
 from onboard.geometry import wrap
@@ -37,7 +38,7 @@ class PlainSpace(TupleSpace):
 def plain_space(owner):
     rule = lowest_field("bid", "robot")
     return PlainSpace(owner, conflict_rules={"bid/": rule, "owner/": rule}, relay_rounds=1, relay_delay_steps=7,
-                      relay_quorum=2, anti_entropy_period=10)
+                      relay_quorum=2, anti_entropy_period=10, check=entry_problem)
 
 
 def state(space):
@@ -62,7 +63,7 @@ def test_batched_receive_and_lazy_relays_match_the_plain_replica(seed):
         for r in range(robots):
             if step < 60 and (step + r) % 3 == 0:
                 for spaces in (fast, slow):
-                    spaces[r].put(f"pos/{r}", [round(step * 0.01 * r, 4), r, None])
+                    spaces[r].put(f"pos/{r}", [round(step * 0.01 * r, 4), r, None, None])
             if step in (10, 11, 30) and r % 2 == 0:
                 for spaces in (fast, slow):
                     spaces[r].put("bid/S/0", {"robot": r, "bid": float(9 - r)})
@@ -89,7 +90,8 @@ def test_batched_receive_and_lazy_relays_match_the_plain_replica(seed):
             if step % 13 == 0:                     # odd payloads: not a dict, no "ts", a plain list
                 for kind in ("fast", "slow"):
                     inboxes[kind][(r + 1) % robots] += [message(r, [1, 2]), message(r, {"other": 1}),
-                                                        message(r, {"ts": [["pos/99", [0, 0, None], 1, 99]]})]
+                                                        message(r, {"ts": [["pos/99", [0, 0, None], 1, 99]]}),
+                                                        message(r, {"ts": [["pos/98", [0, 0, None, None], 1, 99]]})]
         for a, b in zip(fast, slow):
             assert state(a) == state(b)
     assert state(fast[0])[0] == state(fast[-1])[0]
