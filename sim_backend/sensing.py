@@ -53,6 +53,9 @@ class ObstacleGroup:
     segments: np.ndarray
     centre: Optional[np.ndarray] = None
     radius: float = np.inf
+    # When the segments are closed outlines (an object's polygons, each ring's edges in a row): the index of
+    # each ring's first segment. A sensor inside one then reads 0 m, as one inside a circle does (walls: None).
+    outline_starts: Optional[np.ndarray] = None
 
 
 class ProximityModel:
@@ -90,7 +93,8 @@ class ProximityModel:
                 near = np.hypot(*(xy - group.centre).T) < group.radius + reach
             rows = np.nonzero(near)[0]
             if len(rows) and (len(group.circles) or len(group.segments)):
-                hits = self._static_hits(origins[rows], dirs[rows], group.circles, group.segments)
+                hits = self._static_hits(origins[rows], dirs[rows], group.circles, group.segments,
+                                         group.outline_starts)
                 best[rows] = np.minimum(best[rows], hits)
         best[best > self.ir_range] = np.inf
         return best
@@ -103,7 +107,8 @@ class ProximityModel:
         return np.clip(ir_response(distances) + rng.normal(0.0, noise_std, (len(xy), 8)), 0.0, 1.0)
 
     @staticmethod
-    def _static_hits(origins: np.ndarray, dirs: np.ndarray, circles: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    def _static_hits(origins: np.ndarray, dirs: np.ndarray, circles: np.ndarray, segments: np.ndarray,
+                     outline_starts: Optional[np.ndarray] = None) -> np.ndarray:
         rays_o = origins.reshape(-1, 2)
         rays_d = dirs.reshape(-1, 2)
         r = len(rays_o)
@@ -116,6 +121,12 @@ class ProximityModel:
         if len(segments):
             ri = np.repeat(np.arange(r), len(segments))
             si = np.tile(np.arange(len(segments)), r)
-            t = ray_segment(rays_o[ri], rays_d[ri], segments[si, :2], segments[si, 2:])
-            best = np.minimum(best, t.reshape(r, -1).min(axis=1))
+            t = ray_segment(rays_o[ri], rays_d[ri], segments[si, :2], segments[si, 2:]).reshape(r, -1)
+            best = np.minimum(best, t.min(axis=1))
+            if outline_starts is not None and len(outline_starts):
+                # A sensor pressed a little into the object (pymunk lets shapes overlap by its slop) found only
+                # the outline's far side and read 0, "nothing there", on a robot pushing the box: a ray from
+                # inside a closed outline crosses it an odd number of times.
+                crossings = np.add.reduceat((t > 0.0) & np.isfinite(t), outline_starts, axis=1)
+                best[(crossings % 2 == 1).any(axis=1)] = 0.0
         return best.reshape(origins.shape[:2])

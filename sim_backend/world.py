@@ -98,6 +98,7 @@ class World:
         self.geometry: Optional[Geometry] = None
         self.object_body: Optional[pymunk.Body] = None
         self._outline = None
+        self._outline_starts: Optional[np.ndarray] = None      # index of each outline ring's first segment
         self.wall_segments = np.zeros((0, 4))
         if scenario.object is not None:
             self._add_object()
@@ -310,6 +311,8 @@ class World:
         if self._outline is None:
             circles = np.asarray(self.geometry.circles, dtype=float).reshape(-1, 3)
             self._outline = (self.geometry.segments(), circles)
+            sizes = [len(ring) for ring in self.geometry.outlines]      # segments() lists each ring's edges in turn
+            self._outline_starts = np.cumsum([0] + sizes[:-1]).astype(np.intp) if sizes else None
         return self._outline
 
     def obstacle_groups(self) -> List[ObstacleGroup]:
@@ -322,7 +325,8 @@ class World:
             segs, circ = self._object_outline()
             world_segs = np.hstack([segs[:, :2] @ rot.T + (x, y), segs[:, 2:] @ rot.T + (x, y)])
             world_circ = np.column_stack([circ[:, :2] @ rot.T + (x, y), circ[:, 2]]) if len(circ) else circ
-            groups.append(ObstacleGroup(world_circ, world_segs, np.array([x, y]), self.geometry.bounding_radius_m))
+            groups.append(ObstacleGroup(world_circ, world_segs, np.array([x, y]), self.geometry.bounding_radius_m,
+                                        self._outline_starts))
         if len(self.wall_segments):
             groups.append(ObstacleGroup(np.zeros((0, 3)), self.wall_segments))
         return groups

@@ -11,7 +11,7 @@ import pytest
 from onboard.geometry import neighbour_mask, pairwise_range_bearing
 from sim_backend.object_spec import ObjectSpec
 from sim_backend.runner import Simulation
-from sim_backend.sensing import ir_response
+from sim_backend.sensing import ProximityModel, ir_response
 from sim_backend.shapes import build_geometry
 from sim_backend.world import World
 
@@ -62,6 +62,30 @@ def test_ir_sees_other_robots_and_the_object_but_not_itself(make_scenario):
     sim.step()
     assert sim.frame.proximity[1][0] == pytest.approx(0.7, abs=0.03)
     assert sim.frame.proximity[0][4] == pytest.approx(0.7, abs=0.03)   # robot 0 sees it behind
+
+
+L_SHAPE = [[0, 0], [0.4, 0], [0.4, 0.1], [0.1, 0.1], [0.1, 0.4], [0, 0.4]]
+
+
+@pytest.mark.parametrize("into_mm", [0.0, 0.2, 2.0])
+@pytest.mark.parametrize("obj", [{"shape": "box", "size": [0.285, 0.435]}, {"shape": "polygon", "vertices": L_SHAPE}])
+def test_a_sensor_pressed_into_the_objects_outline_reads_touching(make_scenario, obj, into_mm):
+    """pymunk lets a pushing robot overlap the box by its slop, and then its front sensor, inside the outline,
+    found only the far side (or nothing) and read 0, "nothing there", in 171 of lab-6's first 924 steps."""
+    world = World(make_scenario(robots={"count": 1, "spawn": {"x": [-3, -2], "y": [-3, -2]}},
+                                object={**obj, "position": [0, 0], "static": True}), np.random.default_rng(0))
+    outline = world.geometry.outlines[0]
+    bottom = outline[:, 1].min()                                  # the face at the bottom, y = bottom
+    x = outline[:, 0].min() + 0.75 * (outline[:, 0].max() - outline[:, 0].min())
+    xy = np.array([[x, bottom + into_mm / 1000.0 - R]])           # facing +y: sensor 0 on the rim, into the face
+    distances = ProximityModel(R).distances(xy, np.array([math.pi / 2]), np.zeros((1, 1)), np.ones(1, bool),
+                                            world.obstacle_groups())
+    assert distances[0, 0] == 0.0 and ir_response(distances[0, :1])[0] == 1.0
+    assert np.isinf(distances[0, 4])                              # the sensor behind it sees nothing
+    xy[0, 1] -= 0.03                                              # 3 cm off the face: as before
+    distances = ProximityModel(R).distances(xy, np.array([math.pi / 2]), np.zeros((1, 1)), np.ones(1, bool),
+                                            world.obstacle_groups())
+    assert distances[0, 0] == pytest.approx(0.03 - into_mm / 1000.0, abs=1e-9)
 
 
 def test_robot_at_0_1_m_s_covers_1_m_in_about_10_s(make_scenario):
