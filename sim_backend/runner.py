@@ -204,6 +204,9 @@ class Simulation:
             self.frame.inboxes[index] = []         # what reached it while it was down (up to the step before)
             if t + 1e-9 >= back_at:
                 del self.restarting[index]
+                # A new agent's wheels start stopped: the old behaviour's last command, kept in the robot's HAL,
+                # drove a new behaviour that had not set them yet.
+                self.robots[index].wheels.stop()
                 self.behaviours[index] = make_behaviours(self.behaviour_class, [self.robots[index]], self.params)[0]
 
     def _step_behaviours(self, alive: np.ndarray) -> None:

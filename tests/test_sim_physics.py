@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from onboard.behaviour import Behaviour, register
 from onboard.geometry import neighbour_mask, pairwise_range_bearing
 from sim_backend.object_spec import ObjectSpec
 from sim_backend.runner import Simulation
@@ -307,6 +308,28 @@ def test_a_robot_whose_agent_restarts_stops_hears_nothing_and_starts_a_new_behav
     assert sim.behaviours[1] is not first and sim.telemetry[1] is not None
     result = sim.run()
     assert result["stop_reason"] != "every robot failed" and sim.world.alive().all()
+
+
+@register("drives_only_at_first")
+class DrivesOnlyAtFirst(Behaviour):
+    """Commands the wheels in its first half second of simulated time, never after."""
+
+    def step(self):
+        if self.robot.clock.now() < 0.5:
+            self.robot.wheels.set_speeds(0.1, 0.1)
+
+
+def test_a_restarted_agents_new_behaviour_starts_with_its_wheels_stopped(make_scenario):
+    """The robot's HAL kept the old behaviour's last command, and the runner drove it again once the new
+    behaviour ran, though that one had commanded nothing: a new agent's wheels start stopped."""
+    scenario = make_scenario(behaviour="drives_only_at_first", robots={"count": 1},
+                             faults=[{"robot": 0, "at_s": 2.0, "restart_after_s": 1.0}], time_limit_s=6)
+    sim = Simulation(scenario, seed=1)
+    while sim.step_index * sim.period < 3.1:
+        sim.step()
+    back = sim.world.robot_poses()[0, :2].copy()
+    sim.run()
+    assert np.hypot(*(sim.world.robot_poses()[0, :2] - back)) < 0.005
 
 
 SCRIPT_WITH_ITS_OWN_BEHAVIOUR = """
