@@ -51,6 +51,17 @@ def test_ctl_without_keys_at_an_encrypted_hub_is_told_to_give_them_and_where_the
     assert secure_hub.status()["mode"] != "estop"
 
 
+def test_ctl_with_its_keys_at_the_robots_port_is_asked_about_the_port(secure_hub, keys):
+    """The robots port refuses every operator key, and ctl sent the operator off to check the key folder."""
+    port = secure_hub.endpoints["robots"].rsplit(":", 1)[1]
+    said = subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "status", "--port", port, "--keys",
+                           str(keys), "--timeout", "2"], capture_output=True, text=True, cwd=keys.parent, timeout=60,
+                          env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+    assert said.returncode == 1, said.stderr
+    assert "the hub refused this operator key: is that the hub's control port, the one it printed after " \
+           "`listening control`, and not its robots port (which takes robot keys only)?" in said.stderr, said.stderr
+
+
 def test_keys_init_makes_private_secrets_and_refuses_to_overwrite(keys):
     secrets = (keys / "hub.key_secret", keys / "robots" / "robot-1.key_secret", keys / "operators" / "alice.key_secret")
     for path in secrets:
