@@ -221,7 +221,9 @@ def _row_cells(row: Dict[str, Any]) -> List[str]:
     if row.get("estop_ack_ms") is not None:
         notes.append(f"e-stop acknowledged in {row['estop_ack_ms']:.1f} ms")
     state = str(row.get("state") or "-")[:STATE_WIDTH]
-    return [str(row["id"]), "yes" if row["connected"] else "no", seen, str(row["mode"]), state, loop, misses,
+    # A robot never connected runs nothing: `run` in its row, the hub's mode for it, read as if it did.
+    mode = "-" if row["last_seen_s"] is None and not row["connected"] else str(row["mode"])
+    return [str(row["id"]), "yes" if row["connected"] else "no", seen, mode, state, loop, misses,
             battery, "; ".join(notes)]
 
 

@@ -146,7 +146,9 @@ class ControlService:
         missing = [robot.id for robot in self.hub.robots.values()
                    if not robot.connected(now, self.hub.config.watchdog_s)]
         reached = f"{len(self.hub.robots) - len(missing)} of {len(self.hub.robots)} robots connected and {what}"
-        if not missing or len(missing) == len(self.hub.robots):
+        if missing and len(missing) == len(self.hub.robots):     # "ok (0 of 6 ...)" was easy to misread
+            return f"NO ROBOT CONNECTED (0 of {len(self.hub.robots)}): each is {what} as it connects"
+        if not missing:
             return reached
         listed = ", ".join(f"robot {rid}" for rid in missing[:6]) + (" ..." if len(missing) > 6 else "")
         return f"{reached} (not connected: {listed})"
@@ -170,7 +172,8 @@ class ControlService:
 
     def status(self, now: float) -> Dict[str, Any]:
         hub = self.hub
-        rows = [robot.status_row(now, hub.config.watchdog_s, *hub.mode_for(robot)) for robot in hub.robots.values()]
+        rows = [robot.status_row(now, hub.config.watchdog_s, *self._status_mode(robot))
+                for robot in hub.robots.values()]
         return {
             "mode": hub.mode,
             "run_id": hub.run_id,
@@ -188,6 +191,15 @@ class ControlService:
             "object": hub.progress.status() if hub.progress is not None else None,   # sim source only
             "replay": hub.source.progress(),          # replay source only
         }
+
+
+    def _status_mode(self, robot) -> Tuple[str, str]:
+        """``mode_for``, with the geofence said before a run too: a robot outside it showed a plain `idle` until
+        `start`, when it was held."""
+        mode, reason = self.hub.mode_for(robot)
+        if not reason and mode in ("idle", "hold") and self.hub.outside_fence[self.hub.row[robot.id]]:
+            reason = "outside the geofence: held when a run starts" if mode == "idle" else "outside the geofence"
+        return mode, reason
 
 
 def nothing_done(why: str) -> Dict[str, Any]:

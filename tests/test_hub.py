@@ -80,6 +80,10 @@ def test_operator_start_estop_clear_resume_stop(three_robots, tmp_path):
 def test_robots_outside_the_geofence_are_held(three_robots, tmp_path):
     config = lab_config(geofence=[-0.5, -2.0, 2.0, 2.0])       # every robot spawns at x < -0.6: outside
     with HubThread(config, scenario=three_robots) as hub:
+        # Before any run, the status says so already: it showed a plain `idle` until `start`. And a robot never
+        # connected shows no mode: `run` in its row read as if it ran.
+        idle = hub.wait_until(lambda s: robots_say(s, "reason", "outside the geofence: held when a run starts"))
+        assert [line.split()[3] for line in status_table(idle).splitlines()[2:]] == ["-", "-", "-"]
         agents = start_agents(hub, 3, tmp_path)
         try:
             reply = hub.request("start")

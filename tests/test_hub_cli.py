@@ -246,8 +246,8 @@ def test_ctl_stop_and_clear_with_nothing_to_do_say_so(tmp_path):
         said = json.loads(refused.stdout)
         assert said["command"] == "start" and said["ok"] is False and "e-stop is latched" in said["error"], said
         assert ctl("clear") == "clear: ok (robots stay stopped until `khepri ctl start`)"
-        assert re.fullmatch(r"stop: ok \(run [0-9a-f]{12} ended; 0 of 6 robots connected and told to stop\)",
-                            ctl("stop"))
+        assert re.fullmatch(r"stop: ok \(run [0-9a-f]{12} ended; NO ROBOT CONNECTED \(0 of 6\): each is told to "
+                            r"stop as it connects\)", ctl("stop"))
         # --json for every command, not only status (start and stop printed plain text)
         assert json.loads(ctl("stop --json")) == {"command": "stop", "ok": True, "nothing_done": True,
                                                   "note": "nothing to stop: no run is going"}

@@ -999,9 +999,10 @@ def test_start_and_estop_say_how_many_robots_they_reached():
                     log=lambda line: None)
     try:
         ok, reply = hub.control.execute("start")
-        assert ok and reply["note"].startswith("0 of 6 robots connected and sent it")
+        # "ok (0 of 6 robots connected ...)" was easy to misread on a busy evening.
+        assert ok and reply["note"].startswith("NO ROBOT CONNECTED (0 of 6): each is sent it as it connects")
         ok, reply = hub.control.execute("estop")
-        assert ok and reply["note"].startswith("0 of 6 robots connected and told to stop")
+        assert ok and reply["note"].startswith("NO ROBOT CONNECTED (0 of 6): each is told to stop as it connects")
     finally:
         hub.close()
 
