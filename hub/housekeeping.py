@@ -11,7 +11,7 @@ from typing import List
 
 import numpy as np
 
-from .run_events import follow_progress
+from .run_events import follow_progress, stop_hint
 
 MOCAP_SILENT_S = 1.0      # warn when no pose frame arrived for this long
 # Two robots' centres closer than this on the floor cannot be (a KheperaIV is 0.14 m across): said once.
@@ -53,8 +53,8 @@ class Housekeeping:
         runs = [((r.telemetry or {}).get("behaviour") or {}) for r in connected]
         if connected and all(r.run_id == self.run_id for r in connected) and all(b.get("finished") for b in runs):
             self._finished_said = self.run_id
-            self.log(f"hub: run {self.run_id}: every connected robot ({len(connected)}) reports its job finished; "
-                     "`khepri ctl stop` ends the run")
+            self.log(f"hub: run {self.run_id}: every connected robot ({len(connected)}) reports its job finished"
+                     + stop_hint(self))
 
     def _say_overlapping_robots(self, now: float) -> None:
         """Two robots whose bodies lie closer on the floor than two robots can: the wrong ``source.up_axis``

@@ -31,9 +31,15 @@ def follow_progress(hub: Hub) -> None:
             why = "; ".join(part for part in ((event.get("failures") or ["?"])[0],
                                                object_text(event.get("object"))) if part)
             hub.log(f"hub: run {hub.run_id}: NOT completed, although the object passed all {count} waypoints: "
-                    f"{why}; `khepri ctl stop` ends the run")
+                    f"{why}{stop_hint(hub)}")
         else:
-            hub.log(f"hub: run {hub.run_id}: all {count} waypoints reached: {outcome}; `khepri ctl stop` ends the run")
+            hub.log(f"hub: run {hub.run_id}: all {count} waypoints reached: {outcome}{stop_hint(hub)}")
+
+
+def stop_hint(hub: Hub) -> str:
+    """How the operator ends a run that is done; not in `khepri sil`, which ends it itself (its hub runs the
+    lockstep)."""
+    return "" if hub.run.lockstep else "; `khepri ctl stop` ends the run"
 
 
 def run_event(hub: Hub, run_id: str, event: str, cause: str, by: str) -> Dict[str, Any]:

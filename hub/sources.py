@@ -87,7 +87,7 @@ def pose_from_mocap(position, quaternion_wxyz, up_axis: str) -> Tuple[float, flo
     ay = 2.0 * (qx * qy + w * qz)
     az = 2.0 * (qx * qz - w * qy)
     if up_axis == "y":
-        return float(position[0]), float(-position[2]), math.atan2(-az, ax)
+        return float(position[0]), float(-position[2]) + 0.0, math.atan2(-az, ax)
     return float(position[0]), float(position[1]), math.atan2(ay, ax)
 
 
@@ -98,6 +98,7 @@ def floor_positions(positions: np.ndarray, up_axis: str) -> np.ndarray:
     poses[:, :2] = positions[:, (0, 2) if up_axis == "y" else (0, 1)]
     if up_axis == "y":
         np.negative(poses[:, 1], out=poses[:, 1])
+        poses[:, 1] += 0.0          # -0.0 (a body at z = 0) was said and recorded as y -0.00
     poses[:, 2] = np.nan
     return poses
 

@@ -135,10 +135,15 @@ def test_an_arrival_that_is_not_a_completion_leads_with_the_outcome():
 
     lines = []
     hub = SimpleNamespace(progress=Progress(), mode="run", run_id="r1", arrival_said=None, recorder=None,
-                          run=SimpleNamespace(behaviour="transport"), log=lines.append)
+                          run=SimpleNamespace(behaviour="transport", lockstep=False), log=lines.append)
     follow_progress(hub)
     assert lines == ["hub: run r1: NOT completed, although the object passed all 3 waypoints: waypoint 1 was "
                      "passed with the object 0.101 m from it (tolerance 0.100 m); `khepri ctl stop` ends the run"]
+    # `khepri sil` (its hub runs the lockstep) ends the run itself: no word of `ctl stop` in its log.
+    lines.clear()
+    hub.arrival_said, hub.run.lockstep = None, True
+    follow_progress(hub)
+    assert lines and not [line for line in lines if "ctl stop" in line], lines
 
 
 def test_a_push_that_stalls_is_said_once_on_the_hubs_console():

@@ -225,6 +225,14 @@ def test_a_y_up_body_is_placed_on_the_z_up_floor():
         source.close()
     assert frame.ids == [0]
     np.testing.assert_allclose(frame.poses, [[1.0, 2.0, math.pi / 2]], atol=1e-6)
+    # A body at z = 0 is at y = 0, not -0.0, which the geofence line and the log showed as -0.00.
+    source = fake_source({"kh0": 0}, "y", [])
+    try:
+        frame = source._convert(1.0, {"kh0": FakeBody((1.0, 0.05, 0.0), quarter)})
+    finally:
+        source.close()
+    assert math.copysign(1.0, frame.poses[0, 1]) == 1.0
+    assert math.copysign(1.0, pose_from_mocap((1.0, 0.05, 0.0), quarter, "y")[1]) == 1.0
 
 
 def quarter_turns(k):
