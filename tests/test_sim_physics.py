@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onboard.behaviour import Behaviour, register
+from onboard.behaviour import _REGISTRY, Behaviour, register
 from onboard.geometry import neighbour_mask, pairwise_range_bearing
 from sim_backend.object_spec import ObjectSpec
 from sim_backend.runner import Simulation
@@ -310,19 +310,24 @@ def test_a_robot_whose_agent_restarts_stops_hears_nothing_and_starts_a_new_behav
     assert result["stop_reason"] != "every robot failed" and sim.world.alive().all()
 
 
-@register("drives_only_at_first")
-class DrivesOnlyAtFirst(Behaviour):
-    """Commands the wheels in its first half second of simulated time, never after."""
+@pytest.fixture
+def drives_only_at_first():
+    """A behaviour that commands the wheels in its first half second of simulated time, never after; registered
+    for the test only (test_suite_isolation.py)."""
+    class DrivesOnlyAtFirst(Behaviour):
+        def step(self):
+            if self.robot.clock.now() < 0.5:
+                self.robot.wheels.set_speeds(0.1, 0.1)
 
-    def step(self):
-        if self.robot.clock.now() < 0.5:
-            self.robot.wheels.set_speeds(0.1, 0.1)
+    register("drives_only_at_first")(DrivesOnlyAtFirst)
+    yield "drives_only_at_first"
+    _REGISTRY.pop("drives_only_at_first", None)
 
 
-def test_a_restarted_agents_new_behaviour_starts_with_its_wheels_stopped(make_scenario):
+def test_a_restarted_agents_new_behaviour_starts_with_its_wheels_stopped(make_scenario, drives_only_at_first):
     """The robot's HAL kept the old behaviour's last command, and the runner drove it again once the new
     behaviour ran, though that one had commanded nothing: a new agent's wheels start stopped."""
-    scenario = make_scenario(behaviour="drives_only_at_first", robots={"count": 1},
+    scenario = make_scenario(behaviour=drives_only_at_first, robots={"count": 1},
                              faults=[{"robot": 0, "at_s": 2.0, "restart_after_s": 1.0}], time_limit_s=6)
     sim = Simulation(scenario, seed=1)
     while sim.step_index * sim.period < 3.1:
@@ -333,7 +338,7 @@ def test_a_restarted_agents_new_behaviour_starts_with_its_wheels_stopped(make_sc
 
 
 SCRIPT_WITH_ITS_OWN_BEHAVIOUR = """
-from onboard.behaviour import Behaviour, register
+from onboard.behaviour import _REGISTRY, Behaviour, register
 from sim_backend.runner import Simulation
 from sim_backend.scenario import load_scenario
 
