@@ -208,7 +208,7 @@ _WXYZ = operator.attrgetter("w", "x", "y", "z")     # a motioncapture Quaternion
 
 
 READ_RETRY_S = 0.1           # a failed read is tried again this much later
-FAILURE_LINE_MAX_S = 60.0    # while reads keep failing, a line at 1, 2, 4 ... s, then one a minute
+FAILURE_LINE_MAX_S = 60.0    # while reads keep failing, a line at 1, 3, 9, 27, 81 s, then one a minute
 
 
 class ReadFailures:
