@@ -192,8 +192,7 @@ class ControlService:
             "replay": hub.source.progress(),          # replay source only
         }
 
-
-    def _status_mode(self, robot) -> Tuple[str, str]:
+    def _status_mode(self, robot: Any) -> Tuple[str, str]:
         """``mode_for``, with the geofence said before a run too: a robot outside it showed a plain `idle` until
         `start`, when it was held."""
         mode, reason = self.hub.mode_for(robot)
