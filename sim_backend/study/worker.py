@@ -143,8 +143,7 @@ def has_run_shape(data: Dict[str, Any]) -> bool:
         if not all(isinstance(study.get(key), (str, type(None)))
                    for key in ("behaviour_sha1", "scenario_sha1", "scenario_sha1_full")):
             return False
-        limit = study.get("time_limit_s")
-        if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, float))):
+        if not _number_or_none(study.get("time_limit_s")):
             return False
     waypoints = data.get("waypoints")
     if waypoints is not None and not (isinstance(waypoints, list) and all(map(is_waypoint_record, waypoints))):
