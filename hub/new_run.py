@@ -3,7 +3,7 @@
 With the ``sim`` source the hub holds the world, and a run's mission (the scenario's waypoints, the object estimate
 the behaviour starts from, the faults' times) is the scenario's, from its start. So, as a new ``khepri sim run``
 would, each run begins in the world the scenario builds for its seed: robots, object and their velocities,
-odometry, faults, and the hub's own noise (range and bearing, relay drops) from the start of its stream. A world
+faults, and the hub's own noise (range and bearing, relay drops) from the start of its stream. A world
 that has not moved since it was built (``khepri sil``'s one run, in lockstep) is used as it is;
 ``source.reset_each_run: false`` keeps the world as the last run left it (docs/lab.md). A replay likewise plays
 its log from the first record again for each run.

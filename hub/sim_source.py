@@ -35,6 +35,9 @@ class SimSource(PoseSource):
         self.description = f"sim {scenario.name} (seed {self.seed})"
         self.steps = 0                   # physics substeps done: the simulated clock, which no restart turns back
         self._build(0.0)
+        # What the wheels rolled in the worlds before this one. The encoders a frame reports count on across a
+        # new run, as a real robot's do when it is carried back to its start; an agent's driver reads deltas.
+        self.odometry_before = np.zeros((len(self.world.robots), 2))
         self.count = len(self.world.robots)
         self.control_period = 1.0 / scenario.physics.control_hz
         self.dt = scenario.physics.dt_s
@@ -62,9 +65,10 @@ class SimSource(PoseSource):
 
     def restart(self, now: float) -> PoseFrame:
         """Back to the scenario's start for a new run: the world built again for the same seed (robots, object,
-        their velocities, odometry, IR noise) and the faults counted from now. The simulated clock runs on, as
-        the hub's log and the agents' frames want it. The first frame of the new world, stamped ``now``; in real
-        time it stands for the frame due now."""
+        their velocities, IR noise) and the faults counted from now; the encoders count on. The simulated clock
+        runs on, as the hub's log and the agents' frames want it. The first frame of the new world, stamped
+        ``now``; in real time it stands for the frame due now."""
+        self.odometry_before = self.odometry_before + self.world.odometry()
         self._build(self.time_s)
         if self.next_frame_at is not None:
             self.next_frame_at = now + self.substeps_per_frame * self.dt
@@ -102,7 +106,7 @@ class SimSource(PoseSource):
         readings = self.ir.readings(xy, yaw, centre_ranges, self.world.obstacle_groups(), self.rng_ir,
                                     self.scenario.sensors.proximity_noise)
         ir = np.round(readings, 4).tolist()
-        odometry = np.round(self.world.odometry(), 6).tolist()
+        odometry = np.round(self.odometry_before + self.world.odometry(), 6).tolist()
         extras: Dict[int, Dict[str, list]] = {i: {"ir": ir[i], "odo": odometry[i]} for i in range(self.count)}
         live = np.nonzero(alive)[0]
         return PoseFrame(stamp, live.tolist(), poses[live], clock_s=round(t, 6), extras=extras,

@@ -276,10 +276,18 @@ class SimWheels(hal.DifferentialSteering):
 class SimOdometry(hal.Odometry):
     def __init__(self, frame: SensorFrame, index: int):
         self._frame, self._index = frame, index
+        self._left_zero = self._right_zero = 0.0
 
     def read(self) -> WheelOdometry:
         left, right = self._frame.odometry_rows[self._index]
-        return _record(WheelOdometry, left_m=left, right_m=right)
+        return _record(WheelOdometry, left_m=left - self._left_zero, right_m=right - self._right_zero)
+
+    def count_from_here(self) -> None:
+        """Count from 0 again, as a restarted agent's KheperaIV driver does (it reads its encoders' start). The
+        wheels of a robot whose agent is down are stopped, so the last step's counts are still its counts."""
+        rows = self._frame.odometry_rows
+        if rows:                                   # none before the first step: the counts start at 0 anyway
+            self._left_zero, self._right_zero = rows[self._index]
 
 
 class SimPositioning(hal.Positioning):

@@ -19,6 +19,7 @@ from onboard.agent.link import HubLink
 from onboard.agent.loop import Agent
 from onboard.behaviour import _REGISTRY, Behaviour, register
 from onboard.drivers.sim import SimDriver
+from onboard.hal import WheelOdometry
 from onboard.protocol import DOWNLINK_TYPES, ProtocolError, encode
 from onboard.protocol import decode as decode_message
 
@@ -452,6 +453,15 @@ def test_a_driver_failing_inside_step_is_reported_as_the_drivers_fault_not_the_b
         assert agent.error.startswith("driver failed: robot 0, step(): DriverError: kh4_proximity_ir failed")
     finally:
         link.close()
+
+
+def test_the_sim_driver_counts_the_encoders_from_its_first_reading_as_the_kh4_driver_does():
+    """An agent that joins (or restarts) mid-run: its odometry starts at 0 on a robot, so in SIL too."""
+    readings = {"ir": [0.0] * 8, "odo": [1.5, 1.25]}
+    driver = SimDriver(lambda message: True, lambda: readings)
+    assert driver.encoders() == WheelOdometry(0.0, 0.0)
+    readings = {"ir": [0.0] * 8, "odo": [1.75, 1.0]}
+    assert driver.encoders() == WheelOdometry(0.25, -0.25)
 
 
 def test_an_empty_library_or_calibration_path_is_refused_not_taken_as_the_default():

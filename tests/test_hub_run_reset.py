@@ -219,3 +219,18 @@ def test_reset_each_run_false_keeps_the_last_runs_world():
         assert not hub.relay.pending(3)          # the last run's messages go either way: the agents drop theirs
     finally:
         hub.close()
+
+
+def test_the_encoders_in_the_frames_count_on_across_a_new_run(gathering):
+    """The world is built again for a new run, but a real robot's encoders do not go back to 0 when it is carried
+    to its start: the frames' `odo` counts on, and the new world's wheels add to it."""
+    source = SimSource(gathering)
+    source.command(0, 0.1, 0.1)
+    source.advance(source.substeps_per_control * 5)
+    rolled = source.snapshot(time.monotonic()).extras[0]["odo"]
+    assert min(rolled) > 0.04
+    assert source.restart(time.monotonic()).extras[0]["odo"] == rolled
+    assert not source.world.odometry().any()
+    source.command(0, 0.1, 0.1)
+    source.advance(source.substeps_per_control * 5)
+    assert source.snapshot(time.monotonic()).extras[0]["odo"] == pytest.approx([2 * rolled[0], 2 * rolled[1]])

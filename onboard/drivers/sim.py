@@ -20,6 +20,7 @@ class SimDriver(Driver):
         self.send = send
         self.readings = readings
         self.left = self.right = 0.0
+        self._zero: Optional[WheelOdometry] = None   # the simulator's counts when this driver first read them
 
     def set_wheel_speeds(self, left_m_s: float, right_m_s: float) -> None:
         self.left, self.right = float(left_m_s), float(right_m_s)
@@ -32,5 +33,12 @@ class SimDriver(Driver):
         return list(data["ir"]) if data else [0.0] * 8
 
     def encoders(self) -> WheelOdometry:
+        """Distances rolled since this driver's first reading, as the KheperaIV driver counts from its start:
+        an agent restarted mid-run starts at 0 on either driver."""
         data = self.readings()
-        return WheelOdometry(*data["odo"]) if data else WheelOdometry(0.0, 0.0)
+        if not data:
+            return WheelOdometry(0.0, 0.0)
+        counts = WheelOdometry(*data["odo"])
+        if self._zero is None:
+            self._zero = counts
+        return WheelOdometry(counts.left_m - self._zero.left_m, counts.right_m - self._zero.right_m)
