@@ -33,6 +33,15 @@ def check_point(where: str, point: Tuple[float, float]) -> None:
     for axis, value in zip("xy", point):
         check_extent(f"{where}.{axis}", value)
 
+# Yaws are angles, read modulo a turn; one of more than ten turns is a typo (1e308 was taken, as the remainder of
+# a number whose last digit is worth far more than a turn).
+MAX_YAW_DEG = 3600.0
+
+
+def check_yaw(where: str, value: float) -> float:
+    return check_range(where, value, -MAX_YAW_DEG, MAX_YAW_DEG)
+
+
 # Masses beyond these are typos (a KheperaIV is 0.54 kg; the paper's heaviest payload 4 kg): from about 1e150 kg
 # pymunk's step gives NaN poses, and a run went on with a NaN object to a NaN final error.
 MAX_OBJECT_MASS_KG = 1e6
@@ -53,6 +62,7 @@ class ObjectPart:
         if self.shape not in PART_SHAPES:
             raise ConfigError(join(where, "shape"), f"must be one of {', '.join(PART_SHAPES)} (got {self.shape!r})")
         check_point(join(where, "offset"), self.offset)
+        check_yaw(join(where, "yaw_deg"), self.yaw_deg)
         validate_dimensions(self, where)
 
 
@@ -82,6 +92,7 @@ class ObjectSpec:
         check_range(join(where, "friction"), self.friction, 0.0, 5.0)
         check_range(join(where, "scale"), self.scale, 0.0, 100.0, low_open=True)
         check_point(join(where, "position"), self.position)
+        check_yaw(join(where, "yaw_deg"), self.yaw_deg)
         if self.scale != 1.0 and self.shape not in IRREGULAR_SHAPES:
             raise ConfigError(join(where, "scale"), f"only for shapes {', '.join(IRREGULAR_SHAPES)} "
                               f"(shape is {self.shape})")

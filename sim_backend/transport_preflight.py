@@ -11,6 +11,7 @@ from typing import Any, List, Optional
 
 import numpy as np
 
+from .mission_preflight import mission_warnings, wrap_deg
 from .object_hull import (
     CAGE_GAP_M,
     FACE_SHARE,
@@ -95,33 +96,15 @@ def transport_warnings(scenario: Any, world: Any, params: Any) -> List[str]:
     if scenario.object is not None and not scenario.object.static and scenario.object.friction == 0.0:
         found.append("object.friction: 0: nothing stops the object once it is pushed, so it slides past its "
                      "waypoints")
+    found += mission_warnings(scenario, params)
     found += _faults(scenario)
-    found += _tolerance_covers_legs(scenario, params)
     found += _too_heavy(scenario)
-    found += _radians_for_degrees(scenario)
     for name in ("cruise_speed_m_s", "travel_speed_m_s"):
         speed = getattr(params, name, None)
         if speed is not None and speed > spec.max_wheel_speed_m_s:
             found.append(f"params.{name}: {speed:g} m/s is above the robots' top wheel speed "
                          f"({spec.max_wheel_speed_m_s:g} m/s): every command is scaled down to it")
     return found
-
-
-def _tolerance_covers_legs(scenario: Any, params: Any) -> List[str]:
-    """A waypoint position tolerance as long as the leg to it: the object is "at" the waypoint where the leg
-    starts (push_tolerance_m 2 with 0.3 m legs: completed, 0.9 m from the goal, nobody having pushed)."""
-    tolerance = getattr(params, "push_tolerance_m", None)
-    if tolerance is None or scenario.object is None or not scenario.path:
-        return []
-    start = tuple(scenario.object.position)
-    for i, waypoint in enumerate(scenario.path):
-        leg = math.hypot(waypoint[0] - start[0], waypoint[1] - start[1])
-        start = (waypoint[0], waypoint[1])
-        if leg > 0.0 and tolerance >= leg:       # a turn in place (no leg) is judged by its yaw
-            return [f"params.push_tolerance_m: {tolerance:g} m is as long as the leg to path[{i}] ({leg:.2f} m) or "
-                    "longer: the object counts as at that waypoint before it has moved, so `completed` and the "
-                    "position errors say nothing of the push. Keep it well under the legs (default 0.1 m)"]
-    return []
 
 
 def _closer_than_robots(params: Any, robot_radius: float) -> List[str]:
@@ -226,27 +209,9 @@ def behind_share(hull: np.ndarray, robot_radius: float, leg_deg: float) -> float
     return (along + corners) / cage_ring(hull, robot_radius)
 
 
-def _radians_for_degrees(scenario: Any) -> List[str]:
-    """A yaw of 3.14 or 1.57 is almost surely radians where degrees are asked for: a turn of 3 degrees, not a
-    half turn, that the run would carry out without a word."""
-    yaws = [(f"path[{i}]", wyaw) for i, (_, _, wyaw) in enumerate(scenario.path)]
-    if scenario.object is not None:
-        yaws.insert(0, ("object.yaw_deg", scenario.object.yaw_deg))
-    found = []
-    for field_name, value in yaws:
-        quarters = value / (math.pi / 2.0)
-        if value != 0.0 and abs(value) <= 2.0 * math.pi + 0.01 and abs(quarters - round(quarters)) * math.pi / 2 < 0.01:
-            what = "its yaw" if field_name.startswith("path") else "it"
-            found.append(f"{field_name}: {what} is in degrees, and {value:g} looks like radians "
-                         f"({math.degrees(value):.0f} degrees); write {math.degrees(value):.0f} if that is meant")
-    return found
-
-
 def _faults(scenario: Any) -> List[str]:
-    """Faults that never happen within the run, and faults that leave too few robots to cage."""
-    found = [f"faults[{i}].at_s: {fault.at_s:g} s is not before the time limit ({scenario.time_limit_s:g} s): "
-             f"robot {fault.robot} never {'fails' if fault.restart_after_s is None else 'restarts'}"
-             for i, fault in enumerate(scenario.faults) if fault.at_s >= scenario.time_limit_s]
+    """Faults that leave too few robots to cage."""
+    found = []
     # A restarted robot lives on (as a spare, in the transport behaviour): only failures leave fewer robots.
     failing = sum(1 for fault in scenario.faults
                   if fault.at_s < scenario.time_limit_s and fault.restart_after_s is None)
@@ -294,11 +259,11 @@ def _small_cage_turns(scenario: Any, hull: np.ndarray, spacing: float, robot_rad
     x, y, yaw = scenario.object.position[0], scenario.object.position[1], scenario.object.yaw_deg
     heading = None      # the direction of the last leg that moved the object (degrees)
     for i, (wx, wy, wyaw) in enumerate(scenario.path):
-        turn = abs(_wrap_deg(wyaw - yaw)) if judges_yaw(scenario.object) else 0.0
+        turn = abs(wrap_deg(wyaw - yaw)) if judges_yaw(scenario.object) else 0.0
         moves = math.hypot(wx - x, wy - y) > 0.05
         direction = math.degrees(math.atan2(wy - y, wx - x)) if moves else heading
         off = _off_faces_deg(direction - yaw, normals) if moves else 0.0
-        change = abs(_wrap_deg(direction - heading)) if moves and heading is not None and normals else 0.0
+        change = abs(wrap_deg(direction - heading)) if moves and heading is not None and normals else 0.0
         if off > SMALL_CAGE_TURN_DEG:
             end = _narrow_end_ahead(hull, direction - yaw) if off > 60.0 else None
             travel = (f"travel {off:.0f} degrees off the normals of its faces" if end is None else
@@ -370,7 +335,7 @@ def _narrow_end_ahead(hull: np.ndarray, direction_deg: float) -> Optional[float]
     for normal, length in zip(normals, lengths):
         if not 1e-9 < length < FACE_SHARE * sum(lengths):
             continue        # a face, or no edge at all
-        if abs(_wrap_deg(direction_deg - normal)) <= 30.0 or abs(_wrap_deg(direction_deg - normal - 180.0)) <= 30.0:
+        if abs(wrap_deg(direction_deg - normal)) <= 30.0 or abs(wrap_deg(direction_deg - normal - 180.0)) <= 30.0:
             return length
     return None
 
@@ -379,8 +344,4 @@ def _off_faces_deg(direction_deg: float, normals: List[float]) -> float:
     """How far a travel direction is from the nearest face normal, either way along it (0 when no faces)."""
     if not normals:
         return 0.0
-    return min(min(abs(_wrap_deg(direction_deg - n)), abs(_wrap_deg(direction_deg - n + 180.0))) for n in normals)
-
-
-def _wrap_deg(angle: float) -> float:
-    return (angle + 180.0) % 360.0 - 180.0
+    return min(min(abs(wrap_deg(direction_deg - n)), abs(wrap_deg(direction_deg - n + 180.0))) for n in normals)

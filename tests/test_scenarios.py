@@ -258,6 +258,12 @@ SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such
     ({"object": {"shape": "compound", "parts": [{**BOX, "offset": [1e250, 0]}]}}, "object.parts[0].offset.x",
      "object.parts[0].offset.x: must be <= 1000 (got 1e+250)"),
     ({"object": {"shape": "cloud", "scale": 1e200}}, "object.scale", "object.scale: must be <= 100 (got 1e+200)"),
+    # Yaws past ten turns: 1e308 degrees was taken, as whatever its remainder of a turn happens to be.
+    ({"object": {**BOX, "yaw_deg": 1e308}}, "object.yaw_deg", "object.yaw_deg: must be <= 3600 (got 1e+308)"),
+    ({"object": {"shape": "compound", "parts": [{**BOX, "yaw_deg": -4000}]}}, "object.parts[0].yaw_deg",
+     "object.parts[0].yaw_deg: must be >= -3600 (got -4000)"),
+    ({"object": BOX, "path": [[-1, 0, 1e308]]}, "path[0]",
+     "path[0]: yaw must be an angle within +-3600 degrees (got 1e+308)"),
     ({"robots": {"spawn": {"x": [-1e300, 1e300]}}}, "robots.spawn.x[0]",
      "robots.spawn.x[0]: must be >= -1000 (got -1e+300)"),
     ({"object": BOX, "path": [[1, 1e300, 0]]}, "path[0].y", "path[0].y: must be <= 1000 (got 1e+300)"),

@@ -136,6 +136,26 @@ def test_faults_that_never_happen_or_leave_too_few_robots_are_warned_about(make_
     assert Simulation(transport(make_scenario, faults=most[:5])).warnings == []
 
 
+def test_a_restart_that_never_comes_back_within_the_run_is_warned_about(make_scenario):
+    never = [{"robot": 1, "at_s": 100, "restart_after_s": 1e300}]
+    assert Simulation(transport(make_scenario, time_limit_s=600, faults=never)).warnings == [
+        "faults[0].restart_after_s: robot 1's agent is down from 100 s to past the time limit (600 s), so it never "
+        "comes back; leave restart_after_s out for a robot that fails for good"]
+    back = [{"robot": 1, "at_s": 100, "restart_after_s": 499}]
+    assert Simulation(transport(make_scenario, time_limit_s=600, faults=back)).warnings == []
+
+
+def test_a_waypoint_where_the_object_already_is_is_warned_about(make_scenario):
+    """The object's start written as the path, or a waypoint copied twice, asks the swarm for nothing."""
+    (start,) = Simulation(transport(make_scenario, path=[[0, 0, 0]])).warnings
+    assert start == ("path[0]: it is the object's start, yaw and all: the object is there already, so it counts as "
+                     "reached at once and nothing is pushed or turned for it")
+    (twice,) = Simulation(transport(make_scenario, path=[[0.5, 0, 0], [0.5, 0, 360]])).warnings
+    assert twice.startswith("path[1]: it is path[0] again, yaw and all")
+    turn_in_place = [[0.5, 0, 0], [0.5, 0, 10]]
+    assert Simulation(transport(make_scenario, path=turn_in_place)).warnings == []
+
+
 def test_a_speed_above_the_robots_top_speed_is_warned_about(make_scenario):
     warnings = Simulation(transport(make_scenario, params={"cruise_speed_m_s": 100})).warnings
     assert warnings == ["params.cruise_speed_m_s: 100 m/s is above the robots' top wheel speed (0.81 m/s): "
@@ -226,8 +246,9 @@ def test_a_small_cage_asked_to_change_its_push_direction_is_warned_about_once_pe
     1.0 x 0.3 m box pushed across its length and then along it ended 0.2 m short in 3 of 3 (the members that
     held its end had slid onto its long faces). A stop in place (no motion) keeps the last direction."""
     zigzag = transport(make_scenario, path=[[0.0, 0.4, 0], [0.0, 0.4, 0], [0.4, 0.4, 0], [0.8, 0.4, 0]])
-    warnings = Simulation(zigzag).warnings
-    assert len(warnings) == 1 and warnings[0].startswith("path[2]: the push would change direction by 90 degrees")
+    stop, change = sorted(Simulation(zigzag).warnings)
+    assert stop.startswith("path[1]: it is path[0] again") and change.startswith(
+        "path[2]: the push would change direction by 90 degrees")
     back = transport(make_scenario, path=[[0.5, 0.0, 0], [0.3, 0.0, 0]])     # straight back: 180 degrees
     assert [w.split(" by ")[1][:10] for w in Simulation(back).warnings] == ["180 degree"]
     gentle = transport(make_scenario, path=[[0.5, 0.0, 0], [1.0, 0.15, 0]])   # 17 degrees: not warned
