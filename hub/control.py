@@ -140,7 +140,7 @@ def connection_cause(kind: Optional[str], watch: ConnectionWatch, keyed: bool) -
         # The robots port refuses every operator key too: that mix-up sent operators off to check their keys.
         return ("the hub refused this operator key: is that the hub's control port, the one it printed after "
                 "`listening control`, and not its robots port (which takes robot keys only)? If it is, does the "
-                "hub's key folder list the key in operators/? (The hub reads its keys when it starts.)"), True
+                "hub's key folder list the key in operators/?"), True
     if kind == connection.HANDSHAKE_DROPPED and keyed:
         return "the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key.", True
     if kind == connection.HANDSHAKE_DROPPED:  # libzmq says "no detail" as often as "mechanism mismatch", by timing

@@ -162,7 +162,7 @@ def say_missing_keys(ids: List[int], keyring: KeyRing, log: Callable[[str], None
             f"as they are, or take {'them' if several else 'it'} off {ids_from})")
     if not keyring.operators:
         log(f"hub: no operator key in {keyring.folder / 'operators'}: `khepri ctl` cannot reach this hub (add one "
-            f"with `khepri keys add {keyring.folder} --operator NAME`, then restart the hub)")
+            f"with `khepri keys add {keyring.folder} --operator NAME`; the hub accepts it without a restart)")
 
 
 def lab_ids_origin(config: LabConfig) -> str:

@@ -145,7 +145,9 @@ def stale_keys(folder: Path, keep: List[Path]) -> List[Path]:
                   if path.suffix in (".key", ".key_secret") and path.with_suffix("") not in kept)
 
 
-def load_keyring(folder: Path) -> KeyRing:
+def load_keyring(folder: Path, need_robots: bool = True) -> KeyRing:
+    """The hub's pair and the keys it accepts. ``need_robots``: at start a folder without robot keys is an error;
+    re-read while the hub runs (``hub/key_reload.py``), it means every robot key was revoked."""
     problem = key_folder_problem(folder)
     if problem:
         raise ConfigError(HUB_KEYS_FIELD, problem)
@@ -164,7 +166,7 @@ def load_keyring(folder: Path) -> KeyRing:
             ring.robots[_unique_public(path, holders)] = int(match.group(1))
     for path in sorted((folder / "operators").glob("*.key")):
         ring.operators[_unique_public(path, holders)] = path.stem
-    if not ring.robots:
+    if need_robots and not ring.robots:
         raise ConfigError(HUB_KEYS_FIELD, f"no robot keys in {folder / 'robots'} (add them with `khepri keys add "
                                           f"{folder} --robots N`)")
     return ring
@@ -257,7 +259,7 @@ def load_public(path: Path, where: str) -> bytes:
 
 def writable_by_others(folder: Path) -> Optional[str]:
     """A warning when others than the owner may write where the hub reads the keys it accepts: whoever can
-    add or swap a public key in robots/ or operators/ is let in at the hub's next start. None when private
+    add or swap a public key in robots/ or operators/ is let in (the hub re-reads them while it runs). None when private
     (or on a system without POSIX modes)."""
     if os.name != "posix":
         return None
@@ -270,5 +272,5 @@ def writable_by_others(folder: Path) -> Optional[str]:
             continue
         if mode & 0o022:
             return (f"{place} can be written by other users (mode {mode:04o}): anyone who can write there can add "
-                    f"or swap a key this hub accepts when it next starts; run `chmod go-w {place}`")
+                    f"or swap a key this hub accepts; run `chmod go-w {place}`")
     return None

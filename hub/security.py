@@ -22,6 +22,7 @@ from zmq.auth.thread import ThreadAuthenticator
 
 from onboard.config import ConfigError
 
+from .key_reload import KeyReload
 from .keyfiles import KeyRing, load_public
 
 ROBOT_DOMAIN = "robots"
@@ -62,7 +63,8 @@ class HubAuthenticator(ThreadAuthenticator):
     def __init__(self, context: zmq.Context, ring: KeyRing, log: Callable[[str], None] = print):
         super().__init__(context)
         self.ring, self.hub_log = ring, log
-        self.members = {ROBOT_DOMAIN: ring.robots, OPERATOR_DOMAIN: ring.operators}
+        self.members = {ROBOT_DOMAIN: ring.robots, OPERATOR_DOMAIN: ring.operators}   # KeyReload updates them
+        self.reload = KeyReload(ring, log)
         self._refusals_said: Dict[Tuple[str, str], float] = {}
         for domain, keys in self.members.items():
             self.configure_curve_callback(domain, _Members(keys))
@@ -85,6 +87,7 @@ class HubAuthenticator(ThreadAuthenticator):
                 time.sleep(0.01)
 
     async def handle_zap_message(self, msg: List[bytes]) -> None:
+        self.reload.refresh()
         self._say_if_refused(msg)
         await super().handle_zap_message(msg)
 
@@ -103,9 +106,10 @@ class HubAuthenticator(ThreadAuthenticator):
         self._refusals_said[(domain, address)] = now
         who = "a robot" if domain == ROBOT_DOMAIN else "an operator"
         added = _key_file_holding(self.ring.folder / domain, zmq.utils.z85.encode(msg[6]))
-        if added is not None:       # `keys add` while the hub ran: "not in keys/robots" read as wrong, it was there
-            self.hub_log(f"hub: refused {who} key from {address}: {added} was added after this hub loaded its keys; "
-                         "restart the hub to accept it")
+        if added is not None:       # "not in keys/robots" would read as wrong: it is there
+            why = ("the key folder cannot be read as a whole (said above); once it can, the key is accepted"
+                   if self.reload.problem else "it was added just now, and is accepted at the next try")
+            self.hub_log(f"hub: refused {who} key from {address}: {added} holds it, but {why}")
             return
         self.hub_log(f"hub: refused {who} key from {address}: not in {self.ring.folder / domain} "
                      f"(a key made for another hub or lab, or for the other socket?)")

@@ -29,7 +29,7 @@ def add_keys_commands(groups) -> None:
     add = commands.add_parser("add", help="add robot or operator key pairs to an existing key folder",
                               description="Add FOLDER/robots/robot-<id>.key(_secret) and FOLDER/operators/<name>.key"
                                           "(_secret) for new robots or operators. Every key already in FOLDER stays "
-                                          "as it is; restart the hub to accept the new ones.")
+                                          "as it is; a running hub accepts the new ones from their first connection.")
     add.add_argument("folder", nargs="?", default="keys", metavar="FOLDER",
                      help="key folder (default ./keys)")
     add.add_argument("--robots", help="ids with commas: 6,7 (one id: 6,), or a count N (ids 0..N-1)")
@@ -80,7 +80,7 @@ def cmd_keys_add(args: argparse.Namespace) -> int:
     print(f"added {len(created)} key files in {args.folder}: {'; '.join(what)}; every other key is unchanged")
     if ids:
         print(f"  give robot N: {args.folder}/robots/robot-N.key_secret and {args.folder}/hub.key")
-    print("  restart the hub to accept them")
+    print("  a hub using this folder accepts them from now on, running or not")
     return 0
 
 

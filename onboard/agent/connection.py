@@ -137,8 +137,7 @@ class ConnectionWatch:
     def _handshake_cause(self, kind: str, robot_id: int, keyed: bool) -> str:
         if kind == KEY_REFUSED:
             return (f"the hub refused robot {robot_id}'s key: does the hub's key folder hold "
-                    f"robots/robot-{robot_id}.key, the pair of this robot's key_secret? (The hub reads its keys "
-                    "when it starts: restart it after `khepri keys add`)")
+                    f"robots/robot-{robot_id}.key, the pair of this robot's key_secret?")
         if kind == MECHANISM_MISMATCH:
             if keyed:
                 return "the hub is not encrypted (it runs --insecure): start the agent without --keys"
