@@ -145,6 +145,13 @@ def test_a_restart_that_never_comes_back_within_the_run_is_warned_about(make_sce
     assert Simulation(transport(make_scenario, time_limit_s=600, faults=back)).warnings == []
 
 
+def test_a_control_rate_other_than_the_tuned_10_hz_is_warned_about(make_scenario):
+    """lab-6 at 20 Hz completed 9 of 16 runs where 10 Hz completes 16 of 16 (behaviour.md section 8)."""
+    (warning,) = Simulation(transport(make_scenario, physics={"control_hz": 20})).warnings
+    assert warning.startswith("physics.control_hz: the transport behaviour is tuned and tested at 10 Hz")
+    assert Simulation(transport(make_scenario, physics={"control_hz": 10.0})).warnings == []
+
+
 def test_a_waypoint_where_the_object_already_is_is_warned_about(make_scenario):
     """The object's start written as the path, or a waypoint copied twice, asks the swarm for nothing."""
     (start,) = Simulation(transport(make_scenario, path=[[0, 0, 0]])).warnings
