@@ -163,9 +163,13 @@ def _cage_behind_too_weak(scenario: Any, hull: np.ndarray, spacing: float, robot
     evenly round the ring; each pushes along the leg with the cosine of its face's angle to it
     (behind_share). Measured (2026-11-29): a 0.4 m disc of 4 kg with 6 robots, all members, 0 of 2 (it never
     moved), at 2 kg 2 of 2. Where spares join once the push stalls, runs mostly deliver (a 0.6 m box of 4 kg,
-    10 robots: 8 of 8; a 0.5 m box of 3 kg on friction 0.8, 8 robots, 1 of 3 though this model says even the
-    spares fall short; but a 1.0 x 0.8 m box of 4 kg, 16 robots: 0 of 6, behaviour.md section 8): not warned
-    about here (_too_heavy's share of all robots' push is the measured bar)."""
+    10 robots: 8 of 8), unless even the members behind and every spare together fall short: 8 robots behind
+    a 0.5 m box of 3 kg on friction 0.8, 1 of 3; a 0.6 m box of 3.5 kg (or 3 kg) on friction 0.6, 0 of 5
+    (2026-11-29, seeds 1-3 and 1-2; behaviour.md section 8). The model is optimistic about the spares: the same
+    box at 2.5 kg (14.7 N against its 17.1 N) moved in 0 of 2 runs, at 2 kg in 2 of 2; but a 0.5 m box of 2.5 kg
+    on friction 0.8 (19.6 N, 3 spares) was delivered in 2 of 2, so a smaller weight on them would warn about
+    runs that deliver. A 1.0 x 0.8 m box of 4 kg with 16 robots also delivered 0 of 6 runs though this model
+    gives them room: not warned about."""
     obj, robots = scenario.object, scenario.robots
     leg = _first_leg_deg(scenario)
     resisting, each = floor_friction_n(obj), push_force_n(robots)
@@ -187,6 +191,11 @@ def _cage_behind_too_weak(scenario: Any, hull: np.ndarray, spacing: float, robot
         return [f"{cage}, and {who}: it will most likely not move (a 0.4 m disc of 4 kg whose 6 robots were all "
                 "members moved 0.00 m in 2 of 2 runs). More robots, a smaller params.inter_robot_distance_m, or a "
                 "lighter object"]
+    with_spares = (behind + spares) * each
+    if with_spares < resisting <= HEAVY_SHARE * robots.count * each:    # past HEAVY_SHARE, _too_heavy says it
+        return [f"{cage}; with the {spares} other robots, which push too once the push stalls, about "
+                f"{with_spares:.1f} N: it will most likely not move (8 robots round a 0.6 m box of 3 or 3.5 kg on "
+                "friction 0.6 delivered it in 0 of 5 runs). More robots, or a lighter object"]
     return []      # the spares join once the push stalls (reinforce.py): such runs mostly deliver (section 8)
 
 

@@ -183,6 +183,19 @@ def test_an_object_heavier_than_every_robot_can_push_is_warned_about(make_scenar
     assert Simulation(transport(make_scenario, object=heavy, robots=strong)).warnings == []
 
 
+def test_a_cage_whose_members_behind_and_spares_together_fall_short_is_warned_about(make_scenario):
+    """A 0.6 m box of 3.5 kg on friction 0.6 (54 % of what 8 robots push, under _too_heavy's bar): 2 members'
+    worth behind it and 2 spares push about 17 N against 20.6 N, and 0 of 3 runs moved it (0 of 2 at 3 kg)."""
+    robots = {"count": 8, "spawn": {"x": [-2.0, -0.8], "y": [-2.0, -0.8]}}
+    box = {"shape": "box", "size": [0.6, 0.6], "mass": 3.5, "friction": 0.6, "position": [0, 0]}
+    (short,) = Simulation(transport(make_scenario, object=box, robots=robots, path=[[0, 0.5, 0]])).warnings
+    assert short.startswith("object.mass: a cage of about 6 (params.inter_robot_distance_m 0.45 m apart) pushes")
+    assert "with the 2 other robots, which push too once the push stalls, about 17.1 N: it will most likely not " \
+           "move" in short
+    light = dict(box, mass=2.0)        # 11.8 N: delivered in 2 of 2 runs (2.5 kg, 14.7 N: 0 of 2, not warned)
+    assert Simulation(transport(make_scenario, object=light, robots=robots, path=[[0, 0.5, 0]])).warnings == []
+
+
 def test_an_object_taking_most_of_what_every_robot_pushes_is_warned_about(make_scenario):
     """A 0.5 m box on friction 0.8 with 8 robots: 3 kg (62 % of 8 x 4.8 N) was delivered in 1 of 3 runs, 3.5 kg
     in none, 2.5 kg (52 %) in 2 of 2."""
