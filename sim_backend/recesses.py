@@ -2,7 +2,7 @@
 
 The swarm estimates the object from where its members are. A member that cages inside a recess (the notch of
 a U, the inner corner of an L) sits well inside the ring the others form, and pulls the estimate off the
-object's centroid; such runs often end about 0.1 m off (docs/behaviour.md section 8). A recess narrower than
+object's centroid; such runs often end 0.1-0.2 m off (docs/behaviour.md section 8). A recess narrower than
 a robot is harmless: no member gets in.
 """
 from __future__ import annotations

@@ -330,7 +330,9 @@ def _thinner_than_a_robot(scenario: Any, hull: np.ndarray, robot_radius: float) 
 def _recess(scenario: Any, geometry: Geometry, hull: np.ndarray, robot_radius: float) -> List[str]:
     """A recess a robot fits into, on an object to be moved (recesses.py). Measured (2026-11-28, 12 robots,
     0.6 m objects pushed 0.8 m, seeds 1-4): a U with a 0.30 m notch completed 2 of 8 runs (0.10-0.16 m off),
-    an L with 0.2 m arms 5 of 8, against a U with a 0.10 m notch 4 of 4 and the full square 3 of 3."""
+    an L with 0.2 m arms 5 of 8, against a U with a 0.10 m notch 4 of 4 and the full square 3 of 3. An L of
+    1.0 m arms, 0.4 m wide, with 14 robots (2026-11-29, seeds 1-5): 1 of 5, 0.18-0.21 m off, and one cage closed
+    across the recess, leaving part of the object outside its ring (behaviour.md section 8)."""
     obj = scenario.object
     if obj.static or not scenario.path:
         return []
@@ -339,8 +341,8 @@ def _recess(scenario: Any, geometry: Geometry, hull: np.ndarray, robot_radius: f
         return []
     return [f"{dimension_field(obj)}: the object has a recess a robot fits into ({width:.2f} m across): a member that "
             "cages inside it pulls the swarm's estimate of the object off its centroid, and such runs often "
-            "end about 0.1 m off (a 0.6 m U with a 0.3 m notch: 2 of 8 runs completed, an L 5 of 8; with a "
-            "0.1 m notch 4 of 4). Filling the recess in the object, or narrowing it below a robot's width, "
+            "end 0.1-0.2 m off (a 0.6 m U with a 0.3 m notch: 2 of 8 runs completed, an L 5 of 8, an L of 1 m "
+            "arms 1 of 5; with a 0.1 m notch 4 of 4). Filling the recess in the object, or narrowing it below a robot's width, "
             "avoids it"]
 
 
