@@ -341,9 +341,9 @@ def _recess(scenario: Any, geometry: Geometry, hull: np.ndarray, robot_radius: f
         return []
     return [f"{dimension_field(obj)}: the object has a recess a robot fits into ({width:.2f} m across): a member that "
             "cages inside it pulls the swarm's estimate of the object off its centroid, and such runs often "
-            "end 0.1-0.2 m off (a 0.6 m U with a 0.3 m notch: 2 of 8 runs completed, an L 5 of 8, an L of 1 m "
-            "arms 1 of 5; with a 0.1 m notch 4 of 4). Filling the recess in the object, or narrowing it below a robot's width, "
-            "avoids it"]
+            "end 0.1-0.2 m off (a 0.6 m U with a 0.3 m notch: 2 of 8 runs completed, an L 5 of 8, an L of "
+            "1 m arms 1 of 5; with a 0.1 m notch 4 of 4). Filling the recess in the object, or narrowing it "
+            "below a robot's width, avoids it"]
 
 
 def judges_yaw(obj: Any) -> bool:
