@@ -201,6 +201,11 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
         params = mission_params(cls, scenario)
     params.update(run.params or {})
     built = build_params(cls, params, "run.params")     # reject bad parameters here, not on every robot
+    if scenario is not None and scenario.object is None and getattr(built, "object_estimate", "") is None:
+        # The lab field would name a key the user of `khepri sil` never wrote: name the scenario's.
+        raise ConfigError("object", f"{scenario.name} has none, and the {name} behaviour needs to know where one "
+                                    "starts to run through a hub (run.params.object_estimate), as in `khepri sil`; "
+                                    "`khepri sim run` runs such a scenario, warning that no cage will close")
     check_required(name, built)
     if scenario is not None and "path" in (run.params or {}):
         check_path_inside_walls(scenario, getattr(built, "path", None) or [])

@@ -79,6 +79,18 @@ def test_the_warnings_go_by_the_time_limit_the_run_gets(tmp_path):
     assert "source.stale_s" in dropout and "held" in dropout
 
 
+def test_a_transport_scenario_without_an_object_is_refused_naming_the_scenarios_object(tmp_path):
+    """It was refused naming `run.params.object_estimate`, a key of a lab config the user of sil never wrote."""
+    from onboard.config import ConfigError
+
+    lab6 = load_scenario("lab-6")
+    scenario = lab6.with_overrides(object=None, path=[])
+    with pytest.raises(ConfigError) as info:
+        run_sil(scenario, tmp_path, SilOptions(plot=False, record=False, time_limit_s=1.0))
+    assert info.value.field == "object" and info.value.problem.startswith(
+        "lab-6 has none, and the transport behaviour needs to know where one starts to run through a hub")
+
+
 def test_a_realtime_run_stops_at_its_time_limit_as_lockstep_does(tmp_path):
     """`khepri sil ... --realtime --time-limit 2` wrote sim_time_s 2.1 and a 21st sample at t = 2.0: the step
     that began at the limit was observed. Lockstep and `sim run` give 2.0 s and 20 samples (t = 0 .. 1.9)."""
