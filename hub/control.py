@@ -141,6 +141,9 @@ def connection_cause(kind: Optional[str], watch: ConnectionWatch, keyed: bool) -
         return ("the hub refused this operator key: is that the hub's control port, the one it printed after "
                 "`listening control`, and not its robots port (which takes robot keys only)? If it is, does the "
                 "hub's key folder list the key in operators/?"), True
+    if kind == connection.HANDSHAKE_DROPPED and keyed and watch.protocol_error is None:   # libzmq's timing
+        return ("the hub dropped the encrypted handshake (no detail given): is the hub.key in --keys this hub's "
+                "key, and does the hub run with keys (not --insecure, for which ctl runs without --keys)?"), True
     if kind == connection.HANDSHAKE_DROPPED and keyed:
         return "the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key.", True
     if kind == connection.HANDSHAKE_DROPPED:  # libzmq says "no detail" as often as "mechanism mismatch", by timing

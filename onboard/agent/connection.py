@@ -143,6 +143,11 @@ class ConnectionWatch:
                 return "the hub is not encrypted (it runs --insecure): start the agent without --keys"
             return ("the hub is encrypted: start the agent with --keys, a folder holding hub.key and "
                     f"robots/robot-{robot_id}.key_secret")
+        if keyed and self.protocol_error is None:
+            # libzmq does not always give the reason in time: an --insecure hub was said to hold another key.
+            return ("the hub dropped the encrypted handshake (no detail given): is the hub.key in --keys this hub's "
+                    "key (not another hub's, or an older `khepri keys init`'s), and does the hub run with keys (not "
+                    "--insecure, for which the agent runs without --keys)?")
         if keyed:
             return ("the hub dropped the encrypted handshake: the hub.key in --keys is not this hub's key "
                     "(the keys of another hub, or of an older `khepri keys init`?)")
