@@ -107,6 +107,7 @@ class ControlService:
             return True, nothing_done(f"nothing to start: run {hub.run_id} is already going")
         if hub.mode == "idle":
             hub.run_id = uuid.uuid4().hex[:12]
+            hub.runs_started.add(hub.run_id)
             hub.estop_at = None             # a new run: the last e-stop's acknowledgement times are history
             for robot in hub.robots.values():
                 robot.estop_ack_s = None

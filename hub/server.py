@@ -96,6 +96,7 @@ class Hub(Downlink, Uplink, Housekeeping):
         self.outside_fence = np.zeros(len(self.ids), dtype=bool)
         self.killed: set = set()
         self.unknown_runs_said: set = set()     # runs agents were in that this hub never started (uplink.py)
+        self.runs_started: set = set()          # the runs this hub started (control_service.py)
         self.extras: Dict[int, Dict[str, Any]] = {}
         self.clock_s: Optional[float] = None
         self.last_frame_stamp = -math.inf

@@ -145,8 +145,9 @@ class Uplink:
 
     def _stop_unknown_run(self, robot: RobotLink) -> None:
         """An agent in a run this hub never started (the hub was restarted mid-run): stopped, and said once per
-        run. The new hub's console said only that robots connected, and its log had no trace of the run."""
-        if robot.run_id not in self.unknown_runs_said:
+        run. The new hub's console said only that robots connected, and its log had no trace of the run. An
+        agent still in a run this hub has ended (it reconnected as the run ended) is only told to stop."""
+        if robot.run_id not in self.unknown_runs_said and robot.run_id not in self.runs_started:
             self.unknown_runs_said.add(robot.run_id)
             self.log(f"hub: robot {robot.id} was in run {robot.run_id}, which this hub did not start (was the hub "
                      "restarted during it?): its robots are told to stop. With real robots the object is where "

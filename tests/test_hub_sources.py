@@ -582,6 +582,28 @@ def test_a_bad_field_inside_the_sim_scenario_file_names_the_file_and_the_field(t
         build_hub(config, log=lambda line: None)
 
 
+def test_an_agent_still_in_a_run_this_hub_ended_is_not_said_to_be_in_a_run_it_never_started():
+    """Hub and agents stopped together (SIGTERM to all): an agent reconnecting as the hub ended its run was said
+    to be `in run ..., which this hub did not start (was the hub restarted during it?)`."""
+    lines = []
+    hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True}}),
+                    log=lines.append)
+    try:
+        hub.bind()
+        hub.control.execute("start")
+        ended = hub.run_id
+        hub.control.execute("stop")
+        for robot in hub.robots.values():
+            robot.routing = b"\x00gone"           # a connection ZeroMQ no longer has: what is sent there is dropped
+        hub._on_hello(hub.robots[0], {"driver": "sim", "run_id": ended}, time.monotonic())
+        assert not [line for line in lines if "did not start" in line], lines
+        hub._on_hello(hub.robots[1], {"driver": "sim", "run_id": "0123456789ab"}, time.monotonic())
+        (unknown,) = [line for line in lines if "did not start" in line]
+        assert unknown.startswith("hub: robot 1 was in run 0123456789ab, which this hub did not start")
+    finally:
+        hub.close()
+
+
 def test_a_real_robots_agent_joining_a_sim_hub_is_told_about_once():
     lines = []
     hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True}}),
