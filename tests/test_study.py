@@ -182,7 +182,9 @@ def test_the_summarys_overrides_column_writes_lists_and_mappings_as_json_without
     ("scenarios: lab-6\nreps: 2", "scenarios: must be a non-empty list"),
     ("scenarios: [no-such-scenario]\nreps: 2", "scenarios[0]: scenario: unknown scenario 'no-such-scenario'"),
     ("scenarios: [lab-6]\nreps: 0", "reps: must be an integer >= 1 (got 0)"),
-    ("scenarios: [lab-6]", "seeds: give either seeds"),
+    ("scenarios: [lab-6]", "seeds: missing: give seeds (a list, or 'first..last') or reps"),
+    ("scenarios: [lab-6]\nseeds: [1]\nreps: 2", "seeds: give either seeds (a list, or 'first..last') or reps (seeds "
+     "1..reps), not both"),
     ("scenarios: [lab-6]\nseeds: 5..2", "seeds: a range must read 'first..last'"),
     ("scenarios: [lab-6]\nseeds: [1, -3]", "seeds[1]: must be an integer >= 0"),
     # A bare number is ambiguous (seed 3, or three seeds): both spellings are offered.
@@ -1427,7 +1429,7 @@ def test_reps_on_the_command_line_gives_a_study_file_its_seeds(tmp_path, capsys)
     assert main(["study", str(study), "--reps", "2", "--dry-run", "--out", str(tmp_path / "out")]) == 0
     assert "2 runs, 2 to run" in capsys.readouterr().out
     assert main(["study", str(study), "--dry-run", "--out", str(tmp_path / "out")]) == 2   # neither: say so
-    assert "seeds: give either seeds" in capsys.readouterr().err
+    assert "seeds: missing: give seeds" in capsys.readouterr().err
 
 
 def test_the_study_time_limit_is_what_fault_warnings_and_overrides_go_by(tmp_path):

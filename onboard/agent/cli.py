@@ -40,7 +40,8 @@ def add_agent_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calibration", help="kh4: this robot's IR calibration YAML")
     parser.add_argument("--watchdog", type=float, default=0.25, metavar="S",
                         help="stop the wheels after S seconds without a hub frame (default 0.25, at most 0.3)")
-    parser.add_argument("--quiet", action="store_true", help="log only problems")
+    parser.add_argument("--quiet", action="store_true",
+                        help="log only problems and what stops the wheels (a run's stop, an e-stop, a hold)")
     parser.add_argument("--import", dest="agent_imports", action="append", default=[], metavar="MODULE",
                         help="import MODULE first: your behaviour's module name or .py file (repeatable)")
 

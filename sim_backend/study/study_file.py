@@ -124,8 +124,11 @@ def check_not_relative_to_cwd(where: str, item: str, base_dir: Path) -> None:
 
 
 def parse_seeds(data: Dict[str, Any]) -> List[int]:
-    if ("seeds" in data) == ("reps" in data):
-        raise ConfigError("seeds", "give either seeds (a list, or 'first..last') or reps (seeds 1..reps)")
+    if "seeds" in data and "reps" in data:
+        raise ConfigError("seeds", "give either seeds (a list, or 'first..last') or reps (seeds 1..reps), not both")
+    if "seeds" not in data and "reps" not in data:
+        raise ConfigError("seeds", "missing: give seeds (a list, or 'first..last') or reps (seeds 1..reps), here or "
+                                   "as --reps")
     if "reps" in data:
         return list(range(1, check_reps("reps", data["reps"]) + 1))
     value = data["seeds"]
