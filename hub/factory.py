@@ -204,8 +204,9 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     if scenario is not None and scenario.object is None and getattr(built, "object_estimate", "") is None:
         # The lab field would name a key the user of `khepri sil` never wrote: name the scenario's.
         raise ConfigError("object", f"{scenario.name} has none, and the {name} behaviour needs to know where one "
-                                    "starts to run through a hub (run.params.object_estimate), as in `khepri sil`; "
-                                    "`khepri sim run` runs such a scenario, warning that no cage will close")
+                                    "starts to run through a hub (`khepri hub` or `khepri sil`): give the scenario "
+                                    "an object (a lab config may give run.params.object_estimate instead); "
+                                    "`khepri sim run` runs it as it is, warning that no cage will close")
     check_required(name, built)
     if scenario is not None and "path" in (run.params or {}):
         check_path_inside_walls(scenario, getattr(built, "path", None) or [])

@@ -4,10 +4,11 @@ connection on, without a restart.
 
 The folder is re-read when a peer's CURVE handshake asks the hub for its verdict (at most every
 ``CHECK_EVERY_S``, so a flood of handshakes cannot keep the hub reading files), and only when the public key
-files changed. A folder that cannot be read as a whole (a key file half written, two files with one key) leaves
-the keys as they were, says why once, and is tried again at the next handshake. Connections already open keep
-going: a revoked robot's agent runs on until it reconnects (``khepri ctl estop``, or switch the robot off, to stop
-it at once). The hub's own pair is read at start only.
+files changed. A folder that cannot be read as a whole (a key file half written, two files with one key, a stray
+``.key`` file) still loses the keys whose files were deleted, keeps the others, says why (again whenever its
+files change) and is tried again at the next handshake. Connections already open keep going: a revoked robot's
+agent runs on until it reconnects (``khepri ctl estop``, or switch the robot off, to stop it at once). The hub's
+own pair is read at start only.
 """
 from __future__ import annotations
 
@@ -22,9 +23,10 @@ from .keyfiles import KeyRing, load_keyring
 
 CHECK_EVERY_S = 0.5
 PEER_FOLDERS = ("robots", "operators")
+KeyFiles = Tuple[Tuple[str, str, bytes], ...]
 
 
-def peer_key_files(folder: Path) -> Tuple[Tuple[str, str, bytes], ...]:
+def peer_key_files(folder: Path) -> KeyFiles:
     """What decides which peers the hub accepts: every public key file of the peers, with its contents."""
     found: List[Tuple[str, str, bytes]] = []
     for sub in PEER_FOLDERS:
@@ -46,9 +48,12 @@ class KeyReload:
 
     def __init__(self, ring: KeyRing, log: Callable[[str], None], clock: Callable[[], float] = time.monotonic):
         self.ring, self.log, self.clock = ring, log, clock
-        self.files = peer_key_files(ring.folder)
+        # None: read the folder at the first handshake, whatever it holds. The ring was loaded before the hub
+        # connected to its motion capture (seconds, at times), and a key changed meanwhile would be missed.
+        self.files: Optional[KeyFiles] = None
         self.checked_at = -math.inf
-        self.problem: Optional[str] = None       # why the folder could not be re-read, once said
+        self.problem: Optional[str] = None       # why the folder cannot be read, while it cannot
+        self._problem_said: Optional[Tuple[str, KeyFiles]] = None
 
     def refresh(self) -> None:
         now = self.clock()
@@ -61,24 +66,49 @@ class KeyReload:
         try:
             fresh = load_keyring(self.ring.folder, need_robots=False)
         except ConfigError as err:
-            if str(err) != self.problem:
-                self.log(f"hub: the key folder changed, but cannot be read ({err}): the hub goes on accepting the "
-                         "keys it had; it tries again at the next connection")
-                self.problem = str(err)
+            self._unreadable(str(err), files)
             return
-        self.files, self.problem = files, None
+        self.files, self.problem, self._problem_said = files, None, None
         self._take(fresh)
+
+    def _unreadable(self, problem: str, files: KeyFiles) -> None:
+        """Keep the keys the hub had, but those whose file is gone: a stray file must not hold a revocation up."""
+        self.problem = problem
+        self.files = None                  # read it whole again once it can be, whatever it then holds
+        gone = self._drop_deleted()
+        if self._problem_said != (problem, files):
+            self._problem_said = (problem, files)
+            self.log(f"hub: the key folder changed, but cannot be read ({problem}): the hub goes on accepting the "
+                     "keys it had" + (f", but those of {', '.join(gone)}, whose files are gone" if gone else "")
+                     + "; it tries again at the next connection")
+
+    def _drop_deleted(self) -> List[str]:
+        ring, gone = self.ring, []
+        for key, rid in list(ring.robots.items()):
+            if not (ring.folder / "robots" / f"robot-{rid}.key").is_file():
+                del ring.robots[key]
+                gone.append(f"robot {rid}")
+        for key, name in list(ring.operators.items()):
+            if not (ring.folder / "operators" / f"{name}.key").is_file():
+                del ring.operators[key]
+                gone.append(f"operator {name}")
+        return gone
 
     def _take(self, fresh: KeyRing) -> None:
         ring = self.ring
-        added = _names(fresh.robots, ring.robots, "robot") + _names(fresh.operators, ring.operators, "operator")
-        gone = _names(ring.robots, fresh.robots, "robot") + _names(ring.operators, fresh.operators, "operator")
+        changes = (_changes(ring.robots, fresh.robots, "robot")
+                   + _changes(ring.operators, fresh.operators, "operator"))
         ring.robots.clear()
         ring.robots.update(fresh.robots)
         ring.operators.clear()
         ring.operators.update(fresh.operators)
+        added = [text for kind, text in changes if kind == "added"]
+        replaced = [text for kind, text in changes if kind == "replaced"]
+        gone = [text for kind, text in changes if kind == "gone"]
         if added:
             self.log(f"hub: accepting the keys of {', '.join(added)} (added to {ring.folder})")
+        if replaced:
+            self.log(f"hub: new keys for {', '.join(replaced)} in {ring.folder}: their old keys are refused")
         if gone:
             self.log(f"hub: no longer accepting the keys of {', '.join(gone)} (gone from {ring.folder}); a "
                      "connection open already goes on until it closes (`khepri ctl estop` stops every robot at once)")
@@ -87,6 +117,17 @@ class KeyReload:
                      "it restarts")
 
 
-def _names(keys: Dict[bytes, object], other: Dict[bytes, object], kind: str) -> List[str]:
-    """Who holds a key in ``keys`` that ``other`` lacks: ``robot 3``, ``operator alice``."""
-    return [f"{kind} {keys[key]}" for key in keys if key not in other]
+def _changes(old: Dict[bytes, object], new: Dict[bytes, object], kind: str) -> List[Tuple[str, str]]:
+    """("added" | "replaced" | "gone", "robot 3") per identity whose key changed. A key that moved to another
+    identity (robot-1.key renamed robot-5.key) is said as such: robot 1's secret now speaks for robot 5."""
+    old_by_id = {who: key for key, who in old.items()}
+    new_by_id = {who: key for key, who in new.items()}
+    found = []
+    for who, key in new_by_id.items():
+        if who not in old_by_id:
+            moved = old.get(key)
+            found.append(("added", f"{kind} {who}" + (f" (the key {kind} {moved} had)" if moved is not None else "")))
+        elif old_by_id[who] != key:
+            found.append(("replaced", f"{kind} {who}"))
+    found += [("gone", f"{kind} {who}") for who in old_by_id if who not in new_by_id]
+    return found

@@ -23,7 +23,7 @@ from zmq.auth.thread import ThreadAuthenticator
 from onboard.config import ConfigError
 
 from .key_reload import KeyReload
-from .keyfiles import KeyRing, load_public
+from .keyfiles import ROBOT_KEY, KeyRing, load_public
 
 ROBOT_DOMAIN = "robots"
 OPERATOR_DOMAIN = "operators"
@@ -107,8 +107,12 @@ class HubAuthenticator(ThreadAuthenticator):
         who = "a robot" if domain == ROBOT_DOMAIN else "an operator"
         added = _key_file_holding(self.ring.folder / domain, zmq.utils.z85.encode(msg[6]))
         if added is not None:       # "not in keys/robots" would read as wrong: it is there
-            why = ("the key folder cannot be read as a whole (said above); once it can, the key is accepted"
-                   if self.reload.problem else "it was added just now, and is accepted at the next try")
+            if domain == ROBOT_DOMAIN and not ROBOT_KEY.match(added.name):
+                why = "a robot's key file must be named robot-<id>.key (the name gives the robot's id)"
+            elif self.reload.problem:
+                why = "the key folder cannot be read as a whole (said above); once it can, the key is accepted"
+            else:
+                why = "it was added just now, and is accepted at the next try"
             self.hub_log(f"hub: refused {who} key from {address}: {added} holds it, but {why}")
             return
         self.hub_log(f"hub: refused {who} key from {address}: not in {self.ring.folder / domain} "

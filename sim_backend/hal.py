@@ -282,12 +282,10 @@ class SimOdometry(hal.Odometry):
         left, right = self._frame.odometry_rows[self._index]
         return _record(WheelOdometry, left_m=left - self._left_zero, right_m=right - self._right_zero)
 
-    def count_from_here(self) -> None:
-        """Count from 0 again, as a restarted agent's KheperaIV driver does (it reads its encoders' start). The
-        wheels of a robot whose agent is down are stopped, so the last step's counts are still its counts."""
-        rows = self._frame.odometry_rows
-        if rows:                                   # none before the first step: the counts start at 0 anyway
-            self._left_zero, self._right_zero = rows[self._index]
+    def count_from_here(self, counts: Tuple[float, float]) -> None:
+        """Count from 0 again, from the world's ``counts`` now, as a restarted agent's KheperaIV driver does (it
+        reads its encoders' start)."""
+        self._left_zero, self._right_zero = counts
 
 
 class SimPositioning(hal.Positioning):

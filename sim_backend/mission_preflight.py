@@ -16,6 +16,13 @@ def mission_warnings(scenario: Any, params: Any) -> List[str]:
             + _radians_for_degrees(scenario))
 
 
+def judges_yaw(obj: Any) -> bool:
+    """Whether a run is judged on the object's yaw. A disc looks the same at every yaw, and nothing a robot
+    senses can tell how it turned: its orientation is reported but not judged, so a turn asked of it is no
+    risk to warn about."""
+    return obj is None or obj.shape != "circle"
+
+
 def _fault_times(scenario: Any) -> List[str]:
     """Faults that never happen within the run, and restarts that never come back within it."""
     limit = scenario.time_limit_s
@@ -32,13 +39,14 @@ def _fault_times(scenario: Any) -> List[str]:
 
 def _waypoints_already_there(scenario: Any) -> List[str]:
     """A waypoint the object stands on already, yaw and all (the object's start written as the path, or a line
-    copied twice): it is counted reached as soon as the cage stands, and nothing moves for it."""
+    copied twice; a disc's yaw is not judged): it is counted reached as soon as the cage stands, and nothing
+    moves for it."""
     if scenario.object is None:
         return []
     found, before, where = [], (*scenario.object.position, scenario.object.yaw_deg), "the object's start"
     for i, waypoint in enumerate(scenario.path):
         if (math.hypot(waypoint[0] - before[0], waypoint[1] - before[1]) < SAME_PLACE_M
-                and abs(wrap_deg(waypoint[2] - before[2])) < SAME_YAW_DEG):
+                and (abs(wrap_deg(waypoint[2] - before[2])) < SAME_YAW_DEG or not judges_yaw(scenario.object))):
             found.append(f"path[{i}]: it is {where}, yaw and all: the object is there already, so it counts as "
                          "reached at once and nothing is pushed or turned for it")
         before, where = waypoint, f"path[{i}] again"

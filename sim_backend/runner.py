@@ -207,7 +207,7 @@ class Simulation:
                 # A new agent's wheels start stopped: the old behaviour's last command, kept in the robot's HAL,
                 # drove a new behaviour that had not set them yet.
                 self.robots[index].wheels.stop()
-                self.robots[index].odometry.count_from_here()
+                self.robots[index].odometry.count_from_here(tuple(self.world.odometry()[index].tolist()))
                 self.behaviours[index] = make_behaviours(self.behaviour_class, [self.robots[index]], self.params)[0]
 
     def _step_behaviours(self, alive: np.ndarray) -> None:

@@ -16,7 +16,7 @@ from onboard.behaviour import build_params, get_behaviour, takes_param
 from onboard.config import MAX_NAME_LENGTH, ConfigError, check_range, from_mapping, has_control_character, join
 from onboard.yamlfile import read_yaml
 
-from .object_spec import MAX_YAW_DEG, ObjectSpec, check_extent, check_point
+from .object_spec import ObjectSpec, check_extent, check_point, check_yaw
 
 BUILTIN_DIR = Path(__file__).parent / "scenarios"
 
@@ -211,8 +211,9 @@ class Scenario:
             failing[fault.robot] = i
         for i, (x, y, yaw) in enumerate(self.path):
             check_point(f"path[{i}]", (x, y))
-            if not math.isfinite(yaw) or abs(yaw) > MAX_YAW_DEG:
-                raise ConfigError(f"path[{i}]", f"yaw must be an angle within +-{MAX_YAW_DEG:g} degrees (got {yaw:g})")
+            if not math.isfinite(yaw):
+                raise ConfigError(f"path[{i}]", "yaw must be finite")
+            check_yaw(f"path[{i}][2]", yaw)
         if self.path and self.object is None:
             raise ConfigError("path", "a path needs an object to move")
         if self.path and self.object is not None and self.object.static:

@@ -11,7 +11,7 @@ from typing import Any, List, Optional
 
 import numpy as np
 
-from .mission_preflight import mission_warnings, wrap_deg
+from .mission_preflight import judges_yaw, mission_warnings, wrap_deg
 from .object_hull import (
     CAGE_GAP_M,
     FACE_SHARE,
@@ -159,7 +159,8 @@ def _too_heavy(scenario: Any) -> List[str]:
 def _cage_behind_too_weak(scenario: Any, hull: np.ndarray, spacing: float, robot_radius: float,
                           params: Any) -> List[str]:
     """The members behind the object on the first leg cannot slide it, and no spare robot will push with them
-    (every robot a member, or reinforcing off). The members are about ring // I_d, spread
+    (every robot a member, or reinforcing off), or the spares, counted as if each pushed square, would not make
+    up the difference either (below _too_heavy's bar). The members are about ring // I_d, spread
     evenly round the ring; each pushes along the leg with the cosine of its face's angle to it
     (behind_share). Measured (2026-11-29): a 0.4 m disc of 4 kg with 6 robots, all members, 0 of 2 (it never
     moved), at 2 kg 2 of 2. Where spares join once the push stalls, runs mostly deliver (a 0.6 m box of 4 kg,
@@ -193,7 +194,8 @@ def _cage_behind_too_weak(scenario: Any, hull: np.ndarray, spacing: float, robot
                 "lighter object"]
     with_spares = (behind + spares) * each
     if with_spares < resisting <= HEAVY_SHARE * robots.count * each:    # past HEAVY_SHARE, _too_heavy says it
-        return [f"{cage}; with the {spares} other robots, which push too once the push stalls, about "
+        others = "the other robot, which pushes" if spares == 1 else f"the {spares} other robots, which push"
+        return [f"{cage}; with {others} too once the push stalls, about "
                 f"{with_spares:.1f} N: it will most likely not move (8 robots round a 0.6 m box of 3 or 3.5 kg on "
                 "friction 0.6 delivered it in 0 of 5 runs). More robots, or a lighter object"]
     return []      # the spares join once the push stalls (reinforce.py): such runs mostly deliver (section 8)
@@ -344,13 +346,6 @@ def _recess(scenario: Any, geometry: Geometry, hull: np.ndarray, robot_radius: f
             "end 0.1-0.2 m off (a 0.6 m U with a 0.3 m notch: 2 of 8 runs completed, an L 5 of 8, an L of "
             "1 m arms 1 of 5; with a 0.1 m notch 4 of 4). Filling the recess in the object, or narrowing it "
             "below a robot's width, avoids it"]
-
-
-def judges_yaw(obj: Any) -> bool:
-    """Whether a run is judged on the object's yaw. A disc looks the same at every yaw, and nothing a robot
-    senses can tell how it turned: its orientation is reported but not judged, so a turn asked of it is no
-    risk to warn about."""
-    return obj is None or obj.shape != "circle"
 
 
 def _narrow_end_ahead(hull: np.ndarray, direction_deg: float) -> Optional[float]:

@@ -455,13 +455,20 @@ def test_a_driver_failing_inside_step_is_reported_as_the_drivers_fault_not_the_b
         link.close()
 
 
-def test_the_sim_driver_counts_the_encoders_from_its_first_reading_as_the_kh4_driver_does():
-    """An agent that joins (or restarts) mid-run: its odometry starts at 0 on a robot, so in SIL too."""
-    readings = {"ir": [0.0] * 8, "odo": [1.5, 1.25]}
-    driver = SimDriver(lambda message: True, lambda: readings)
-    assert driver.encoders() == WheelOdometry(0.0, 0.0)
-    readings = {"ir": [0.0] * 8, "odo": [1.75, 1.0]}
+def test_the_sim_driver_counts_the_encoders_from_the_agents_first_frame_as_the_kh4_driver_does():
+    """An agent that joins (or restarts) mid-run: its odometry starts at 0 on a robot, so in SIL too, and from
+    the agent's first frame, not from whenever its behaviour first reads it."""
+    state = HubState()
+    apply_frame(state, frame_with_odometry(1, [1.5, 1.25]), AgentClock(state), 1.0)
+    driver = SimDriver(lambda message: True, lambda: state.sim, lambda: state.sim_first)
+    apply_frame(state, frame_with_odometry(2, [1.75, 1.0]), AgentClock(state), 1.0)
     assert driver.encoders() == WheelOdometry(0.25, -0.25)
+    apply_frame(state, frame_with_odometry(3, [2.0, 1.0]), AgentClock(state), 1.0)
+    assert driver.encoders() == WheelOdometry(0.5, -0.25)
+
+
+def frame_with_odometry(seq, odometry):
+    return {"seq": seq, "pose": None, "neighbours": [], "messages": [], "sim": {"ir": [0.0] * 8, "odo": odometry}}
 
 
 def test_an_empty_library_or_calibration_path_is_refused_not_taken_as_the_default():

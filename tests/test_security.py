@@ -354,6 +354,86 @@ def test_a_key_folder_that_cannot_be_read_keeps_the_keys_the_hub_had_and_says_wh
                     "keys it had; it tries again at the next connection"], secure_hub.lines
 
 
+class Clock:
+    """A hand-turned clock for KeyReload: each reading half a minute on, so that every refresh looks."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        self.now += 30.0
+        return self.now
+
+
+def key_reload(keys):
+    from hub.key_reload import KeyReload
+
+    lines = []
+    ring = load_keyring(keys)
+    return ring, KeyReload(ring, lines.append, clock=Clock()), lines
+
+
+def test_a_stray_key_file_does_not_hold_up_a_revocation(keys):
+    """A folder that cannot be read as a whole kept every key it had, a deleted one too, and said so only once."""
+    ring, reload, lines = key_reload(keys)
+    (keys / "operators" / "notes.key").write_text("not a key")
+    reload.refresh()
+    assert sorted(ring.robots.values()) == [0, 1] and len(lines) == 1 and "notes.key" in lines[0]
+    (keys / "robots" / "robot-1.key").unlink()
+    reload.refresh()
+    assert sorted(ring.robots.values()) == [0]
+    assert lines[1].endswith("the hub goes on accepting the keys it had, but those of robot 1, whose files are "
+                             "gone; it tries again at the next connection"), lines
+    (keys / "operators" / "notes.key").unlink()
+    add_keys(keys, [1], [])
+    reload.refresh()
+    assert sorted(ring.robots.values()) == [0, 1] and reload.problem is None
+    assert lines[2:] == [f"hub: accepting the keys of robot 1 (added to {keys})"], lines
+
+
+def test_a_key_file_renamed_to_another_robot_is_said_to_speak_for_it(keys):
+    ring, reload, lines = key_reload(keys)
+    (keys / "robots" / "robot-1.key").rename(keys / "robots" / "robot-5.key")
+    reload.refresh()
+    assert sorted(ring.robots.values()) == [0, 5]
+    assert lines == [f"hub: accepting the keys of robot 5 (the key robot 1 had) (added to {keys})",
+                     f"hub: no longer accepting the keys of robot 1 (gone from {keys}); a connection open already "
+                     "goes on until it closes (`khepri ctl estop` stops every robot at once)"], lines
+
+
+def test_a_robot_given_a_new_pair_is_said_once_as_such(keys):
+    ring, reload, lines = key_reload(keys)
+    old = next(key for key, rid in ring.robots.items() if rid == 0)
+    for name in ("robot-0.key", "robot-0.key_secret"):
+        (keys / "robots" / name).unlink()
+    add_keys(keys, [0], [])
+    reload.refresh()
+    assert sorted(ring.robots.values()) == [0, 1] and old not in ring.robots
+    assert lines == [f"hub: new keys for robot 0 in {keys}: their old keys are refused"], lines
+
+
+def test_a_key_changed_while_the_hub_started_is_read_at_the_first_connection(keys):
+    """The keys are loaded before the hub connects to its motion capture (seconds, at times), and the folder's
+    files were first looked at after that: a key added in between was missed until another file changed."""
+    ring, reload, lines = key_reload(keys)
+    add_keys(keys, [7], [])             # between loading the ring and the first handshake
+    reload.refresh()
+    assert sorted(ring.robots.values()) == [0, 1, 7], lines
+
+
+def test_a_robot_key_file_with_the_wrong_name_is_said_so_when_refused(secure_hub, keys):
+    (keys / "robots" / "robot_7.key").write_bytes((keys / "robots" / "robot-1.key").read_bytes())
+    (keys / "robots" / "robot-1.key").unlink()
+    pair = load_robot_keys(keys, 1)
+    sock = client(secure_hub.endpoints["robots"], (pair["public"], pair["secret"], pair["server"]))
+    hammer(sock, [HELLO_1], listen_s=1.0)
+    sock.close(0)
+    refused = [line for line in secure_hub.lines if "refused a robot key" in line]
+    assert refused and refused[-1].endswith(f"{keys / 'robots' / 'robot_7.key'} holds it, but a robot's key file "
+                                            "must be named robot-<id>.key (the name gives the robot's id)"), \
+        secure_hub.lines
+
+
 HANDSHAKE = "to the robot socket in the CURVE handshake: "
 UNENCRYPTED = ("it is not encrypted: a robot's agent started without --keys?; nothing was answered (said at most "
                "every 10 s per address)")

@@ -88,7 +88,8 @@ def test_a_transport_scenario_without_an_object_is_refused_naming_the_scenarios_
     with pytest.raises(ConfigError) as info:
         run_sil(scenario, tmp_path, SilOptions(plot=False, record=False, time_limit_s=1.0))
     assert info.value.field == "object" and info.value.problem.startswith(
-        "lab-6 has none, and the transport behaviour needs to know where one starts to run through a hub")
+        "lab-6 has none, and the transport behaviour needs to know where one starts to run through a hub "
+        "(`khepri hub` or `khepri sil`): give the scenario an object")
 
 
 def test_a_realtime_run_stops_at_its_time_limit_as_lockstep_does(tmp_path):

@@ -337,18 +337,19 @@ def test_a_restarted_agents_new_behaviour_starts_with_its_wheels_stopped(make_sc
     assert np.hypot(*(sim.world.robot_poses()[0, :2] - back)) < 0.005
 
 
+@pytest.mark.parametrize("down_s", [1.0, 0.0])
 def test_a_restarted_agents_odometry_counts_from_zero_as_the_kheperaiv_drivers_does(make_scenario,
-                                                                                   drives_only_at_first):
+                                                                                   drives_only_at_first, down_s):
     """The KheperaIV driver counts the encoders from the agent's start; the simulator carried the old agent's
-    counts over to the new behaviour."""
+    counts over to the new behaviour (and, restarted at once, counted from the step before)."""
     scenario = make_scenario(behaviour=drives_only_at_first, robots={"count": 1},
-                             faults=[{"robot": 0, "at_s": 2.0, "restart_after_s": 1.0}], time_limit_s=6)
+                             faults=[{"robot": 0, "at_s": 2.0, "restart_after_s": down_s}], time_limit_s=6)
     sim = Simulation(scenario, seed=1)
     while sim.step_index * sim.period < 2.0:                       # it drives at 0.1 m/s until its agent stops
         sim.step()
     before = sim.robots[0].odometry.read()
     assert before.left_m > 0.15 and before.right_m > 0.15
-    while sim.step_index * sim.period < 3.1:
+    while sim.step_index * sim.period < 2.0 + down_s + 0.1:
         sim.step()
     after = sim.robots[0].odometry.read()
     assert (after.left_m, after.right_m) == (0.0, 0.0)

@@ -125,7 +125,7 @@ def open_driver(args: argparse.Namespace, agent) -> Driver:
     if args.driver == "sim":
         from onboard.drivers.sim import SimDriver
 
-        return SimDriver(agent.link.send, lambda: agent.state.sim)
+        return SimDriver(agent.link.send, lambda: agent.state.sim, lambda: agent.state.sim_first)
     try:
         kh4 = importlib.import_module("onboard.drivers.kh4")
         calibration = importlib.import_module("onboard.drivers.calibration")

@@ -32,6 +32,7 @@ class HubState:
     neighbours_at: float = 0.0              # robot-clock time the neighbours were measured
     hub_clock_s: Optional[float] = None
     sim: Optional[Dict[str, Any]] = None    # IR and odometry from the hub's sim source
+    sim_first: Optional[Dict[str, Any]] = None   # the first frame's: where the sim driver's encoders count from
     inbox: Deque[Message] = field(default_factory=lambda: deque(maxlen=INBOX_LIMIT))
     frames_lost: int = 0
     inbox_dropped: int = 0                  # relayed messages pushed out of a full inbox before a step read them
@@ -74,6 +75,8 @@ def apply_frame(state: HubState, frame: Dict[str, Any], clock: AgentClock, recei
     state.received_at = received_at
     state.hub_clock_s = frame.get("clock_s", state.hub_clock_s)
     state.sim = frame.get("sim", state.sim)
+    if state.sim_first is None:
+        state.sim_first = state.sim
     now = clock.now()
     # In lockstep the pose belongs to the frame's simulated instant; in real time it is age_s old on arrival.
     measured = now if clock.use_hub_clock else now - frame.get("pose_age_s", 0.0)

@@ -206,7 +206,7 @@ def load_robot_keys(folder: Path, robot_id: int) -> Dict[str, bytes]:
     if not secret_file.is_file():
         raise ConfigError("--keys", f"missing {secret_file}: copy it from the lab PC's key folder; a robot that "
                                     f"has no key there yet gets one with `khepri keys add KEYS --robots {robot_id},` "
-                                    f"(then restart the hub)")
+                                    f"(a running hub accepts it from then on)")
     if not hub_file.is_file():
         raise ConfigError("--keys", f"missing {hub_file}: copy hub.key from the lab PC's key folder (made by "
                                     "`khepri keys init`)")

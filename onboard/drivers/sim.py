@@ -15,12 +15,16 @@ from onboard.hal import WheelOdometry
 class SimDriver(Driver):
     name = "sim"
 
-    def __init__(self, send: Callable[[Dict[str, Any]], bool], readings: Callable[[], Optional[Dict[str, Any]]]):
-        """``send`` delivers an uplink message to the hub; ``readings`` returns the latest frame's ``sim`` field."""
+    def __init__(self, send: Callable[[Dict[str, Any]], bool], readings: Callable[[], Optional[Dict[str, Any]]],
+                 first: Optional[Callable[[], Optional[Dict[str, Any]]]] = None):
+        """``send`` delivers an uplink message to the hub; ``readings`` returns the latest frame's ``sim`` field,
+        ``first`` the first frame's since the agent started (where the encoders count from; without it, the
+        first reading's)."""
         self.send = send
         self.readings = readings
+        self.first = first if first is not None else readings
         self.left = self.right = 0.0
-        self._zero: Optional[WheelOdometry] = None   # the simulator's counts when this driver first read them
+        self._zero: Optional[WheelOdometry] = None   # the simulator's counts when this agent's frames began
 
     def set_wheel_speeds(self, left_m_s: float, right_m_s: float) -> None:
         self.left, self.right = float(left_m_s), float(right_m_s)
@@ -33,12 +37,13 @@ class SimDriver(Driver):
         return list(data["ir"]) if data else [0.0] * 8
 
     def encoders(self) -> WheelOdometry:
-        """Distances rolled since this driver's first reading, as the KheperaIV driver counts from its start:
-        an agent restarted mid-run starts at 0 on either driver."""
+        """Distances rolled since the agent's first frame, as the KheperaIV driver counts from its start: an
+        agent restarted mid-run starts at 0 on either driver, whenever its behaviour first reads them."""
         data = self.readings()
         if not data:
             return WheelOdometry(0.0, 0.0)
-        counts = WheelOdometry(*data["odo"])
         if self._zero is None:
-            self._zero = counts
+            start = self.first() or data
+            self._zero = WheelOdometry(*start["odo"])
+        counts = WheelOdometry(*data["odo"])
         return WheelOdometry(counts.left_m - self._zero.left_m, counts.right_m - self._zero.right_m)
