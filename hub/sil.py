@@ -8,8 +8,7 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
-import signal
+import re
 import subprocess
 import sys
 import tempfile
@@ -25,13 +24,22 @@ from sim_backend.runner import mission_params
 from sim_backend.scenario import Scenario
 
 from .config import DEFAULT_WATCHDOG_S, min_watchdog_s, parse_config
-from .factory import build_hub
+from .factory import build_hub, run_template
 from .harness import spawn_agent, stop_processes
 from .keyfiles import init_keys
 from .lockstep import UNRESPONSIVE_AFTER_STEPS, Lockstep
 from .runner import print_now
+from .sil_agents import (
+    KEY_FOLDER_PREFIX,
+    agent_log_line,
+    agent_traceback,
+    exit_text,
+    let_leaving_agents_exit,
+    remove_stale_key_folders,
+    stop_failure,
+)
 from .sil_report import SilRecording, agents_total, sil_figures
-from .sim_source import not_simulated_here
+from .sim_source import not_simulated_here, refuse_agent_restarts
 
 CONNECT_TIMEOUT_S = 60.0
 
@@ -56,6 +64,7 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     # The time limit the run gets, as `sim run` does: the warnings (a fault that never fires) go by it.
     scenario = scenario.with_overrides(seed=seed).with_time_limit(options.time_limit_s)
     limit = scenario.time_limit_s
+    refuse_before_starting(scenario)     # before the folder's last run is cleared away for this one
     # backslashreplace: a line quoting a robot's text with a lone surrogate is written escaped, not a crash
     hub_log = open(out / "hub.log", "w", encoding="utf-8", errors="backslashreplace")   # noqa: SIM115 - closed below
 
@@ -75,27 +84,24 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     with tempfile.TemporaryDirectory(prefix=f"{KEY_FOLDER_PREFIX}{os.getpid()}-") as key_dir:
         keys = Path(key_dir)
         init_keys(keys, list(range(scenario.robots.count)), ["sil"])
-        config = parse_config({
-            # One run, on the world the session's evaluator and recording hold: never rebuilt under them.
-            "source": {"type": "sim", "lockstep": not options.realtime, "reset_each_run": False},
-            "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0},
-            "security": {"keys": str(keys)},
-            "record": str(out / "hub.mcap") if options.record else None,
-            # The agents' telemetry comes once per control step: a slow scenario needs a longer watchdog.
-            "watchdog_s": max(DEFAULT_WATCHDOG_S, min_watchdog_s(scenario.physics.control_hz)),
-        })
+        config = parse_config(sil_config(scenario, options, {"keys": str(keys)},
+                                         str(out / "hub.mcap") if options.record else None))
         hub = build_hub(config, log=log, scenario=scenario)
         agents: List[subprocess.Popen] = []
+        result: Dict[str, Any] = {}
         try:
             hub.bind()
             agents = spawn_agents(hub.endpoints["robots"], keys, scenario.robots.count, out, options.imports)
             session = SilSession(hub, scenario, agents, options, limit, out)
+            logged_by_hub = set(not_simulated_here(scenario))      # its sim source said those as it started
             for warning in session.warnings:
                 print(f"khepri: warning: {warning}", file=sys.stderr)
-                log(f"hub: warning: {warning}")
+                if warning not in logged_by_hub:
+                    log(f"hub: warning: {warning}")
             result = session.run()
         finally:
-            let_crashed_agents_exit(hub, agents)
+            interrupted = sys.exc_info()[0] is KeyboardInterrupt or result.get("stop_reason") == "interrupted"
+            let_leaving_agents_exit(hub, agents, interrupted)
             stop_processes(agents)        # SIGTERM: each agent stops its wheels and exits
             hub.close()
             hub_log.close()
@@ -108,69 +114,23 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     return result
 
 
-def let_crashed_agents_exit(hub, agents: List[subprocess.Popen], timeout_s: float = 2.0) -> None:
-    """An agent whose behaviour raised says so, then exits with code 1 by itself: wait for that (briefly), so
-    ``agent_exit_codes`` shows its 1, not the -15 of the SIGTERM that ends the others."""
-    deadline = time.monotonic() + timeout_s
-    for robot_id, agent in enumerate(agents):
-        error = str((hub.robots[robot_id].telemetry or {}).get("error") or "")
-        if error.startswith(("behaviour crashed", "driver failed")):
-            try:
-                agent.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                pass
+def sil_config(scenario: Scenario, options: SilOptions, security: Dict[str, Any], record: Optional[str]) -> dict:
+    return {
+        # One run, on the world the session's evaluator and recording hold: never rebuilt under them.
+        "source": {"type": "sim", "lockstep": not options.realtime, "reset_each_run": False},
+        "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0},
+        "security": security,
+        "record": record,
+        # The agents' telemetry comes once per control step: a slow scenario needs a longer watchdog.
+        "watchdog_s": max(DEFAULT_WATCHDOG_S, min_watchdog_s(scenario.physics.control_hz)),
+    }
 
 
-KEY_FOLDER_PREFIX = "khepri-sil-keys-"      # + the pid of the sil that made it
-
-
-def remove_stale_key_folders() -> None:
-    """The throwaway CURVE keys of a ``khepri sil`` that was killed (SIGKILL runs no cleanup) stay in the temp
-    folder, secret keys included: the next sil removes those whose process is gone."""
-    for folder in Path(tempfile.gettempdir()).glob(f"{KEY_FOLDER_PREFIX}*-*"):
-        pid = folder.name[len(KEY_FOLDER_PREFIX):].split("-")[0]
-        if pid.isdigit() and not _alive(int(pid)):
-            shutil.rmtree(folder, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:        # another user's process: alive, and not ours to clean
-        return True
-    return True
-
-
-def exit_text(code: int) -> str:
-    """``exited with code 1``, or for a signal ``was killed by SIGKILL (exit code -9)``: -9 reads as a bug."""
-    if code < 0:
-        try:
-            return f"was killed by {signal.Signals(-code).name} (exit code {code})"
-        except ValueError:
-            pass
-    return f"exited with code {code}"
-
-
-def stop_failure(out: Path, count: int) -> Optional[str]:
-    """The first agent's account of its behaviour's ``stop()`` raising at the end of the run (the agent logs
-    it and stops the wheels all the same; ``khepri sim run`` reports the same bug as an error)."""
-    for i in range(count):
-        marker = f"agent {i}: robot {i}, stop(): "
-        rest = agent_log_line(out, i, marker)
-        if rest:
-            return f"after the run: {marker}{rest}"
-    return None
-
-
-def agent_log_line(out: Path, index: int, marker: str) -> str:
-    """The rest of agent ``index``'s last log line that starts with ``marker``, or ""."""
-    try:
-        lines = (out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
-    except OSError:
-        return ""
-    return next((line[len(marker):] for line in reversed(lines) if line.startswith(marker)), "")
+def refuse_before_starting(scenario: Scenario) -> None:
+    """What the hub would refuse in this scenario (agent restarts, a transport without an object, bad run
+    params), said before anything in --out is touched: a refused scenario cleared the last run's results."""
+    refuse_agent_restarts(scenario)
+    run_template(parse_config(sil_config(scenario, SilOptions(), {"insecure": True}, None)), scenario)
 
 
 def spawn_agents(endpoint: str, keys: Path, count: int, out: Path, imports: List[str]) -> List[subprocess.Popen]:
@@ -272,6 +232,20 @@ class SilSession:
                                  + (f": {stuck_step_account(robot, said)}" if said else "")
                                  + f"; its log is in {self.out / 'agents'}")
 
+    def _check_silence(self) -> None:
+        """In real time, an agent alive but silent as long as lockstep waits for one (UNRESPONSIVE_AFTER_STEPS
+        frames of step_timeout_s) is stuck too: the run went on to its time limit and sil exited 0."""
+        limit_s = UNRESPONSIVE_AFTER_STEPS * self.options.step_timeout_s
+        now = time.monotonic()
+        for rid, robot in self.hub.robots.items():
+            silent_s = now - robot.last_uplink
+            if robot.routing is None or rid in self.hub.killed or silent_s < limit_s:
+                continue
+            said = agent_log_line(self.out, rid, f"agent {rid}: {STUCK_STEP_NOTE}")
+            account = f": {STUCK_STEP_NOTE}{said}" if said else ""
+            raise AgentError(f"agent {rid} stopped answering ({silent_s:.1f} s without a message){account}; its log "
+                             f"is in {self.out / 'agents'}")
+
     def _whole_error(self, index: int, error: str) -> str:
         """Telemetry's ``error`` is cut in the middle to fit the protocol (``... ``): the agent's log has it whole."""
         head, cut, _ = error.partition(" ... ")
@@ -310,6 +284,7 @@ class SilSession:
                 return True
             if step != observed and self.hub.clock_s is not None:
                 observed = step
+                self._check_silence()
                 reason = self._observe(step * period)
                 if reason:
                     self.stop_reason = reason
@@ -370,4 +345,17 @@ class SilSession:
                                     not self.options.realtime)
         if error:
             result["error"] = error
+        trace = self._crash_traceback(error or "") if self.stop_reason == "crashed" else None
+        if trace:
+            result["traceback"] = trace        # as `sim run` writes it; the agent's log has it too
         return result
+
+    def _crash_traceback(self, error: str) -> Optional[List[str]]:
+        """The traceback of the agent the error names (``agent 2: behaviour crashed: ...``), else the first."""
+        named = re.match(r"agent (\d+)\b", error)
+        first = [int(named.group(1))] if named and int(named.group(1)) < len(self.agents) else []
+        for i in first + list(range(len(self.agents))):
+            trace = agent_traceback(self.out, i)
+            if trace:
+                return trace
+        return None

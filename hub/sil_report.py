@@ -83,7 +83,7 @@ _DROP_WORDS = {
     "inbox_overflow_at_agents": "radio messages pushed out of full inboxes",
 }
 _RELAY_WORDS = {
-    "dropped_random": "radio messages lost to relay.drop",
+    "dropped_random": "radio messages lost by chance (the scenario's comm.drop)",
     "dropped_overflow": "radio messages pushed out of full relay queues",
     "refused": "broadcasts the relay refused (over relay.max_bytes, or sent outside a run)",
 }
@@ -105,5 +105,9 @@ def sil_summary_lines(sil: Dict[str, Any]) -> List[str]:
     said = [f"{dropped[key]} {words}" for key, words in _DROP_WORDS.items() if dropped.get(key)]
     said += [f"{relay[key]} {words}" for key, words in _RELAY_WORDS.items() if relay.get(key)]
     said += [f"{count} messages the hub refused: {reason}" for reason, count in rejected.items()]
-    lines.append(f"  dropped: {'; '.join(said)} (hub.log says more)" if said else "  dropped: nothing")
+    # hub.log names what was dropped and why, but for the radio's chance losses, which it only counts
+    chance_only = not any(relay.get(key) for key in _RELAY_WORDS if key != "dropped_random") \
+        and not any(dropped.get(key) for key in _DROP_WORDS) and not rejected
+    more = "" if chance_only else " (hub.log says more)"
+    lines.append(f"  dropped: {'; '.join(said)}{more}" if said else "  dropped: nothing")
     return lines

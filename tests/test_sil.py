@@ -77,6 +77,8 @@ def test_the_warnings_go_by_the_time_limit_the_run_gets(tmp_path):
     # Nor were lost poses: a behaviour's code for a missing pose never ran in sil, and nothing said so.
     (dropout,) = [w for w in result["warnings"] if w.startswith("sensors.pose_dropout (0.6) is not simulated")]
     assert "source.stale_s" in dropout and "held" in dropout
+    hub_log = (tmp_path / "hub.log").read_text()
+    assert hub_log.count("sensors.pose_dropout (0.6) is not simulated") == 1, hub_log     # was said twice
 
 
 def test_a_transport_scenario_without_an_object_is_refused_naming_the_scenarios_object(tmp_path):
@@ -85,8 +87,12 @@ def test_a_transport_scenario_without_an_object_is_refused_naming_the_scenarios_
 
     lab6 = load_scenario("lab-6")
     scenario = lab6.with_overrides(object=None, path=[])
+    (tmp_path / "result.json").write_text('{"stop_reason": "behaviour finished"}')     # the last run's
     with pytest.raises(ConfigError) as info:
         run_sil(scenario, tmp_path, SilOptions(plot=False, record=False, time_limit_s=1.0))
+    # Refused before anything in the folder was touched: the last run's results were cleared away first.
+    assert (tmp_path / "result.json").read_text() == '{"stop_reason": "behaviour finished"}'
+    assert not (tmp_path / "hub.log").exists()
     assert info.value.field == "object" and info.value.problem.startswith(
         "lab-6 has none, and the transport behaviour needs to know where one starts to run through a hub "
         "(`khepri hub` or `khepri sil`): give the scenario an object")
@@ -140,8 +146,10 @@ def test_an_earlier_runs_agent_logs_do_not_stay_beside_this_runs(tmp_path):
     assert all("an earlier run" not in (tmp_path / "agents" / name).read_text() for name in logs)
 
 
-def test_kill_ends_sil_as_ctrl_c_does_with_its_log_closed(tmp_path):
-    """`kill` (SIGTERM) used to end sil at once: no message, and an MCAP log without its footer."""
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_kill_ends_sil_as_ctrl_c_does_with_its_log_closed(tmp_path, sig):
+    """`kill` (SIGTERM) used to end sil at once: no message, and an MCAP log without its footer; the terminal or
+    ssh session closing (SIGHUP) too, leaving its secret keys in /tmp as well."""
     root = Path(__file__).resolve().parents[1]
     out = tmp_path / "sil"
     out.mkdir()
@@ -154,17 +162,40 @@ def test_kill_ends_sil_as_ctrl_c_does_with_its_log_closed(tmp_path):
         while "started by sil" not in read_or_empty(out / "hub.log") and time.monotonic() < deadline:
             time.sleep(0.2)
         time.sleep(2.0)                                 # the run is under way
-        sil.send_signal(signal.SIGTERM)
+        sil.send_signal(sig)
         _, err = sil.communicate(timeout=30)
     finally:
         sil.kill()
     assert sil.returncode == 130
-    assert "khepri: interrupted (SIGTERM) (at t = " in err and "Traceback" not in err    # was "(Ctrl-C)"
+    assert f"khepri: interrupted ({sig.name}) (at t = " in err and "Traceback" not in err    # was "(Ctrl-C)"
     assert not summarise(out / "hub.mcap").truncated
     # What was recorded is written, as `sim run` does, in place of the earlier run's result.
     result = json.loads((out / "result.json").read_text())
     assert result["stop_reason"] == "interrupted" and result["sim_time_s"] > 1.0
     assert (out / "trajectory.npz").is_file()
+
+
+def test_a_ctrl_c_to_the_whole_group_leaves_every_agent_exiting_by_itself(tmp_path):
+    """A terminal's Ctrl-C reaches sil and its agents together: every agent stopped its wheels and was leaving
+    when sil's SIGTERM caught it on its way out, and agent_exit_codes read -15 for all, as if killed."""
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "sil"
+    sil = subprocess.Popen([sys.executable, "-m", "khepri_cli.main", "sil", "lab-6", "--realtime", "--time-limit",
+                            "60", "--no-plot", "--no-record", "--out", str(out)], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True, env=dict(os.environ, PYTHONPATH=str(root)),
+                           start_new_session=True)
+    try:
+        deadline = time.monotonic() + 30
+        while "started by sil" not in read_or_empty(out / "hub.log") and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(1.0)
+        os.killpg(sil.pid, signal.SIGINT)
+        sil.communicate(timeout=30)
+    finally:
+        sil.kill()
+    assert sil.returncode == 130
+    codes = json.loads((out / "result.json").read_text())["sil"]["agent_exit_codes"]
+    assert codes == [0] * 6, codes
 
 
 def read_or_empty(path: Path) -> str:
@@ -191,6 +222,9 @@ def test_the_sil_summary_says_its_figures_and_drops_in_words():
         "  3 agents, lockstep, frame-to-answer latency p99 1.25 ms, loop misses 0",
         "  dropped: 2 messages the hub refused: bad message (hub.log says more)"]
     assert sil_summary_lines({"agents": 1, "lockstep": True, "dropped": {}})[1] == "  dropped: nothing"
+    # The scenario's comm.drop, which hub.log only counts: named by the scenario's key, not the hub config's.
+    lossy = {"agents": 10, "lockstep": True, "dropped": {"relay": {"dropped_random": 5377, "refused": 0}}}
+    assert sil_summary_lines(lossy)[1] == "  dropped: 5377 radio messages lost by chance (the scenario's comm.drop)"
 
 
 def test_a_lockstep_run_without_latency_does_not_blame_realtime():

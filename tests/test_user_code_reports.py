@@ -92,9 +92,14 @@ def test_sil_writes_a_crash_at_the_first_step_as_sim_run_does(crashy, tmp_path, 
     err = capsys.readouterr().err
     assert "agent 1: behaviour crashed: robot 1, step(): RuntimeError: deliberate crash" in err
     assert "Traceback" not in err
-    assert json.loads((tmp_path / "sil" / "result.json").read_text())["stop_reason"] == "crashed"
+    result = json.loads((tmp_path / "sil" / "result.json").read_text())
+    assert result["stop_reason"] == "crashed"
     assert_empty_trajectory(tmp_path / "sil" / "trajectory.npz")
     assert (tmp_path / "sil" / "trajectory.png").stat().st_size > 0
+    # The traceback, as `sim run` keeps it (from the agent's log: sil's result.json had none)
+    assert run("sim", "run", crashy("step_at_0"), "--no-plot", "--out", "sim") == 1
+    assert result["traceback"] == json.loads((tmp_path / "sim" / "result.json").read_text())["traceback"]
+    assert result["traceback"][-1].startswith("RuntimeError: deliberate crash")
 
 
 def test_the_traceback_shows_the_behaviours_own_line_under_khepris_checks(crashy, tmp_path, capsys):

@@ -181,6 +181,22 @@ def test_sil_ends_as_crashed_when_an_agent_stops_answering(tmp_path, monkeypatch
     assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 2.0
 
 
+def test_a_realtime_sil_ends_as_crashed_when_an_agent_stops_answering(tmp_path, monkeypatch, capsys):
+    """With --realtime the hung agent's robot only went silent, and the run went on to its time limit: exit 0."""
+    (tmp_path / "sil_hangs_rt.py").write_text(HANGS_AT_STEP_5.format(name="sil-drive3"))
+    (tmp_path / "hangs.yaml").write_text(SCENARIO.format(name="sil-drive3-hangs").replace("time_limit_s: 3",
+                                                                                          "time_limit_s: 30"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["--import", "sil_hangs_rt.py", "sil", "hangs.yaml", "--realtime", "--out", "out", "--no-plot",
+                 "--no-record"]) == 1
+    err = capsys.readouterr().err
+    said = re.search(r"khepri: error: agent 0 stopped answering \(([0-9.]+) s without a message\): the behaviour's "
+                     r"step\(\) has run for ", err)
+    assert said and 6.0 <= float(said.group(1)) < 10.0, err
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 15.0
+
+
 def test_the_values_of_a_dict_parameter_are_checked(tmp_path):
     """`Dict[str, float]` params took {a: x} without a word: the behaviour met the string mid-run."""
     from onboard.behaviour import build_params, get_behaviour

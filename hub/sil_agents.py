@@ -1,0 +1,102 @@
+"""The agent processes of a ``khepri sil`` run: how they left, what their logs say, and the throwaway keys
+they were given."""
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+from typing import List, Optional
+
+INTERRUPTED_WAIT_S = 1.0      # how long agents a Ctrl-C reached too get to leave by themselves
+
+def let_leaving_agents_exit(hub, agents: List[subprocess.Popen], interrupted: bool, timeout_s: float = 2.0) -> None:
+    """An agent whose behaviour raised says so, then exits with code 1 by itself; after a Ctrl-C, the terminal's
+    reached the agents too (it goes to the whole process group), and they leave with 0. Wait for those (briefly),
+    so that ``agent_exit_codes`` shows their own codes, not the -15 of a SIGTERM that caught them on their way
+    out (every agent read -15 after a Ctrl-C). A Ctrl-C sent to sil alone costs a second more."""
+    deadline = time.monotonic() + (INTERRUPTED_WAIT_S if interrupted else timeout_s)
+    for robot_id, agent in enumerate(agents):
+        error = str((hub.robots[robot_id].telemetry or {}).get("error") or "")
+        if interrupted or error.startswith(("behaviour crashed", "driver failed")):
+            try:
+                agent.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+
+
+KEY_FOLDER_PREFIX = "khepri-sil-keys-"      # + the pid of the sil that made it
+
+
+def remove_stale_key_folders() -> None:
+    """The throwaway CURVE keys of a ``khepri sil`` that was killed (SIGKILL runs no cleanup) stay in the temp
+    folder, secret keys included: the next sil removes those whose process is gone."""
+    for folder in Path(tempfile.gettempdir()).glob(f"{KEY_FOLDER_PREFIX}*-*"):
+        pid = folder.name[len(KEY_FOLDER_PREFIX):].split("-")[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:        # another user's process: alive, and not ours to clean
+        return True
+    return True
+
+
+def exit_text(code: int) -> str:
+    """``exited with code 1``, or for a signal ``was killed by SIGKILL (exit code -9)``: -9 reads as a bug."""
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name} (exit code {code})"
+        except ValueError:
+            pass
+    return f"exited with code {code}"
+
+
+def stop_failure(out: Path, count: int) -> Optional[str]:
+    """The first agent's account of its behaviour's ``stop()`` raising at the end of the run (the agent logs
+    it and stops the wheels all the same; ``khepri sim run`` reports the same bug as an error)."""
+    for i in range(count):
+        marker = f"agent {i}: robot {i}, stop(): "
+        rest = agent_log_line(out, i, marker)
+        if rest:
+            return f"after the run: {marker}{rest}"
+    return None
+
+
+def agent_log_line(out: Path, index: int, marker: str) -> str:
+    """The rest of agent ``index``'s last log line that starts with ``marker``, or ""."""
+    try:
+        lines = (out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return ""
+    return next((line[len(marker):] for line in reversed(lines) if line.startswith(marker)), "")
+
+
+def agent_traceback(out: Path, index: int) -> Optional[List[str]]:
+    """The traceback agent ``index`` logged under its last ``behaviour crashed`` (or ``driver failed``) line, as
+    `khepri sim run` keeps it in result.json: one string per entry, its source lines joined by newlines."""
+    try:
+        lines = (out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return None
+    heads = (f"agent {index}: behaviour crashed: ", f"agent {index}: driver failed: ")
+    starts = [i for i, line in enumerate(lines) if line.startswith(heads)]
+    if not starts:
+        return None
+    entry, trace = f"agent {index}:   ", []
+    for line in lines[starts[-1] + 1:]:
+        if line.startswith(entry):
+            trace.append(line[len(entry):])
+        elif line.startswith("agent") or not trace:     # the agent's next line of its own: the trace is over
+            break
+        else:
+            trace[-1] += "\n" + line
+    return trace or None
