@@ -1029,6 +1029,29 @@ def test_a_seed_that_dies_before_closure_is_replaced_and_the_box_still_arrives(t
     assert board.task("S").epoch == 1
 
 
+HEXAGON = """
+robots: {count: 10, spawn: {x: [0.8, 1.8], y: [-0.8, 0.8]}}
+object: {shape: polygon, vertices: [[0.3031, 0.175], [0, 0.35], [-0.3031, 0.175], [-0.3031, -0.175], [0, -0.35],
+                                    [0.3031, -0.175]], mass: 0.8}
+path: [[-0.6, 0, 0], [-1.2, 0, 0]]
+time_limit_s: 300
+faults: [{robot: 2, at_s: 5}]
+"""
+
+
+def test_a_bidder_that_dies_holding_the_lowest_bid_does_not_hold_the_task_for_ever(tmp_path):
+    """Robot 2, the lowest bidder for the seed's task on seed 2, dies 5 s into the 7 s bidding window. Its bid
+    stayed the lowest, nobody took the task, and every robot idled until the run ended as "behaviour finished"
+    at 60 s with no cage. The task opens again when the winner has not taken it liveness_timeout_s after T_a."""
+    path = tmp_path / "hexagon.yaml"
+    path.write_text(HEXAGON)
+    sim = Simulation(load_scenario(str(path)), seed=2)
+    result = sim.run()
+    assert result["caged"] and result["completed"], result["failures"]
+    task = sim.behaviours[0].board.task("S")
+    assert task.epoch == 1 and sim.behaviours[0].board.seed_member() != 2
+
+
 def test_a_branch_member_that_dies_before_closure_still_cages_and_the_box_still_arrives(tmp_path):
     """lab-6 with robot 2, the first of the right branch in seed 1 (beside the box), dead at 45 s, before the
     cage closed. It stays in its place and cages, but neither pushes nor reports: the ring centroid of the
