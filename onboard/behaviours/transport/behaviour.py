@@ -290,7 +290,12 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
             self.bid_seen.setdefault(key, now)
             won = best.get("robot") == self.robot.id
             if not won and now - self.bid_seen[key] >= self.params.allocation_time_s + self.params.liveness_timeout_s:
-                self._reopen_unclaimed(fields)
+                # Ours: the winner has not taken it liveness_timeout_s after T_a: it died while bidding, when it
+                # beats no heartbeat for liveness to miss. Its bid stayed the lowest, nobody took the task, and
+                # the swarm idled until the run "finished" with no cage (behaviour.md section 6). A new epoch.
+                task = task_from(fields)
+                task.epoch += 1
+                self.board.put_task(task)
                 continue
             if won and now - self.bid_seen[key] >= self.params.allocation_time_s:
                 task = task_from(fields)
@@ -301,16 +306,6 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
                 self.progress, self.seed_still = (math.inf, now), (None, now)
                 return True
         return False
-
-    def _reopen_unclaimed(self, fields: Dict[str, Any]) -> None:
-        """Ours: the winning bidder has not taken its task liveness_timeout_s after T_a closed: it failed while
-        bidding (it beats no heartbeat yet, so liveness cannot tell). Its bid stayed the lowest for ever, nobody
-        took the task, and every robot idled until the run ended as "finished" with no cage (a 10-robot hexagon
-        whose seed winner died at 5 s: 4 of 21 seeds). The task opens again as a new epoch, for new bids, as an
-        owner's death re-opens it."""
-        task = task_from(fields)
-        task.epoch += 1
-        self.board.put_task(task)
 
     def _keep_clear(self) -> None:
         u = c.add(self._avoid(), c.scale(self.percept.obstacle_vector, -1.0))
