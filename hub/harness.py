@@ -6,6 +6,7 @@ it over its real control socket, as ``khepri ctl`` does.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -108,6 +109,7 @@ def stop_processes(processes: List[subprocess.Popen], timeout_s: float = 20.0) -
     for process in processes:
         if process.poll() is None:
             process.terminate()
+            _continue(process)     # a stopped one (SIGSTOP, Ctrl-Z) handles SIGTERM only once it runs again
     codes = []
     deadline = time.monotonic() + timeout_s
     for process in processes:
@@ -117,6 +119,14 @@ def stop_processes(processes: List[subprocess.Popen], timeout_s: float = 20.0) -
             process.kill()
             codes.append(process.wait())
     return codes
+
+
+def _continue(process: subprocess.Popen) -> None:
+    if hasattr(signal, "SIGCONT"):
+        try:
+            os.kill(process.pid, signal.SIGCONT)
+        except OSError:        # gone meanwhile
+            pass
 
 
 class ScriptedHub:

@@ -167,6 +167,18 @@ def read_terminal(terminal: int) -> bytes:
     return said
 
 
+def test_a_stopped_agent_is_ended_by_sigterm_not_left_for_sigkill(scripted, tmp_path):
+    """An agent stopped with SIGSTOP (or Ctrl-Z) handles SIGTERM only once it runs again: stop_processes waited
+    its whole timeout and then killed it (exit -9, and 20 s in sil)."""
+    process = spawn_agent(scripted.endpoint, 0, tmp_path / "agent.log")
+    try:
+        scripted.wait_for(lambda m: m["type"] == "hello")
+        process.send_signal(signal.SIGSTOP)
+        assert stop_processes([process], timeout_s=5.0) == [0]
+    finally:
+        process.kill()
+
+
 def test_closing_the_agents_terminal_stops_its_wheels_and_it_leaves_cleanly(scripted):
     """The terminal hung up: the agent must stop its wheels and tell the hub, as for SIGTERM, and its lines to
     the dead terminal (EIO) must neither cut that short nor fail its exit."""
