@@ -100,8 +100,11 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
                     log(f"hub: warning: {warning}")
             result = session.run()
         finally:
-            interrupted = sys.exc_info()[0] is KeyboardInterrupt or result.get("stop_reason") == "interrupted"
-            let_leaving_agents_exit(hub, agents, interrupted)
+            # A Ctrl-C from the terminal reaches the agents too; a `kill` or a closed session reaches sil alone
+            interrupt = sys.exc_info()[1]
+            ctrl_c = (isinstance(interrupt, KeyboardInterrupt) and getattr(interrupt, "how", "Ctrl-C") == "Ctrl-C") \
+                or str(result.get("error", "")).startswith("interrupted (Ctrl-C)")
+            let_leaving_agents_exit(hub, agents, ctrl_c)
             stop_processes(agents)        # SIGTERM: each agent stops its wheels and exits
             hub.close()
             hub_log.close()
@@ -351,10 +354,10 @@ class SilSession:
         return result
 
     def _crash_traceback(self, error: str) -> Optional[List[str]]:
-        """The traceback of the agent the error names (``agent 2: behaviour crashed: ...``), else the first."""
+        """The traceback of the agent the error names (``agent 2: behaviour crashed: ...``); the first found
+        only when it names none (an evaluator's error, say)."""
         named = re.match(r"agent (\d+)\b", error)
-        first = [int(named.group(1))] if named and int(named.group(1)) < len(self.agents) else []
-        for i in first + list(range(len(self.agents))):
+        for i in ([int(named.group(1))] if named else range(len(self.agents))):
             trace = agent_traceback(self.out, i)
             if trace:
                 return trace

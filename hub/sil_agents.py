@@ -13,15 +13,15 @@ from typing import List, Optional
 
 INTERRUPTED_WAIT_S = 1.0      # how long agents a Ctrl-C reached too get to leave by themselves
 
-def let_leaving_agents_exit(hub, agents: List[subprocess.Popen], interrupted: bool, timeout_s: float = 2.0) -> None:
+def let_leaving_agents_exit(hub, agents: List[subprocess.Popen], ctrl_c: bool, timeout_s: float = 2.0) -> None:
     """An agent whose behaviour raised says so, then exits with code 1 by itself; after a Ctrl-C, the terminal's
     reached the agents too (it goes to the whole process group), and they leave with 0. Wait for those (briefly),
     so that ``agent_exit_codes`` shows their own codes, not the -15 of a SIGTERM that caught them on their way
-    out (every agent read -15 after a Ctrl-C). A Ctrl-C sent to sil alone costs a second more."""
-    deadline = time.monotonic() + (INTERRUPTED_WAIT_S if interrupted else timeout_s)
+    out (every agent read -15 after a Ctrl-C). A SIGINT sent to sil alone costs a second more."""
+    deadline = time.monotonic() + (INTERRUPTED_WAIT_S if ctrl_c else timeout_s)
     for robot_id, agent in enumerate(agents):
         error = str((hub.robots[robot_id].telemetry or {}).get("error") or "")
-        if interrupted or error.startswith(("behaviour crashed", "driver failed")):
+        if ctrl_c or error.startswith(("behaviour crashed", "driver failed")):
             try:
                 agent.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
@@ -91,12 +91,13 @@ def agent_traceback(out: Path, index: int) -> Optional[List[str]]:
     starts = [i for i, line in enumerate(lines) if line.startswith(heads)]
     if not starts:
         return None
-    entry, trace = f"agent {index}:   ", []
+    entry, own, trace = f"agent {index}:   ", f"agent {index}: ", []
     for line in lines[starts[-1] + 1:]:
         if line.startswith(entry):
             trace.append(line[len(entry):])
-        elif line.startswith("agent") or not trace:     # the agent's next line of its own: the trace is over
+        elif line.startswith((own, "agent: ")):      # the agent's next line of its own: the trace is over
             break
-        else:
+        elif trace:
             trace[-1] += "\n" + line
+        # else: the rest of an error message of several lines, before the trace
     return trace or None

@@ -205,6 +205,28 @@ def read_or_empty(path: Path) -> str:
         return ""
 
 
+def test_the_traceback_is_read_from_the_agents_log_as_sim_run_keeps_it(tmp_path):
+    """A message of several lines comes before the trace in the log: the parser stopped there, and sil wrote
+    no traceback at all."""
+    from hub.sil_agents import agent_traceback
+
+    (tmp_path / "agents").mkdir()
+    (tmp_path / "agents" / "agent-7.log").write_text(
+        "agent 7: run r1: crashy\n"
+        "agent 7: behaviour crashed: robot 7, step(): ValueError: first line\n"
+        "second line\n"
+        "agent 7 said ünïcödé ✓ at crashy.py:8 (at t = 0.6 s)\n"
+        "agent 7:     File \"crashy.py\", line 8, in step\n"
+        "    raise ValueError(text)\n"
+        "agent 7:   ValueError: first line\n"
+        "second line\n"
+        "agent 7 said ünïcödé ✓\n"
+        "agent: error: the behaviour crashed: robot 7, step(): ValueError: first line\n", encoding="utf-8")
+    assert agent_traceback(tmp_path, 7) == ['  File "crashy.py", line 8, in step\n    raise ValueError(text)',
+                                            "ValueError: first line\nsecond line\nagent 7 said ünïcödé ✓"]
+    assert agent_traceback(tmp_path, 3) is None
+
+
 def test_the_sil_summary_says_its_figures_and_drops_in_words():
     """It printed the raw dict of drops, and 'latency p99 None ms' with --realtime."""
     from hub.sil_report import sil_summary_lines

@@ -1052,6 +1052,24 @@ def test_a_bidder_that_dies_holding_the_lowest_bid_does_not_hold_the_task_for_ev
     assert task.epoch == 1 and sim.behaviours[0].board.seed_member() != 2
 
 
+def test_a_winner_gets_its_whole_window_from_when_this_robot_first_saw_it_win():
+    """Timed from the first bid of the task instead, a winner whose bid came late (it was busy, or its bid came
+    over several slow radio hops) lost its task before its own take could come back: in a line of 25 robots
+    with 1-2 s of radio latency the seed's task re-opened every 11 s and the cage never closed."""
+    sim = Simulation(load_scenario("lab-6"), seed=1)
+    sim.step()
+    robot0 = sim.behaviours[0]
+    board, t0 = robot0.board, 100.0
+    board.bid(board.task("S"), 4, 0.9)
+    assert not robot0._take_won_task(t0)
+    board.bid(board.task("S"), 5, 0.5)                 # robot 5 bids lower 8 s later: it wins from here
+    assert not robot0._take_won_task(t0 + 8.0)
+    assert not robot0._take_won_task(t0 + 11.5) and board.task("S").epoch == 0
+    assert not robot0._take_won_task(t0 + 8.0 + 10.9) and board.task("S").epoch == 0
+    robot0._take_won_task(t0 + 8.0 + 11.0)             # T_a + liveness_timeout_s without its take: gone
+    assert board.task("S").epoch == 1
+
+
 def test_a_branch_member_that_dies_before_closure_still_cages_and_the_box_still_arrives(tmp_path):
     """lab-6 with robot 2, the first of the right branch in seed 1 (beside the box), dead at 45 s, before the
     cage closed. It stays in its place and cages, but neither pushes nor reports: the ring centroid of the

@@ -52,6 +52,7 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
         self.state = "idle"
         self.task: Optional[Task] = None
         self.bid_seen: Dict[str, float] = {}     # "tid/epoch" -> local time a bid was first seen
+        self.winner_seen: Dict[Tuple[str, Any], float] = {}    # ("tid/epoch", robot) -> when first seen winning
         self.last_bid: Dict[str, float] = {}
         self.settled_steps = 0
         self.settle_window: Deque[Tuple[float, Vec]] = deque(maxlen=AVERAGE_SETTLE_STEPS)   # _settled_on_average
@@ -289,10 +290,11 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
                 continue
             self.bid_seen.setdefault(key, now)
             won = best.get("robot") == self.robot.id
-            if not won and now - self.bid_seen[key] >= self.params.allocation_time_s + self.params.liveness_timeout_s:
-                # Ours: the winner has not taken it liveness_timeout_s after T_a: it died while bidding, when it
-                # beats no heartbeat for liveness to miss. Its bid stayed the lowest, nobody took the task, and
-                # the swarm idled until the run "finished" with no cage (behaviour.md section 6). A new epoch.
+            waited = now - self.winner_seen.setdefault((key, best.get("robot")), now)
+            if not won and waited >= self.params.allocation_time_s + self.params.liveness_timeout_s:
+                # Ours: this winner has not taken it liveness_timeout_s after T_a, counted from when this robot
+                # first saw it win (its take comes back as late as its bid came): it died while bidding, with no
+                # heartbeat for liveness to miss, and the task was held for ever (behaviour.md section 6).
                 task = task_from(fields)
                 task.epoch += 1
                 self.board.put_task(task)
