@@ -19,7 +19,7 @@ from typing import Callable, Dict, List, Optional, Tuple
 
 from onboard.config import ConfigError
 
-from .keyfiles import KeyRing, load_keyring
+from .keyfiles import KeyRing, load_keyring, peer_key_path
 
 CHECK_EVERY_S = 0.5
 PEER_FOLDERS = ("robots", "operators")
@@ -83,15 +83,12 @@ class KeyReload:
                      + "; it tries again at the next connection")
 
     def _drop_deleted(self) -> List[str]:
-        ring, gone = self.ring, []
-        for key, rid in list(ring.robots.items()):
-            if not (ring.folder / "robots" / f"robot-{rid}.key").is_file():
-                del ring.robots[key]
-                gone.append(f"robot {rid}")
-        for key, name in list(ring.operators.items()):
-            if not (ring.folder / "operators" / f"{name}.key").is_file():
-                del ring.operators[key]
-                gone.append(f"operator {name}")
+        gone = []
+        for kind, accepted in (("robot", self.ring.robots), ("operator", self.ring.operators)):
+            for key, who in list(accepted.items()):
+                if not peer_key_path(self.ring.folder, kind, who).is_file():
+                    del accepted[key]
+                    gone.append(f"{kind} {who}")
         return gone
 
     def _take(self, fresh: KeyRing) -> None:

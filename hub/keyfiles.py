@@ -14,7 +14,7 @@ import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Any, Dict, List, Optional
 
 import zmq
 import zmq.auth
@@ -79,8 +79,13 @@ def revoked_secrets(folder: Path, robot_ids: List[int], operators: List[str]) ->
 
 
 def _peer_keys(folder: Path, robot_ids: List[int], operators: List[str]) -> List[Path]:
-    return [folder / "robots" / f"robot-{i}.key" for i in robot_ids] \
-        + [folder / "operators" / f"{name}.key" for name in operators]
+    return [peer_key_path(folder, "robot", i) for i in robot_ids] \
+        + [peer_key_path(folder, "operator", name) for name in operators]
+
+
+def peer_key_path(folder: Path, kind: str, who: Any) -> Path:
+    """Where the public key of robot ``who`` (``kind`` "robot") or operator ``who`` lies in a key folder."""
+    return folder / "robots" / f"robot-{who}.key" if kind == "robot" else folder / "operators" / f"{who}.key"
 
 
 def _refuse_a_key_in_use(path: Path) -> None:

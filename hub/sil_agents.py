@@ -71,22 +71,24 @@ def stop_failure(out: Path, count: int) -> Optional[str]:
     return None
 
 
+def agent_log_lines(out: Path, index: int) -> List[str]:
+    """Agent ``index``'s log, line by line; none when it cannot be read."""
+    try:
+        return (out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return []
+
+
 def agent_log_line(out: Path, index: int, marker: str) -> str:
     """The rest of agent ``index``'s last log line that starts with ``marker``, or ""."""
-    try:
-        lines = (out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
-    except OSError:
-        return ""
+    lines = agent_log_lines(out, index)
     return next((line[len(marker):] for line in reversed(lines) if line.startswith(marker)), "")
 
 
 def agent_traceback(out: Path, index: int) -> Optional[List[str]]:
     """The traceback agent ``index`` logged under its last ``behaviour crashed`` (or ``driver failed``) line, as
     `khepri sim run` keeps it in result.json: one string per entry, its source lines joined by newlines."""
-    try:
-        lines = (out / "agents" / f"agent-{index}.log").read_text(encoding="utf-8").splitlines()
-    except OSError:
-        return None
+    lines = agent_log_lines(out, index)
     heads = (f"agent {index}: behaviour crashed: ", f"agent {index}: driver failed: ")
     starts = [i for i, line in enumerate(lines) if line.startswith(heads)]
     if not starts:
