@@ -224,15 +224,14 @@ def behind_share(hull: np.ndarray, robot_radius: float, leg_deg: float) -> float
 
 def _faults(scenario: Any) -> List[str]:
     """Faults that leave too few robots to cage."""
-    found = []
     # A restarted robot lives on (as a spare, in the transport behaviour): only failures leave fewer robots.
     failing = sum(1 for fault in scenario.faults
                   if fault.at_s < scenario.time_limit_s and fault.restart_after_s is None)
     survivors = scenario.robots.count - failing
-    if failing and survivors < MIN_CAGE <= scenario.robots.count:
-        found.append(f"faults: {failing} of {scenario.robots.count} robots fail, leaving {survivors}; a cage "
-                     f"needs {MIN_CAGE} robots to close and push")
-    return found
+    if not failing or survivors >= MIN_CAGE or scenario.robots.count < MIN_CAGE:
+        return []
+    return [f"faults: {failing} of {scenario.robots.count} robots fail, leaving {survivors}; a cage needs "
+            f"{MIN_CAGE} robots to close and push"]
 
 
 def _control_rate(scenario: Any) -> List[str]:
