@@ -52,8 +52,12 @@ class KeyReload:
         # connected to its motion capture (seconds, at times), and a key changed meanwhile would be missed.
         self.files: Optional[KeyFiles] = None
         self.checked_at = -math.inf
-        self.problem: Optional[str] = None       # why the folder cannot be read, while it cannot
-        self._problem_said: Optional[Tuple[str, KeyFiles]] = None
+        self._unread: Optional[Tuple[str, KeyFiles]] = None    # why the folder cannot be read, and its files
+
+    @property
+    def problem(self) -> Optional[str]:
+        """Why the folder cannot be read as a whole, while it cannot."""
+        return self._unread[0] if self._unread else None
 
     def refresh(self) -> None:
         now = self.clock()
@@ -68,16 +72,15 @@ class KeyReload:
         except ConfigError as err:
             self._unreadable(str(err), files)
             return
-        self.files, self.problem, self._problem_said = files, None, None
+        self.files, self._unread = files, None
         self._take(fresh)
 
     def _unreadable(self, problem: str, files: KeyFiles) -> None:
         """Keep the keys the hub had, but those whose file is gone: a stray file must not hold a revocation up."""
-        self.problem = problem
         self.files = None                  # read it whole again once it can be, whatever it then holds
         gone = self._drop_deleted()
-        if self._problem_said != (problem, files):
-            self._problem_said = (problem, files)
+        if self._unread != (problem, files):         # said once per state of the folder
+            self._unread = (problem, files)
             self.log(f"hub: the key folder changed, but cannot be read ({problem}): the hub goes on accepting the "
                      "keys it had" + (f", but those of {', '.join(gone)}, whose files are gone" if gone else "")
                      + "; it tries again at the next connection")

@@ -88,7 +88,7 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
                                          str(out / "hub.mcap") if options.record else None))
         hub = build_hub(config, log=log, scenario=scenario)
         agents: List[subprocess.Popen] = []
-        result: Dict[str, Any] = {}
+        session: Optional[SilSession] = None
         try:
             hub.bind()
             agents = spawn_agents(hub.endpoints["robots"], keys, scenario.robots.count, out, options.imports)
@@ -101,9 +101,8 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
             result = session.run()
         finally:
             # A Ctrl-C from the terminal reaches the agents too; a `kill` or a closed session reaches sil alone
-            interrupt = sys.exc_info()[1]
-            ctrl_c = (isinstance(interrupt, KeyboardInterrupt) and getattr(interrupt, "how", "Ctrl-C") == "Ctrl-C") \
-                or str(result.get("error", "")).startswith("interrupted (Ctrl-C)")
+            interrupt = sys.exc_info()[1] if session is None or session.interrupt is None else session.interrupt
+            ctrl_c = isinstance(interrupt, KeyboardInterrupt) and getattr(interrupt, "how", "Ctrl-C") == "Ctrl-C"
             let_leaving_agents_exit(hub, agents, ctrl_c)
             stop_processes(agents)        # SIGTERM: each agent stops its wheels and exits
             hub.close()
@@ -178,6 +177,7 @@ class SilSession:
         self.round_trips: List[float] = []
         self.missing_answers = 0
         self.stop_reason = "time limit"
+        self.interrupt: Optional[KeyboardInterrupt] = None      # what ended the run early, if it was interrupted
 
     def run(self) -> Dict[str, Any]:
         self.hub.expect_frames_from(math.inf)      # physics starts once the agents are there (_run_realtime)
@@ -204,6 +204,7 @@ class SilSession:
             error = str(exc) if isinstance(exc, AgentError) else f"{what} (at t = {self.source.time_s:.1f} s)"
             self.stop_reason = "crashed"
         except KeyboardInterrupt as interrupt:  # Ctrl-C or SIGTERM: what was recorded is written, as `sim run` does
+            self.interrupt = interrupt
             error = f"interrupted ({getattr(interrupt, 'how', 'Ctrl-C')}) (at t = {self.source.time_s:.1f} s)"
             self.stop_reason = "interrupted"
         wall = time.perf_counter() - started
