@@ -27,6 +27,10 @@ PUSH_JUDGED_AFTER_S = 15.0
 # had moved (a turn in place moves it not at all).
 PROGRESS_M = 0.01
 PROGRESS_RAD = math.radians(1.0)
+# A cage that did not close by the time limit was still forming when a robot joined it this recently, or within
+# twice the run's mean time between joins (a 100-robot cage takes a minute or more per member).
+CAGING_PROGRESS_S = 60.0
+CAGING_STATES = ("seed", "travel", "attach")    # robots on their way to the object or attaching to it
 CAGE_STATES = ("caged", "settle", "push", "rotate", "done")
 
 
@@ -47,6 +51,8 @@ class TransportEvaluator(Evaluator):
         self.last_time = 0.0
         self.best_toward: Tuple[int, float, float] = (-1, math.inf, math.inf)   # waypoint, distance, yaw error
         self.progress_at: Optional[float] = None      # when the object last got nearer its next waypoint
+        self.joined_at: List[float] = []              # before closure: each time the cage gained members
+        self.caging_members = self.caging_busy = 0    # before closure: members, and robots caging (CAGING_STATES)
 
     def warnings(self, params: Any) -> List[str]:
         return transport_warnings(self.scenario, self.world, params)
@@ -61,6 +67,8 @@ class TransportEvaluator(Evaluator):
                 positions = self.world.robot_poses()[:, :2]
                 members = [positions[i] for i, t in reports.items() if t.get("member")]
                 self.gap_at_closure_rad = widest_gap_rad(members, self.pose_at_closure[:2])
+            else:
+                self._note_caging(time_s, reports)
             return
         members = [i for i, t in reports.items() if t["state"] in CAGE_STATES and t.get("member")]
         self.members = members or self.members
@@ -78,6 +86,35 @@ class TransportEvaluator(Evaluator):
         if transporting and time_s >= self.next_spacing_sample:
             self.next_spacing_sample = time_s + SPACING_SAMPLE_PERIOD_S
             self.spacings.extend(self._adjacent_distances(live))
+
+    def _note_caging(self, time_s: float, reports: Dict[int, Dict[str, Any]]) -> None:
+        members = sum(1 for t in reports.values() if t.get("member"))
+        if members > self.caging_members:
+            self.joined_at.append(time_s)
+        self.caging_members = members
+        self.caging_busy = sum(1 for t in reports.values() if t.get("state") in CAGING_STATES)
+
+    def _not_caged_hint(self) -> List[str]:
+        """How far the cage got by the time limit, and whether it was still forming: a short time limit was
+        said in the same words as a cage that could not close ("cage did not close")."""
+        limit_s = self.scenario.time_limit_s
+        if self.last_time + 2.0 / self.scenario.physics.control_hz < limit_s:   # stopped early: stop_reason says why
+            return []
+        members, busy, joins = self.caging_members, self.caging_busy, self.joined_at
+        bidding_s = float(self.scenario.params.get("allocation_time_s", TransportParams.allocation_time_s))
+        if not joins and not busy and self.last_time <= 2.0 * bidding_s:
+            return [f"by its {limit_s:g} s time limit the robots were still bidding for the first place in the "
+                    f"cage (params.allocation_time_s, {bidding_s:g} s): give it a longer time limit (time_limit_s, "
+                    "--time-limit)"]
+        text = f"by its {limit_s:g} s time limit {members} robot{'' if members == 1 else 's'} had joined the cage"
+        if joins:
+            text += f", the last {self.last_time - joins[-1]:.0f} s before the end"
+        if busy:
+            text += f", and {busy} {'was' if busy == 1 else 'were'} on the way to the object or attaching"
+        window = max(CAGING_PROGRESS_S, 2.0 * joins[-1] / len(joins)) if joins else CAGING_PROGRESS_S
+        if busy and (not joins or self.last_time - joins[-1] <= window):
+            text += ": the cage was still forming, give it a longer time limit (time_limit_s, --time-limit)"
+        return [text]
 
     def _note_progress(self, time_s: float) -> None:
         k = len(self.reached)
@@ -242,7 +279,7 @@ class TransportEvaluator(Evaluator):
         # Rounded as reached_s is: a sum of 0.1 s steps gave 62.300000000000004 in result.json.
         closed = None if self.closed_at is None else round(self.closed_at, 2)
         out: Dict[str, Any] = {"caged": caged, "time_to_cage_s": closed, "cage_size": len(self.members)}
-        failures = [] if caged else ["cage did not close"]
+        failures = [] if caged else ["cage did not close", *self._not_caged_hint()]
         # The swarm decides closure from what it senses; the truth may differ (a ring on one side of the object).
         encloses = None if self.gap_at_closure_rad is None else self.gap_at_closure_rad < math.pi
         out["cage_encloses_object"] = encloses

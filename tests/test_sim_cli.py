@@ -19,8 +19,12 @@ def test_sim_run_writes_its_outputs_into_out(tmp_path, capsys):
     assert (out / "trajectory.npz").is_file()
     printed = capsys.readouterr().out
     assert "lab-6 seed 1: 6 robots" in printed
-    # 3 s is too short to cage: the robots stopped at the time limit, and the evaluator says what is missing
-    assert "  not completed: cage did not close" in printed and result["failures"] == ["cage did not close"]
+    # 3 s is too short to cage: the robots stopped at the time limit, and the evaluator says what is missing,
+    # and that the robots were still bidding for the seed's place, not stuck
+    assert "  not completed: cage did not close; by its 3 s time limit the robots were still bidding" in printed
+    assert result["failures"] == ["cage did not close", "by its 3 s time limit the robots were still bidding for the "
+                                  "first place in the cage (params.allocation_time_s, 7 s): give it a longer time "
+                                  "limit (time_limit_s, --time-limit)"]
 
 
 
