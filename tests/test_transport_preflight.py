@@ -149,7 +149,12 @@ def test_a_control_rate_other_than_the_tuned_10_hz_is_warned_about(make_scenario
     """lab-6 at 20 Hz completed 9 of 16 runs where 10 Hz completes 16 of 16 (behaviour.md section 8)."""
     (warning,) = Simulation(transport(make_scenario, physics={"control_hz": 20})).warnings
     assert warning.startswith("physics.control_hz: the transport behaviour is tuned and tested at 10 Hz")
+    assert warning.endswith("; params.turn_on_spot_at_object: true keeps attaching robots from turning it (31 of "
+                            "32 runs of lab-6 and lab-6-payload at 20 Hz completed with it)")
     assert Simulation(transport(make_scenario, physics={"control_hz": 10.0})).warnings == []
+    (taken,) = Simulation(transport(make_scenario, physics={"control_hz": 20},
+                                    params={"turn_on_spot_at_object": True})).warnings
+    assert "turn_on_spot_at_object" not in taken        # the advice is taken already
 
 
 def test_a_waypoint_where_the_object_already_is_is_warned_about(make_scenario):

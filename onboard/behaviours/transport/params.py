@@ -16,7 +16,8 @@ PROFILES = ("improved", "faithful")
 IMPROVEMENT_FLAGS = ("pipeline_allocation", "equalise_spacing", "hold_yaw_while_pushing",
                      "return_after_turning", "soft_side_contact",
                      "keep_contact", "reinforce_push", "seed_from_rear", "keep_gap_while_caging",
-                     "surface_estimate", "pace_formation", "regroup_when_cut_off", "head_start")
+                     "surface_estimate", "pace_formation", "regroup_when_cut_off", "head_start",
+                     "turn_on_spot_at_object")
 SMALL_CAGE_YAW = ("auto", "edges", "contact_normals")
 GAINS = ("k_t_caging", "k_cp_effective", "k_cp_other", "k_f_push", "k_t_push", "k_cr", "k_f_rotate", "k_r")
 
@@ -128,6 +129,13 @@ class TransportParams:
     # Off by default, on in the irregular scenarios: round the lab box the trips are short, and it
     # changed which robots meet the cage enough to move seed-specific small-cage cases outside tolerance.
     head_start: bool = False
+    # Ours: an attaching robot that touches the object and faces it turns on the spot before it slides along it
+    # (caging.py:_attach_turn_gate). Driving on while it turned pressed it into a corner and turned the light lab
+    # box up to 8 degrees while the cage formed, unseen by the swarm. lab-6 and lab-6-payload seeds 1-16 at
+    # 20 Hz: 31 of 32 completed with it, 23 without; seeds 1-40 at 10 Hz: 80 of 80, 79 without. Off by default:
+    # it changes every caging, and one of issue #3's 50 acceptance runs (paper-25-zigzag seed 3) then lost its
+    # centroid estimate at the ninth waypoint (docs/behaviour.md section 6).
+    turn_on_spot_at_object: bool = False
     regroup_when_cut_off: bool = True        # a spare out of radio range of every robot at work moves toward
     #                                          the object estimate until it hears one again (behaviour.py)
 
