@@ -221,6 +221,24 @@ def test_the_surface_estimate_ignores_robots_sliding_along_the_faces():
     assert normal_displacement({0: now[0], 3: now[3]}, reference, normals, (0.0, 0.0), yaw) is None  # one axis only
 
 
+
+def test_the_surface_estimate_leaves_out_one_point_that_no_longer_sees_its_face():
+    """paper-25-zigzag (seed 3 of the grid after the turn-on-the-spot change): one of 18 members' surface points
+    jumped off its face, and the least squares put the estimate 0.13 m behind the box for the rest of the run.
+    The point farthest off the fit, beyond OUTLIER_M, is left out; points within it count as before."""
+    faces = [((1.0, t), (1.0, 0.0)) for t in (-0.6, 0.0, 0.6)] + [((-1.0, t), (-1.0, 0.0)) for t in (-0.6, 0.6)] \
+        + [((t, 1.0), (0.0, 1.0)) for t in (-0.5, 0.5)] + [((t, -1.0), (0.0, -1.0)) for t in (-0.5, 0.5)]
+    reference = {i: point for i, (point, _) in enumerate(faces)}
+    normals = {i: normal for i, (_, normal) in enumerate(faces)}
+    shift = (0.3, -0.1)
+    now = {i: (x + shift[0], y + shift[1]) for i, (x, y) in reference.items()}
+    assert normal_displacement(now, reference, normals, (0.0, 0.0), 0.0) == pytest.approx(shift, abs=1e-9)
+    off = {**now, 3: (now[3][0] - 0.4, now[3][1])}                # the robot on the left face sees 0.4 m deeper
+    assert normal_displacement(off, reference, normals, (0.0, 0.0), 0.0) == pytest.approx(shift, abs=1e-9)
+    near = {**now, 3: (now[3][0] - 0.03, now[3][1])}              # 3 cm: noise, kept in the fit
+    moved = normal_displacement(near, reference, normals, (0.0, 0.0), 0.0)
+    assert moved[0] == pytest.approx(shift[0] - 0.03 / 5) and moved[1] == pytest.approx(shift[1])
+
 def test_a_branch_skips_a_slot_whose_robot_is_still_attaching():
     """L2's robot is still attaching (no member entry): the branch goes on past it to L3 and L4, and still
     ends at a member more than 2 I_d (0.9 m) from the one before it (L5)."""
