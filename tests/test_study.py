@@ -52,6 +52,7 @@ class Crashing(Behaviour):
             raise RuntimeError("a deliberate bug, 1 s in")
 """
 GOOD, CRASHING = "lab-6@behaviour=transport", "lab-6@behaviour=crashing"
+HUNDRED_DROPS = ", ".join(f"0.{i:03d}" for i in range(100))
 DEEP_JSON = "[" * 100_000 + "]" * 100_000      # valid JSON, but past Python's recursion limit: RecursionError
 
 
@@ -201,6 +202,13 @@ def test_the_summarys_overrides_column_writes_lists_and_mappings_as_json_without
     ("scenarios: [lab-6]\nreps: 1\ntime_limit_s: -5", "time_limit_s: must be a number of seconds > 0"),
     ("scenarios: [lab-6]\nreps: 1\ntime_limit_s: .inf", "time_limit_s: must be a number of seconds > 0"),
     ("scenarios: [lab-6]\nseeds: 1..100000000000", "seeds: a range may hold at most 100000 seeds"),
+    # Counted before the grid is expanded: eight keys of ten values filled the memory (itertools.product). The
+    # first cell here is refused too, so that a grid built before it is counted fails fast, with another error.
+    ("scenarios: [lab-6]\nreps: 1\noverrides: {robots.count: [0, 6], comm.drop: [" + HUNDRED_DROPS + "], "
+     "comm.range_m: [" + ", ".join(str(i + 1) for i in range(100)) + "]}",
+     "overrides: makes 20000 cells (1 scenario x 2 x 100 x 100 values), more than a study may hold (10000"),
+    ("scenarios: [lab-6]\nreps: 60000\noverrides: {robots.count: [0, 6]}",
+     "bad.yaml: reps: 2 cells x 60000 seeds make 120000 runs, more than a study may run (100000)"),
     ("scenarios: [lab-6]\nreps: 1\noverrides: {comm.drop: [0.1, 0.2, 0.1]}",
      "overrides.comm.drop: lists the value 0.1 twice"),
     ("scenarios: [lab-6]\nreps: 1\nreps: 2", "bad.yaml:3: not valid YAML (the key 'reps' is given twice"),
@@ -231,6 +239,13 @@ def test_an_empty_file_is_named_by_its_path_once(tmp_path, capsys):
     said = capsys.readouterr().err.strip()
     assert said == f"khepri: error: {study}: scenarios[0]: {tmp_path / 'bad' / 'empty.yaml'}: the file is empty (a " \
                    "scenario is a mapping of keys such as behaviour: and robots:; {} takes every default)", said
+
+
+def test_too_many_runs_names_reps_when_the_option_gave_them(tmp_path, capsys):
+    study = write(tmp_path / "two.yaml", "scenarios: [lab-6]\nreps: 1\noverrides: {robots.count: [0, 6]}\n")
+    assert main(["study", str(study), "--reps", "60000", "--dry-run"]) == 2
+    assert capsys.readouterr().err == ("khepri: error: --reps: 2 cells x 60000 seeds make 120000 runs, more than a "
+                                       "study may run (100000): give fewer seeds or fewer cells\n")
 
 
 @pytest.mark.parametrize("options, message", [
