@@ -409,6 +409,7 @@ def test_a_cell_folder_that_cannot_be_written_fails_its_runs_not_the_study(tmp_p
     study = write(tmp_path / "tiny.yaml", TINY_STUDY + "overrides: {comm.drop: [0.0, 0.1]}\n")
     out = tmp_path / "out"
     out.mkdir()
+    write(out / "study.json", '{"name": "tiny"}')       # a study's folder: one of other files is refused
     blocker = write(out / "lab-6@comm.drop=0.1", "not a folder")
     assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 1
     said = capsys.readouterr()
@@ -1288,16 +1289,64 @@ def test_a_dask_host_that_does_not_exist_is_said_by_a_dry_run_too(tmp_path, caps
     assert main(command + ["dask:tcp://127.0.0.1:8786"]) == 0        # nothing is reached: nobody need listen
 
 
-@pytest.mark.parametrize("damaged", ["[1, 2]", '{"commands": "khepri study x"}', '{"name": "tr', DEEP_JSON],
-                         ids=["list", "commands", "cut", "deep"])
-def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_path, damaged):
-    from sim_backend.study.driver import read_study, record_study
+@pytest.mark.parametrize("damaged, why", [
+    ("[1, 2]", "not a JSON object: [1, 2]"), ('{"name": "tiny", "commands": "khepri study x"}',
+                                              "commands is not a list of text"),
+    ('{"name": "tiny", "commands": [', "not JSON: Expecting value: line 1 column 31 (char 30)"), ("", "empty"),
+    ("[]", "not a JSON object: []"), (DEEP_JSON, "not JSON: lists or mappings nested too deeply"),
+    ('{"commands": []}', "no study name"),
+], ids=["list", "commands", "cut", "empty", "empty-list", "deep", "nameless"])
+def test_a_damaged_study_json_is_said_and_kept_as_it_is(tmp_path, capsys, damaged, why):
+    """Taken as missing, a damaged study.json let another study in without --merge, and a run replaced it, the
+    commands it listed lost."""
+    from sim_backend.study.driver import record_study
 
-    (tmp_path / "study.json").write_text(damaged)
-    record_study(parse_study({"scenarios": ["lab-6"], "reps": 1}), tmp_path, "khepri study again")
-    assert read_study(tmp_path)["commands"] == ["khepri study again"]
-    if not damaged.startswith('{"commands"'):        # readable, only its commands were not a list
-        assert (tmp_path / "study.json.unreadable").read_text() == damaged
+    study = write(tmp_path / "tiny.yaml", "name: other\nscenarios: [lab-6]\nseeds: [1]\ntime_limit_s: 1\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "study.json").write_text(damaged)
+    for options in (["--dry-run"], [], ["--merge"]):
+        assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", *options]) == 2
+        said = capsys.readouterr().err
+        assert said.startswith(f"khepri: error: {out / 'study.json'}: damaged ({why}") and said.count("\n") == 1
+        assert said.endswith("): fix or remove it\n"), said
+    with pytest.raises(ConfigError, match="damaged"):
+        record_study(parse_study({"scenarios": ["lab-6"], "reps": 1}), out, "khepri study again")
+    assert (out / "study.json").read_text() == damaged and sorted(p.name for p in out.iterdir()) == ["study.json"]
+
+
+def test_a_folder_of_other_files_is_refused_rather_than_written_over(tmp_path, capsys):
+    """--out naming a folder of one's own (paper notes in report.md, a figure) wrote the study's report.md and
+    figures/ over them without a word."""
+    study = write(tmp_path / "tiny.yaml", "name: tiny\nscenarios: [lab-6]\nseeds: [1]\ntime_limit_s: 1\n")
+    out = tmp_path / "notes"
+    (out / "figures").mkdir(parents=True)
+    write(out / "report.md", "my paper notes")
+    write(out / "figures" / "times.png", "my figure")
+    for options in (["--dry-run"], [], ["--merge"]):
+        assert main(["study", str(study), "--out", str(out), "--workers", "1", *options]) == 2
+        assert capsys.readouterr().err == (
+            f"khepri: error: --out: {out} is not empty (figures, report.md) and holds no study (no study.json): a "
+            "study writes report.md, summary.csv and figures/ into its folder, over what is there; give a new or "
+            "empty folder\n")
+    assert (out / "report.md").read_text() == "my paper notes"
+    assert sorted(p.name for p in out.rglob("*")) == ["figures", "report.md", "times.png"]
+
+
+def test_a_first_run_stopped_before_its_study_json_resumes_and_so_do_runs_without_one(tmp_path, capsys):
+    """A study writes study.json before any run, after taking the folder's lock: stopped in between, the folder
+    holds the lock (and perhaps study.json's temporary file) alone, and is the study's. A folder whose study.json
+    was removed (as the error above says to) still holds the runs: a study folder too."""
+    study = write(tmp_path / "tiny.yaml", "name: tiny\nscenarios: [lab-6]\nseeds: [1]\ntime_limit_s: 1\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    write(out / "study.lock", "4242\n")
+    write(out / "study.tmp", '{"name": "ti')
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
+    assert "ran 1 run (0 failed)" in capsys.readouterr().out
+    (out / "study.json").unlink()
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
+    assert "ran 0 runs (0 failed), skipped 1 finished" in capsys.readouterr().out
 
 
 def test_a_folder_of_another_study_is_refused_unless_merge_asks_for_it(tmp_path, capsys):
