@@ -1349,6 +1349,24 @@ def test_a_first_run_stopped_before_its_study_json_resumes_and_so_do_runs_withou
     assert "ran 0 runs (0 failed), skipped 1 finished" in capsys.readouterr().out
 
 
+def test_runs_kept_from_another_time_limit_are_not_said_to_have_run_a_changed_scenario(tmp_path, capsys):
+    """A run under the study's limit fingerprints its scenario without time_limit_s, one under the scenario's own
+    with it: the same scenario passed for a changed one after --time-limit came or went."""
+    scenario = write(tmp_path / "arena.yaml", "robots: {count: 4}\nobject: {shape: circle, radius: 0.2}\n"
+                                              "time_limit_s: 2\n")
+    study = write(tmp_path / "s.yaml", "name: s\nscenarios: [arena.yaml]\nseeds: [1]\n")
+    for first, then in ((["--time-limit", "1"], []), ([], ["--time-limit", "1"])):
+        out = tmp_path / f"out{len(first)}"
+        assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", *first]) == 0
+        capsys.readouterr()
+        assert main(["study", str(study), "--out", str(out), "--dry-run", *then]) == 0
+        said = capsys.readouterr().err
+        assert "1 run already in" in said and "ran with another time limit" in said and "changed since" not in said
+    write(scenario, scenario.read_text() + "comm: {drop: 0.1}\n")       # a real change is still said
+    assert main(["study", str(study), "--out", str(tmp_path / "out2"), "--dry-run"]) == 0
+    assert "ran a scenario that has changed since (cells arena)" in capsys.readouterr().err
+
+
 def test_a_folder_of_another_study_is_refused_unless_merge_asks_for_it(tmp_path, capsys):
     """--out naming another study's folder took its finished runs of lab-6 as this study's, and renamed its
     report, without a word."""

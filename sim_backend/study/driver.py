@@ -55,7 +55,8 @@ def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) ->
         if recorded.get("time_limit_s") != run.time_limit_s:
             plan.other_limit.append(run)
         # None: written before runs recorded it; the full fingerprint: what runs recorded before 2026-11-29
-        if recorded.get("scenario_sha1") not in (None, run.scenario_sha1, run.full_scenario_sha1):
+        as_run = run.scenario_sha1_as_run(study_limit=recorded.get("time_limit_s") is not None)
+        if recorded.get("scenario_sha1") not in (None, as_run, run.full_scenario_sha1):
             plan.other_scenario.append(run)
         if recorded.get("behaviour_sha1") not in (None, "", run.behaviour_sha1):
             plan.other_code.append(run)
