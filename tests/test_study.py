@@ -900,6 +900,24 @@ def test_the_report_flags_results_of_mixed_code_and_scenario_versions(known_stud
     assert "- `paper-25-straight`: 2 versions of its scenario (`s1` 2 runs, `s2` 1 run)" in report
 
 
+def test_runs_of_one_cell_with_and_without_a_study_limit_are_not_mixed_scenario_versions(known_study):
+    """A run under the study's limit fingerprints its scenario without time_limit_s: a cell whose seeds ran with
+    --time-limit and later ones without was reported as running two versions of its scenario."""
+    limits = {1: (1.0, "limited"), 2: (1.0, "limited"), 3: (None, "own")}
+    for seed, (limit, scenario) in limits.items():
+        path = known_study / "paper-25-straight" / f"seed-{seed}" / "result.json"
+        data = json.loads(path.read_text())
+        data["study"].update(time_limit_s=limit, scenario_sha1=scenario, scenario_sha1_full=f"full-{seed}")
+        write(path, json.dumps(data))
+    write_study_outputs(known_study, figures=False)
+    assert "## Mixed versions" not in (known_study / "report.md").read_text()
+    path = known_study / "paper-25-straight" / "seed-2" / "result.json"      # a real change is still said
+    write(path, path.read_text().replace('"limited"', '"edited"'))
+    write_study_outputs(known_study, figures=False)
+    assert "- `paper-25-straight`: 2 versions of its scenario (`limited` 1 run, `edited` 1 run)" in \
+        (known_study / "report.md").read_text()
+
+
 def test_a_behaviour_without_caging_gets_no_success_rate(tmp_path):
     result = {"scenario": "aggregate-20", "seed": 1, "robots": 20, "behaviour": "aggregate", "failed": False,
               "stop_reason": "time limit", "spread_ratio": 0.2, "study": {"cell": "aggregate-20", "overrides": {}}}
