@@ -616,6 +616,32 @@ def test_a_log_cut_short_before_its_first_poses_is_called_truncated(tmp_path, ke
                                       "file ends inside ")
 
 
+def test_a_log_whose_every_chunk_is_damaged_is_called_damaged_not_empty(tmp_path):
+    """`log info` said DAMAGED, skipped 12; the replay said the log held no poses, "nothing to replay"."""
+    from mcap.reader import make_reader
+
+    from hub.factory import build_hub
+    from hub.recording import Recorder
+
+    path = tmp_path / "flipped.mcap"
+    with Recorder(path) as recorder:
+        for k in range(3):
+            recorder.write("/mocap/poses", {"bodies": {"0": [0.1 * k, 0, 0, 0, 0, 0, 1]}, "clock_s": None}, T0 + k)
+            recorder.flush()          # a chunk each
+    with open(path, "rb") as file:
+        chunks = [(c.chunk_start_offset, c.chunk_length) for c in make_reader(file).get_summary().chunk_indexes]
+    data = bytearray(path.read_bytes())
+    for start, length in chunks:
+        data[start + length - 1] ^= 0xFF        # the last byte of its records: its CRC no longer matches
+    path.write_bytes(bytes(data))
+    with pytest.raises(ConfigError) as info:
+        build_hub(replay_config(path), log=lambda line: None)
+    said = str(info.value)
+    assert said.startswith(f"source.file: {path} holds no /mocap/poses records that can be read: its damaged "
+                           f"records were skipped ({len(chunks)}: chunk at byte {chunks[0][0]}: "), said
+    assert said.endswith(f", and {len(chunks) - 1} more; `khepri log info {path}` lists them)") and len(chunks) >= 3
+
+
 def test_another_tools_mocap_poses_channel_is_named_with_its_encoding(tmp_path):
     """A /mocap/poses channel in protobuf is not the hub's poses: the replay says so at start, as read_log and
     `khepri log info` skip such channels, instead of one `not JSON` skip line per record."""
