@@ -263,7 +263,8 @@ def cmd_sil(args: argparse.Namespace) -> int:
     if problem:
         raise ConfigError("--out", f"{problem} (sil writes the agents' logs into it)")
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
-                         record=not args.no_record, plot=not args.no_plot, imports=list(args.imports))
+                         record=not args.no_record, plot=not args.no_plot, imports=list(args.imports),
+                         scenario_ref=args.scenario)
     with sigterm_as_ctrl_c():      # `kill` stops the agents and the hub and closes the log, as Ctrl-C does
         result = run_sil(scenario, out, options)
     print_summary(result)
