@@ -165,7 +165,7 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         raise ConfigError("--hub", str(err)) from None
     except ControlError as err:      # no answer, or the hub refused (an e-stop latched, ...)
         said = str(err) + (keys_here_hint() if keys is None and err.keys_may_help else "")
-        if args.json and args.command != "status":     # a script reading stdout learns it failed, and why
+        if args.json:     # a script reading stdout learns it failed, and why (status printed nothing there)
             print(json.dumps({"command": args.command, "ok": False, "error": said}))
         # An e-stop that did not arrive must not read like any other error at a demo: the robots still run.
         loud = "E-STOP NOT DELIVERED: " if args.command == "estop" else ""
