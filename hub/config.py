@@ -17,6 +17,7 @@ from onboard.yamlfile import read_yaml
 
 SOURCE_TYPES = ("sim", "motioncapture", "replay")
 DEFAULT_WATCHDOG_S = 0.3
+MAX_WATCHDOG_S = 10.0          # a robot silent longer than this is gone, whatever its rate
 # The source fields each type reads (``type``, ``seed`` and ``stale_s`` are every type's: the seed also seeds the
 # agents' ``random``): a field of another type would be ignored without a word, e.g. a Vicon hostname under a
 # sim source, which then runs the simulation.
@@ -227,7 +228,7 @@ class LabConfig:
             if xmax <= xmin or ymax <= ymin:
                 raise ConfigError("geofence", f"must be [xmin, ymin, xmax, ymax] with min < max (got "
                                               f"{[float(v) for v in self.geofence]})")
-        check_range("watchdog_s", self.watchdog_s, 0.0, 10.0, low_open=True)
+        check_range("watchdog_s", self.watchdog_s, 0.0, MAX_WATCHDOG_S, low_open=True)
         if not self.security.insecure and not str(self.security.keys).strip():
             raise ConfigError("security.keys", "is empty: name the key folder `khepri keys init` made (default keys)")
         if self.record is not None and not str(self.record).strip():
@@ -250,15 +251,31 @@ class LabConfig:
 # step (telemetry). Within one or two periods, one late step turns the robot "not connected" and back: at
 # watchdog_s 0.05 and 10 Hz telemetry, the flag flapped all the time (and with the sim source, the wheels).
 WATCHDOG_TELEMETRY_PERIODS = 3
+# So the slowest loop a hub serves: a scenario may run slower in `khepri sim run` (physics.control_hz 0.1), and a
+# hub then asked for a watchdog_s it refuses ("add watchdog_s: 30", then "watchdog_s: must be <= 10").
+MIN_HUB_CONTROL_HZ = WATCHDOG_TELEMETRY_PERIODS / MAX_WATCHDOG_S
 
 
 def min_watchdog_s(control_hz: float) -> float:
-    """The shortest ``watchdog_s`` for agents looping at ``control_hz`` (and at IDLE_TELEMETRY_HZ without a run)."""
-    return WATCHDOG_TELEMETRY_PERIODS / min(control_hz, IDLE_TELEMETRY_HZ)
+    """The shortest ``watchdog_s`` for agents looping at ``control_hz`` (and at IDLE_TELEMETRY_HZ without a run);
+    never above MAX_WATCHDOG_S (a rate too slow for that is check_watchdog's to say)."""
+    return min(MAX_WATCHDOG_S, WATCHDOG_TELEMETRY_PERIODS / min(control_hz, IDLE_TELEMETRY_HZ))
 
 
-def check_watchdog(watchdog_s: float, control_hz: float, rate_field: str, written: bool = True) -> None:
+def check_hub_rate(control_hz: float, rate_field: str, instead: str = "") -> None:
+    """Refuse a loop rate slower than any watchdog_s the hub takes allows (MIN_HUB_CONTROL_HZ); ``instead``: what
+    can run it."""
+    if control_hz < MIN_HUB_CONTROL_HZ - 1e-9:
+        raise ConfigError(rate_field, f"{control_hz:g} Hz is too slow to run through a hub: it takes "
+                          f"{MIN_HUB_CONTROL_HZ:g} Hz or faster (agents speak once per loop step, and the hub counts a "
+                          f"robot silent for watchdog_s, at most {MAX_WATCHDOG_S:g} s, as not connected: "
+                          f"{WATCHDOG_TELEMETRY_PERIODS} steps must fit in it){instead}")
+
+
+def check_watchdog(watchdog_s: float, control_hz: float, rate_field: str, written: bool = True,
+                   instead: str = "") -> None:
     """``written``: watchdog_s is in the config; else it is the default, and the rate is what the user set."""
+    check_hub_rate(control_hz, rate_field, instead)
     least = min_watchdog_s(control_hz)
     if watchdog_s < least - 1e-9 and not written:     # the error named a key the config did not have
         raise ConfigError(rate_field, f"{control_hz:g} Hz needs a watchdog_s of at least {least:g} s, and watchdog_s "

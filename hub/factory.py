@@ -31,9 +31,11 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
     context = context or zmq.Context.instance()
     log = as_console(log)       # what is said while building goes into the log too, once the hub opens it
     seed = None
+    scenario_ref = None          # the scenario's file or built-in name, when loaded here from the config
     if config.source.type == "sim" and scenario is None:
         from sim_backend.scenario import load_scenario
 
+        scenario_ref = config.source.scenario
         try:
             scenario = load_scenario(config.source.scenario)
         except ConfigError as err:
@@ -44,7 +46,7 @@ def build_hub(config: LabConfig, log: Callable[[str], None] = print, context: Op
             raise ConfigError("source.scenario", problem) from None
     # Checked before the source connects: with a motion-capture system that does not answer, a missing
     # run.behaviour or key folder was said only after the connection timed out.
-    run = run_template(config, scenario)
+    run = run_template(config, scenario, scenario_ref)
     if recorder is None and config.record is not None:
         record_path(config)         # a bad name ({tim}, an existing file), said before a connection's timeout
     net = config.network            # likewise a port another process (a hub left running) listens on
@@ -186,7 +188,9 @@ def check_sim_robots(wanted: List[int], scenario_ids: List[int], description: st
                           f"no robot {', '.join(map(str, extra))}")
 
 
-def run_template(config: LabConfig, scenario) -> RunTemplate:
+def run_template(config: LabConfig, scenario, scenario_ref: Optional[str] = None) -> RunTemplate:
+    """What ``ctl start`` runs. ``scenario_ref``: how the user named the scenario (its file), for its errors; else
+    its ``name:``."""
     run = config.run
     name = run.behaviour or (scenario.behaviour if scenario is not None else None)
     if name is None:
@@ -213,8 +217,8 @@ def run_template(config: LabConfig, scenario) -> RunTemplate:
     spec = RobotSpec() if scenario is None else RobotSpec(max_wheel_speed_m_s=scenario.robots.max_wheel_speed_m_s)
     control_hz = scenario.physics.control_hz if scenario is not None else run.control_hz
     if scenario is not None:       # the config checked watchdog_s against run.control_hz, which sim replaces
-        check_watchdog(config.watchdog_s, control_hz, f"{scenario.name}: physics.control_hz",
-                       config.watchdog_written)
+        check_watchdog(config.watchdog_s, control_hz, f"{scenario_ref or scenario.name}: physics.control_hz",
+                       config.watchdog_written, instead="; `khepri sim run` runs the scenario as it is")
     seed = config.source.seed if config.source.seed is not None else getattr(scenario, "seed", None)
     return RunTemplate(name, params, control_hz, lockstep=config.source.type == "sim" and config.source.lockstep,
                        spec=dict(spec.__dict__), seed=seed)

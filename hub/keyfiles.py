@@ -43,7 +43,10 @@ def init_keys(folder: Path, robot_ids: List[int], operators: List[str], force: b
     it, the folder holds exactly the new set afterwards (``stale_keys`` names what ``force`` removes)."""
     targets = [folder / "hub.key"] + _peer_keys(folder, robot_ids, operators)
     _refuse_files_in_the_way(folder, targets)
-    existing = [p for p in targets if p.exists()]
+    # Secrets too: a hub.key_secret alone (its hub.key lost or not yet copied back) was replaced without a word,
+    # and every robot given the old hub.key could no longer reach the hub.
+    files = [path for target in targets for path in (target, target.with_suffix(".key_secret"))]
+    existing = [path for path in files if path.exists() or path.is_symlink()]
     if existing and not force:
         raise ConfigError("FOLDER", f"{existing[0]} already exists (use --force to replace keys)")
     check_operator_names(operators)

@@ -47,6 +47,12 @@ class ReplaySource(PoseSource):
         self._last_skip_line = -math.inf
         self._fetch()
         if self.pending is None:
+            damaged = self.reader.damaged
+            if damaged:          # the poses were most likely in what was skipped: not a log without any
+                more = f", and {len(damaged) - 1} more" if len(damaged) > 1 else ""
+                raise ConfigError("source.file", f"{path} holds no /mocap/poses records that can be read: its damaged "
+                                                 f"records were skipped ({len(damaged)}: {damaged[0]}{more}; "
+                                                 f"`khepri log info {path}` lists them)")
             if self.reader.stop_reason:           # a hub log cut short before its first poses, not another file
                 raise ConfigError("source.file", f"{path} holds no /mocap/poses records: it is truncated "
                                                  f"({self.reader.stop_reason})")

@@ -54,6 +54,7 @@ class SilOptions:
     step_timeout_s: float = 2.0
     imports: List[str] = field(default_factory=list)    # the user's behaviour modules (--import), for the agents
     log_to_console: bool = False
+    scenario_ref: Optional[str] = None     # the scenario as given (its file), for errors; None: its name
 
 
 def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any]:
@@ -64,7 +65,7 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     # The time limit the run gets, as `sim run` does: the warnings (a fault that never fires) go by it.
     scenario = scenario.with_overrides(seed=seed).with_time_limit(options.time_limit_s)
     limit = scenario.time_limit_s
-    refuse_before_starting(scenario)     # before the folder's last run is cleared away for this one
+    refuse_before_starting(scenario, options.scenario_ref)     # before the folder's last run is cleared away
     # backslashreplace: a line quoting a robot's text with a lone surrogate is written escaped, not a crash
     hub_log = open(out / "hub.log", "w", encoding="utf-8", errors="backslashreplace")   # noqa: SIM115 - closed below
 
@@ -128,11 +129,12 @@ def sil_config(scenario: Scenario, options: SilOptions, security: Dict[str, Any]
     }
 
 
-def refuse_before_starting(scenario: Scenario) -> None:
+def refuse_before_starting(scenario: Scenario, scenario_ref: Optional[str] = None) -> None:
     """What the hub would refuse in this scenario (agent restarts, a transport without an object, bad run
-    params), said before anything in --out is touched: a refused scenario cleared the last run's results."""
+    params, a loop too slow for a hub), said before anything in --out is touched: a refused scenario cleared the
+    last run's results."""
     refuse_agent_restarts(scenario)
-    run_template(parse_config(sil_config(scenario, SilOptions(), {"insecure": True}, None)), scenario)
+    run_template(parse_config(sil_config(scenario, SilOptions(), {"insecure": True}, None)), scenario, scenario_ref)
 
 
 def spawn_agents(endpoint: str, keys: Path, count: int, out: Path, imports: List[str]) -> List[subprocess.Popen]:

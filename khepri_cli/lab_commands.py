@@ -165,7 +165,7 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         raise ConfigError("--hub", str(err)) from None
     except ControlError as err:      # no answer, or the hub refused (an e-stop latched, ...)
         said = str(err) + (keys_here_hint() if keys is None and err.keys_may_help else "")
-        if args.json and args.command != "status":     # a script reading stdout learns it failed, and why
+        if args.json:     # a script reading stdout learns it failed, and why (status printed nothing there)
             print(json.dumps({"command": args.command, "ok": False, "error": said}))
         # An e-stop that did not arrive must not read like any other error at a demo: the robots still run.
         loud = "E-STOP NOT DELIVERED: " if args.command == "estop" else ""
@@ -263,7 +263,8 @@ def cmd_sil(args: argparse.Namespace) -> int:
     if problem:
         raise ConfigError("--out", f"{problem} (sil writes the agents' logs into it)")
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
-                         record=not args.no_record, plot=not args.no_plot, imports=list(args.imports))
+                         record=not args.no_record, plot=not args.no_plot, imports=list(args.imports),
+                         scenario_ref=args.scenario)
     with sigterm_as_ctrl_c():      # `kill` stops the agents and the hub and closes the log, as Ctrl-C does
         result = run_sil(scenario, out, options)
     print_summary(result)

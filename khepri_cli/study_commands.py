@@ -55,13 +55,13 @@ def cmd_study(args: argparse.Namespace) -> int:
     if args.folder is not None:
         raise ConfigError("study", f"unexpected argument {str(args.folder)!r} (only `report` takes a folder)")
     from sim_backend.study.executors import make_executor, parse_executor, worker_count
+    from sim_backend.study.folder import check_out_folder
 
     choice = parse_executor(args.executor or "local")     # bad --executor / --workers: said before anything else
     workers = worker_count(args.workers)
     spec, runs = study_grid(args)
     out = args.out or Path("out") / f"study-{spec.name}"
-    if not args.merge:
-        refuse_another_study(out, spec.name)
+    check_out_folder(out, spec.name, merge=args.merge)
     if args.dry_run:
         check_scheduler_name(choice)
         if out.exists() and not out.is_dir():      # said as the real run would say it (a dry run makes no folder)
@@ -100,17 +100,6 @@ def run_and_report(args: argparse.Namespace, spec, runs, out: Path, executor) ->
           + (f" and {outcome.kept_failed} failed (re-run them with --retry-failed)" if outcome.kept_failed else "")
           + (f"; {len(outcome.unwritable)} could not write their result" if outcome.unwritable else ""))
     return print_outputs(write_study_outputs(out, figures=not args.no_figures))
-
-
-def refuse_another_study(out: Path, name: str) -> None:
-    """A folder that holds another study (its study.json names it) is not this study's to resume: its finished
-    runs would pass for this study's wherever cells and seeds coincide, and its report would take this name."""
-    from sim_backend.study.driver import STUDY_FILE, read_study
-
-    recorded = read_study(out).get("name")
-    if isinstance(recorded, str) and recorded != name:
-        raise ConfigError("--out", f"{out} holds the study {recorded!r} ({out / STUDY_FILE}), not {name!r}: give "
-                                   f"another --out, or add --merge to add this study's runs to that folder")
 
 
 def study_file_path(target: str) -> Path:

@@ -273,6 +273,16 @@ def test_keys_init_and_ctl_error_without_a_hub(tmp_path):
     assert lonely.returncode == 1 and "no answer from the hub" in lonely.stderr
 
 
+@pytest.mark.parametrize("command", ["status", "estop"])
+def test_ctl_json_without_a_hub_prints_a_json_error_for_status_too(command):
+    """`ctl estop --json` printed {"ok": false, ...} on stdout, `ctl status --json` nothing at all."""
+    lonely = khepri("ctl", command, "--json", "--port", "1", "--timeout", "0.3")
+    said = json.loads(lonely.stdout)
+    assert lonely.returncode == 1 and said["command"] == command and said["ok"] is False
+    assert said["error"].startswith("no answer from the hub at tcp://127.0.0.1:1 within 0.3 s")
+    assert "khepri: error: " in lonely.stderr and said["error"] in lonely.stderr
+
+
 def test_keys_add_adds_robots_and_operators_to_a_key_folder(tmp_path):
     keys = tmp_path / "keys"
     assert khepri("keys", "init", str(keys), "--robots", "2").returncode == 0

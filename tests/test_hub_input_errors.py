@@ -402,6 +402,36 @@ def test_a_watchdog_too_short_for_the_sim_scenario_stops_the_hub(tmp_path):
     assert "must be at least 0.3 s (got 0.1)" in line and "physics.control_hz 10" in line
 
 
+def test_a_loop_too_slow_for_any_watchdog_is_refused_by_its_rate_naming_the_scenario_file(tmp_path):
+    """physics.control_hz 0.1 is a valid scenario, but 3 of its 10 s steps fit in no watchdog_s a hub takes (at most
+    10 s): sil said `watchdog_s: must be <= 10 (got 30)` of a key nobody wrote, and the hub advised `add watchdog_s:
+    30`, which it then refused; both named the scenario's name: instead of its file."""
+    from hub.factory import build_hub, run_template
+    from sim_backend.scenario import load_scenario
+
+    slow = tmp_path / "slow.yaml"
+    slow.write_text("name: demo-run\nbehaviour: aggregate\nrobots: {count: 2}\nphysics: {control_hz: 0.1}\n")
+    too_slow = (f"{slow}: physics.control_hz: 0.1 Hz is too slow to run through a hub: it takes 0.3 Hz or faster "
+                "(agents speak once per loop step, and the hub counts a robot silent for watchdog_s, at most 10 s, as "
+                "not connected: 3 steps must fit in it); `khepri sim run` runs the scenario as it is")
+    for watchdog in ({}, {"watchdog_s": 10}):
+        with pytest.raises(ConfigError) as info:
+            build_hub(parse_config(sim_config(source={"type": "sim", "scenario": str(slow)}, **watchdog)))
+        assert str(info.value) == too_slow
+    sil = khepri("sil", str(slow), "--out", str(tmp_path / "out"))
+    assert sil.returncode == 2 and sil.stderr == f"khepri: error: {too_slow}\n", sil.stderr
+    with pytest.raises(ConfigError) as info:      # the lab's own rate, likewise
+        parse_config(mocap_config({"kh0": 0}, run={"behaviour": "aggregate", "control_hz": 0.1}))
+    assert str(info.value).startswith("run.control_hz: 0.1 Hz is too slow to run through a hub: it takes 0.3 Hz")
+    # Slow, but not too slow: the advice names the file, and following it works.
+    slow.write_text(slow.read_text().replace("0.1}", "0.5}"))
+    with pytest.raises(ConfigError) as info:
+        build_hub(parse_config(sim_config(source={"type": "sim", "scenario": str(slow)})))
+    assert str(info.value).startswith(f"{slow}: physics.control_hz: 0.5 Hz needs a watchdog_s of at least 6 s, and "
+                                      "watchdog_s is 0.3 s by default: add watchdog_s: 6 to the config")
+    assert run_template(parse_config(sim_config(watchdog_s=6)), load_scenario(str(slow)), str(slow)).control_hz == 0.5
+
+
 def test_the_example_config_and_the_demo_pass_the_watchdog_check():
     from hub.config import demo_config, load_config
 
@@ -614,6 +644,32 @@ def test_a_log_cut_short_before_its_first_poses_is_called_truncated(tmp_path, ke
         build_hub(replay_config(path), log=lambda line: None)
     assert str(info.value).startswith(f"source.file: {path} holds no /mocap/poses records: it is truncated (the "
                                       "file ends inside ")
+
+
+def test_a_log_whose_every_chunk_is_damaged_is_called_damaged_not_empty(tmp_path):
+    """`log info` said DAMAGED, skipped 12; the replay said the log held no poses, "nothing to replay"."""
+    from mcap.reader import make_reader
+
+    from hub.factory import build_hub
+    from hub.recording import Recorder
+
+    path = tmp_path / "flipped.mcap"
+    with Recorder(path) as recorder:
+        for k in range(3):
+            recorder.write("/mocap/poses", {"bodies": {"0": [0.1 * k, 0, 0, 0, 0, 0, 1]}, "clock_s": None}, T0 + k)
+            recorder.flush()          # a chunk each
+    with open(path, "rb") as file:
+        chunks = [(c.chunk_start_offset, c.chunk_length) for c in make_reader(file).get_summary().chunk_indexes]
+    data = bytearray(path.read_bytes())
+    for start, length in chunks:
+        data[start + length - 1] ^= 0xFF        # the last byte of its records: its CRC no longer matches
+    path.write_bytes(bytes(data))
+    with pytest.raises(ConfigError) as info:
+        build_hub(replay_config(path), log=lambda line: None)
+    said = str(info.value)
+    assert said.startswith(f"source.file: {path} holds no /mocap/poses records that can be read: its damaged "
+                           f"records were skipped ({len(chunks)}: chunk at byte {chunks[0][0]}: "), said
+    assert said.endswith(f", and {len(chunks) - 1} more; `khepri log info {path}` lists them)") and len(chunks) >= 3
 
 
 def test_another_tools_mocap_poses_channel_is_named_with_its_encoding(tmp_path):

@@ -71,6 +71,20 @@ def test_keys_init_makes_private_secrets_and_refuses_to_overwrite(keys):
         init_keys(keys, [0], ["alice"])
 
 
+@pytest.mark.parametrize("lone", ["hub.key_secret", "robots/robot-1.key_secret", "operators/alice.key_secret",
+                                  "operators/alice.key"])
+def test_keys_init_refuses_a_lone_key_file_of_its_own_too(tmp_path, keys, lone):
+    """init refused an existing hub.key or robot key, but wrote over a hub.key_secret left without its hub.key."""
+    folder = tmp_path / "half"
+    (folder / lone).parent.mkdir(parents=True, exist_ok=True)
+    (folder / lone).write_bytes((keys / lone).read_bytes())
+    with pytest.raises(ConfigError) as refused:
+        init_keys(folder, [0, 1], ["alice"])
+    assert str(refused.value) == f"FOLDER: {folder / lone} already exists (use --force to replace keys)"
+    assert (folder / lone).read_bytes() == (keys / lone).read_bytes()
+    assert [p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()] == [lone]
+
+
 def test_keys_init_force_leaves_only_the_new_keys_for_the_hub_to_accept(keys):
     old_robot_1 = (keys / "robots" / "robot-1.key").read_bytes()
     init_keys(keys, [1, 2], ["bob"], force=True)                    # rotate: robot 0 and alice are gone

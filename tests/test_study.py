@@ -52,6 +52,7 @@ class Crashing(Behaviour):
             raise RuntimeError("a deliberate bug, 1 s in")
 """
 GOOD, CRASHING = "lab-6@behaviour=transport", "lab-6@behaviour=crashing"
+HUNDRED_DROPS = ", ".join(f"0.{i:03d}" for i in range(100))
 DEEP_JSON = "[" * 100_000 + "]" * 100_000      # valid JSON, but past Python's recursion limit: RecursionError
 
 
@@ -201,6 +202,13 @@ def test_the_summarys_overrides_column_writes_lists_and_mappings_as_json_without
     ("scenarios: [lab-6]\nreps: 1\ntime_limit_s: -5", "time_limit_s: must be a number of seconds > 0"),
     ("scenarios: [lab-6]\nreps: 1\ntime_limit_s: .inf", "time_limit_s: must be a number of seconds > 0"),
     ("scenarios: [lab-6]\nseeds: 1..100000000000", "seeds: a range may hold at most 100000 seeds"),
+    # Counted before the grid is expanded: eight keys of ten values filled the memory (itertools.product). The
+    # first cell here is refused too, so that a grid built before it is counted fails fast, with another error.
+    ("scenarios: [lab-6]\nreps: 1\noverrides: {robots.count: [0, 6], comm.drop: [" + HUNDRED_DROPS + "], "
+     "comm.range_m: [" + ", ".join(str(i + 1) for i in range(100)) + "]}",
+     "overrides: makes 20000 cells (1 scenario x 2 x 100 x 100 values), more than a study may hold (10000"),
+    ("scenarios: [lab-6]\nreps: 60000\noverrides: {robots.count: [0, 6]}",
+     "bad.yaml: reps: 2 cells x 60000 seeds make 120000 runs, more than a study may run (100000)"),
     ("scenarios: [lab-6]\nreps: 1\noverrides: {comm.drop: [0.1, 0.2, 0.1]}",
      "overrides.comm.drop: lists the value 0.1 twice"),
     ("scenarios: [lab-6]\nreps: 1\nreps: 2", "bad.yaml:3: not valid YAML (the key 'reps' is given twice"),
@@ -231,6 +239,13 @@ def test_an_empty_file_is_named_by_its_path_once(tmp_path, capsys):
     said = capsys.readouterr().err.strip()
     assert said == f"khepri: error: {study}: scenarios[0]: {tmp_path / 'bad' / 'empty.yaml'}: the file is empty (a " \
                    "scenario is a mapping of keys such as behaviour: and robots:; {} takes every default)", said
+
+
+def test_too_many_runs_names_reps_when_the_option_gave_them(tmp_path, capsys):
+    study = write(tmp_path / "two.yaml", "scenarios: [lab-6]\nreps: 1\noverrides: {robots.count: [0, 6]}\n")
+    assert main(["study", str(study), "--reps", "60000", "--dry-run"]) == 2
+    assert capsys.readouterr().err == ("khepri: error: --reps: 2 cells x 60000 seeds make 120000 runs, more than a "
+                                       "study may run (100000): give fewer seeds or fewer cells\n")
 
 
 @pytest.mark.parametrize("options, message", [
@@ -394,6 +409,7 @@ def test_a_cell_folder_that_cannot_be_written_fails_its_runs_not_the_study(tmp_p
     study = write(tmp_path / "tiny.yaml", TINY_STUDY + "overrides: {comm.drop: [0.0, 0.1]}\n")
     out = tmp_path / "out"
     out.mkdir()
+    write(out / "study.json", '{"name": "tiny"}')       # a study's folder: one of other files is refused
     blocker = write(out / "lab-6@comm.drop=0.1", "not a folder")
     assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 1
     said = capsys.readouterr()
@@ -884,6 +900,24 @@ def test_the_report_flags_results_of_mixed_code_and_scenario_versions(known_stud
     assert "- `paper-25-straight`: 2 versions of its scenario (`s1` 2 runs, `s2` 1 run)" in report
 
 
+def test_runs_of_one_cell_with_and_without_a_study_limit_are_not_mixed_scenario_versions(known_study):
+    """A run under the study's limit fingerprints its scenario without time_limit_s: a cell whose seeds ran with
+    --time-limit and later ones without was reported as running two versions of its scenario."""
+    limits = {1: (1.0, "limited"), 2: (1.0, "limited"), 3: (None, "own")}
+    for seed, (limit, scenario) in limits.items():
+        path = known_study / "paper-25-straight" / f"seed-{seed}" / "result.json"
+        data = json.loads(path.read_text())
+        data["study"].update(time_limit_s=limit, scenario_sha1=scenario, scenario_sha1_full=f"full-{seed}")
+        write(path, json.dumps(data))
+    write_study_outputs(known_study, figures=False)
+    assert "## Mixed versions" not in (known_study / "report.md").read_text()
+    path = known_study / "paper-25-straight" / "seed-2" / "result.json"      # a real change is still said
+    write(path, path.read_text().replace('"limited"', '"edited"'))
+    write_study_outputs(known_study, figures=False)
+    assert "- `paper-25-straight`: 2 versions of its scenario (`limited` 1 run, `edited` 1 run)" in \
+        (known_study / "report.md").read_text()
+
+
 def test_a_behaviour_without_caging_gets_no_success_rate(tmp_path):
     result = {"scenario": "aggregate-20", "seed": 1, "robots": 20, "behaviour": "aggregate", "failed": False,
               "stop_reason": "time limit", "spread_ratio": 0.2, "study": {"cell": "aggregate-20", "overrides": {}}}
@@ -1273,16 +1307,82 @@ def test_a_dask_host_that_does_not_exist_is_said_by_a_dry_run_too(tmp_path, caps
     assert main(command + ["dask:tcp://127.0.0.1:8786"]) == 0        # nothing is reached: nobody need listen
 
 
-@pytest.mark.parametrize("damaged", ["[1, 2]", '{"commands": "khepri study x"}', '{"name": "tr', DEEP_JSON],
-                         ids=["list", "commands", "cut", "deep"])
-def test_a_damaged_study_json_is_kept_aside_and_the_history_starts_again(tmp_path, damaged):
-    from sim_backend.study.driver import read_study, record_study
+@pytest.mark.parametrize("damaged, why", [
+    ("[1, 2]", "not a JSON object: [1, 2]"), ('{"name": "tiny", "commands": "khepri study x"}',
+                                              "commands is not a list of text"),
+    ('{"name": "tiny", "commands": [', "not JSON: Expecting value: line 1 column 31 (char 30)"), ("", "empty"),
+    ("[]", "not a JSON object: []"), (DEEP_JSON, "not JSON: lists or mappings nested too deeply"),
+    ('{"commands": []}', "no study name"),
+], ids=["list", "commands", "cut", "empty", "empty-list", "deep", "nameless"])
+def test_a_damaged_study_json_is_said_and_kept_as_it_is(tmp_path, capsys, damaged, why):
+    """Taken as missing, a damaged study.json let another study in without --merge, and a run replaced it, the
+    commands it listed lost."""
+    from sim_backend.study.driver import record_study
 
-    (tmp_path / "study.json").write_text(damaged)
-    record_study(parse_study({"scenarios": ["lab-6"], "reps": 1}), tmp_path, "khepri study again")
-    assert read_study(tmp_path)["commands"] == ["khepri study again"]
-    if not damaged.startswith('{"commands"'):        # readable, only its commands were not a list
-        assert (tmp_path / "study.json.unreadable").read_text() == damaged
+    study = write(tmp_path / "tiny.yaml", "name: other\nscenarios: [lab-6]\nseeds: [1]\ntime_limit_s: 1\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "study.json").write_text(damaged)
+    for options in (["--dry-run"], [], ["--merge"]):
+        assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", *options]) == 2
+        said = capsys.readouterr().err
+        assert said.startswith(f"khepri: error: {out / 'study.json'}: damaged ({why}") and said.count("\n") == 1
+        assert said.endswith("): fix or remove it\n"), said
+    with pytest.raises(ConfigError, match="damaged"):
+        record_study(parse_study({"scenarios": ["lab-6"], "reps": 1}), out, "khepri study again")
+    assert (out / "study.json").read_text() == damaged and sorted(p.name for p in out.iterdir()) == ["study.json"]
+
+
+def test_a_folder_of_other_files_is_refused_rather_than_written_over(tmp_path, capsys):
+    """--out naming a folder of one's own (paper notes in report.md, a figure) wrote the study's report.md and
+    figures/ over them without a word."""
+    study = write(tmp_path / "tiny.yaml", "name: tiny\nscenarios: [lab-6]\nseeds: [1]\ntime_limit_s: 1\n")
+    out = tmp_path / "notes"
+    (out / "figures").mkdir(parents=True)
+    write(out / "report.md", "my paper notes")
+    write(out / "figures" / "times.png", "my figure")
+    for options in (["--dry-run"], [], ["--merge"]):
+        assert main(["study", str(study), "--out", str(out), "--workers", "1", *options]) == 2
+        assert capsys.readouterr().err == (
+            f"khepri: error: --out: {out} is not empty (figures, report.md) and holds no study (no study.json): a "
+            "study writes report.md, summary.csv and figures/ into its folder, over what is there; give a new or "
+            "empty folder\n")
+    assert (out / "report.md").read_text() == "my paper notes"
+    assert sorted(p.name for p in out.rglob("*")) == ["figures", "report.md", "times.png"]
+
+
+def test_a_first_run_stopped_before_its_study_json_resumes_and_so_do_runs_without_one(tmp_path, capsys):
+    """A study writes study.json before any run, after taking the folder's lock: stopped in between, the folder
+    holds the lock (and perhaps study.json's temporary file) alone, and is the study's. A folder whose study.json
+    was removed (as the error above says to) still holds the runs: a study folder too."""
+    study = write(tmp_path / "tiny.yaml", "name: tiny\nscenarios: [lab-6]\nseeds: [1]\ntime_limit_s: 1\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    write(out / "study.lock", "4242\n")
+    write(out / "study.tmp", '{"name": "ti')
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
+    assert "ran 1 run (0 failed)" in capsys.readouterr().out
+    (out / "study.json").unlink()
+    assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures"]) == 0
+    assert "ran 0 runs (0 failed), skipped 1 finished" in capsys.readouterr().out
+
+
+def test_runs_kept_from_another_time_limit_are_not_said_to_have_run_a_changed_scenario(tmp_path, capsys):
+    """A run under the study's limit fingerprints its scenario without time_limit_s, one under the scenario's own
+    with it: the same scenario passed for a changed one after --time-limit came or went."""
+    scenario = write(tmp_path / "arena.yaml", "robots: {count: 4}\nobject: {shape: circle, radius: 0.2}\n"
+                                              "time_limit_s: 2\n")
+    study = write(tmp_path / "s.yaml", "name: s\nscenarios: [arena.yaml]\nseeds: [1]\n")
+    for first, then in ((["--time-limit", "1"], []), ([], ["--time-limit", "1"])):
+        out = tmp_path / f"out{len(first)}"
+        assert main(["study", str(study), "--out", str(out), "--workers", "1", "--no-figures", *first]) == 0
+        capsys.readouterr()
+        assert main(["study", str(study), "--out", str(out), "--dry-run", *then]) == 0
+        said = capsys.readouterr().err
+        assert "1 run already in" in said and "ran with another time limit" in said and "changed since" not in said
+    write(scenario, scenario.read_text() + "comm: {drop: 0.1}\n")       # a real change is still said
+    assert main(["study", str(study), "--out", str(tmp_path / "out2"), "--dry-run"]) == 0
+    assert "ran a scenario that has changed since (cells arena)" in capsys.readouterr().err
 
 
 def test_a_folder_of_another_study_is_refused_unless_merge_asks_for_it(tmp_path, capsys):

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import json
 import os
 import sys
 import tempfile
@@ -18,15 +17,11 @@ from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Sequence, Set, TextIO, Tuple
 
 from onboard.config import ConfigError, to_mapping
-from onboard.jsontext import parse_json
 
+from .folder import LOCK_FILE, UNWRITABLE_KEY, load_study, read_study, write_study_json
 from .grid import RunSpec, StudySpec
 from .text import are, counted, them
 from .worker import RESULT_FILE, failed_result, read_result, write_result
-
-STUDY_FILE = "study.json"
-LOCK_FILE = "study.lock"          # flock'ed by the command running the study; holds its pid
-UNWRITABLE_KEY = "unwritable"     # study.json: run folder -> why its result.json could not be written
 
 
 @dataclass
@@ -60,7 +55,8 @@ def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) ->
         if recorded.get("time_limit_s") != run.time_limit_s:
             plan.other_limit.append(run)
         # None: written before runs recorded it; the full fingerprint: what runs recorded before 2026-11-29
-        if recorded.get("scenario_sha1") not in (None, run.scenario_sha1, run.full_scenario_sha1):
+        as_run = run.scenario_sha1_as_run(study_limit=recorded.get("time_limit_s") is not None)
+        if recorded.get("scenario_sha1") not in (None, as_run, run.full_scenario_sha1):
             plan.other_scenario.append(run)
         if recorded.get("behaviour_sha1") not in (None, "", run.behaviour_sha1):
             plan.other_code.append(run)
@@ -256,35 +252,15 @@ def record_unwritable_runs(out_dir: Path, attempted: Sequence[str], unwritable: 
 def record_study(spec: StudySpec, out_dir: Path, command: str, run_dirs: Sequence[str] = ()) -> None:
     """study.json: the latest command's grid, every command that ran into this folder (the report quotes
     them) and every run folder they asked for (``planned``: the report counts those without a result)."""
-    path = out_dir / STUDY_FILE
-    previous = read_study(out_dir)
-    if path.is_file() and not previous:      # damaged: keep it beside the new one rather than lose its history
-        path.replace(path.with_name(STUDY_FILE + ".unreadable"))
-    earlier = previous.get("commands")
-    commands = (list(earlier) if isinstance(earlier, list) else []) + ([command] if command else [])
-    planned = previous.get("planned")
-    planned = [d for d in planned if isinstance(d, str)] if isinstance(planned, list) else []
+    previous = load_study(out_dir)      # a damaged one is said, not replaced: its history would be lost
+    commands = previous.get("commands", []) + ([command] if command else [])
+    planned = previous.get("planned", [])
     known = set(planned)
     planned += [d for d in run_dirs if d not in known]
     data = dict(to_mapping(spec), commands=commands, planned=planned)
-    if isinstance(previous.get(UNWRITABLE_KEY), dict):
+    if UNWRITABLE_KEY in previous:
         data[UNWRITABLE_KEY] = previous[UNWRITABLE_KEY]
     write_study_json(out_dir, data)
-
-
-def write_study_json(out_dir: Path, data: Dict[str, Any]) -> None:
-    path = out_dir / STUDY_FILE
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-    tmp.replace(path)
-
-
-def read_study(out_dir: Path) -> Dict[str, Any]:
-    try:
-        data = parse_json((out_dir / STUDY_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):      # ValueError: not JSON, or nested past Python's limit
-        return {}
-    return data if isinstance(data, dict) else {}
 
 
 def outcome_text(result: Dict[str, Any]) -> str:

@@ -81,8 +81,14 @@ class RunSpec:
         can tell a finished run of an edited scenario file from one of the scenario it would run now. Only what
         changes a run counts: not the description, nor the scenario's time_limit_s when the study sets the limit
         (the run records that apart, and a change of it is said apart)."""
+        return self.scenario_sha1_as_run(study_limit=self.time_limit_s is not None)
+
+    def scenario_sha1_as_run(self, study_limit: bool) -> str:
+        """``scenario_sha1`` as a run with (``study_limit``) or without the study's time limit took it: a run kept
+        from a command with another limit is compared the way it was fingerprinted, else its limit alone passed
+        for a changed scenario."""
         data = {key: value for key, value in self.scenario_data.items() if key != "description"}
-        if self.time_limit_s is not None:
+        if study_limit:
             data.pop("time_limit_s", None)
         return _fingerprint(data)
 

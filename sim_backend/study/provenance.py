@@ -59,12 +59,18 @@ def version_section(cells: List[Cell]) -> List[str]:
 
 
 def scenario_versions(studies: List[Dict[str, Any]]) -> Counter:
-    """How many runs ran each version of a cell's scenario. Runs recorded before 2026-11-29 have only the full
-    fingerprint (description included) as scenario_sha1; later ones record it as scenario_sha1_full too, so
-    a cell holding both is compared by that one."""
+    """How many runs ran each version of a cell's scenario, when they ran more than one. Runs recorded before
+    2026-11-29 have only the full fingerprint (description included) as scenario_sha1; later ones record it as
+    scenario_sha1_full too, so a cell holding both is compared by that one. scenario_sha1 leaves out the
+    scenario's time_limit_s when the study set the limit: runs with and without a study limit differ by that
+    alone (said apart, as the time limits), so each is compared only with runs fingerprinted the same way."""
     recorded = [study for study in studies if study.get("scenario_sha1")]
-    key = "scenario_sha1" if all(study.get("scenario_sha1_full") for study in recorded) else "scenario_sha1_full"
-    return Counter(str(study.get(key) or study["scenario_sha1"]) for study in recorded)
+    if not all(study.get("scenario_sha1_full") for study in recorded):
+        return Counter(str(study.get("scenario_sha1_full") or study["scenario_sha1"]) for study in recorded)
+    by_limit: Dict[bool, Counter] = {}
+    for study in recorded:
+        by_limit.setdefault(study.get("time_limit_s") is not None, Counter())[str(study["scenario_sha1"])] += 1
+    return sum((versions for versions in by_limit.values() if len(versions) > 1), Counter())
 
 
 def versions_text(versions: Counter) -> str:

@@ -17,10 +17,16 @@ from sim_backend.scenario import builtin_names
 
 from .grid import StudySpec, expand
 from .paper_reference import paper_scenarios
+from .text import counted
 
 # Far more runs than any machine finishes (a 1-second lab-6 run each would take a day), and a bound before a
 # typo such as `reps: 1000000000` makes a list that fills the memory.
 MAX_SEEDS = 100_000
+# Every cell is built and checked before anything runs (about 20 ms each on the development machine) and gets a
+# folder of its own: a grid of more cells than this is a value list too many, not a study. Counted before the
+# grid is expanded: eight keys of ten values made itertools.product fill the memory before the first cell.
+MAX_CELLS = 10_000
+MAX_RUNS = MAX_SEEDS       # cells x seeds: the bound one cell's seeds have, for the whole study
 STUDY_KEYS = ("name", "scenarios", "seeds", "reps", "overrides", "time_limit_s")
 SEED_RANGE = re.compile(r"^\s*(\d+)\s*\.\.\s*(\d+)\s*$")
 SAFE_NAME = re.compile(r"^[A-Za-z0-9_.+-]+$")
@@ -28,7 +34,9 @@ SAFE_NAME = re.compile(r"^[A-Za-z0-9_.+-]+$")
 
 def paper_study(reps: int) -> StudySpec:
     check_reps("--reps", reps)
-    return StudySpec(name="paper", scenarios=paper_scenarios(), seeds=list(range(1, reps + 1)))
+    spec = StudySpec(name="paper", scenarios=paper_scenarios(), seeds=list(range(1, reps + 1)))
+    check_grid_size(spec, "--reps")
+    return spec
 
 
 def check_reps(where: str, value: Any) -> int:
@@ -51,13 +59,18 @@ def load_study_file(path: Path, reps: Optional[int] = None) -> StudySpec:
         data = {key: value for key, value in data.items() if key not in ("seeds", "reps")}
         data["reps"] = reps
     try:
-        return parse_study(data, base_dir=path.parent, default_name=path.stem)
+        return parse_study(data, base_dir=path.parent, default_name=path.stem,
+                           seeds_field="--reps" if reps is not None else None)
     except ConfigError as err:       # which file: a study names scenario files, and each can be wrong too
+        if err.field.startswith("--"):      # an option's value, not the file's
+            raise
         raise ConfigError(f"{path}: {err.field}" if err.field else str(path), err.problem) from None
 
 
-def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "study") -> StudySpec:
-    """Validate a study mapping; every problem is a ConfigError naming the field."""
+def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "study",
+                seeds_field: Optional[str] = None) -> StudySpec:
+    """Validate a study mapping; every problem is a ConfigError naming the field. ``seeds_field`` names where the
+    seeds came from when not the mapping (``--reps``)."""
     if not isinstance(data, dict):
         raise ConfigError("", f"a study file must be a mapping of keys (got {type(data).__name__})")
     unknown = [key for key in data if key not in STUDY_KEYS]
@@ -76,6 +89,7 @@ def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "stud
                      seeds=parse_seeds(data), overrides={} if isinstance(listed, list) else parse_overrides(listed),
                      time_limit_s=parse_time_limit("time_limit_s", data.get("time_limit_s")),
                      override_sets=parse_override_sets(listed) if isinstance(listed, list) else None)
+    check_grid_size(spec, seeds_field or ("seeds" if "seeds" in data else "reps"))
     limited = [i for i, chosen in enumerate(spec.cells()) if "time_limit_s" in chosen]
     if spec.time_limit_s is not None and limited:
         # The study's limit replaces every run's, so the cells would differ in name only.
@@ -84,6 +98,25 @@ def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "stud
                                                    "one or the other")
     expand(spec)   # builds and validates every cell's scenario now, before anything runs
     return spec
+
+
+def check_grid_size(spec: StudySpec, seeds_field: str) -> None:
+    """Refuse a grid of more than MAX_CELLS cells or MAX_RUNS runs, counted from the value lists, before anything
+    expands it (``spec.cells()``); ``seeds_field`` is where the seeds came from."""
+    listed = spec.override_sets is not None
+    per_scenario = len(spec.override_sets or ()) if listed else math.prod(len(v) for v in spec.overrides.values())
+    cells = per_scenario * len(spec.scenarios)
+    if cells > MAX_CELLS:
+        how = (f"{len(spec.override_sets or ())} listed" if listed else
+               " x ".join(str(len(values)) for values in spec.overrides.values()) + " values")
+        scenarios = counted(len(spec.scenarios), "scenario")
+        raise ConfigError("overrides", f"makes {cells} cells ({scenarios} x {how}), more than a study may hold "
+                                       f"({MAX_CELLS}; each is built and checked before anything runs): give fewer "
+                                       f"values, or list the cells you want")
+    runs = cells * len(spec.seeds)
+    if runs > MAX_RUNS:
+        raise ConfigError(seeds_field, f"{cells} cells x {len(spec.seeds)} seeds make {runs} runs, more than a "
+                                       f"study may run ({MAX_RUNS}): give fewer seeds or fewer cells")
 
 
 def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
