@@ -11,6 +11,7 @@ import zmq
 from onboard.agent import connection
 from onboard.agent.connection import ConnectionWatch, watch_connection
 from onboard.agent.link import endpoint_candidates, family_hint, use_ipv6
+from onboard.console import one_line
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
 from .security import apply_client_keys
@@ -179,17 +180,18 @@ def status_table(status: Dict[str, Any]) -> str:
     if recording and recording.get("left_out"):
         lines.append(f"RECORDING FELL BEHIND: {recording['left_out']} messages left out (the disk was too slow)")
     robots = status.get("robots")
+    lines = [one_line(line) for line in lines]      # the robot rows are escaped cell by cell, to keep in line
     lines += robot_table([row for row in robots if isinstance(row, dict)] if isinstance(robots, list) else [])
     # Newer hubs' fields (docs/protocol.md): an older hub's reply has none of them, and gets no such line.
     if status.get("object"):
-        lines.append(readable("object", object_text, status["object"]))
+        lines.append(one_line(readable("object", object_text, status["object"])))
     if status.get("replay"):
-        lines.append(readable("replay", replay_text, status["replay"]))
+        lines.append(one_line(readable("replay", replay_text, status["replay"])))
     drops = status.get("drops") or {}
     if isinstance(drops, dict) and drops:
         # The counts are the hub's lifetime's: said so, as they outlive the run they came from.
         counts = ", ".join(f"{reason} {count}" for reason, count in sorted(drops.items()))
-        lines.append(f"dropped since the hub started: {counts}")
+        lines.append(one_line(f"dropped since the hub started: {counts}"))
     return "\n".join(lines)
 
 
@@ -244,11 +246,12 @@ def _row_cells(row: Dict[str, Any]) -> List[str]:
         notes.insert(0, "finished")
     if row.get("estop_ack_ms") is not None:
         notes.append(f"e-stop acknowledged in {figure(row['estop_ack_ms'], '.1f')} ms")
-    state = str(row.get("state") or "-")[:STATE_WIDTH]
+    state = one_line(str(row.get("state") or "-"))[:STATE_WIDTH]
     # A robot never connected runs nothing: `run` in its row, the hub's mode for it, read as if it did.
     mode = "-" if seen_s is None and not connected else str(row.get("mode"))
-    return [str(row.get("id")), "yes" if connected else "no", seen, mode, state, figure(row.get("loop_hz"), ".1f"),
-            figure(row.get("loop_misses")), figure(row.get("battery_v"), ".2f", " V"), "; ".join(notes)]
+    cells = [str(row.get("id")), "yes" if connected else "no", seen, mode, state, figure(row.get("loop_hz"), ".1f"),
+             figure(row.get("loop_misses")), figure(row.get("battery_v"), ".2f", " V"), "; ".join(notes)]
+    return [one_line(cell) for cell in cells]       # a robot's text: its newline broke the table, its ESC coloured it
 
 
 def object_text(status: Optional[Dict[str, Any]]) -> str:

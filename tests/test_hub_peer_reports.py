@@ -3,10 +3,13 @@ not what docs/protocol.md says (naming the field and the sender), and `khepri ct
 hub reports without failing. Real sockets on loopback."""
 import json
 import os
+import re
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
+from typing import Callable, Optional
 
 import pytest
 import zmq
@@ -14,6 +17,7 @@ import zmq
 from hub.config import parse_config
 from hub.control import status_table
 from hub.harness import HubThread
+from hub.recording import read_log
 from onboard.protocol import PROTOCOL_VERSION, ProtocolError, encode
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,30 +88,53 @@ def test_telemetry_the_protocol_does_not_allow_is_dropped_naming_the_field_and_t
     assert row["loop_misses"] is None and row["frames_lost"] is None
 
 
-def test_a_finished_that_is_not_true_or_false_does_not_end_a_run_for_the_hub():
-    """`"finished": "no"` made the hub say that every connected robot reports its job finished."""
-    with HubThread(parse_config(SIM)) as hub:
-        sock = peer(hub.endpoints["robots"])
+class Peer(threading.Thread):
+    """A hand-made agent for robot 0 that says hello, acknowledges every command and sends ``report(run_id)`` as
+    its telemetry every 0.1 s (``run_id``: the run the hub last started, None before), until ``stop()``."""
+
+    def __init__(self, endpoint: str, report: Callable[[Optional[str]], dict], hello: Optional[dict] = None):
+        super().__init__(daemon=True)
+        self.endpoint, self.report, self.hello = endpoint, report, hello or {"driver": "sim"}
+        self.run_id: Optional[str] = None
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        sock = peer(self.endpoint)
         try:
-            sock.send(encode({"type": "hello", "id": 0, "driver": "sim"}))
-            hub.request("start")
-            run_id, deadline = None, time.monotonic() + 3.0
+            sock.send(raw({"type": "hello", "id": 0, **self.hello}))
             step = 0
-            while time.monotonic() < deadline:
+            while not self.done.is_set():
                 while sock.poll(0):
                     message = sock.recv()
                     if message.startswith(b"{"):
                         command = json.loads(message)
-                        run_id = (command.get("run") or {}).get("run_id", run_id)
+                        self.run_id = (command.get("run") or {}).get("run_id", self.run_id)
                         sock.send(encode({"type": "ack", "id": 0, "cmd": command["cmd"]}))
                 step += 1
-                sock.send(telemetry(step, mode="run" if run_id else "idle", run_id=run_id, driver="sim",
-                                    behaviour={"state": "pushing", "finished": "no"}))
+                sock.send(telemetry(step, **self.report(self.run_id)))
                 time.sleep(0.1)
-            status = hub.status()
         finally:
             sock.close(0)
-    assert run_id is not None, "the hub never sent start"
+
+    def stop(self) -> None:
+        self.done.set()
+        self.join(5.0)
+
+
+def test_a_finished_that_is_not_true_or_false_does_not_end_a_run_for_the_hub():
+    """`"finished": "no"` made the hub say that every connected robot reports its job finished."""
+    with HubThread(parse_config(SIM)) as hub:
+        agent = Peer(hub.endpoints["robots"], lambda run_id: {
+            "mode": "run" if run_id else "idle", "run_id": run_id, "driver": "sim",
+            "behaviour": {"state": "pushing", "finished": "no"}})
+        agent.start()
+        try:
+            hub.request("start")
+            time.sleep(2.0)
+            status = hub.status()
+        finally:
+            agent.stop()
+    assert agent.run_id is not None, "the hub never sent start"
     assert not [line for line in hub.lines if "reports its job finished" in line], hub.lines
     assert status["robots"][0]["finished"] is None and status["drops"]["bad message"] >= 10
 
@@ -144,6 +171,84 @@ def test_the_status_table_prints_any_values_a_hub_reports():
     assert rows[2].split()[:3] == ["0", "yes", "?"] and "finished" not in rows[2]
     assert "object: the hub's report of it cannot be read" in text
     assert "replay: the hub's report of it cannot be read" in text
+
+
+# A robot's text that tries to be read as the hub's: a line of its own (newline, carriage return), colours
+# (ESC, and C1's CSI), a Unicode line separator.
+EVIL = "\x1b[31mRED\x1b[0m\nhub: run 123 completed (FAKE LINE)\r\u2028\x9b2J"
+SHOWN = "\\x1b[31mRED\\x1b[0m\\x0ahub: run 123 completed (FAKE LINE)\\x0d\\u2028\\x9b2J"
+CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def khepri(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "khepri_cli.main", *args], capture_output=True, text=True,
+                          env=ENV, timeout=60)
+
+
+def test_a_robots_text_makes_no_line_of_its_own_on_the_hubs_console_in_its_log_or_in_ctl_status(tmp_path):
+    """The hub escaped ESC but not newline or carriage return: a robot's error, driver or run id put a line of its
+    own making on the console and in the recorded /hub/log, and `ctl status` printed the raw ANSI and newline."""
+    log = tmp_path / "run.mcap"
+    with HubThread(parse_config({**SIM, "record": str(log)})) as hub:
+        agent = Peer(hub.endpoints["robots"], lambda run_id: {"driver": EVIL, "error": EVIL, "mode": EVIL,
+                                                              "behaviour": {"state": EVIL}},
+                     hello={"driver": EVIL, "run_id": EVIL})
+        agent.start()
+        try:
+            wait_for_line(hub, "hub: robot 0: ")
+            wait_for_line(hub, "which this hub did not start")
+            status = khepri("ctl", "status", "--hub", hub.endpoints["control"])
+        finally:
+            agent.stop()
+    assert f"hub: robot 0: {SHOWN}" in hub.lines
+    assert f"hub: robot 0 was in run {SHOWN}, which" in "\n".join(hub.lines)
+    assert not [line for line in hub.lines if CONTROL.search(line)], hub.lines
+    recorded = [record.payload["message"] for record in read_log(log, topics=["/hub/log"])]
+    assert f"hub: robot 0: {SHOWN}" in recorded and not [line for line in recorded if CONTROL.search(line)]
+    printed = khepri("log", "console", str(log)).stdout.splitlines()
+    assert printed and all(re.match(r"\d{4}-\d\d-\d\d ", line) for line in printed), printed
+    assert status.returncode == 0, status.stderr
+    row = next(line for line in status.stdout.splitlines() if line.lstrip().startswith("0 "))
+    assert not CONTROL.search(status.stdout.replace("\n", "")), status.stdout
+    assert "\\x1b[31mRED" in row and row.endswith(SHOWN), row
+
+
+def test_log_console_escapes_a_line_an_older_hub_recorded_as_it_came(tmp_path):
+    from hub.console import console_record
+    from hub.recording import Recorder
+
+    log = tmp_path / "old.mcap"
+    with Recorder(log) as recorder:
+        recorder.write("/hub/log", console_record(f"hub: robot 0: {EVIL}", time.time()))
+    shown = khepri("log", "console", str(log))
+    assert shown.returncode == 0 and shown.stdout.count("\n") == 1 and shown.stdout.rstrip().endswith(SHOWN), shown
+
+
+def test_ctl_start_prints_a_robots_refusal_on_one_line():
+    """`khepri ctl start` printed a robot's error as it came: its newline made a line of the robot's making."""
+    with HubThread(parse_config(SIM)) as hub:
+        agent = Peer(hub.endpoints["robots"], lambda run_id: {"error": EVIL, "refused_run_id": run_id} if run_id
+                     else {})
+        agent.start()
+        try:
+            hub.wait_until(lambda s: s["robots"][0]["connected"])
+            started = khepri("ctl", "start", "--hub", hub.endpoints["control"])
+        finally:
+            agent.stop()
+    assert started.returncode == 1, started
+    assert f"khepri: error: robot 0: {SHOWN}\n" in started.stderr and "\x1b" not in started.stderr, started.stderr
+
+
+def test_the_status_table_shows_a_robots_text_escaped_and_its_columns_stay_in_line():
+    rows = [{"id": 0, "connected": True, "last_seen_s": 0.1, "mode": "run", "state": "push", "loop_hz": 10.0},
+            {"id": 1, "connected": True, "last_seen_s": 0.1, "mode": "run", "state": "a\tb\nc", "loop_hz": 10.0,
+             "error": EVIL}]
+    header, first, second = status_table({"mode": "run", "source": "sim", "mocap_hz": 50.0, "robots": rows,
+                                          "run_id": "r\n1"}).splitlines()[1:]
+    assert second.split()[5] == "a\\x09b\\x0ac" and second.endswith(SHOWN)
+    assert first.index("10.0") == second.index("10.0")
+    assert status_table({"mode": "idle", "source": "sim", "mocap_hz": 0.0, "robots": [],
+                         "run_id": "r\n1"}).startswith("hub: idle  run: r\\x0a1  ")
 
 
 def test_the_agent_does_not_send_telemetry_the_hub_would_drop():
