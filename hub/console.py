@@ -9,6 +9,8 @@ from __future__ import annotations
 import time
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
+from onboard.console import one_line
+
 from .log_format import HUB_LOG
 
 FOXGLOVE_INFO = 2          # foxglove.Log's level: 1 debug, 2 info, 3 warning, 4 error, 5 fatal
@@ -33,6 +35,9 @@ class HubConsole:
 
     def __call__(self, line: str) -> None:
         stamp = time.time()
+        # Escaped here, where every line passes on its way to the console and the log: many quote a robot's
+        # text (its error, driver, run id), whose newline made a second line, which read as the hub's own.
+        line = one_line(line)
         self.print_line(line)
         recorder = self.recorder
         if recorder is not None:

@@ -4,13 +4,14 @@ from __future__ import annotations
 import math
 import random
 import time
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import zmq
 
 from onboard.agent import connection
 from onboard.agent.connection import ConnectionWatch, watch_connection
 from onboard.agent.link import endpoint_candidates, family_hint, use_ipv6
+from onboard.console import one_line
 from onboard.protocol import MAX_REPLY_BYTES, ProtocolError, decode, encode
 
 from .security import apply_client_keys
@@ -164,28 +165,52 @@ def connection_cause(kind: Optional[str], watch: ConnectionWatch, keyed: bool) -
 
 
 def status_table(status: Dict[str, Any]) -> str:
-    lines = [f"hub: {status['mode']}  run: {status.get('run_id') or '-'}  behaviour: {status.get('behaviour')}  "
-             f"source: {status['source']}  mocap: {status['mocap_hz']:.1f} Hz  "
+    """``ctl status``'s text. It prints whatever the hub reports, a peer's values included (an older hub checked
+    no telemetry: a loop rate of "fast" ended ctl in a traceback), so no value can make it fail."""
+    lines = [f"hub: {status.get('mode')}  run: {status.get('run_id') or '-'}  behaviour: {status.get('behaviour')}  "
+             f"source: {status.get('source')}  mocap: {figure(status.get('mocap_hz'), '.1f')} Hz  "
              f"{'secure (CURVE)' if status.get('secure') else 'INSECURE'}"]
     recording = status.get("recording")
+    if not isinstance(recording, dict):
+        recording = None
     if recording and recording.get("error"):
-        lines.append(f"RECORDING STOPPED ({recording['path']}): {recording['error']}")
+        lines.append(f"RECORDING STOPPED ({recording.get('path')}): {recording['error']}")
     elif recording:         # "am I recording, and where?" had only --json to answer it
-        lines.append(f"recording: {recording['path']}")
+        lines.append(f"recording: {recording.get('path')}")
     if recording and recording.get("left_out"):
         lines.append(f"RECORDING FELL BEHIND: {recording['left_out']} messages left out (the disk was too slow)")
-    lines += robot_table(status["robots"])
+    robots = status.get("robots")
+    lines = [one_line(line) for line in lines]      # the robot rows are escaped cell by cell, to keep in line
+    lines += robot_table([row for row in robots if isinstance(row, dict)] if isinstance(robots, list) else [])
     # Newer hubs' fields (docs/protocol.md): an older hub's reply has none of them, and gets no such line.
     if status.get("object"):
-        lines.append(object_text(status["object"]))
+        lines.append(one_line(readable("object", object_text, status["object"])))
     if status.get("replay"):
-        lines.append(replay_text(status["replay"]))
+        lines.append(one_line(readable("replay", replay_text, status["replay"])))
     drops = status.get("drops") or {}
-    if drops:
+    if isinstance(drops, dict) and drops:
         # The counts are the hub's lifetime's: said so, as they outlive the run they came from.
         counts = ", ".join(f"{reason} {count}" for reason, count in sorted(drops.items()))
-        lines.append(f"dropped since the hub started: {counts}")
+        lines.append(one_line(f"dropped since the hub started: {counts}"))
     return "\n".join(lines)
+
+
+def figure(value: Any, spec: str = "", unit: str = "") -> str:
+    """A number as the table prints it: ``-`` for none, ``?`` for what is not a number of a sensible size (text,
+    NaN, 1e300 printed 300 digits wide), rather than a traceback or a column out of all proportion."""
+    if value is None:
+        return "-"
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not abs(value) < 1e12:   # NaN fails too
+        return "?"
+    return f"{value:{spec}}{unit}"
+
+
+def readable(name: str, text: Callable[[Dict[str, Any]], str], section: Any) -> str:
+    """``text(section)``, or a line saying the hub's ``name`` could not be read (a hub of another version)."""
+    try:
+        return text(section)
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError):
+        return f"{name}: the hub's report of it cannot be read (khepri versions differ?)"
 
 
 # The status table's columns: title and whether it is right-aligned (numbers). The note is last, unpadded.
@@ -209,25 +234,24 @@ def robot_table(rows: List[Dict[str, Any]]) -> List[str]:
 
 
 def _row_cells(row: Dict[str, Any]) -> List[str]:
-    seen = "never" if row["last_seen_s"] is None else f"{row['last_seen_s']:.1f} s"
-    battery = "-" if row.get("battery_v") is None else f"{row['battery_v']:.2f} V"
-    loop = "-" if row.get("loop_hz") is None else f"{row['loop_hz']:.1f}"
-    misses = "-" if row.get("loop_misses") is None else str(row["loop_misses"])
-    notes: List[str] = [n for n in (row.get("reason"), row.get("error")) if n]
-    if not row["connected"] and row["last_seen_s"] is not None:
+    seen_s, connected = row.get("last_seen_s"), bool(row.get("connected"))
+    seen = "never" if seen_s is None else figure(seen_s, ".1f", " s")
+    notes: List[str] = [str(n) for n in (row.get("reason"), row.get("error")) if n]
+    if not connected and seen_s is not None:
         # The state is what the agent said last, not what it does now: it may be dead, its wheels held.
         # (A crashed agent's last report had no behaviour, so no state: then there is none to speak of.)
         last = ": state is its last report" if row.get("state") else ""
-        notes.insert(0, f"silent for {row['last_seen_s']:.1f} s{last}")
-    if row.get("finished"):
+        notes.insert(0, f"silent for {seen}{last}")
+    if row.get("finished") is True:          # only true: a peer's "no" read as finished
         notes.insert(0, "finished")
     if row.get("estop_ack_ms") is not None:
-        notes.append(f"e-stop acknowledged in {row['estop_ack_ms']:.1f} ms")
-    state = str(row.get("state") or "-")[:STATE_WIDTH]
+        notes.append(f"e-stop acknowledged in {figure(row['estop_ack_ms'], '.1f')} ms")
+    state = one_line(str(row.get("state") or "-"))[:STATE_WIDTH]
     # A robot never connected runs nothing: `run` in its row, the hub's mode for it, read as if it did.
-    mode = "-" if row["last_seen_s"] is None and not row["connected"] else str(row["mode"])
-    return [str(row["id"]), "yes" if row["connected"] else "no", seen, mode, state, loop, misses,
-            battery, "; ".join(notes)]
+    mode = "-" if seen_s is None and not connected else str(row.get("mode"))
+    cells = [str(row.get("id")), "yes" if connected else "no", seen, mode, state, figure(row.get("loop_hz"), ".1f"),
+             figure(row.get("loop_misses")), figure(row.get("battery_v"), ".2f", " V"), "; ".join(notes)]
+    return [one_line(cell) for cell in cells]       # a robot's text: its newline broke the table, its ESC coloured it
 
 
 def object_text(status: Optional[Dict[str, Any]]) -> str:

@@ -147,6 +147,7 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     from hub.control import BadEndpoint, ControlError, refusals_after_start, request, status_table
     from hub.keyfiles import operator_client_keys
     from onboard.agent.link import hub_endpoint, resolve_problem, unresolvable_host
+    from onboard.console import one_line
 
     port = DEFAULT_CONTROL_PORT if args.port is None else args.port
     check_port("--port", port)
@@ -169,7 +170,7 @@ def cmd_ctl(args: argparse.Namespace) -> int:
             print(json.dumps({"command": args.command, "ok": False, "error": said}))
         # An e-stop that did not arrive must not read like any other error at a demo: the robots still run.
         loud = "E-STOP NOT DELIVERED: " if args.command == "estop" else ""
-        print(f"khepri: error: {loud}{said}", file=sys.stderr)
+        print(one_line(f"khepri: error: {loud}{said}"), file=sys.stderr)
         return 1
     if args.command == "status":
         print(json.dumps(reply["status"], indent=2) if args.json else status_table(reply["status"]))
@@ -186,11 +187,11 @@ def cmd_ctl(args: argparse.Namespace) -> int:
             said["refused"] = None if unknown else [{"robot": rid, "error": error} for rid, error in refused]
         print(json.dumps({"command": args.command, "ok": True, **said, **({"error": unknown} if unknown else {})}))
     else:
-        print(ctl_reply_line(args.command, reply, len(refused)))
-    for robot_id, error in refused:
-        print(f"khepri: error: robot {robot_id}: {error}", file=sys.stderr)
+        print(one_line(ctl_reply_line(args.command, reply, len(refused))))
+    for robot_id, error in refused:      # the agent's own text: its newline would make a line of its own
+        print(one_line(f"khepri: error: robot {robot_id}: {error}"), file=sys.stderr)
     if unknown:
-        print(f"khepri: error: the run started, but whether every robot took it is unknown: {unknown}",
+        print(one_line(f"khepri: error: the run started, but whether every robot took it is unknown: {unknown}"),
               file=sys.stderr)
     return 1 if refused or unknown else 0
 

@@ -84,7 +84,7 @@ def cmd_console(args: argparse.Namespace) -> int:
 
     from hub.log_reader import LogReader
     from hub.recording import HUB_LOG
-    from onboard.console import say
+    from onboard.console import one_line, say
 
     count = 0
     reader = LogReader(log_path(args.file))         # LogError (a ConfigError) names the file
@@ -93,7 +93,7 @@ def cmd_console(args: argparse.Namespace) -> int:
         if not isinstance(message, str):
             continue         # not a console line (another tool's /hub/log): nothing to print
         when = datetime.fromtimestamp(record.stamp_s).astimezone().strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
-        print(f"{when}  {message}")
+        print(f"{when}  {one_line(message)}")      # a line an older hub recorded unescaped, a robot's text in it
         count += 1
     damaged_end = not reader.complete and not reader.cut_short    # log info calls it DAMAGED: so is it here
     if not reader.complete:         # a killed hub's log: its last lines are not there, and the reader is told

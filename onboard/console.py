@@ -31,6 +31,21 @@ def stop_signals() -> Tuple[int, ...]:
 _VISIBLE = {code: f"\\x{code:02x}" for code in (*range(0, 9), *range(11, 32), 127)}
 
 
+# One line of another's text (a robot's error, its behaviour's state) must stay one line, as it is: every C0
+# character (newline, carriage return and tab too), DEL and C1, Unicode's line and paragraph separators, and
+# the bidirectional controls that make a terminal show the characters after them in another order. A robot's
+# "\n" put a line of its own making ("hub: run ... completed") on the hub's console and in its log.
+_ONE_LINE = {code: f"\\x{code:02x}" for code in (*range(0, 32), *range(127, 160))}
+_ONE_LINE.update({code: f"\\u{code:04x}" for code in (0x200E, 0x200F, 0x2028, 0x2029, *range(0x202A, 0x202F),
+                                                      *range(0x2066, 0x206A))})
+
+
+def one_line(text: str) -> str:
+    """``text`` with each control character written as its escape (``\\x0a``, ``\\u2028``): shown on one line,
+    never acting on the terminal."""
+    return text.translate(_ONE_LINE)
+
+
 def say(line: str, stream: Optional[TextIO] = None) -> None:
     """Print ``line`` to ``stream`` (stderr), flushed, control characters escaped; if the console is gone, drop
     it and silence the stream."""

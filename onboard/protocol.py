@@ -31,6 +31,7 @@ from .protocol_schema import (  # noqa: F401  (re-exported: the protocol's names
     SCHEMAS,
     UPLINK_TYPES,
     ProtocolError,
+    check_fields,
     check_payload_size,
     check_schema,
     fail,
@@ -69,14 +70,22 @@ MAX_CONTROL_HZ = 100.0
 def encode(message: Dict[str, Any], max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
     """The wire bytes of one message, the version added: a binary frame for ``type: frame`` (validated against
     its schema first), compact JSON for every other type. Raises ProtocolError when the peer would reject it:
-    too large (over ``max_bytes``; MAX_REPLY_BYTES for control replies), not JSON, or (frames) a field that
-    does not fit."""
-    if message.get("type") == "frame":
+    too large (over ``max_bytes``; MAX_REPLY_BYTES for control replies), not JSON, or (frames, and the agents'
+    messages) a field that does not fit."""
+    kind = message.get("type")
+    if kind == "frame":
         return _encode_frame_message(message)
     body = dict(message)
     body["v"] = PROTOCOL_VERSION
     try:
+        if kind in UPLINK_TYPES:
+            # An agent's messages carry its driver's and its behaviour's values: one the hub drops (a state
+            # that is a list) would leave the robot silent there. A broadcast's payload size is the radio's
+            # to check, before it comes here: measuring it again would encode every payload twice.
+            check_fields(body, kind)
         data = json.dumps(body, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    except ProtocolError as err:
+        raise ProtocolError(err.problem, err.field, "self") from None
     except (TypeError, ValueError) as err:
         raise ProtocolError(f"cannot encode: {err}", str(message.get("type", "")), "self") from None
     if len(data) > max_bytes:

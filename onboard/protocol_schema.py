@@ -73,6 +73,44 @@ def text(value: Any, field: str) -> None:
         fail(field, f"must be a string of at most {TEXT_MAX_CHARS} characters (got {short(value)})")
 
 
+COUNT_LIMIT = 1 << 53     # a count an agent reports: what every JSON reader holds exactly
+
+
+def counter(value: Any, field: str) -> None:
+    """A count (frames lost, steps, misses): 0 to 2**53 - 1. A negative or 4000-digit one is no count."""
+    integer(value, field)
+    if not 0 <= value < COUNT_LIMIT:
+        fail(field, f"must be a count, 0 to 2**53 - 1 (got {short(value)})")
+
+
+def within(low: float, high: float) -> Check:
+    """A finite number from ``low`` to ``high``: a value shown in ``ctl status`` (1e300 V printed 300 digits)."""
+    def check(value: Any, field: str) -> None:
+        number(value, field)
+        if not low <= value <= high:
+            fail(field, f"must be from {low:g} to {high:g} (got {short(value)})")
+    return check
+
+
+def label(value: Any, field: str) -> None:
+    """What the status table shows in one column (a behaviour's state): short text, a number, true/false or
+    null; not a list or an object, which the table printed raw."""
+    if value is None or isinstance(value, bool):
+        return
+    if isinstance(value, (int, float)):
+        number(value, field)
+    elif not isinstance(value, str) or len(value) > TEXT_MAX_CHARS:
+        fail(field, f"must be a string of at most {TEXT_MAX_CHARS} characters, a number or null "
+                    f"(got {short(value)})")
+
+
+def frame_seq(value: Any, field: str) -> None:
+    """A frame's ``seq`` (a uint64 in the binary header), as a telemetry's ``step`` echoes it."""
+    integer(value, field)
+    if not 0 <= value < 1 << 64:
+        fail(field, f"must be a frame's seq, 0 to 2**64 - 1 (got {short(value)})")
+
+
 def mapping(value: Any, field: str) -> None:
     if not isinstance(value, dict):
         fail(field, f"must be a JSON object (got {short(value)})")
@@ -131,6 +169,26 @@ neighbour = fields_of("[id, range_m, bearing_rad]", robot_id, non_negative, numb
 relayed = fields_of("[sender, sent_s, payload]", robot_id, number, mapping)
 
 
+def fields(checks: Dict[str, Check]) -> Check:
+    """A JSON object whose listed fields, those present, pass their checks; others are left alone."""
+    def check_fields(value: Any, field: str) -> None:
+        mapping(value, field)
+        for name, check in checks.items():
+            if name in value:
+                check(value[name], f"{field}.{name}")
+    return check_fields
+
+
+# What the hub reads of a telemetry's `behaviour` (the rest is the behaviour's own) and its `loop`. The hub
+# shows them in `ctl status` and acts on `finished`: a "no" there was taken for finished.
+behaviour_report = optional(fields({"state": label, "finished": optional(boolean)}))
+MAX_LOOP_HZ = 1e6           # far above any loop (a lockstep sil steps as fast as the PC goes), far below 1e300
+MAX_BATTERY_V = 1000.0      # a KheperaIV reads at most 640 V (16 bits of 9.76 mV): a bad read, but still a reading
+battery_reading = optional(within(0.0, MAX_BATTERY_V))
+loop_report = fields({"hz": within(0.0, MAX_LOOP_HZ), "steps": counter, "misses": counter,
+                      "mean_ms": non_negative, "max_ms": non_negative})
+
+
 def sim_sensors(value: Any, field: str) -> None:
     mapping(value, field)
     numbers(8)(value.get("ir"), f"{field}.ir")
@@ -157,12 +215,11 @@ SCHEMAS: Dict[str, Dict[str, Schema]] = {
         "optional": {"run_id": optional(text), "agent": text},
     },
     "telemetry": {
-        "required": {"id": robot_id, "step": integer, "mode": text},
-        "optional": {"behaviour": optional(mapping), "loop": mapping, "battery_v": optional(number),
-                     "clock_s": optional(number), "frames_lost": integer, "frames_bad": integer,
-                     "unsent": integer, "inbox_dropped": integer, "run_id": optional(text),
-                     "error": optional(text), "refused_run_id": optional(text), "driver": text,
-                     "agent": text},
+        "required": {"id": robot_id, "step": frame_seq, "mode": text},
+        "optional": {"behaviour": behaviour_report, "loop": loop_report, "battery_v": battery_reading,
+                     "clock_s": optional(number), "frames_lost": counter, "frames_bad": counter, "unsent": counter,
+                     "inbox_dropped": counter, "run_id": optional(text), "error": optional(text),
+                     "refused_run_id": optional(text), "driver": text, "agent": text},
     },
     "broadcast": {
         "required": {"id": robot_id, "payload": mapping, "sent_s": number},
@@ -192,6 +249,13 @@ UPLINK_TYPES = ("hello", "telemetry", "broadcast", "wheels", "ack")
 
 def check_schema(message: Dict[str, Any], kind: str) -> None:
     """Raise ProtocolError naming the first field of ``message`` that its type's schema does not allow."""
+    check_fields(message, kind)
+    if kind == "broadcast":
+        check_payload_size(message["payload"], f"{kind}.payload")
+
+
+def check_fields(message: Dict[str, Any], kind: str) -> None:
+    """``check_schema`` but for a broadcast's payload size, which takes encoding the payload to learn."""
     schema = SCHEMAS[kind]
     for name, check in schema["required"].items():
         if name not in message:
@@ -200,8 +264,6 @@ def check_schema(message: Dict[str, Any], kind: str) -> None:
     for name, check in schema["optional"].items():
         if name in message:
             check(message[name], f"{kind}.{name}")
-    if kind == "broadcast":
-        check_payload_size(message["payload"], f"{kind}.payload")
 
 
 def check_payload_size(payload: Dict[str, Any], field: str = "payload") -> int:

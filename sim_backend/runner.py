@@ -389,8 +389,12 @@ def check_telemetry_fits_the_wire(telemetry: List[Optional[Dict[str, Any]]], rob
         if data is None:
             continue
         try:
-            encode({"type": "telemetry", "behaviour": data})      # telemetry_of made it plain JSON already
+            # telemetry_of made it plain JSON already; the rest of the message is the agent's own
+            encode({"type": "telemetry", "id": 0, "step": 0, "mode": "run", "behaviour": data})
         except ProtocolError as err:
+            key = err.field.rpartition("telemetry.behaviour.")[2] if "." in err.field else ""
+            said = f"telemetry[{key!r}] {err.problem}" if key else \
+                f"{err.problem} (plain JSON only: dict, list, str, numbers, bool, None)"
             problem = ValueError(f"the hub could not be sent this telemetry, so every agent in a lab would stop "
-                                 f"on it: {err.problem} (plain JSON only: dict, list, str, numbers, bool, None)")
+                                 f"on it: {said}")
             raise BehaviourError(i, "telemetry()", problem) from None

@@ -168,3 +168,15 @@ def test_a_step_that_ends_as_the_watchdog_judges_it_does_not_spare_the_next_step
     finally:
         watchdog.end()
         watchdog.stop()
+
+
+@pytest.mark.parametrize("reading, sent", [(7.4, 7.4), (None, None), (float("nan"), None), ("7.4", None),
+                                           (1e300, None), (-1.0, None), (True, None)])
+def test_a_battery_reading_the_hub_would_drop_is_sent_as_no_reading(reading, sent):
+    """The hub drops a telemetry whose battery_v is not a voltage (docs/protocol.md): one odd read of the driver
+    would have had the robot's whole report dropped; it is no reading instead, `-` in `ctl status`."""
+    from types import SimpleNamespace
+
+    from onboard.agent.safety import GuardedDriver
+
+    assert GuardedDriver(SimpleNamespace(name="reading", battery_v=lambda: reading)).battery_v() == sent

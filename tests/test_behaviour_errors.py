@@ -95,6 +95,8 @@ class Buggy(Behaviour):
             return {"a": nested(600)}
         if self.params.bug == "set" and self.robot.clock.now() > 0.5:
             return {"state": "ok", "neighbours": {1, 2}}       # a set: fine in Python, not on the wire
+        if self.params.bug == "list_state" and self.robot.clock.now() > 0.5:
+            return {"state": ["search", "push"]}                # a list: JSON, but no state the hub shows
         if self.params.bug == "intkey_telemetry":
             return {"state": "ok", "heard": {self.robot.id: 1.5, None: np.int64(2)}}   # JSON writes keys as str
         return {"state": "ok", "seen": len(self.params.seen), "numpy": np.float32(1.5), "x": math.nan}
@@ -280,6 +282,19 @@ def test_sil_names_the_telemetry_field_the_wire_cannot_carry_as_sim_run_does(bug
         "JSON cannot carry: send dicts, lists, strings, numbers, booleans or None (returned by telemetry() at " \
         "buggy_behaviour.py:" in err and ") (at t = " in err                                      # whole, not cut
     assert json.loads((tmp_path / "sil-set" / "result.json").read_text())["stop_reason"] == "crashed"
+
+
+def test_a_state_the_hub_would_drop_is_named_in_sim_run_and_by_the_agent_in_sil(buggy, tmp_path, capsys):
+    """The hub drops telemetry whose state is a list (docs/protocol.md): the agent sent it anyway, and the robot
+    went silent at the hub, while sim run took it. Both now name the field, as for a set."""
+    assert run("sim", "run", buggy("list_state"), "--no-plot", "--out", "list") == 1
+    said = "telemetry['state'] must be a string of at most 200 characters, a number or null (got ['search', 'push'])"
+    assert f"robot 0, telemetry(): ValueError: the hub could not be sent this telemetry, so every agent in a lab " \
+        f"would stop on it: {said}" in capsys.readouterr().err
+    assert run("sil", buggy("list_state"), "--no-plot", "--no-record", "--out", "sil-list") == 1
+    err = capsys.readouterr().err
+    assert "telemetry() cannot be sent: behaviour.state: must be a string of at most 200 characters" in err, err
+    assert json.loads((tmp_path / "sil-list" / "result.json").read_text())["stop_reason"] == "crashed"
 
 
 def test_a_step_slower_than_the_agents_watchdog_is_said_once_in_sim_run(buggy, tmp_path, capsys):

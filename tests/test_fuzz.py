@@ -168,3 +168,47 @@ def test_the_agent_survives_fuzzing_and_keeps_answering(tmp_path):
     finally:
         assert stop_processes([agent]) == [0]
         scripted.close()
+
+
+def test_the_agent_says_how_many_bad_messages_each_second_hid(tmp_path):
+    """docs/protocol.md: the agent, as the hub, says how many more it dropped in that second. Ten junk frames, a
+    bad mode and a NaN pose were said as "dropped a bad message (1 so far)", and the other eleven never."""
+    scripted = ScriptedHub()
+    log = tmp_path / "agent.log"
+    agent = spawn_agent(scripted.endpoint, 0, log)
+    try:
+        scripted.wait_for(lambda m: m["type"] == "hello")
+        bad_mode, nan_pose = bytearray(VALID_FRAME), bytearray(VALID_FRAME)
+        bad_mode[3] = 9
+        struct.pack_into("<d", nan_pose, 32, math.nan)
+        for data in [b"junk%d" % i for i in range(10)] + [bytes(bad_mode), bytes(nan_pose)]:
+            scripted.send_raw(data)
+        deadline = time.monotonic() + 10.0
+        while "more bad messages" not in log.read_text() and time.monotonic() < deadline:
+            scripted.frame(mode="idle")            # the watchdog fed, the agent's loop turning
+            scripted.pump(0.05)
+        answer = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["frames_bad"] == 12)
+    finally:
+        assert stop_processes([agent]) == [0]
+        scripted.close()
+    said = [line for line in log.read_text().splitlines() if "dropped" in line]
+    assert said[0].startswith("agent 0: dropped a bad message (1 so far): from hub: "), said
+    assert said[1:] == ["agent 0: dropped 11 more bad messages from the hub in the last second (12 so far; the "
+                        "telemetry's frames_bad counts them)"], said
+    assert answer["frames_bad"] == 12
+
+
+def test_the_agents_next_bad_message_after_a_burst_says_what_the_burst_hid():
+    from onboard.agent.bad_messages import BadMessages
+
+    lines = []
+    bad = BadMessages(3, lines.append)
+    for at in (10.0, 10.1, 10.2):
+        bad.drop("from hub: v: unsupported", at)
+    bad.flush(10.9)                         # the second is not over: nothing yet
+    assert lines == ["agent 3: dropped a bad message (1 so far): from hub: v: unsupported"]
+    bad.drop("from hub: frame.mode: ...", 11.3)
+    assert lines[1] == ("agent 3: dropped a bad message (4 so far): from hub: frame.mode: ... (+2 more in the last "
+                        "second)")
+    bad.flush(20.0)                         # nothing hidden since: nothing more to say
+    assert len(lines) == 2 and bad.count == 4

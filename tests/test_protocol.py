@@ -113,6 +113,13 @@ def test_garbage_is_rejected(data, field):
     ("frame", "mode", "dance"),
     ("frame", "seq", 1.5),
     ("telemetry", "step", True),
+    ("telemetry", "step", -1),
+    ("telemetry", "loop", {"hz": "fast"}),               # ended `ctl status` in a traceback
+    ("telemetry", "loop", {"misses": 1.5}),
+    ("telemetry", "behaviour", {"finished": "no"}),      # the hub took it for finished
+    ("telemetry", "behaviour", {"state": {"a": 1}}),
+    ("telemetry", "battery_v", 1e300),
+    ("telemetry", "inbox_dropped", -1),
     ("wheels", "left", "fast"),
     ("wheels", "right", math.inf),
     ("hello", "id", -1),
@@ -190,7 +197,8 @@ def test_a_socket_accepts_only_its_direction():
 ])
 def test_a_message_for_the_other_port_says_which_port_was_mixed_up(kind, accept, said):
     """An agent given the hub's control port, or `khepri ctl` its robots port, only heard of a bad message."""
-    messages = {"request": {"type": "request", "cmd": "status", "nonce": 1}, "hello": {"type": "hello", "id": 0},
+    messages = {"request": {"type": "request", "cmd": "status", "nonce": 1},
+                "hello": {"type": "hello", "id": 0, "driver": "sim"},
                 "reply": {"type": "reply", "ok": True, "nonce": 1}}
     with pytest.raises(ProtocolError, match=re.escape(said)) as refused:
         decode(encode(messages[kind]), "peer", accept=accept)

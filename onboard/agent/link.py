@@ -14,6 +14,7 @@ import zmq
 from onboard.config import ConfigError
 from onboard.protocol import DOWNLINK_TYPES, ProtocolError, decode, encode
 
+from .bad_messages import BadMessages
 from .connection import watch_connection
 
 RECEIVE_HWM = 16      # downlink frames waiting; the agent drains every poll, so more would be stale anyway
@@ -222,7 +223,7 @@ def load_robot_keys(folder: Path, robot_id: int) -> Dict[str, bytes]:
 
 class HubLink:
     """Sends uplink messages and returns validated downlink messages. Never raises on bad input from the hub:
-    bad messages are counted (``bad``) and reported through ``log`` at most once a second."""
+    bad messages are counted (``bad``) and reported through ``log`` at most once a second (``bad_messages``)."""
 
     def __init__(self, robot_id: int, endpoint: str, keys: Optional[Dict[str, bytes]] = None,
                  log: Callable[[str], None] = print, context: Optional[zmq.Context] = None):
@@ -230,13 +231,12 @@ class HubLink:
         self.endpoint = endpoint
         self.log = log
         self.context = context or zmq.Context.instance()
-        self.bad = 0
+        self.bad_messages = BadMessages(robot_id, log)
         # Messages that could not leave once the hub had spoken on the connection (a full socket, the hub gone).
         # Before that, a refused send is no loss: there is nobody to lose it to yet, and hellos are repeated.
         # Counting those made every clean SIL run report a few dropped hellos (an agent says hello at once,
         # before its connection is up).
         self.unsent = 0
-        self._last_bad_line = -1e9
         self.keys = keys
         self.resets = 0
         # Names this agent process on every message, the same on each connection it opens: the hub tells the
@@ -334,6 +334,7 @@ class HubLink:
 
     def receive(self, timeout_s: float) -> List[Dict[str, Any]]:
         """Every message waiting (waiting up to ``timeout_s`` for the first)."""
+        self.bad_messages.flush(time.monotonic())      # called each turn of the loop: a burst's count is said
         out: List[Dict[str, Any]] = []
         if not self.poller.poll(max(0.0, timeout_s) * 1000.0):
             return out
@@ -349,17 +350,15 @@ class HubLink:
                 out.append(decode(data, "hub", accept=DOWNLINK_TYPES, neighbour_columns=True))
                 self.only_bad = None
             except ProtocolError as err:
-                self._bad(str(err))
+                self.bad_messages.drop(str(err), time.monotonic())
                 if first or self.only_bad is not None:
                     self.only_bad = str(err)
         return out
 
-    def _bad(self, detail: str) -> None:
-        self.bad += 1
-        now = time.monotonic()
-        if now - self._last_bad_line >= 1.0:
-            self._last_bad_line = now
-            self.log(f"agent {self.robot_id}: dropped a bad message ({self.bad} so far): {detail}")
+    @property
+    def bad(self) -> int:
+        """The hub's messages dropped so far (the telemetry's ``frames_bad``)."""
+        return self.bad_messages.count
 
     def close(self) -> None:
         # A short linger: the last messages (the wheels' stop for the sim driver, the final telemetry) get out.

@@ -358,8 +358,9 @@ class Agent:
             message["refused_run_id"] = self.refused_run_id     # `ctl start` waits for this answer
         try:
             data = self.link.encode(message)
-        except ProtocolError as err:       # too large, or not JSON even after plain_json: say so instead
-            self.error = f"telemetry() cannot be sent: {err.problem}"
+        except ProtocolError as err:       # too large, not JSON, or a field the hub drops: say so instead
+            where = f"{err.field.replace('telemetry.', '', 1)}: " if err.field.startswith("telemetry.") else ""
+            self.error = f"telemetry() cannot be sent: {where}{err.problem}"
             message.update(behaviour=None, error=error_for_the_hub(self.error))
             data = self.link.encode(message)
         self.link.send_encoded(data)

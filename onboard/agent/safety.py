@@ -25,6 +25,7 @@ from typing import Callable, List, Optional
 
 from onboard.drivers import Driver, DriverError
 from onboard.hal import WheelOdometry
+from onboard.protocol_schema import ProtocolError, battery_reading
 
 STUCK_EXIT_AFTER_S = 1.0     # a stop asked for while a step is stuck: the process ends this long after
 # A hardware call takes milliseconds. One stuck this long (a hung I2C bus) holds the driver's lock: nothing can
@@ -94,7 +95,14 @@ class GuardedDriver(Driver):
         return self._call("encoders", self.inner.encoders)
 
     def battery_v(self) -> Optional[float]:
-        return self._call("battery_v", self.inner.battery_v)
+        """The driver's reading, None (no reading, as `ctl status` shows it) for one the hub would drop with the
+        whole telemetry: NaN, a string, 1e300 V."""
+        value = self._call("battery_v", self.inner.battery_v)
+        try:
+            battery_reading(value, "battery_v")
+        except ProtocolError:
+            return None
+        return value
 
     def close(self) -> None:
         with self.lock:
