@@ -28,7 +28,7 @@ import os
 import traceback
 from typing import Any, Callable, Dict, List, Mapping, Optional, Type
 
-from .config import ConfigError, from_mapping
+from .config import ConfigError, as_written, from_mapping
 from .hal import Robot
 from .hal.payload import a_kind
 from .protocol_schema import short
@@ -283,8 +283,8 @@ def get_behaviour(name: str, where: str = "behaviour") -> Type[Behaviour]:
         from .behaviours import BROKEN
 
         hints = "".join(f"; {file} did not import: {why}" for file, why in BROKEN.items())
-        raise ConfigError(where, f"unknown behaviour {name!r} (known: {', '.join(sorted(_REGISTRY))}{hints}; a "
-                                 "behaviour of your own needs @register and, outside onboard/behaviours/, "
+        raise ConfigError(where, f"unknown behaviour {as_written(name)} (known: {', '.join(sorted(_REGISTRY))}"
+                                 f"{hints}; a behaviour of your own needs @register and, outside onboard/behaviours/, "
                                  "--import)") from None
 
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import yaml
 
-from .config import ConfigError
+from .config import ConfigError, as_written
 from .jsontext import NESTED_TOO_DEEPLY
 
 _INT = "tag:yaml.org,2002:int"
@@ -35,7 +35,7 @@ class StrictLoader(yaml.SafeLoader):
                 continue
             if first is not key_node:
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"the key {key!r} is given twice (first on line {first.start_mark.line + 1})",
+                    None, None, f"the key {as_written(key)} is given twice (first on line {first.start_mark.line + 1})",
                     key_node.start_mark)
         return super().construct_mapping(node, deep=deep)
 

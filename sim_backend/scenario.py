@@ -13,7 +13,15 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from onboard.behaviour import build_params, get_behaviour, takes_param
-from onboard.config import MAX_NAME_LENGTH, ConfigError, check_range, from_mapping, has_control_character, join
+from onboard.config import (
+    MAX_NAME_LENGTH,
+    ConfigError,
+    as_written,
+    check_range,
+    from_mapping,
+    has_control_character,
+    join,
+)
 from onboard.yamlfile import read_yaml
 
 from .object_spec import ObjectSpec, check_extent, check_point, check_yaw
@@ -184,7 +192,7 @@ class Scenario:
             raise ConfigError("name", "must not be empty")
         if "/" in self.name or "\\" in self.name or self.name.strip(".") == "" or has_control_character(self.name):
             raise ConfigError("name", "names the output folder: no / or \\, no control characters, and not only "
-                                      f"dots (got {self.name!r})")
+                                      f"dots (got {as_written(self.name)})")
         if len(self.name) > MAX_NAME_LENGTH:     # the folder name-seedN: "File name too long", blamed on --out
             raise ConfigError("name", f"names the output folder: at most {MAX_NAME_LENGTH} characters (got "
                                       f"{len(self.name)})")
@@ -264,7 +272,7 @@ def resolve(name_or_path: str) -> Path:
     if path.is_file():
         if _is_bare_name(name_or_path) and not is_yaml and builtin.is_file():
             # `khepri sim show lab-6 > lab-6` makes such a file; either choice would surprise someone.
-            raise ConfigError("scenario", f"{name_or_path!r} is both a built-in scenario and a file in this "
+            raise ConfigError("scenario", f"{as_written(name_or_path)} is both a built-in scenario and a file in this "
                               f"folder: write ./{name_or_path} for the file, or rename the file")
         return path
     if not is_yaml and builtin.is_file():
@@ -281,7 +289,8 @@ def resolve(name_or_path: str) -> Path:
 
 
 def unknown_scenario(name: str) -> ConfigError:
-    return ConfigError("scenario", f"unknown scenario {name!r}: not a file and not built in (see `khepri sim list`)")
+    return ConfigError("scenario",
+                       f"unknown scenario {as_written(name)}: not a file and not built in (see `khepri sim list`)")
 
 
 def _is_bare_name(text: str) -> bool:

@@ -143,7 +143,8 @@ def test_a_body_must_map_to_an_integer_robot_id(value):
     with pytest.raises(ConfigError) as info:
         parse_config(mocap_config({"kh0": value}))
     assert info.value.field == "source.bodies.kh0"
-    assert info.value.problem == f"must be an integer robot id 0..999999 (got {value!r})"
+    shown = {True: "true", None: "null"}.get(value, repr(value)) if not isinstance(value, list) else repr(value)
+    assert info.value.problem == f"must be an integer robot id 0..999999 (got {shown})"      # as YAML writes it
 
 
 def test_two_bodies_for_one_robot_are_named():
