@@ -3,7 +3,8 @@
 PyYAML implements YAML 1.1, whose number rules surprise people: ``1e6`` is a string (1.1 wants ``1.0e+6``),
 ``010`` is 8 (octal) and ``1:30`` is 90. The loader here reads numbers as YAML 1.2 does (``1e6`` is a float,
 ``010`` is 10, ``0o10`` is 8), and a key written twice in one mapping is an error naming its line instead
-of the last one silently winning. Every problem is a :class:`ConfigError` naming the file (and the line).
+of the last one silently winning. Aliases that expand to millions of values (an alias bomb) or hold themselves are
+refused at their line too. Every problem is a :class:`ConfigError` naming the file (and the line).
 """
 from __future__ import annotations
 
@@ -18,6 +19,14 @@ from .jsontext import NESTED_TOO_DEEPLY
 
 _INT = "tag:yaml.org,2002:int"
 _FLOAT = "tag:yaml.org,2002:float"
+# Values a file may expand to through its aliases. The largest real files (a polygon of 6000 vertices) hold some
+# tens of thousands; nine levels of nine aliases hold 387 million, and whatever walked them (an error message,
+# a study's cell name) ran for minutes and filled the memory.
+MAX_VALUES = 1_000_000
+
+
+class Unreadable(yaml.constructor.ConstructorError):
+    """Valid YAML that the loader refuses (an alias bomb): said as it is, without "not valid YAML"."""
 
 
 class StrictLoader(yaml.SafeLoader):
@@ -39,6 +48,10 @@ class StrictLoader(yaml.SafeLoader):
                     key_node.start_mark)
         return super().construct_mapping(node, deep=deep)
 
+    def construct_document(self, node):
+        _check_expansion(node, {}, set())
+        return super().construct_document(node)
+
     def construct_yaml_int(self, node):
         text = self.construct_scalar(node)
         sign = -1 if text.startswith("-") else 1
@@ -48,6 +61,29 @@ class StrictLoader(yaml.SafeLoader):
         if digits.startswith("0x"):
             return sign * int(digits[2:], 16)
         return sign * int(digits, 10)
+
+
+def _check_expansion(node: yaml.Node, sizes: dict, inside: set) -> int:
+    """How many values ``node`` holds with its aliases expanded, each shared node counted once per use but
+    visited once; refuses a node that holds itself (an alias to a list it is in: no khepri file needs one, and
+    code that walks it never ends) and a document larger than MAX_VALUES."""
+    key = id(node)
+    if key in sizes:
+        return sizes[key]
+    if isinstance(node, yaml.ScalarNode):
+        return 1
+    if key in inside:
+        raise Unreadable(None, None, "an alias refers to a list or mapping that holds it (a loop)", node.start_mark)
+    inside.add(key)
+    children = node.value if isinstance(node, yaml.SequenceNode) else [part for pair in node.value for part in pair]
+    total = 1 + sum(_check_expansion(child, sizes, inside) for child in children)
+    if total > MAX_VALUES:
+        kind = "list" if isinstance(node, yaml.SequenceNode) else "mapping"
+        raise Unreadable(None, None, f"this {kind} expands through its aliases to more than {MAX_VALUES:,} values "
+                                     "(an alias bomb?)", node.start_mark)
+    inside.discard(key)
+    sizes[key] = total
+    return total
 
 
 StrictLoader.yaml_implicit_resolvers = {
@@ -84,7 +120,8 @@ def parse_yaml(text: str, where: str) -> Any:
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         at = f"{where}:{mark.line + 1}" if mark else where
-        raise ConfigError(at, f"not valid YAML ({getattr(err, 'problem', None) or err})") from None
+        problem = getattr(err, "problem", None) or err
+        raise ConfigError(at, problem if isinstance(err, Unreadable) else f"not valid YAML ({problem})") from None
     except RecursionError:
         # PyYAML reads each level of lists or mappings with a few nested calls: a file nested some hundreds
         # deep (valid YAML or JSON) exhausts Python's stack, and only "maximum recursion depth exceeded" was said.

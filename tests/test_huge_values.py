@@ -6,6 +6,8 @@ import pytest
 
 from hub.config import load_config
 from onboard.config import SHOWN_CHARS, ConfigError, as_written
+from onboard.drivers.calibration import load_calibration
+from onboard.yamlfile import parse_yaml
 from sim_backend.scenario import load_scenario
 from sim_backend.study.study_file import load_study_file
 
@@ -45,6 +47,31 @@ def test_an_alias_bomb_below_the_bound_is_shown_in_one_short_line_at_once(tmp_pa
             load_scenario(str(path))
         assert time.monotonic() - started < 5
         assert str(caught.value).startswith(problem) and len(str(caught.value)) < 200
+
+
+@pytest.mark.parametrize("kind, text", [
+    ("scenario", "robots: {count: %s}\n"),
+    ("study", "name: %s\nscenarios: [lab-6]\nreps: 1\n"),
+    ("study", "scenarios: [lab-6]\nreps: 1\noverrides: {robots.count: [%s]}\n"),
+    ("lab", "source: {type: motioncapture, system: mock, bodies: {kh0: %s}}\n"),
+    ("calibration", "notes: %s\nproximity: []\n"),
+])
+def test_an_alias_bomb_is_refused_at_its_line_before_anything_walks_it(tmp_path, kind, text):
+    path = tmp_path / "bomb.yaml"
+    path.write_text(text % alias_bomb(9))
+    load = {"scenario": lambda p: load_scenario(str(p)), "study": load_study_file, "lab": load_config,
+            "calibration": load_calibration}[kind]
+    started = time.monotonic()
+    with pytest.raises(ConfigError) as caught:
+        load(path)
+    assert time.monotonic() - started < 5
+    assert str(caught.value).startswith(f"{path}:")
+    assert "expands through its aliases to more than 1,000,000 values (an alias bomb?)" in str(caught.value)
+
+
+def test_a_list_that_holds_itself_is_refused():
+    with pytest.raises(ConfigError, match=r"^loop.yaml:2: an alias refers to a list or mapping that holds it"):
+        parse_yaml("name: x\npath: &p [[0, 0, 0], *p]\n", "loop.yaml")
 
 
 @pytest.mark.parametrize("text, problem", [
