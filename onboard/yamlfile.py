@@ -3,8 +3,9 @@
 PyYAML implements YAML 1.1, whose number rules surprise people: ``1e6`` is a string (1.1 wants ``1.0e+6``),
 ``010`` is 8 (octal) and ``1:30`` is 90. The loader here reads numbers as YAML 1.2 does (``1e6`` is a float,
 ``010`` is 10, ``0o10`` is 8), and a key written twice in one mapping is an error naming its line instead
-of the last one silently winning. Aliases that expand to millions of values (an alias bomb) or hold themselves are
-refused at their line too. Every problem is a :class:`ConfigError` naming the file (and the line).
+of the last one silently winning. A value that is valid YAML but cannot be read (``!!int "abc"``, a date 2024-02-30,
+an integer of 5000 digits) and aliases that expand to millions of values (an alias bomb) are refused at their
+line too. Every problem is a :class:`ConfigError` naming the file (and the line).
 """
 from __future__ import annotations
 
@@ -19,6 +20,11 @@ from .jsontext import NESTED_TOO_DEEPLY
 
 _INT = "tag:yaml.org,2002:int"
 _FLOAT = "tag:yaml.org,2002:float"
+_TAG_WORDS = {_INT: "an integer", _FLOAT: "a number", "tag:yaml.org,2002:bool": "true or false",
+              "tag:yaml.org,2002:timestamp": "a date", "tag:yaml.org,2002:binary": "base64 data"}
+# Python's own default bound on int("..."), here on every version (3.9 has none): no khepri number needs more, and
+# beyond it int() raised a ValueError that escaped as a traceback ("Exceeds the limit (4300 digits)").
+MAX_INT_DIGITS = 4300
 # Values a file may expand to through its aliases. The largest real files (a polygon of 6000 vertices) hold some
 # tens of thousands; nine levels of nine aliases hold 387 million, and whatever walked them (an error message,
 # a study's cell name) ran for minutes and filled the memory.
@@ -26,7 +32,8 @@ MAX_VALUES = 1_000_000
 
 
 class Unreadable(yaml.constructor.ConstructorError):
-    """Valid YAML that the loader refuses (an alias bomb): said as it is, without "not valid YAML"."""
+    """Valid YAML that the loader refuses (a value its tag cannot read, an alias bomb): said as it is, without
+    "not valid YAML"."""
 
 
 class StrictLoader(yaml.SafeLoader):
@@ -50,17 +57,41 @@ class StrictLoader(yaml.SafeLoader):
 
     def construct_document(self, node):
         _check_expansion(node, {}, set())
+        # Deep: each list and mapping is filled within its own construct_object, so an error in it is caught
+        # there with its line (filled later, `!!set [1]` raised a bare TypeError).
+        self.deep_construct = True
         return super().construct_document(node)
+
+    def construct_object(self, node, deep=False):
+        # A scalar its tag cannot read (!!int "abc", !!bool "maybe", 2024-02-30) raised the converter's own
+        # ValueError (or KeyError), a traceback naming no file; said here, where the node's line is known.
+        try:
+            return super().construct_object(node, deep=deep)
+        except (ArithmeticError, AttributeError, LookupError, TypeError, ValueError) as err:
+            raise Unreadable(None, None, _cannot_read(node, err), node.start_mark) from None
 
     def construct_yaml_int(self, node):
         text = self.construct_scalar(node)
         sign = -1 if text.startswith("-") else 1
         digits = text.lstrip("+-")
+        if len(digits) > MAX_INT_DIGITS:
+            raise Unreadable(None, None, f"an integer written with {len(digits)} characters is too long to read "
+                                         f"(at most {MAX_INT_DIGITS} digits)", node.start_mark)
         if digits.startswith("0o"):
             return sign * int(digits[2:], 8)
         if digits.startswith("0x"):
             return sign * int(digits[2:], 16)
         return sign * int(digits, 10)
+
+
+def _cannot_read(node: yaml.Node, err: Exception) -> str:
+    what = _TAG_WORDS.get(node.tag, node.tag.replace("tag:yaml.org,2002:", "!!"))
+    value = as_written(node.value) if isinstance(node, yaml.ScalarNode) else \
+        "a list" if isinstance(node, yaml.SequenceNode) else "a mapping"
+    if node.tag == "tag:yaml.org,2002:timestamp":      # 2024-02-30: say why, and how to keep it as text
+        why = f" ({err})" if isinstance(err, ValueError) else ""
+        return f"cannot read {value} as a date{why}; put it in quotes if it is not one"
+    return f"cannot read {value} as {what}"
 
 
 def _check_expansion(node: yaml.Node, sizes: dict, inside: set) -> int:
