@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from hub.mocap_options import DEGENERATE_QUATERNION, check_mock_options, did_you_mean
-from onboard.config import ConfigError, as_written, check_range, from_mapping, join
+from onboard.config import ConfigError, as_written, check_range, from_mapping, is_whole_number, join
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
 
@@ -135,7 +135,7 @@ def mock_bodies(where: str, value: Any) -> List[Tuple[str, str]]:
 
 def check_mock_frequency(where: str, value: Any) -> None:
     text = str(value).strip()
-    if isinstance(value, bool) or not text.isdigit() or not 1 <= int(text) <= 1000:
+    if isinstance(value, bool) or not is_whole_number(text) or not 1 <= int(text) <= 1000:
         raise ConfigError(where, f"must be a whole number of frames per second, 1 to 1000 (got {as_written(value)})")
 
 

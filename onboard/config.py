@@ -95,6 +95,12 @@ def as_integer(value: Any) -> Optional[int]:
     return None
 
 
+def is_whole_number(text: str, max_digits: int = 18) -> bool:
+    """Whether ``text`` is a whole number int() reads: ASCII digits only (str.isdigit also takes '²', which int()
+    refuses), and at most ``max_digits`` of them (int() refuses more than 4300, and no count or id has 19)."""
+    return text.isascii() and text.isdigit() and len(text) <= max_digits
+
+
 def coerce(value: Any, tp: Any, where: str) -> Any:
     """Convert ``value`` to the annotated type ``tp`` or raise ConfigError naming ``where``."""
     origin = typing.get_origin(tp)

@@ -1179,3 +1179,12 @@ def test_a_reversed_geofence_says_what_it_got_and_a_replay_rate_has_a_floor():
             parse_config({"source": {**replay, "rate": rate}})
         assert info.value.field == "source.rate" and "0.001" in info.value.problem
     assert parse_config({"source": {**replay, "rate": 0.001}}).source.rate == 0.001
+
+
+@pytest.mark.parametrize("frequency", ["\u00b2", "9" * 5000])
+def test_a_mock_frequency_that_is_no_whole_number_is_refused_not_a_traceback(frequency):
+    """str.isdigit took '²', and int() then raised ValueError; 5000 digits passed isdigit and int() refused them."""
+    config = mocap_config({"kh0": 0})
+    config["source"]["options"]["frequency"] = frequency
+    with pytest.raises(ConfigError, match="source.options.frequency: must be a whole number of frames per second"):
+        parse_config(config)
