@@ -5,6 +5,7 @@ import io
 import json
 import logging
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -1002,6 +1003,13 @@ def test_a_hand_edited_result_of_another_shape_is_listed_not_a_traceback(known_s
     write(path, json.dumps({**json.loads(path.read_text()), **edit}))
     assert main(["study", "report", str(known_study), "--no-figures"]) == 1   # the folder has a failed run
     assert "paper-25-straight/seed-1/result.json" in load_results(known_study).unreadable
+
+
+def test_a_seed_folder_named_with_a_superscript_is_listed_not_a_traceback(known_study):
+    """`seed-²` passed str.isdigit, and int() of it ended `study report` in a ValueError."""
+    odd = known_study / "paper-25-straight/seed-\u00b2"
+    shutil.copytree(known_study / "paper-25-straight/seed-1", odd)
+    assert "paper-25-straight/seed-\u00b2/result.json" in load_results(known_study).unreadable
 
 
 def test_a_result_nested_past_pythons_recursion_limit_is_listed_not_a_traceback(known_study, capsys):
