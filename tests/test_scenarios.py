@@ -409,6 +409,26 @@ def test_a_file_named_like_a_builtin_is_neither_taken_nor_hidden_silently(tmp_pa
     assert load_scenario("./lab-6").robots.count == 7
 
 
+@pytest.mark.parametrize("given", ["./lab-6", "./paper-25-straight", "runs/lab-6", ".lab-6", "~/lab-6"])
+def test_a_path_to_no_file_is_an_error_not_the_builtin_of_that_name(tmp_path, monkeypatch, given):
+    """The docs say to write ./lab-6 for a file named like a built-in: with no such file, `sim run ./lab-6` ran the
+    built-in lab-6 without a word (and exited 0), while `sim show subdir/lab-6` was "unknown scenario"."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError) as info:
+        load_scenario(given)
+    name = given.rsplit("/", 1)[-1]
+    hint = f" (the built-in scenario is {name}, without a folder)" if not name.startswith(".") else ""
+    assert str(info.value) == f"scenario: no such file: {given}{hint}"
+    assert load_scenario("lab-6").name == "lab-6"      # by its name, the built-in as before
+
+
+def test_a_name_too_long_for_the_file_system_is_an_error_not_a_traceback():
+    """Path.is_file raised OSError "File name too long" for a name of 300 characters."""
+    with pytest.raises(ConfigError) as info:
+        load_scenario("n" * 300)
+    assert str(info.value) == f"scenario: '{'n' * 59}...: File name too long"
+
+
 def test_a_section_with_every_line_commented_out_is_empty_whatever_section_it_is():
     """`comm:` with nothing under it was taken as the defaults, but `params:` or `faults:` was "must be a
     mapping (got None)": commenting out the lines under one section broke the file, under another not."""

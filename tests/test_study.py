@@ -1471,6 +1471,17 @@ def test_a_scenario_file_named_without_yaml_is_found_beside_the_study_wherever_i
         load_study_file(folder / "t.yaml")
 
 
+def test_a_scenario_written_as_a_path_to_no_file_is_no_such_file_as_in_sim_run(tmp_path, monkeypatch):
+    """`scenarios: [./lab-6]` was "unknown scenario './lab-6': not a file and not built in", where `sim run ./lab-6`
+    says "no such file"; the same words everywhere."""
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path / "s.yaml", "scenarios: [./lab-6]\nreps: 1\n")
+    with pytest.raises(ConfigError) as info:
+        load_study_file(tmp_path / "s.yaml")
+    assert str(info.value) == (f"{tmp_path / 's.yaml'}: scenarios[0]: scenario: no such file: {tmp_path / 'lab-6'} "
+                               "(the built-in scenario is lab-6, without a folder)")
+
+
 def test_a_scenario_file_written_relative_to_the_current_folder_is_said_to_be_relative_to_the_study(tmp_path,
                                                                                                   monkeypatch, capsys):
     """`scenarios: [study/scen/a.yaml]` run from the study's parent said only "no such file: study/study/scen/a.yaml",

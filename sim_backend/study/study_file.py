@@ -13,7 +13,7 @@ from typing import Any, Dict, List, Optional
 
 from onboard.config import MAX_NAME_LENGTH, ConfigError, as_integer, as_written, has_control_character
 from onboard.yamlfile import read_yaml
-from sim_backend.scenario import builtin_names
+from sim_backend.scenario import builtin_names, looks_like_path
 
 from .grid import StudySpec, expand
 from .paper_reference import paper_scenarios
@@ -98,9 +98,9 @@ def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
         # Files are relative to the study file, so a study folder can be moved as a whole; so is a file named
         # without .yaml (it used to be looked up in the current folder, so the study meant something else
         # depending on where it was run from).
-        beside, is_yaml = base_dir / item, item.endswith((".yaml", ".yml"))
-        is_file = is_yaml or beside.is_file()
-        if is_file and not is_yaml and "/" not in item and item in builtin_names():
+        beside, path_like = base_dir / item, looks_like_path(item)    # ./lab-6 is a file, or an error: not lab-6
+        is_file = path_like or beside.is_file()
+        if is_file and not path_like and item in builtin_names():
             raise ConfigError(f"scenarios[{i}]", f"{as_written(item)} is both a built-in scenario and a file beside "
                                                  f"the study: write ./{item} for the file, or rename the file")
         if is_file and not beside.exists():
