@@ -12,6 +12,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 from hub.mocap_options import DEGENERATE_QUATERNION, check_mock_options, did_you_mean
 from onboard.config import ConfigError, as_written, check_range, from_mapping, is_whole_number, join
+from onboard.filekinds import LAB_CONFIG, wrong_kind
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
 
@@ -362,6 +363,9 @@ def load_config(path: Path) -> LabConfig:
         # Not the defaults: an empty file is more likely a failed copy than a wish for lab-6 in simulation.
         raise ConfigError("--config", f"{path} is empty; hub/examples/lab.yaml is a commented example "
                                       "(`khepri hub --demo` runs the defaults)")
+    other = wrong_kind(data, LAB_CONFIG)     # a scenario given as the config: "description: unknown key" said
+    if other:
+        raise ConfigError(str(path), other)
     try:
         if isinstance(data, dict) and "source" in data and data["source"] in (None, {}):
             # Its lines commented out: taking the defaults would serve simulated lab-6 robots to a real lab.

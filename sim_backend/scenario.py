@@ -22,6 +22,7 @@ from onboard.config import (
     has_control_character,
     join,
 )
+from onboard.filekinds import SCENARIO, wrong_kind
 from onboard.yamlfile import read_yaml
 
 from .object_spec import ObjectSpec, check_extent, check_point, check_yaw
@@ -338,6 +339,9 @@ def load_builtin(name: str) -> Scenario:
 
 
 def _parse_file(data: Any, path: Path, default_name: str) -> Scenario:
+    other = wrong_kind(data, SCENARIO)      # a study or lab config given as the scenario: say so, and which file
+    if other:
+        raise ConfigError(str(path), other)
     try:
         return parse_scenario(data, default_name=default_name)
     except ConfigError as err:

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional
 
 from onboard.config import MAX_NAME_LENGTH, ConfigError, as_integer, as_written, has_control_character
+from onboard.filekinds import STUDY, wrong_kind
 from onboard.yamlfile import read_yaml
 from sim_backend.scenario import builtin_names, looks_like_path
 
@@ -61,9 +62,9 @@ def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "stud
     if not isinstance(data, dict):
         raise ConfigError("", f"a study file must be a mapping of keys (got {type(data).__name__})")
     unknown = [key for key in data if key not in STUDY_KEYS]
-    if unknown and "scenarios" not in data and {"behaviour", "robots", "object", "path"} & set(data):
-        raise ConfigError("", "this is a scenario, not a study: run it with `khepri sim run FILE`, or list it in "
-                              "a study file's scenarios: [FILE] (docs/study.md)")
+    other = wrong_kind(data, STUDY)          # a scenario or lab config given as the study
+    if other:
+        raise ConfigError("", other)
     if unknown:
         raise ConfigError(str(unknown[0]), f"unknown key (known: {', '.join(STUDY_KEYS)})")
     name = data.get("name", default_name)
