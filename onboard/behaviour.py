@@ -206,6 +206,11 @@ def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
 
     def decorate(cls: Type[Behaviour]) -> Type[Behaviour]:
         _check_behaviour_class(cls)
+        # A scenario names it in its behaviour: text. @register(3) was taken, and every later list of the names
+        # ended in "'<' not supported between instances of 'int' and 'str'"; @register("") could never be named.
+        if not isinstance(name, str) or not name.strip():
+            raise ConfigError("register", f"@register({short(name)}) above {_qualified(cls)}: a behaviour's "
+                                          "name must be a non-empty string, e.g. @register(\"wander\")")
         if getattr(cls, "step", None) is Behaviour.step:
             raise ConfigError("register", f"{_qualified(cls)} has no step(self): define it (it is called once "
                                           "per control period)")

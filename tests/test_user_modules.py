@@ -92,6 +92,19 @@ def test_a_non_python_file_beside_is_said_not_a_py_file_and_a_module_that_exits_
         assert caught.value.field == "--import" and caught.value.problem.startswith(problem), caught.value
 
 
+@pytest.mark.parametrize("name, shown", [("3", "3"), ("None", "None"), ('""', "''"), ('"  "', "'  '")])
+def test_a_behaviour_name_that_is_no_name_is_refused_where_it_is_registered(tmp_path, name, shown):
+    """@register(3) was taken, and a later unknown-behaviour error became "Scenario.validate raised TypeError: '<'
+    not supported between instances of 'int' and 'str'" (sorting the names); @register("") was taken too."""
+    (tmp_path / "oddname.py").write_text(f"from onboard.behaviour import Behaviour, register\n\n\n@register({name})\n"
+                                         "class Odd(Behaviour):\n    def step(self):\n        pass\n")
+    with pytest.raises(ConfigError) as caught:
+        import_user_modules(["oddname"], str(tmp_path))
+    assert str(caught.value) == (f"register: @register({shown}) above oddname.Odd: a behaviour's name must be a "
+                                 "non-empty string, e.g. @register(\"wander\")")
+    sys.modules.pop("oddname", None)
+
+
 def syntax_error_message(source: str) -> str:
     """What this Python says of ``source``: 3.10 made "unexpected EOF while parsing" "'(' was never closed"."""
     try:
