@@ -176,7 +176,11 @@ def read_yaml(path: Path, field: str = "") -> Any:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
         raise ConfigError(str(path), "not a text (UTF-8) file") from None
-    return parse_yaml(text, str(path))      # the path as given: cfg/lab.yaml:3, not lab.yaml:3 of which folder?
+    data = parse_yaml(text, str(path))      # the path as given: cfg/lab.yaml:3, not lab.yaml:3 of which folder?
+    if data is None and getattr(yaml.compose(text, Loader=StrictLoader), "value", ""):
+        # `null` or `~` alone: not an empty file (which each reader calls empty), and no kind of file takes it.
+        raise ConfigError(str(path), "the file holds only null, not a mapping of keys")
+    return data
 
 
 __all__ = ["StrictLoader", "parse_yaml", "read_yaml"]

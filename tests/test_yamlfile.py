@@ -97,3 +97,20 @@ def test_every_kind_of_file_names_itself_and_the_line(tmp_path, name, text):
         load(path)
     line = text.count("\n")      # the last line of each
     assert str(caught.value) == f"{path}:{line}: cannot read 'x' as an integer"
+
+
+@pytest.mark.parametrize("text", ["null\n", "~\n", "# nothing but\nNull\n", "--- null\n"])
+def test_a_file_holding_only_null_is_said_so_not_called_empty(tmp_path, text):
+    """It was "the file is empty", which sent the user looking for a lost copy of a file that holds a word."""
+    path = tmp_path / "null.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as caught:
+        read_yaml(path)
+    assert str(caught.value) == f"{path}: the file holds only null, not a mapping of keys"
+
+
+@pytest.mark.parametrize("text", ["", "# only a comment\n", "---\n", "---\n...\n"])
+def test_an_empty_file_or_document_is_still_none(tmp_path, text):
+    path = tmp_path / "empty.yaml"
+    path.write_text(text)
+    assert read_yaml(path) is None
