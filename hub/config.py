@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from hub.mocap_options import DEGENERATE_QUATERNION, check_mock_options, did_you_mean
-from onboard.config import ConfigError, as_written, check_range, from_mapping, is_whole_number, join
+from onboard.config import ConfigError, as_written, check_range, check_seed, from_mapping, is_whole_number, join
 from onboard.filekinds import LAB_CONFIG, wrong_kind
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
@@ -64,7 +64,7 @@ class SourceConfig:
         # Below 0.001 a minute's log takes days: a typo (1e-9 took 190 years for 6 s), not a slow replay.
         check_range(join(where, "rate"), self.rate, MIN_REPLAY_RATE, 100.0)
         if self.seed is not None:
-            check_range(join(where, "seed"), self.seed, 0)     # numpy seeds are non-negative
+            check_seed(join(where, "seed"), self.seed)
         if self.type == "motioncapture" and not self.bodies:
             raise ConfigError(join(where, "bodies"), "map each rigid body name to a robot id, e.g. {kh0: 0}")
         # The SDK names bodies with strings: a YAML key like 7 must match the body "7".

@@ -45,6 +45,16 @@ def check_range(where: str, value: float, low: float = -math.inf, high: float = 
     return value
 
 
+#: The largest seed (2**63 - 1). numpy takes any size, but a seed names the output folder (out/lab-6-seed<N>:
+#: 300 digits were "File name too long", blamed on --out) and goes to every agent in the run's start message.
+MAX_SEED = 2 ** 63 - 1
+
+
+def check_seed(where: str, value: int) -> int:
+    """A seed in 0..MAX_SEED (numpy's generators refuse negative ones); else an error naming ``where``."""
+    return check_range(where, value, 0, MAX_SEED)
+
+
 def folder_not_file(text: str) -> Optional[str]:
     """Why the path ``text``, given for a file to write, names a folder ("X names a folder", "X is a folder"), or
     None. Checked on the text as typed: ``Path`` drops a trailing separator, so ``out.gif/``, a folder that does

@@ -18,6 +18,7 @@ from onboard.config import (
     ConfigError,
     as_written,
     check_range,
+    check_seed,
     from_mapping,
     has_control_character,
     join,
@@ -197,7 +198,7 @@ class Scenario:
         if len(self.name) > MAX_NAME_LENGTH:     # the folder name-seedN: "File name too long", blamed on --out
             raise ConfigError("name", f"names the output folder: at most {MAX_NAME_LENGTH} characters (got "
                                       f"{len(self.name)})")
-        check_range("seed", self.seed, 0)   # numpy's generators reject negative seeds
+        check_seed("seed", self.seed)
         check_range("time_limit_s", self.time_limit_s, 0.0, low_open=True)
         behaviour_cls = get_behaviour(self.behaviour, "behaviour")
         build_params(behaviour_cls, self.params, "params")

@@ -254,6 +254,8 @@ def test_a_negative_seed_is_refused_in_the_config_and_on_the_command_line():
     with pytest.raises(ConfigError) as info:
         parse_config({"source": {"type": "sim", "seed": -1}})
     assert str(info.value) == "source.seed: must be >= 0 (got -1)"
+    with pytest.raises(ConfigError, match=r"^source.seed: must be <= 9223372036854775807 \(got 9223372036854775808\)"):
+        parse_config({"source": {"type": "sim", "seed": 2 ** 63}})
     one_error_line(khepri("sil", "lab-6", "--seed", "-1"), "--seed")
 
 

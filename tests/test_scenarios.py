@@ -247,6 +247,8 @@ SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such
     ({"robots": {"spawn": {"x": [2, 1]}}}, "robots.spawn.x",
      "robots.spawn.x: must be [min, max] with min <= max (got [2.0, 1.0])"),
     ({"seed": -1}, "seed", "seed: must be >= 0 (got -1)"),
+    # 300 digits named an output folder too long to make ("--out: ... File name too long")
+    ({"seed": 10 ** 300}, "seed", "seed: must be <= 9223372036854775807 (got an integer of 301 digits)"),
     # Lengths and coordinates beyond MAX_EXTENT_M: they used to overflow in the geometry (tracebacks) or run.
     ({"object": {"shape": "box", "size": [1e308, 1.0]}}, "object.size[0]",
      "object.size[0]: must be <= 1000 (got 1e+308)"),

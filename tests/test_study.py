@@ -208,6 +208,9 @@ def test_the_summarys_overrides_column_writes_lists_and_mappings_as_json_without
     ("scenarios: [lab-6]\nreps: 1\nrepeats: 3", "repeats: unknown key"),
     ("scenarios: [lab-6\nreps: 1", "bad.yaml:2: not valid YAML"),
     ("# nothing but a comment\n", "bad.yaml: the file is empty (a study needs at least its scenarios)"),
+    ("scenarios: [lab-6]\nseeds: [true]", "seeds[0]: must be an integer >= 0 (got true)"),     # not Python's True
+    (f"scenarios: [lab-6]\nseeds: [{2 ** 63}]", "seeds[0]: must be <= 9223372036854775807 (got 9223372036854775808)"),
+    ("scenarios: [lab-6]\nseeds: 1..1" + "0" * 30, "seeds: a range's seeds must be at most 9223372036854775807"),
     # A list-valued key lists its values: [-1, 0] is two cells, x = -1 and x = 0; say how to give one list.
     ("scenarios: [lab-6]\nreps: 1\noverrides: {robots.spawn.x: [-1, 0]}",
      "robots.spawn.x: must be a list (got -1); each value listed under overrides.robots.spawn.x is one whole "

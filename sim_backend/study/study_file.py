@@ -11,7 +11,15 @@ import re
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from onboard.config import MAX_NAME_LENGTH, ConfigError, as_integer, as_written, has_control_character
+from onboard.config import (
+    MAX_NAME_LENGTH,
+    MAX_SEED,
+    ConfigError,
+    as_integer,
+    as_written,
+    check_seed,
+    has_control_character,
+)
 from onboard.filekinds import STUDY, wrong_kind
 from onboard.yamlfile import read_yaml
 from sim_backend.scenario import builtin_names, looks_like_path
@@ -135,8 +143,11 @@ def parse_seeds(data: Dict[str, Any]) -> List[int]:
     value = data["seeds"]
     if isinstance(value, str):
         match = SEED_RANGE.match(value)
+        if match and max(len(match.group(1)), len(match.group(2))) > len(str(MAX_SEED)):   # int() refuses 4300
+            raise ConfigError("seeds", f"a range's seeds must be at most {MAX_SEED} (got {as_written(value)})")
         if not match or int(match.group(2)) < int(match.group(1)):
             raise ConfigError("seeds", f"a range must read 'first..last' with first <= last (got {as_written(value)})")
+        check_seed("seeds", int(match.group(2)))
         if int(match.group(2)) - int(match.group(1)) >= MAX_SEEDS:
             raise ConfigError("seeds", f"a range may hold at most {MAX_SEEDS} seeds (got {as_written(value)})")
         return list(range(int(match.group(1)), int(match.group(2)) + 1))
@@ -150,6 +161,7 @@ def parse_seeds(data: Dict[str, Any]) -> List[int]:
     for i, seed in enumerate(seeds):
         if seed is None or seed < 0:
             raise ConfigError(f"seeds[{i}]", f"must be an integer >= 0 (got {as_written(value[i])})")
+        check_seed(f"seeds[{i}]", seed)
     if len(set(seeds)) != len(seeds):
         twice = sorted({seed for seed in seeds if seeds.count(seed) > 1})
         raise ConfigError("seeds", f"lists seed {', '.join(map(str, twice))} twice")
