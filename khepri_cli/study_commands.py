@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any, List, Tuple
 
-from onboard.config import ConfigError
+from onboard.config import ConfigError, as_written
 from sim_backend.study.text import counted, them
 
 from .signals import sigterm_as_ctrl_c
@@ -109,7 +109,8 @@ def refuse_another_study(out: Path, name: str) -> None:
 
     recorded = read_study(out).get("name")
     if isinstance(recorded, str) and recorded != name:
-        raise ConfigError("--out", f"{out} holds the study {recorded!r} ({out / STUDY_FILE}), not {name!r}: give "
+        raise ConfigError("--out", f"{out} holds the study {as_written(recorded)} ({out / STUDY_FILE}), not "
+                                   f"{name!r}: give "
                                    f"another --out, or add --merge to add this study's runs to that folder")
 
 

@@ -1315,6 +1315,16 @@ def test_a_folder_of_another_study_is_refused_unless_merge_asks_for_it(tmp_path,
     assert json.loads((out / "study.json").read_text())["commands"][-1].endswith("--merge")
 
 
+def test_a_hand_edited_study_name_in_the_out_folder_is_shown_by_its_start(tmp_path):
+    """The name recorded in study.json went into the error line whole."""
+    from khepri_cli.study_commands import refuse_another_study
+
+    write(tmp_path / "study.json", json.dumps({"name": "n" * 100_000}))
+    with pytest.raises(ConfigError) as caught:
+        refuse_another_study(tmp_path, "mine")
+    assert f"holds the study '{'n' * 59}... ({tmp_path}/study.json), not 'mine'" in str(caught.value)
+
+
 def write_gathering(path: Path, name: str, time_limit_s: float) -> Path:
     """A scenario file of six robots running `aggregate` where lab-6 places them, named ``name``."""
     scenario = load_scenario("lab-6")
