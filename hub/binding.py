@@ -8,7 +8,7 @@ from typing import List
 import zmq
 
 from onboard.agent.link import endpoint_candidates, tcp_host, unbracket, use_ipv6
-from onboard.config import ConfigError
+from onboard.config import ConfigError, as_written
 
 # A loopback this PC does not have (a container without IPv6): ZeroMQ says "No such device" or "Cannot assign".
 NO_SUCH_ADDRESS = (errno.EADDRNOTAVAIL, errno.ENODEV)
@@ -39,7 +39,7 @@ def bind_error(err: zmq.ZMQError, bind: str, port: int, port_field: str) -> Conf
     if err.errno == zmq.EADDRINUSE:
         return ConfigError(f"network.{port_field}", f"port {port} on {bind} is already in use")
     reason = (err.strerror or str(err)).split(" (addr=")[0]     # pyzmq appends the endpoint; we name it ourselves
-    return ConfigError("network.bind", f"cannot listen on {bind!r}: {reason} (give an address of this PC, "
+    return ConfigError("network.bind", f"cannot listen on {as_written(bind)}: {reason} (give an address of this PC, "
                        "e.g. 127.0.0.1 or ::1, or * for all IPv4 interfaces, :: for all IPv6 and IPv4 ones)")
 
 

@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from hub.mocap_options import DEGENERATE_QUATERNION, check_mock_options, did_you_mean
-from onboard.config import ConfigError, check_range, from_mapping, join
+from onboard.config import ConfigError, as_written, check_range, check_seed, from_mapping, is_whole_number, join
+from onboard.filekinds import LAB_CONFIG, wrong_kind
 from onboard.protocol import IDLE_TELEMETRY_HZ, MAX_CONTROL_HZ, MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
 
@@ -54,16 +55,17 @@ class SourceConfig:
 
     def validate(self, where: str) -> None:
         if self.type not in SOURCE_TYPES:
-            raise ConfigError(join(where, "type"), f"must be one of {', '.join(SOURCE_TYPES)} (got {self.type!r})")
+            raise ConfigError(join(where, "type"),
+                              f"must be one of {', '.join(SOURCE_TYPES)} (got {as_written(self.type)})")
         if self.up_axis not in UP_AXES:
-            raise ConfigError(join(where, "up_axis"), f"must be z or y (got {self.up_axis!r})")
+            raise ConfigError(join(where, "up_axis"), f"must be z or y (got {as_written(self.up_axis)})")
         check_range(join(where, "frame_hz"), self.frame_hz, 0.0, 1000.0, low_open=True)
         check_range(join(where, "stale_s"), self.stale_s, 0.0, low_open=True)
         check_range(join(where, "connect_timeout_s"), self.connect_timeout_s, 0.0, 300.0, low_open=True)
         # Below 0.001 a minute's log takes days: a typo (1e-9 took 190 years for 6 s), not a slow replay.
         check_range(join(where, "rate"), self.rate, MIN_REPLAY_RATE, 100.0)
         if self.seed is not None:
-            check_range(join(where, "seed"), self.seed, 0)     # numpy seeds are non-negative
+            check_seed(join(where, "seed"), self.seed)
         if self.type == "motioncapture" and not self.bodies:
             raise ConfigError(join(where, "bodies"), "map each rigid body name to a robot id, e.g. {kh0: 0}")
         # The SDK names bodies with strings: a YAML key like 7 must match the body "7".
@@ -73,8 +75,9 @@ class SourceConfig:
             check_robot_id(join(join(where, "bodies"), name), rid)
             if rid in first_body:
                 raise ConfigError(join(join(where, "bodies"), name),
-                                  f"robot {rid} is already the body {first_body[rid]!r}: one body per robot")
+                                  f"robot {rid} is already the body {as_written(first_body[rid])}: one body per robot")
             first_body[rid] = name
+        check_option_values(join(where, "options"), self.options)
         if self.type == "motioncapture" and self.system == "mock":
             check_mock_options(join(where, "options"), self.options)
         if self.type == "motioncapture" and self.system == "mock" and "frequency" in self.options:
@@ -91,9 +94,18 @@ class SourceConfig:
                 if name not in names:
                     listed = ", ".join(map(repr, names))     # quoted: 'kh0 ' with its space showed as kh0
                     raise ConfigError(join(join(where, "bodies"), name),
-                                      f"the mock has no body {name!r} (its rigid_bodies: {listed})")
+                                      f"the mock has no body {as_written(name)} (its rigid_bodies: {listed})")
         if self.type == "replay" and not self.file:
             raise ConfigError(join(where, "file"), "a replay source needs file: <log.mcap>")
+
+
+def check_option_values(where: str, options: Dict[str, Any]) -> None:
+    """Each option goes to the library as a string: a list or mapping would be written out as its Python repr
+    (the whole of it: an alias bomb's took minutes), which no backend reads."""
+    for name, value in options.items():
+        if isinstance(value, (list, tuple, dict)):
+            raise ConfigError(join(where, name), f"must be a string or a number, passed to the motion-capture "
+                                                 f"library as text (got {as_written(value)})")
 
 
 _NUMBER = r"\s*[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*"
@@ -108,14 +120,15 @@ def mock_bodies(where: str, value: Any) -> List[Tuple[str, str]]:
     for i, entry in enumerate(entries):
         match = MOCK_BODY.fullmatch(entry)
         if not match:
-            raise ConfigError(where, f"entry {i + 1} ({entry!r}) must be name(x,y,z,qw,qx,qy,qz): a name, then "
-                                     "7 numbers in brackets; entries are separated by ;")
+            raise ConfigError(where, f"entry {i + 1} ({as_written(entry)}) must be name(x,y,z,qw,qx,qy,qz): a name, "
+                                     "then 7 numbers in brackets; entries are separated by ;")
         qw, qx, qy, qz = (float(v) for v in match.group(2).split(",")[3:])
         if qw * qw + qx * qx + qy * qy + qz * qz < DEGENERATE_QUATERNION:
-            raise ConfigError(where, f"entry {i + 1} ({entry!r}): its quaternion qw,qx,qy,qz is not a rotation "
-                                     "(1,0,0,0 faces +x; 0.7071,0,0,0.7071 faces +y)")
+            raise ConfigError(where, f"entry {i + 1} ({as_written(entry)}): its quaternion qw,qx,qy,qz is not a "
+                                     "rotation (1,0,0,0 faces +x; 0.7071,0,0,0.7071 faces +y)")
         if any(name == match.group(1) for name, _ in bodies):     # the mock took the first, said nothing
-            raise ConfigError(where, f"entry {i + 1} ({entry!r}): the body {match.group(1)!r} is given twice")
+            raise ConfigError(where, f"entry {i + 1} ({as_written(entry)}): the body {as_written(match.group(1))} is "
+                                     "given twice")
         bodies.append((match.group(1), entry))
     if not bodies:
         raise ConfigError(where, "has no body: give name(x,y,z,qw,qx,qy,qz) entries separated by ;")
@@ -124,8 +137,8 @@ def mock_bodies(where: str, value: Any) -> List[Tuple[str, str]]:
 
 def check_mock_frequency(where: str, value: Any) -> None:
     text = str(value).strip()
-    if isinstance(value, bool) or not text.isdigit() or not 1 <= int(text) <= 1000:
-        raise ConfigError(where, f"must be a whole number of frames per second, 1 to 1000 (got {value!r})")
+    if isinstance(value, bool) or not is_whole_number(text) or not 1 <= int(text) <= 1000:
+        raise ConfigError(where, f"must be a whole number of frames per second, 1 to 1000 (got {as_written(value)})")
 
 
 # The hub's frames are the agents' heartbeat: they come at most 1.5 downlink periods apart (a late motion-capture
@@ -303,7 +316,7 @@ def check_robot_id(where: str, value: Any) -> int:
     """A robot id the wire protocol can carry. ``source.bodies`` leaves its values to this check (its message
     names the range), so a string, a float or a boolean (YAML ``true``) is refused here too."""
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_ROBOT_ID:
-        raise ConfigError(where, f"must be an integer robot id 0..{MAX_ROBOT_ID} (got {value!r})")
+        raise ConfigError(where, f"must be an integer robot id 0..{MAX_ROBOT_ID} (got {as_written(value)})")
     return value
 
 
@@ -332,7 +345,7 @@ def check_unknown_source_keys(source: Any) -> None:
     """An unknown ``source`` key, said with the keys of that source's type (the loader listed all 14 of every
     type, for `rat:` under a replay, which takes 5) and the nearest of them."""
     kind = source.get("type", "sim") if isinstance(source, dict) else None
-    if kind not in SOURCE_FIELDS:
+    if not isinstance(kind, str) or kind not in SOURCE_FIELDS:
         return                       # not a mapping, or an unknown type: the loader's own error says it
     known = {f.name for f in dataclasses.fields(SourceConfig)}
     for name in source:
@@ -367,6 +380,9 @@ def load_config(path: Path) -> LabConfig:
         # Not the defaults: an empty file is more likely a failed copy than a wish for lab-6 in simulation.
         raise ConfigError("--config", f"{path} is empty; hub/examples/lab.yaml is a commented example "
                                       "(`khepri hub --demo` runs the defaults)")
+    other = wrong_kind(data, LAB_CONFIG)     # a scenario given as the config: "description: unknown key" said
+    if other:
+        raise ConfigError(str(path), other)
     try:
         if isinstance(data, dict) and "source" in data and data["source"] in (None, {}):
             # Its lines commented out: taking the defaults would serve simulated lab-6 robots to a real lab.

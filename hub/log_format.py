@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple, Union
 
-from onboard.config import ConfigError
+from onboard.config import ConfigError, is_whole_number
 from onboard.jsontext import parse_json
 
 LOG_FORMAT_VERSION = 1
@@ -171,7 +171,7 @@ def format_version(metadata: Dict[str, Dict[str, str]]) -> Optional[int]:
     """The log format version a file's ``khepri.log`` record gives (MCAP metadata, name -> {key: text}), or None
     when it has none (another tool's file) or not a number."""
     version = metadata.get(FORMAT_METADATA, {}).get("version", "")
-    return int(version) if version.isdigit() else None
+    return int(version) if isinstance(version, str) and is_whole_number(version) else None
 
 
 def newer_format(version: Optional[int]) -> Optional[str]:

@@ -27,6 +27,7 @@ from hub.log_format import (
     split_robot_topic,
 )
 from hub.log_reader import LogReader, ends_with_footer, json_or_none, summary_crc_holds
+from onboard.config import is_whole_number
 from onboard.sorting import natural_key
 
 RobotId = Union[int, str]
@@ -313,11 +314,11 @@ def _posed_ids(*records: Optional[bytes]) -> List[RobotId]:
         bodies = payload.get("bodies") if isinstance(payload, dict) else None
         if isinstance(bodies, dict):
             ids.update(str(body) for body in bodies)
-    typed = [int(robot) if robot.isdigit() else robot for robot in ids]
+    typed = [int(robot) if is_whole_number(robot) else robot for robot in ids]
     return sorted(typed, key=lambda robot: (isinstance(robot, str), robot))
 
 
 def _robot_ids(topics: Iterable[str]) -> List[RobotId]:
     ids = {split_robot_topic(topic)[0] for topic in topics if split_robot_topic(topic)}
-    typed = [int(robot) if robot.isdigit() else robot for robot in ids]
+    typed = [int(robot) if is_whole_number(robot) else robot for robot in ids]
     return sorted(typed, key=lambda robot: (isinstance(robot, str), robot))

@@ -7,7 +7,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from onboard.config import ConfigError
+from onboard.config import ConfigError, as_written, is_whole_number
 from onboard.jsontext import parse_json
 from onboard.protocol import MAX_ROBOT_ID
 
@@ -276,8 +276,8 @@ BODY_FIELDS = "[x, y, z, qx, qy, qz, qw]"
 
 def _robot_id(name: str) -> int:
     """A ``bodies`` key as the hub writes it: a robot id in decimal (int() took '-1', ' 7' and '1_0' too)."""
-    if not (name.isascii() and name.isdigit() and int(name) <= MAX_ROBOT_ID):
-        raise ValueError(f"bodies: {name!r} is not a robot id 0..{MAX_ROBOT_ID}")
+    if not (is_whole_number(name) and int(name) <= MAX_ROBOT_ID):
+        raise ValueError(f"bodies: {as_written(name)} is not a robot id 0..{MAX_ROBOT_ID}")
     return int(name)
 
 

@@ -11,6 +11,8 @@ import time
 from pathlib import Path
 from typing import List, Optional
 
+from onboard.config import is_whole_number
+
 INTERRUPTED_WAIT_S = 1.0      # how long agents a Ctrl-C reached too get to leave by themselves
 
 def let_leaving_agents_exit(hub, agents: List[subprocess.Popen], ctrl_c: bool, timeout_s: float = 2.0) -> None:
@@ -36,7 +38,7 @@ def remove_stale_key_folders() -> None:
     folder, secret keys included: the next sil removes those whose process is gone."""
     for folder in Path(tempfile.gettempdir()).glob(f"{KEY_FOLDER_PREFIX}*-*"):
         pid = folder.name[len(KEY_FOLDER_PREFIX):].split("-")[0]
-        if pid.isdigit() and not _alive(int(pid)):
+        if is_whole_number(pid, 9) and not _alive(int(pid)):     # a pid; not '²' (int() refuses it) nor 30 digits
             shutil.rmtree(folder, ignore_errors=True)
 
 

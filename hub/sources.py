@@ -15,7 +15,7 @@ from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
 import numpy as np
 
 from hub.mocap_options import DEGENERATE_QUATERNION, known_systems_hint, unread_option_notes
-from onboard.config import ConfigError
+from onboard.config import ConfigError, as_written
 
 
 @dataclass
@@ -201,7 +201,8 @@ def probe_mocap(system: str, options: Dict[str, str], timeout_s: float) -> None:
         raise ConfigError("source.system", f"no answer from {system}{where} within {timeout_s:g} s") from None
     if probe.returncode != 0:
         reason = probe.stderr.strip().splitlines()[-1:] or [f"exit code {probe.returncode}"]
-        raise ConfigError("source.system", f"cannot connect to {system!r}: {reason[0]}{known_systems_hint(reason[0])}")
+        raise ConfigError("source.system",
+                          f"cannot connect to {as_written(system)}: {reason[0]}{known_systems_hint(reason[0])}")
 
 
 _WXYZ = operator.attrgetter("w", "x", "y", "z")     # a motioncapture Quaternion's fields
@@ -261,11 +262,11 @@ class MotionCaptureSource(PoseSource):
         try:
             self.mocap = (connect or motioncapture.connect)(system, options)
         except RuntimeError as err:
-            raise ConfigError("source.system", f"cannot connect to {system!r}: {err}{known_systems_hint(str(err))}") \
-                from None
+            raise ConfigError("source.system",
+                              f"cannot connect to {as_written(system)}: {err}{known_systems_hint(str(err))}") from None
         except (ValueError, TypeError) as err:     # the SDK's own parsing of an option (std::stoi, ...)
-            raise ConfigError("source.options", f"{system!r} refused an option ({describe_options(options)}): "
-                                                f"{err}") from None
+            raise ConfigError("source.options", f"{as_written(system)} refused an option "
+                                                f"({describe_options(options)}): {err}") from None
         self.frames: Deque[PoseFrame] = deque(maxlen=8)   # the hub wants the newest; old ones are useless
         self.wake = _WakeUp(context, "mocap")
         self.wake_socket = self.wake.reader

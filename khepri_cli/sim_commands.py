@@ -61,17 +61,18 @@ def add_sim(groups) -> None:
 def seed_value(text: Optional[str]) -> Optional[int]:
     """``--seed`` as given (a string: argparse's own error would print the usage, not the one line every other
     bad input gets), or None; ConfigError naming ``--seed``. Numpy's seeds are whole numbers >= 0."""
-    from onboard.config import ConfigError
+    from onboard.config import MAX_SEED, ConfigError, as_written, check_seed
 
     if text is None:
         return None
+    digits = text.strip().lstrip("+")
+    if digits.isascii() and digits.isdigit() and len(digits) > len(str(MAX_SEED)):   # int() refuses 4300 digits
+        raise ConfigError("--seed", f"must be <= {MAX_SEED} (got an integer of {len(digits)} digits)")
     try:
         value = int(text)
     except ValueError:
-        raise ConfigError("--seed", f"must be a whole number >= 0 (got {text!r})") from None
-    if value < 0:
-        raise ConfigError("--seed", f"must be >= 0 (got {value})")
-    return value
+        raise ConfigError("--seed", f"must be a whole number >= 0 (got {as_written(text)})") from None
+    return check_seed("--seed", value)
 
 
 def add_bench(groups):

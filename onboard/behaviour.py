@@ -28,7 +28,7 @@ import os
 import traceback
 from typing import Any, Callable, Dict, List, Mapping, Optional, Type
 
-from .config import ConfigError, from_mapping
+from .config import ConfigError, as_written, from_mapping
 from .hal import Robot
 from .hal.payload import a_kind
 from .protocol_schema import short
@@ -206,6 +206,11 @@ def register(name: str) -> Callable[[Type[Behaviour]], Type[Behaviour]]:
 
     def decorate(cls: Type[Behaviour]) -> Type[Behaviour]:
         _check_behaviour_class(cls)
+        # A scenario names it in its behaviour: text. @register(3) was taken, and every later list of the names
+        # ended in "'<' not supported between instances of 'int' and 'str'"; @register("") could never be named.
+        if not isinstance(name, str) or not name.strip():
+            raise ConfigError("register", f"@register({short(name)}) above {_qualified(cls)}: a behaviour's "
+                                          "name must be a non-empty string, e.g. @register(\"wander\")")
         if getattr(cls, "step", None) is Behaviour.step:
             raise ConfigError("register", f"{_qualified(cls)} has no step(self): define it (it is called once "
                                           "per control period)")
@@ -283,8 +288,8 @@ def get_behaviour(name: str, where: str = "behaviour") -> Type[Behaviour]:
         from .behaviours import BROKEN
 
         hints = "".join(f"; {file} did not import: {why}" for file, why in BROKEN.items())
-        raise ConfigError(where, f"unknown behaviour {name!r} (known: {', '.join(sorted(_REGISTRY))}{hints}; a "
-                                 "behaviour of your own needs @register and, outside onboard/behaviours/, "
+        raise ConfigError(where, f"unknown behaviour {as_written(name)} (known: {', '.join(sorted(_REGISTRY))}"
+                                 f"{hints}; a behaviour of your own needs @register and, outside onboard/behaviours/, "
                                  "--import)") from None
 
 

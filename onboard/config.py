@@ -45,6 +45,16 @@ def check_range(where: str, value: float, low: float = -math.inf, high: float = 
     return value
 
 
+#: The largest seed (2**63 - 1). numpy takes any size, but a seed names the output folder (out/lab-6-seed<N>:
+#: 300 digits were "File name too long", blamed on --out) and goes to every agent in the run's start message.
+MAX_SEED = 2 ** 63 - 1
+
+
+def check_seed(where: str, value: int) -> int:
+    """A seed in 0..MAX_SEED (numpy's generators refuse negative ones); else an error naming ``where``."""
+    return check_range(where, value, 0, MAX_SEED)
+
+
 def folder_not_file(text: str) -> Optional[str]:
     """Why the path ``text``, given for a file to write, names a folder ("X names a folder", "X is a folder"), or
     None. Checked on the text as typed: ``Path`` drops a trailing separator, so ``out.gif/``, a folder that does
@@ -73,12 +83,7 @@ def check_boolean(where: str, value: Any) -> bool:
     and 1 would all switch the setting on."""
     if isinstance(value, bool):
         return value
-    raise ConfigError(where, f"must be true or false (got {_as_written(value)})")
-
-
-def _number(value: float) -> str:
-    """An integer as written (100000000000, not 1e+11); a float in its shortest form."""
-    return str(value) if isinstance(value, int) else f"{value:g}"
+    raise ConfigError(where, f"must be true or false (got {as_written(value)})")
 
 
 def _type_name(tp: Any) -> str:
@@ -98,6 +103,12 @@ def as_integer(value: Any) -> Optional[int]:
     if isinstance(value, float) and value.is_integer():
         return int(value)
     return None
+
+
+def is_whole_number(text: str, max_digits: int = 18) -> bool:
+    """Whether ``text`` is a whole number int() reads: ASCII digits only (str.isdigit also takes '²', which int()
+    refuses), and at most ``max_digits`` of them (int() refuses more than 4300, and no count or id has 19)."""
+    return text.isascii() and text.isdigit() and len(text) <= max_digits
 
 
 def coerce(value: Any, tp: Any, where: str) -> Any:
@@ -129,21 +140,21 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     if tp is int:
         number = as_integer(value)
         if number is None:
-            raise ConfigError(where, f"must be an integer (got {_as_written(value)})")
+            raise ConfigError(where, f"must be an integer (got {as_written(value)})")
         return number
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(where, f"must be a number (got {_as_written(value)})")
+            raise ConfigError(where, f"must be a number (got {as_written(value)})")
         if not math.isfinite(value):
-            raise ConfigError(where, f"must be a finite number (got {_as_written(value)})")
+            raise ConfigError(where, f"must be a finite number (got {as_written(value)})")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(where, f"must be a string (got {_as_written(value)})")
+            raise ConfigError(where, f"must be a string (got {as_written(value)})")
         return value
     if origin in (list, tuple) or tp in (list, tuple):
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(where, f"must be a list (got {_as_written(value)})")
+            raise ConfigError(where, f"must be a list (got {as_written(value)})")
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(value) != len(args):
                 raise ConfigError(where, f"must have {len(args)} items (got {len(value)})")
@@ -153,21 +164,83 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
         return tuple(items) if (origin is tuple or tp is tuple) else items
     if origin is dict or tp is dict:
         if not isinstance(value, Mapping):
-            raise ConfigError(where, f"must be a mapping (got {_as_written(value)})")
+            raise ConfigError(where, f"must be a mapping (got {as_written(value)})")
         if len(args) == 2:         # Dict[str, float]: every value checked, as a field of that type would be
             return {key: coerce(item, args[1], join(where, key)) for key, item in value.items()}
         return dict(value)
     raise ConfigError(where, f"unsupported type {_type_name(tp)}")
 
 
-def _as_written(value: Any) -> str:
-    """A value for an error line; true, false and null as YAML writes them. YAML reads an unquoted 2024-01-01
-    as a date, and its repr ``datetime.date(2024, 1, 1)`` hid that a pair of quotes is all it needs."""
+SHOWN_CHARS = 60     # of a value in an error line: enough to recognise it, and never a whole file in one line
+
+
+def as_written(value: Any) -> str:
+    """A value for an error line, at most about SHOWN_CHARS long; true, false and null as YAML writes them. YAML
+    reads an unquoted 2024-01-01 as a date, and its repr ``datetime.date(2024, 1, 1)`` hid that a pair of quotes
+    is all it needs. A long list says its length and its start: the whole repr of a YAML alias bomb (nine levels
+    of nine aliases) ran for minutes and ended in MemoryError, so the value is rendered only as far as is shown."""
     if isinstance(value, (datetime.date, datetime.datetime)):
         return f"{value.isoformat()}, which YAML reads as a date: put it in quotes"
     if value is None or isinstance(value, bool):     # as the file says it: true, not Python's True
         return {None: "null", True: "true", False: "false"}[value]
-    return repr(value)
+    parts: List[str] = []
+    _render(value, parts, [SHOWN_CHARS + 1])
+    text = "".join(parts)
+    if len(text) <= SHOWN_CHARS:
+        return text
+    kind = "mapping" if isinstance(value, Mapping) else "list" if isinstance(value, (list, tuple)) else None
+    size = f"a {kind} of {len(value)} item{'' if len(value) == 1 else 's'}: " if kind else ""
+    return f"{size}{text[:SHOWN_CHARS]}..."
+
+
+_BRACKETS = ((list, "[]"), (tuple, "()"), (Mapping, "{}"), ((set, frozenset), "{}"))
+
+
+def _render(value: Any, parts: List[str], left: List[int]) -> None:
+    """Append the repr of ``value`` to ``parts`` until ``left[0]`` characters are spent, then stop: the cost is
+    that of the characters shown, however large (or self-referring) the value is."""
+    brackets = next((pair for kind, pair in _BRACKETS if isinstance(value, kind)), None)
+    if brackets is None:
+        text = _scalar_text(value, left[0])
+        parts.append(text)
+        left[0] -= len(text)
+        return
+    parts.append(brackets[0])
+    left[0] -= 1
+    for i, item in enumerate(value.items() if isinstance(value, Mapping) else value):
+        if left[0] <= 0:
+            return
+        if i:
+            parts.append(", ")
+            left[0] -= 2
+        if isinstance(value, Mapping):
+            _render(item[0], parts, left)
+            parts.append(": ")
+            left[0] -= 2
+            item = item[1]
+        if left[0] > 0:
+            _render(item, parts, left)
+    parts.append(brackets[1])
+    left[0] -= 1
+
+
+def _scalar_text(value: Any, room: int) -> str:
+    """The repr of one value that is not a list or mapping, cut near ``room`` characters before it is built."""
+    if isinstance(value, (str, bytes)):
+        return repr(value[:room + 1])
+    if isinstance(value, int) and not isinstance(value, bool):
+        return _number(value)
+    return repr(value)[:room + 1]
+
+
+def _number(value: float) -> str:
+    """An integer as written (100000000000, not 1e+11), or its length if it is too long to show (Python refuses
+    to write an integer of more than 4300 digits); a float in its shortest form."""
+    if not isinstance(value, int):
+        return f"{value:g}"
+    if -10 ** SHOWN_CHARS < value < 10 ** SHOWN_CHARS:
+        return str(value)
+    return f"an integer of {int(math.log10(abs(value))) + 1} digits"
 
 
 def _takes_none(hint: Any) -> bool:
@@ -182,7 +255,7 @@ def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
-        raise ConfigError(where, f"must be a mapping (got {data!r})")
+        raise ConfigError(where, f"must be a mapping (got {as_written(data)})")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     not_names = [k for k in data if not isinstance(k, str)]
@@ -191,7 +264,8 @@ def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
     unknown = [k for k in data if k not in fields]
     if unknown:
         known = ", ".join(sorted(fields))
-        raise ConfigError(join(where, unknown[0]), f"unknown key (known: {known})")
+        key = unknown[0] if len(unknown[0]) <= SHOWN_CHARS else unknown[0][:SHOWN_CHARS] + "..."   # a pasted text
+        raise ConfigError(join(where, key), f"unknown key (known: {known})")
     kwargs: Dict[str, Any] = {}
     for name, f in fields.items():
         if name in data and data[name] is None and f.default_factory is not dataclasses.MISSING \

@@ -12,11 +12,12 @@ import importlib.util
 import os
 import sys
 import sysconfig
+import traceback
 from pathlib import Path
 from typing import Any, Callable, Iterable, List, Optional
 
-from .config import ConfigError
-from .tracebacks import describe
+from .config import ConfigError, as_written
+from .tracebacks import describe, where_in_users_code
 
 #: What a robot does not have: a behaviour's module that imports these runs in simulation and fails on a robot.
 NOT_ON_ROBOTS = ("sim_backend", "hub", "khepri_cli", "pymunk", "matplotlib")
@@ -49,6 +50,12 @@ def import_user_modules(names: Iterable[str], base_dir: Optional[str] = None) ->
             raise ConfigError("--import", f"cannot import {name!r}: {err}") from None
         except ConfigError:
             raise                  # e.g. @register refusing a name: it says what is wrong already
+        except SystemExit as err:  # khepri exited with the module's code and said nothing
+            code = "" if err.code is None else as_written(err.code)
+            raise ConfigError("--import", f"importing {as_written(name)} called sys.exit({code})"
+                                          f"{where_in_users_code(traceback.extract_tb(err.__traceback__))}: a "
+                                          "behaviour's module must not exit when imported (put a script's own "
+                                          "code under if __name__ == \"__main__\":)") from None
         except Exception as err:   # the module's own code raised while it was imported: where, in one line
             raise ConfigError("--import", f"importing {name!r} raised {describe(err)}") from None
         _check_not_shadowed(name, loaded, base)
@@ -252,9 +259,15 @@ def _defines_behaviours(module: Any) -> bool:
     return any(getattr(cls, "__module__", None) == module.__name__ for cls in registered)
 
 
+def _names_a_file(name: str, base: str) -> bool:
+    """A path rather than a module name: a .py or YAML suffix, a folder part, or a file there by that name
+    (lab6copy.yaml was read as the module lab6copy's submodule yaml: "No module named 'lab6copy'")."""
+    return name.endswith((".py", ".yaml", ".yml")) or "/" in name or os.sep in name or Path(base, name).is_file()
+
+
 def _module_name(name: str, base: str) -> str:
     """The importable name of ``name``; a file's folder goes on ``sys.path`` first."""
-    if not name.endswith(".py") and "/" not in name and os.sep not in name:
+    if not _names_a_file(name, base):
         if not all(part.isidentifier() for part in name.split(".")):
             raise ConfigError("--import", f"{name!r} is neither a module name (like wander or mylab.wander) "
                                           "nor a .py file")

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, List, Optional, Tuple, Union
 
-from onboard.config import ConfigError, check_range, join
+from onboard.config import ConfigError, as_written, check_range, join
 
 from .compound import first_loose_part
 from .outline import outline_fault, polygon_area
@@ -60,7 +60,8 @@ class ObjectPart:
 
     def validate(self, where: str) -> None:
         if self.shape not in PART_SHAPES:
-            raise ConfigError(join(where, "shape"), f"must be one of {', '.join(PART_SHAPES)} (got {self.shape!r})")
+            raise ConfigError(join(where, "shape"),
+                              f"must be one of {', '.join(PART_SHAPES)} (got {as_written(self.shape)})")
         check_point(join(where, "offset"), self.offset)
         check_yaw(join(where, "yaw_deg"), self.yaw_deg)
         validate_dimensions(self, where)
@@ -87,7 +88,8 @@ class ObjectSpec:
 
     def validate(self, where: str) -> None:
         if self.shape not in SHAPES:
-            raise ConfigError(join(where, "shape"), f"must be one of {', '.join(SHAPES)} (got {self.shape!r})")
+            raise ConfigError(join(where, "shape"),
+                              f"must be one of {', '.join(SHAPES)} (got {as_written(self.shape)})")
         check_range(join(where, "mass"), self.mass, 0.0, MAX_OBJECT_MASS_KG, low_open=True)
         check_range(join(where, "friction"), self.friction, 0.0, 5.0)
         check_range(join(where, "scale"), self.scale, 0.0, 100.0, low_open=True)

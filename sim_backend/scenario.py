@@ -13,7 +13,17 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from onboard.behaviour import build_params, get_behaviour, takes_param
-from onboard.config import MAX_NAME_LENGTH, ConfigError, check_range, from_mapping, has_control_character, join
+from onboard.config import (
+    MAX_NAME_LENGTH,
+    ConfigError,
+    as_written,
+    check_range,
+    check_seed,
+    from_mapping,
+    has_control_character,
+    join,
+)
+from onboard.filekinds import SCENARIO, wrong_kind
 from onboard.yamlfile import read_yaml
 
 from .object_spec import ObjectSpec, check_extent, check_point, check_yaw
@@ -184,11 +194,11 @@ class Scenario:
             raise ConfigError("name", "must not be empty")
         if "/" in self.name or "\\" in self.name or self.name.strip(".") == "" or has_control_character(self.name):
             raise ConfigError("name", "names the output folder: no / or \\, no control characters, and not only "
-                                      f"dots (got {self.name!r})")
+                                      f"dots (got {as_written(self.name)})")
         if len(self.name) > MAX_NAME_LENGTH:     # the folder name-seedN: "File name too long", blamed on --out
             raise ConfigError("name", f"names the output folder: at most {MAX_NAME_LENGTH} characters (got "
                                       f"{len(self.name)})")
-        check_range("seed", self.seed, 0)   # numpy's generators reject negative seeds
+        check_seed("seed", self.seed)
         check_range("time_limit_s", self.time_limit_s, 0.0, low_open=True)
         behaviour_cls = get_behaviour(self.behaviour, "behaviour")
         build_params(behaviour_cls, self.params, "params")
@@ -258,16 +268,22 @@ def resolve(name_or_path: str) -> Path:
     """A built-in scenario's file, or the given path; ConfigError when neither exists."""
     if not name_or_path.strip():    # Path("") is the current folder: "is a folder" of an unset $SCENARIO
         raise ConfigError("scenario", "is empty (an unset shell variable?): give a built-in name or a YAML file")
+    try:
+        return _resolve(name_or_path)
+    except OSError as err:          # a name longer than the file system allows: "File name too long"
+        raise ConfigError("scenario", f"{as_written(name_or_path)}: {err.strerror or err}") from None
+
+
+def _resolve(name_or_path: str) -> Path:
     path = Path(name_or_path)
-    is_yaml = path.suffix in (".yaml", ".yml")
     builtin = BUILTIN_DIR / f"{name_or_path}.yaml"
     if path.is_file():
-        if _is_bare_name(name_or_path) and not is_yaml and builtin.is_file():
+        if _is_bare_name(name_or_path) and not looks_like_path(name_or_path) and builtin.is_file():
             # `khepri sim show lab-6 > lab-6` makes such a file; either choice would surprise someone.
-            raise ConfigError("scenario", f"{name_or_path!r} is both a built-in scenario and a file in this "
-                              f"folder: write ./{name_or_path} for the file, or rename the file")
+            raise ConfigError("scenario", f"{as_written(name_or_path)} is both a built-in scenario and a file in "
+                              f"this folder: write ./{name_or_path} for the file, or rename the file")
         return path
-    if not is_yaml and builtin.is_file():
+    if not looks_like_path(name_or_path) and builtin.is_file():
         return builtin     # even when a folder of that name is here (a run's output, say)
     if path.is_dir():      # with any name: `sim run ./my-runs` said `no such file` of a folder that is there
         raise ConfigError("scenario", f"{name_or_path} is a folder, not a file")
@@ -275,13 +291,28 @@ def resolve(name_or_path: str) -> Path:
         raise ConfigError("scenario", f"{name_or_path} is not a regular file")
     if path.is_symlink():           # exists() follows it: a link to nowhere, or to itself
         raise ConfigError("scenario", f"{name_or_path} is a symbolic link to nothing that exists")
-    if is_yaml:
-        raise ConfigError("scenario", f"no such file: {name_or_path}")
+    if looks_like_path(name_or_path):
+        raise no_such_file(name_or_path, name_or_path)
     raise unknown_scenario(name_or_path)
 
 
+def looks_like_path(text: str) -> bool:
+    """Whether a scenario is given as a file: a folder part (./lab-6, runs/big), a home or hidden name (~/x,
+    .x), or a YAML suffix. Such a text names that file or nothing: ./lab-6 without a file ./lab-6 ran the
+    built-in lab-6, which the docs tell users to write ./lab-6 to avoid."""
+    return "/" in text or os.sep in text or text.startswith((".", "~")) or text.endswith((".yaml", ".yml"))
+
+
+def no_such_file(shown: str, given: str) -> ConfigError:
+    """``no such file: SHOWN``, and the built-in's name when ``given`` is one behind a folder part (./lab-6)."""
+    name = os.path.basename(given)
+    hint = f" (the built-in scenario is {name}, without a folder)" if name in builtin_names() else ""
+    return ConfigError("scenario", f"no such file: {shown}{hint}")
+
+
 def unknown_scenario(name: str) -> ConfigError:
-    return ConfigError("scenario", f"unknown scenario {name!r}: not a file and not built in (see `khepri sim list`)")
+    return ConfigError("scenario",
+                       f"unknown scenario {as_written(name)}: not a file and not built in (see `khepri sim list`)")
 
 
 def _is_bare_name(text: str) -> bool:
@@ -309,6 +340,9 @@ def load_builtin(name: str) -> Scenario:
 
 
 def _parse_file(data: Any, path: Path, default_name: str) -> Scenario:
+    other = wrong_kind(data, SCENARIO)      # a study or lab config given as the scenario: say so, and which file
+    if other:
+        raise ConfigError(str(path), other)
     try:
         return parse_scenario(data, default_name=default_name)
     except ConfigError as err:

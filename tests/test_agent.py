@@ -514,6 +514,20 @@ def test_a_bad_calibration_file_is_named_as_the_option_that_gave_it(tmp_path, mo
     assert info.value.field == "$KHEPRI_KH4_CALIBRATION"
 
 
+def test_a_calibration_value_yaml_cannot_read_is_named_as_the_file_not_the_robot(tmp_path):
+    """`robot: !!int "x"` was `--driver kh4: cannot open the KheperaIV: invalid literal for int()`."""
+    from onboard.agent.cli import add_agent_arguments, run_agent
+    from onboard.config import ConfigError
+
+    bad = tmp_path / "kh4-0.yaml"
+    bad.write_text('robot: !!int "x"\nproximity: []\n')
+    parser = argparse.ArgumentParser()
+    add_agent_arguments(parser)
+    with pytest.raises(ConfigError) as info:
+        run_agent(parser.parse_args(["--id", "0", "--driver", "kh4", "--calibration", str(bad)]))
+    assert str(info.value) == f"--calibration: {bad}:1: cannot read 'x' as an integer"
+
+
 def test_a_library_that_will_not_load_is_named_as_the_option_that_gave_it(tmp_path, monkeypatch):
     """`--library /nope/libkhepera.so` said `--driver kh4: ... pass --library PATH or set KHEPRI_LIBKHEPERA`: the
     wrong option, and advice to pass what was passed."""

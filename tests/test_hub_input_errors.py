@@ -143,7 +143,8 @@ def test_a_body_must_map_to_an_integer_robot_id(value):
     with pytest.raises(ConfigError) as info:
         parse_config(mocap_config({"kh0": value}))
     assert info.value.field == "source.bodies.kh0"
-    assert info.value.problem == f"must be an integer robot id 0..999999 (got {value!r})"
+    shown = {True: "true", None: "null"}.get(value, repr(value)) if not isinstance(value, list) else repr(value)
+    assert info.value.problem == f"must be an integer robot id 0..999999 (got {shown})"      # as YAML writes it
 
 
 def test_two_bodies_for_one_robot_are_named():
@@ -253,6 +254,8 @@ def test_a_negative_seed_is_refused_in_the_config_and_on_the_command_line():
     with pytest.raises(ConfigError) as info:
         parse_config({"source": {"type": "sim", "seed": -1}})
     assert str(info.value) == "source.seed: must be >= 0 (got -1)"
+    with pytest.raises(ConfigError, match=r"^source.seed: must be <= 9223372036854775807 \(got 9223372036854775808\)"):
+        parse_config({"source": {"type": "sim", "seed": 2 ** 63}})
     one_error_line(khepri("sil", "lab-6", "--seed", "-1"), "--seed")
 
 
@@ -1234,3 +1237,12 @@ def test_a_reversed_geofence_says_what_it_got_and_a_replay_rate_has_a_floor():
             parse_config({"source": {**replay, "rate": rate}})
         assert info.value.field == "source.rate" and "0.001" in info.value.problem
     assert parse_config({"source": {**replay, "rate": 0.001}}).source.rate == 0.001
+
+
+@pytest.mark.parametrize("frequency", ["\u00b2", "9" * 5000])
+def test_a_mock_frequency_that_is_no_whole_number_is_refused_not_a_traceback(frequency):
+    """str.isdigit took '²', and int() then raised ValueError; 5000 digits passed isdigit and int() refused them."""
+    config = mocap_config({"kh0": 0})
+    config["source"]["options"]["frequency"] = frequency
+    with pytest.raises(ConfigError, match="source.options.frequency: must be a whole number of frames per second"):
+        parse_config(config)

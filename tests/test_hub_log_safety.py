@@ -350,6 +350,15 @@ def _state(pid: int) -> str:
         return "zombie"
 
 
+@pytest.mark.parametrize("parent", ["\u00b2", "9" * 30])
+def test_a_parent_pid_that_is_no_pid_is_ignored(monkeypatch, parent):
+    """'²' passed str.isdigit and int() refused it: the agent ended in a ValueError before it started."""
+    from onboard.agent.parent import PARENT_ENV, end_with_parent
+
+    monkeypatch.setenv(PARENT_ENV, parent)
+    end_with_parent()       # nothing to watch: no error, no signal
+
+
 def test_the_keys_of_a_killed_sil_are_removed_by_the_next_one(tmp_path, monkeypatch):
     """SIGKILL runs no cleanup: a killed `khepri sil` left its temporary folder of secret keys behind."""
     import tempfile
@@ -364,8 +373,11 @@ def test_the_keys_of_a_killed_sil_are_removed_by_the_next_one(tmp_path, monkeypa
     for folder in (stale, live):
         (folder / "robots").mkdir(parents=True)
         (folder / "robots" / "robot-0.key_secret").write_text("secret")
+    odd = [tmp_path / f"{KEY_FOLDER_PREFIX}\u00b2-x", tmp_path / f"{KEY_FOLDER_PREFIX}{'9' * 30}-x"]
+    for folder in odd:        # '²' passed str.isdigit, and int() refused it; 30 digits overflowed os.kill
+        folder.mkdir()
     remove_stale_key_folders()
-    assert not stale.exists() and live.exists()
+    assert not stale.exists() and live.exists() and all(folder.exists() for folder in odd)
 
 
 def test_a_robots_text_with_a_lone_surrogate_neither_stops_the_recording_nor_ctl_status(tmp_path):

@@ -573,6 +573,16 @@ def test_a_missing_scenario_file_says_relative_paths_are_from_the_hubs_folder(tm
         build_hub(config, log=lambda line: None)
 
 
+def test_a_sim_scenario_written_as_a_path_to_no_file_is_not_the_builtin(tmp_path, monkeypatch):
+    """`source: {scenario: ./lab-6}` with no file ./lab-6 served the built-in lab-6 without a word."""
+    monkeypatch.chdir(tmp_path)
+    config = parse_config({"source": {"type": "sim", "scenario": "./lab-6"}, "network": NETWORK,
+                           "security": {"insecure": True}})
+    with pytest.raises(ConfigError, match=r"^source.scenario: no such file: ./lab-6 \(the built-in scenario is lab-6, "
+                                          r"without a folder\) \(a lab config's paths are relative to the folder"):
+        build_hub(config, log=lambda line: None)
+
+
 def test_a_bad_field_inside_the_sim_scenario_file_names_the_file_and_the_field(tmp_path):
     """It said only "behaviour: unknown behaviour 'goto'", which reads as a key of the lab config."""
     (tmp_path / "goto.yaml").write_text("behaviour: goto\nrobots: {count: 2}\n")

@@ -633,6 +633,29 @@ def test_a_log_in_a_newer_format_is_said_by_log_info_and_the_replay(tmp_path):
         foreign_log_with_format(tmp_path / "none.mcap", None, poses)).stdout
 
 
+@pytest.mark.parametrize("version", ["\u00b2", "9" * 5000, "-1"])
+def test_a_log_version_that_is_no_whole_number_is_said_as_none(tmp_path, version):
+    """`version: "²"` passed str.isdigit and a 5000-digit one int()'s bound: log info and the replay ended in
+    ValueError tracebacks."""
+    from hub.log_format import format_version
+    from hub.replay_source import ReplaySource
+
+    assert format_version({"khepri.log": {"version": version}}) is None
+    poses = [(MOCAP_POSES, {"bodies": {"0": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}, "clock_s": None}, T0)]
+    path = foreign_log_with_format(tmp_path / "odd.mcap", version, poses)
+    said = run_khepri(path)
+    assert said.returncode == 0 and "Traceback" not in said.stderr
+    assert "format:    " in said.stdout
+    assert ReplaySource(str(path), log=lambda line: None).pending is not None
+
+
+def test_a_body_named_with_a_superscript_or_5000_digits_is_no_robot(tmp_path):
+    poses = [(MOCAP_POSES, {"bodies": {name: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]}, "clock_s": None}, T0 + k)
+             for k, name in enumerate(["\u00b2", "9" * 5000, "3"])]
+    said = run_khepri(foreign_log_with_format(tmp_path / "odd.mcap", "1", poses))
+    assert said.returncode == 0 and "Traceback" not in said.stderr, said.stderr[-500:]
+
+
 def foreign_log_with_format(path, version, records):
     """A log another writer made: a khepri.log record of ``version`` (None: none), then JSON ``records``."""
     from mcap.writer import Writer

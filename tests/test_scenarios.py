@@ -247,6 +247,8 @@ SIMPLE = ": the outline must be a simple polygon, not meeting itself (split such
     ({"robots": {"spawn": {"x": [2, 1]}}}, "robots.spawn.x",
      "robots.spawn.x: must be [min, max] with min <= max (got [2.0, 1.0])"),
     ({"seed": -1}, "seed", "seed: must be >= 0 (got -1)"),
+    # 300 digits named an output folder too long to make ("--out: ... File name too long")
+    ({"seed": 10 ** 300}, "seed", "seed: must be <= 9223372036854775807 (got an integer of 301 digits)"),
     # Lengths and coordinates beyond MAX_EXTENT_M: they used to overflow in the geometry (tracebacks) or run.
     ({"object": {"shape": "box", "size": [1e308, 1.0]}}, "object.size[0]",
      "object.size[0]: must be <= 1000 (got 1e+308)"),
@@ -407,6 +409,26 @@ def test_a_file_named_like_a_builtin_is_neither_taken_nor_hidden_silently(tmp_pa
     assert str(info.value) == ("scenario: 'lab-6' is both a built-in scenario and a file in this folder: "
                                "write ./lab-6 for the file, or rename the file")
     assert load_scenario("./lab-6").robots.count == 7
+
+
+@pytest.mark.parametrize("given", ["./lab-6", "./paper-25-straight", "runs/lab-6", ".lab-6", "~/lab-6"])
+def test_a_path_to_no_file_is_an_error_not_the_builtin_of_that_name(tmp_path, monkeypatch, given):
+    """The docs say to write ./lab-6 for a file named like a built-in: with no such file, `sim run ./lab-6` ran the
+    built-in lab-6 without a word (and exited 0), while `sim show subdir/lab-6` was "unknown scenario"."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError) as info:
+        load_scenario(given)
+    name = given.rsplit("/", 1)[-1]
+    hint = f" (the built-in scenario is {name}, without a folder)" if not name.startswith(".") else ""
+    assert str(info.value) == f"scenario: no such file: {given}{hint}"
+    assert load_scenario("lab-6").name == "lab-6"      # by its name, the built-in as before
+
+
+def test_a_name_too_long_for_the_file_system_is_an_error_not_a_traceback():
+    """Path.is_file raised OSError "File name too long" for a name of 300 characters."""
+    with pytest.raises(ConfigError) as info:
+        load_scenario("n" * 300)
+    assert str(info.value) == f"scenario: '{'n' * 59}...: File name too long"
 
 
 def test_a_section_with_every_line_commented_out_is_empty_whatever_section_it_is():

@@ -322,7 +322,14 @@ def test_sim_show_warns_as_sim_run_does_before_a_doomed_run(tmp_path, capsys):
 
 @pytest.mark.parametrize("seed, message", [("abc", "must be a whole number >= 0 (got 'abc')"),
                                            ("1.5", "must be a whole number >= 0 (got '1.5')"),
-                                           ("-1", "must be >= 0 (got -1)")])
+                                           ("-1", "must be >= 0 (got -1)"),
+                                           # 300 digits were "--out: ... File name too long"; 5000 int() refused
+                                           ("9" * 300, "must be <= 9223372036854775807 (got an integer of 300 "
+                                                       "digits)"),
+                                           ("9" * 5000, "must be <= 9223372036854775807 (got an integer of 5000 "
+                                                        "digits)"),
+                                           (str(2 ** 63), "must be <= 9223372036854775807 (got "
+                                                          "9223372036854775808)")])
 def test_a_bad_seed_is_named_in_plain_words(capsys, seed, message):
     """One line, as every other bad input (README): argparse's own error printed the whole usage first."""
     for command in (["sim", "run"], ["sil"]):

@@ -5,6 +5,7 @@ import io
 import json
 import logging
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -215,6 +216,9 @@ def test_the_summarys_overrides_column_writes_lists_and_mappings_as_json_without
     ("scenarios: [lab-6]\nreps: 1\nrepeats: 3", "repeats: unknown key"),
     ("scenarios: [lab-6\nreps: 1", "bad.yaml:2: not valid YAML"),
     ("# nothing but a comment\n", "bad.yaml: the file is empty (a study needs at least its scenarios)"),
+    ("scenarios: [lab-6]\nseeds: [true]", "seeds[0]: must be an integer >= 0 (got true)"),     # not Python's True
+    (f"scenarios: [lab-6]\nseeds: [{2 ** 63}]", "seeds[0]: must be <= 9223372036854775807 (got 9223372036854775808)"),
+    ("scenarios: [lab-6]\nseeds: 1..1" + "0" * 30, "seeds: a range's seeds must be at most 9223372036854775807"),
     # A list-valued key lists its values: [-1, 0] is two cells, x = -1 and x = 0; say how to give one list.
     ("scenarios: [lab-6]\nreps: 1\noverrides: {robots.spawn.x: [-1, 0]}",
      "robots.spawn.x: must be a list (got -1); each value listed under overrides.robots.spawn.x is one whole "
@@ -1038,6 +1042,13 @@ def test_a_hand_edited_result_of_another_shape_is_listed_not_a_traceback(known_s
     assert "paper-25-straight/seed-1/result.json" in load_results(known_study).unreadable
 
 
+def test_a_seed_folder_named_with_a_superscript_is_listed_not_a_traceback(known_study):
+    """`seed-²` passed str.isdigit, and int() of it ended `study report` in a ValueError."""
+    odd = known_study / "paper-25-straight/seed-\u00b2"
+    shutil.copytree(known_study / "paper-25-straight/seed-1", odd)
+    assert "paper-25-straight/seed-\u00b2/result.json" in load_results(known_study).unreadable
+
+
 def test_a_result_nested_past_pythons_recursion_limit_is_listed_not_a_traceback(known_study, capsys):
     """json.loads raises RecursionError, not ValueError, for it: `study report` ended in a traceback."""
     write(known_study / "paper-25-straight/seed-1/result.json", DEEP_JSON)
@@ -1404,6 +1415,16 @@ def test_a_folder_of_another_study_is_refused_unless_merge_asks_for_it(tmp_path,
     assert json.loads((out / "study.json").read_text())["commands"][-1].endswith("--merge")
 
 
+def test_a_hand_edited_study_name_in_the_out_folder_is_shown_by_its_start(tmp_path):
+    """The name recorded in study.json went into the error line whole."""
+    from sim_backend.study.folder import check_out_folder
+
+    write(tmp_path / "study.json", json.dumps({"name": "n" * 100_000}))
+    with pytest.raises(ConfigError) as caught:
+        check_out_folder(tmp_path, "mine", merge=False)
+    assert f"holds the study '{'n' * 59}... ({tmp_path}/study.json), not 'mine'" in str(caught.value)
+
+
 def write_gathering(path: Path, name: str, time_limit_s: float) -> Path:
     """A scenario file of six robots running `aggregate` where lab-6 places them, named ``name``."""
     scenario = load_scenario("lab-6")
@@ -1561,6 +1582,17 @@ def test_a_scenario_file_named_without_yaml_is_found_beside_the_study_wherever_i
     (folder / "t.yaml").write_text("scenarios: [lab-6]\nreps: 1\n")
     with pytest.raises(ConfigError, match=r"scenarios\[0\]: 'lab-6' is both a built-in scenario and a file"):
         load_study_file(folder / "t.yaml")
+
+
+def test_a_scenario_written_as_a_path_to_no_file_is_no_such_file_as_in_sim_run(tmp_path, monkeypatch):
+    """`scenarios: [./lab-6]` was "unknown scenario './lab-6': not a file and not built in", where `sim run ./lab-6`
+    says "no such file"; the same words everywhere."""
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path / "s.yaml", "scenarios: [./lab-6]\nreps: 1\n")
+    with pytest.raises(ConfigError) as info:
+        load_study_file(tmp_path / "s.yaml")
+    assert str(info.value) == (f"{tmp_path / 's.yaml'}: scenarios[0]: scenario: no such file: {tmp_path / 'lab-6'} "
+                               "(the built-in scenario is lab-6, without a folder)")
 
 
 def test_a_scenario_file_written_relative_to_the_current_folder_is_said_to_be_relative_to_the_study(tmp_path,

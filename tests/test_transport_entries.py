@@ -28,12 +28,14 @@ HOSTILE = [       # (key, value) from robot 99, and what the refusal says
     ("task/L2", TASK, "task id 'L2' does not match its branch and index ('L1')"),
     ("task/L1", dict(TASK, epoch=True), "epoch is not a whole number >= 0 (got True)"),
     ("arrive/0/p/\u00b2", 1, "the key is not arrive/<waypoint>/<p|r|c>/<robot id>"),
+    ("arrive/0/p/" + "9" * 5000, 1, "the key is not arrive/<waypoint>/<p|r|c>/<robot id>"),   # int() refuses it
+    ("member/" + "9" * 5000, {"tid": "L1", "branch": "L", "index": 1}, "the key is not member/<robot id>"),
     ("closed", {"pair": [1]}, 'must be {"pair": [robot id, robot id]}'),
     ("done", True, "must be 1"),
 ]
 
 
-@pytest.mark.parametrize("key, value, problem", HOSTILE, ids=[f"{k}:{p[:20]}" for k, _, p in HOSTILE])
+@pytest.mark.parametrize("key, value, problem", HOSTILE, ids=[f"{k[:24]}:{p[:20]}" for k, _, p in HOSTILE])
 def test_a_peers_entry_of_the_wrong_shape_is_refused_naming_what_is_wrong(key, value, problem):
     space = new_space(owner=0)
     assert space.merge([[key, value, WINS, 99]], sender=99) == []

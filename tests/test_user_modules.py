@@ -75,6 +75,36 @@ def test_a_module_name_a_file_path_and_what_goes_wrong(tmp_path, monkeypatch):
         import_user_modules(["plugin_clash"], str(tmp_path))     # the user's module is told, not the built-in
 
 
+def test_a_non_python_file_beside_is_said_not_a_py_file_and_a_module_that_exits_is_named(tmp_path):
+    """`--import lab6copy.yaml` (no folder part) was read as the module lab6copy's submodule yaml: "No module named
+    'lab6copy'"; a module calling sys.exit(3) as it was imported made khepri exit 3 without a word."""
+    (tmp_path / "lab6copy.yaml").write_text("name: lab6copy\n")
+    (tmp_path / "notes.txt").write_text("x\n")
+    (tmp_path / "quits.py").write_text("import sys\n\nsys.exit(3)\n")
+    for name, problem in [("lab6copy.yaml", "lab6copy.yaml is not a .py file: --import takes the Python file"),
+                          ("notes.txt", "notes.txt is not a .py file"),
+                          ("absent.yaml", f"no such file: {tmp_path / 'absent.yaml'}"),
+                          ("quits", "importing 'quits' called sys.exit(3) at quits.py:3: a behaviour's module must "
+                                    "not exit when imported (put a script's own code under if __name__ == "
+                                    "\"__main__\":)")]:
+        with pytest.raises(ConfigError) as caught:
+            import_user_modules([name], str(tmp_path))
+        assert caught.value.field == "--import" and caught.value.problem.startswith(problem), caught.value
+
+
+@pytest.mark.parametrize("name, shown", [("3", "3"), ("None", "None"), ('""', "''"), ('"  "', "'  '")])
+def test_a_behaviour_name_that_is_no_name_is_refused_where_it_is_registered(tmp_path, name, shown):
+    """@register(3) was taken, and a later unknown-behaviour error became "Scenario.validate raised TypeError: '<'
+    not supported between instances of 'int' and 'str'" (sorting the names); @register("") was taken too."""
+    (tmp_path / "oddname.py").write_text(f"from onboard.behaviour import Behaviour, register\n\n\n@register({name})\n"
+                                         "class Odd(Behaviour):\n    def step(self):\n        pass\n")
+    with pytest.raises(ConfigError) as caught:
+        import_user_modules(["oddname"], str(tmp_path))
+    assert str(caught.value) == (f"register: @register({shown}) above oddname.Odd: a behaviour's name must be a "
+                                 "non-empty string, e.g. @register(\"wander\")")
+    sys.modules.pop("oddname", None)
+
+
 def syntax_error_message(source: str) -> str:
     """What this Python says of ``source``: 3.10 made "unexpected EOF while parsing" "'(' was never closed"."""
     try:

@@ -61,3 +61,56 @@ def test_a_file_nested_thousands_deep_is_refused_naming_it(text):
 def test_every_yaml_file_we_ship_reads_the_same_as_before(path):
     text = (ROOT / path).read_text(encoding="utf-8")
     assert parse_yaml(text, path.name) == yaml.safe_load(text)
+
+
+@pytest.mark.parametrize("text, problem", [
+    ('seed: !!int "abc"', "cannot read 'abc' as an integer"),
+    ('seed: !!int ""', "cannot read '' as an integer"),
+    ('seed: !!int "-"', "cannot read '-' as an integer"),
+    ('seed: !!float "abc"', "cannot read 'abc' as a number"),
+    ('seed: !!float ""', "cannot read '' as a number"),
+    ('static: !!bool "maybe"', "cannot read 'maybe' as true or false"),
+    ("description: 2024-02-30", "cannot read '2024-02-30' as a date (day is out of range for month); put it in "
+                                "quotes if it is not one"),
+    ("path: !!set [1]", "cannot read a list as !!set"),
+    ("seed: " + "9" * 5000, "an integer written with 5000 characters is too long to read (at most 4300 digits)"),
+])
+def test_a_value_its_tag_cannot_read_is_refused_at_its_line(text, problem):
+    """Each raised the converter's own ValueError (KeyError, IndexError), a traceback naming no file."""
+    with pytest.raises(ConfigError) as caught:
+        parse_yaml("name: x\n" + text + "\n", "mine.yaml")
+    assert str(caught.value) == f"mine.yaml:2: {problem}"
+
+
+@pytest.mark.parametrize("name, text", [("study.yaml", "name: x\nscenarios: [lab-6]\nreps: !!int x\n"),
+                                        ("lab.yaml", "source: {type: sim, seed: !!int x}\n"),
+                                        ("cal.yaml", "proximity: []\nrobot: !!int x\n")])
+def test_every_kind_of_file_names_itself_and_the_line(tmp_path, name, text):
+    from hub.config import load_config
+    from onboard.drivers.calibration import load_calibration
+    from sim_backend.study.study_file import load_study_file
+
+    path = tmp_path / name
+    path.write_text(text)
+    load = {"study.yaml": load_study_file, "lab.yaml": load_config, "cal.yaml": load_calibration}[name]
+    with pytest.raises(ConfigError) as caught:
+        load(path)
+    line = text.count("\n")      # the last line of each
+    assert str(caught.value) == f"{path}:{line}: cannot read 'x' as an integer"
+
+
+@pytest.mark.parametrize("text", ["null\n", "~\n", "# nothing but\nNull\n", "--- null\n"])
+def test_a_file_holding_only_null_is_said_so_not_called_empty(tmp_path, text):
+    """It was "the file is empty", which sent the user looking for a lost copy of a file that holds a word."""
+    path = tmp_path / "null.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as caught:
+        read_yaml(path)
+    assert str(caught.value) == f"{path}: the file holds only null, not a mapping of keys"
+
+
+@pytest.mark.parametrize("text", ["", "# only a comment\n", "---\n", "---\n...\n"])
+def test_an_empty_file_or_document_is_still_none(tmp_path, text):
+    path = tmp_path / "empty.yaml"
+    path.write_text(text)
+    assert read_yaml(path) is None

@@ -10,6 +10,8 @@ import ctypes
 import os
 import signal
 
+from onboard.config import is_whole_number
+
 PARENT_ENV = "KHEPRI_AGENT_PARENT_PID"
 PR_SET_PDEATHSIG = 1      # linux/prctl.h
 
@@ -19,7 +21,7 @@ def end_with_parent() -> None:
     ended already, before the request, act as if the signal had come. Elsewhere nothing happens: the
     watchdog still stops the wheels once the hub is silent."""
     expected = os.environ.get(PARENT_ENV)
-    if not expected or not expected.isdigit():
+    if not expected or not is_whole_number(expected, 9):     # a pid: not '²', which int() refuses
         return
     try:
         libc = ctypes.CDLL(None, use_errno=True)

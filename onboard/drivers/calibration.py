@@ -14,6 +14,7 @@ from typing import List, Optional, Tuple, Union
 import numpy as np
 
 from onboard.config import ConfigError, check_range, from_mapping, join
+from onboard.filekinds import CALIBRATION, wrong_kind
 from onboard.hal import PROXIMITY_SENSOR_COUNT
 from onboard.protocol_schema import MAX_ROBOT_ID
 from onboard.yamlfile import read_yaml
@@ -104,6 +105,9 @@ def load_calibration(path: Union[str, Path]) -> IRCalibration:
     """Read and validate a calibration file; every error is a ConfigError naming the file and the field."""
     path = Path(path)
     data = read_yaml(path, CALIBRATION_LABEL)
+    other = wrong_kind(data, CALIBRATION)    # a scenario or lab config given as --calibration
+    if other:
+        raise ConfigError(str(path), other)
     try:
         return from_mapping(IRCalibration, data)
     except ConfigError as err:

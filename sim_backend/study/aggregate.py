@@ -15,6 +15,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from onboard.config import is_whole_number
 from onboard.sorting import natural_key
 
 from . import paper_reference as paper
@@ -164,7 +165,7 @@ def load_results(out_dir: Path) -> StudyResults:
     for path in sorted(out_dir.glob(f"*/seed-*/{RESULT_FILE}")):
         result = read_result(path.parent)
         seed_text = path.parent.name[len("seed-"):]
-        if not result or not seed_text.isdigit():
+        if not result or not is_whole_number(seed_text):     # seed-² (int() refuses it) is not a run's folder
             unreadable.append(str(path.relative_to(out_dir)))
             continue
         name = path.parent.parent.name

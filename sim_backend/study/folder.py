@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 from typing import Any, Dict, Optional
 
-from onboard.config import ConfigError
+from onboard.config import ConfigError, as_written
 from onboard.jsontext import parse_json
 
 STUDY_FILE = "study.json"
@@ -32,8 +32,10 @@ def check_out_folder(out: Path, name: str, merge: bool) -> None:
     if not recorded:
         refuse_other_files(out)
     elif recorded["name"] != name and not merge:
-        raise ConfigError("--out", f"{out} holds the study {recorded['name']!r} ({out / STUDY_FILE}), not {name!r}: "
-                                   f"give another --out, or add --merge to add this study's runs to that folder")
+        # as_written: the name comes from a file on disk, which may hold anything (a megabyte of name)
+        raise ConfigError("--out", f"{out} holds the study {as_written(recorded['name'])} ({out / STUDY_FILE}), not "
+                                   f"{name!r}: give another --out, or add --merge to add this study's runs to that "
+                                   "folder")
 
 
 def refuse_other_files(out: Path) -> None:

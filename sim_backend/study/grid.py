@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from onboard.behaviour import get_behaviour
-from onboard.config import ConfigError, to_mapping
+from onboard.config import ConfigError, as_written, to_mapping
 from sim_backend.scenario import load_builtin, load_scenario, parse_scenario
 
 # A cell's folder name at most (ASCII, so bytes too): what the usual file systems allow a name. A name that fits
@@ -164,8 +164,8 @@ def expand(spec: StudySpec) -> List[RunSpec]:
             cell = cell_name(str(data["name"]), chosen)
             if cell in named:
                 raise ConfigError("overrides", f"{overrides_text(named[cell])} and {overrides_text(chosen)} give "
-                                  f"the same folder name {cell!r}: their runs would share it (give values that "
-                                  f"differ in their first 6 digits and in letters or digits)")
+                                  f"the same folder name {as_written(cell)}: their runs would share it (give values "
+                                  f"that differ in their first 6 digits and in letters or digits)")
             named[cell] = chosen
             try:
                 warnings = check_cell(data, cell, chosen, spec.seeds[0], spec.time_limit_s)
@@ -176,7 +176,7 @@ def expand(spec: StudySpec) -> List[RunSpec]:
     runs_per_cell = Counter(r.cell for r in runs)
     duplicate = next((c for c, count in runs_per_cell.items() if count > len(spec.seeds)), None)
     if duplicate:
-        raise ConfigError("scenarios", f"two scenarios share the name {duplicate.split('@')[0]!r}: "
+        raise ConfigError("scenarios", f"two scenarios share the name {as_written(duplicate.split('@')[0])}: "
                           f"their runs would share a folder")
     return runs
 
@@ -266,7 +266,7 @@ def depth(value: Any) -> int:
 
 
 def overrides_text(chosen: Dict[str, Any]) -> str:
-    return ", ".join(f"{key}={value!r}" for key, value in chosen.items())
+    return ", ".join(f"{key}={as_written(value)}" for key, value in chosen.items())
 
 
 def cell_name(scenario_name: str, chosen: Dict[str, Any]) -> str:

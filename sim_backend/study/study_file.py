@@ -11,9 +11,18 @@ import re
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from onboard.config import MAX_NAME_LENGTH, ConfigError, as_integer, has_control_character
+from onboard.config import (
+    MAX_NAME_LENGTH,
+    MAX_SEED,
+    ConfigError,
+    as_integer,
+    as_written,
+    check_seed,
+    has_control_character,
+)
+from onboard.filekinds import STUDY, wrong_kind
 from onboard.yamlfile import read_yaml
-from sim_backend.scenario import builtin_names
+from sim_backend.scenario import builtin_names, looks_like_path
 
 from .grid import StudySpec, expand
 from .paper_reference import paper_scenarios
@@ -42,7 +51,7 @@ def paper_study(reps: int) -> StudySpec:
 def check_reps(where: str, value: Any) -> int:
     reps = as_integer(value)        # 2.0 as 2, as scenario files take it
     if reps is None or reps < 1:
-        raise ConfigError(where, f"must be an integer >= 1 (got {value!r})")
+        raise ConfigError(where, f"must be an integer >= 1 (got {as_written(value)})")
     if reps > MAX_SEEDS:
         raise ConfigError(where, f"must be at most {MAX_SEEDS} (got {reps})")
     return reps
@@ -74,14 +83,14 @@ def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "stud
     if not isinstance(data, dict):
         raise ConfigError("", f"a study file must be a mapping of keys (got {type(data).__name__})")
     unknown = [key for key in data if key not in STUDY_KEYS]
-    if unknown and "scenarios" not in data and {"behaviour", "robots", "object", "path"} & set(data):
-        raise ConfigError("", "this is a scenario, not a study: run it with `khepri sim run FILE`, or list it in "
-                              "a study file's scenarios: [FILE] (docs/study.md)")
+    other = wrong_kind(data, STUDY)          # a scenario or lab config given as the study
+    if other:
+        raise ConfigError("", other)
     if unknown:
         raise ConfigError(str(unknown[0]), f"unknown key (known: {', '.join(STUDY_KEYS)})")
     name = data.get("name", default_name)
     if not isinstance(name, str) or not SAFE_NAME.match(name):
-        raise ConfigError("name", f"must be a name of letters, digits and _.+- (got {name!r})")
+        raise ConfigError("name", f"must be a name of letters, digits and _.+- (got {as_written(name)})")
     if len(name) > MAX_NAME_LENGTH:
         raise ConfigError("name", f"names the study's folders: at most {MAX_NAME_LENGTH} characters (got {len(name)})")
     listed = data.get("overrides")
@@ -121,21 +130,21 @@ def check_grid_size(spec: StudySpec, seeds_field: str) -> None:
 
 def parse_scenario_list(value: Any, base_dir: Path) -> List[str]:
     if not isinstance(value, list) or not value:
-        raise ConfigError("scenarios", f"must be a non-empty list of scenario names or files (got {value!r})")
+        raise ConfigError("scenarios", f"must be a non-empty list of scenario names or files (got {as_written(value)})")
     names = []
     for i, item in enumerate(value):
         if not isinstance(item, str) or not item.strip():
-            raise ConfigError(f"scenarios[{i}]", f"must be a scenario name or file (got {item!r})")
+            raise ConfigError(f"scenarios[{i}]", f"must be a scenario name or file (got {as_written(item)})")
         if has_control_character(item):      # a NUL ended the dry run in a traceback ("embedded null byte")
-            raise ConfigError(f"scenarios[{i}]", f"holds a control character (got {item!r})")
+            raise ConfigError(f"scenarios[{i}]", f"holds a control character (got {as_written(item)})")
         # Files are relative to the study file, so a study folder can be moved as a whole; so is a file named
         # without .yaml (it used to be looked up in the current folder, so the study meant something else
         # depending on where it was run from).
-        beside, is_yaml = base_dir / item, item.endswith((".yaml", ".yml"))
-        is_file = is_yaml or beside.is_file()
-        if is_file and not is_yaml and "/" not in item and item in builtin_names():
-            raise ConfigError(f"scenarios[{i}]", f"{item!r} is both a built-in scenario and a file beside the "
-                                                 f"study: write ./{item} for the file, or rename the file")
+        beside, path_like = base_dir / item, looks_like_path(item)    # ./lab-6 is a file, or an error: not lab-6
+        is_file = path_like or beside.is_file()
+        if is_file and not path_like and item in builtin_names():
+            raise ConfigError(f"scenarios[{i}]", f"{as_written(item)} is both a built-in scenario and a file beside "
+                                                 f"the study: write ./{item} for the file, or rename the file")
         if is_file and not beside.exists():
             check_not_relative_to_cwd(f"scenarios[{i}]", item, base_dir)
         names.append(str(beside.resolve()) if is_file else item)
@@ -167,20 +176,25 @@ def parse_seeds(data: Dict[str, Any]) -> List[int]:
     value = data["seeds"]
     if isinstance(value, str):
         match = SEED_RANGE.match(value)
+        if match and max(len(match.group(1)), len(match.group(2))) > len(str(MAX_SEED)):   # int() refuses 4300
+            raise ConfigError("seeds", f"a range's seeds must be at most {MAX_SEED} (got {as_written(value)})")
         if not match or int(match.group(2)) < int(match.group(1)):
-            raise ConfigError("seeds", f"a range must read 'first..last' with first <= last (got {value!r})")
+            raise ConfigError("seeds", f"a range must read 'first..last' with first <= last (got {as_written(value)})")
+        check_seed("seeds", int(match.group(2)))
         if int(match.group(2)) - int(match.group(1)) >= MAX_SEEDS:
-            raise ConfigError("seeds", f"a range may hold at most {MAX_SEEDS} seeds (got {value!r})")
+            raise ConfigError("seeds", f"a range may hold at most {MAX_SEEDS} seeds (got {as_written(value)})")
         return list(range(int(match.group(1)), int(match.group(2)) + 1))
     if not isinstance(value, list) or not value:
         number = as_integer(value)
         hint = (f": [{number}] for seed {number} alone, or reps: {number} for seeds 1..{number}"
                 if number is not None and number >= 0 else "")
-        raise ConfigError("seeds", f"must be a non-empty list of integers or 'first..last' (got {value!r}){hint}")
+        raise ConfigError("seeds",
+                          f"must be a non-empty list of integers or 'first..last' (got {as_written(value)}){hint}")
     seeds = [as_integer(seed) for seed in value]
     for i, seed in enumerate(seeds):
         if seed is None or seed < 0:
-            raise ConfigError(f"seeds[{i}]", f"must be an integer >= 0 (got {value[i]!r})")
+            raise ConfigError(f"seeds[{i}]", f"must be an integer >= 0 (got {as_written(value[i])})")
+        check_seed(f"seeds[{i}]", seed)
     if len(set(seeds)) != len(seeds):
         twice = sorted({seed for seed in seeds if seeds.count(seed) > 1})
         raise ConfigError("seeds", f"lists seed {', '.join(map(str, twice))} twice")
@@ -191,8 +205,8 @@ def parse_overrides(value: Any) -> Dict[str, List[Any]]:
     if value is None:
         return {}
     if not isinstance(value, dict):
-        raise ConfigError("overrides", f"must be a mapping of scenario key -> list of values (a grid), or a list "
-                                       f"of mappings of scenario key -> value (one cell each) (got {value!r})")
+        raise ConfigError("overrides", "must be a mapping of scenario key -> list of values (a grid), or a list of "
+                                       f"mappings of scenario key -> value (one cell each) (got {as_written(value)})")
     overrides = {}
     for key, values in value.items():
         where = f"overrides.{key}"
@@ -202,7 +216,7 @@ def parse_overrides(value: Any) -> Dict[str, List[Any]]:
             raise ConfigError(where, "must list at least one value")
         repeated = [v for k, v in enumerate(values) if v in values[:k]]    # 0 and 0.0 make the same cell
         if repeated:
-            raise ConfigError(where, f"lists the value {repeated[0]!r} twice")
+            raise ConfigError(where, f"lists the value {as_written(repeated[0])} twice")
         overrides[key] = values
     check_nested_overrides(overrides)
     return overrides
@@ -219,7 +233,7 @@ def parse_override_sets(value: List[Any]) -> List[Dict[str, Any]]:
         if chosen is None:
             chosen = {}
         if not isinstance(chosen, dict):
-            raise ConfigError(where, f"must be a mapping of scenario key -> value, one cell (got {chosen!r})")
+            raise ConfigError(where, f"must be a mapping of scenario key -> value, one cell (got {as_written(chosen)})")
         for key in chosen:
             check_override_key(f"{where}.{key}", key)
         check_nested_overrides(chosen, where)
@@ -251,5 +265,5 @@ def parse_time_limit(where: str, value: Any) -> Optional[float]:
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
-        raise ConfigError(where, f"must be a number of seconds > 0 (got {value!r})")
+        raise ConfigError(where, f"must be a number of seconds > 0 (got {as_written(value)})")
     return float(value)

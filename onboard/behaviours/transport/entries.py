@@ -23,12 +23,15 @@ The shapes (tasks.py's docstring lists what each entry means):
   done                       1
 
 Ids (<rid>, <epoch>, <k>, "robot", "index", "epoch") are whole numbers >= 0 written in ASCII digits (int() of
-"²" raised); a number is an int or a float but not a bool, and finite.
+"²" raised), at most 18 of them in a key (int() of 5000 raised too); a number is an int or a float but not a bool,
+and finite.
 """
 from __future__ import annotations
 
 import math
 from typing import Any, Callable, Dict, Optional
+
+from ...config import is_whole_number
 
 MAX_GROW_LEVEL = 200     # I_d grows 2 % per level: 200 levels is 52 times I_d, far beyond any cage
 BRANCHES = ("S", "L", "R")
@@ -163,7 +166,7 @@ def _branch(v: Any) -> bool:
 
 
 def _digits(text: str) -> bool:
-    return text.isascii() and text.isdigit()
+    return is_whole_number(text)
 
 
 def _task_id(tid: str) -> bool:

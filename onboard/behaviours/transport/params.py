@@ -9,7 +9,7 @@ import math
 from dataclasses import dataclass, field
 from typing import ClassVar, Dict, List, Optional, Tuple
 
-from ...config import ConfigError, check_range
+from ...config import ConfigError, as_written, check_range
 
 PROFILES = ("improved", "faithful")
 # The on/off improvements over the paper: the faithful profile turns every one of them off (a new one goes here).
@@ -141,7 +141,8 @@ class TransportParams:
 
     def validate(self, where: str) -> None:
         if self.profile not in PROFILES:
-            raise ConfigError(f"{where}.profile", f"must be one of {', '.join(PROFILES)} (got {self.profile!r})")
+            raise ConfigError(f"{where}.profile",
+                              f"must be one of {', '.join(PROFILES)} (got {as_written(self.profile)})")
         if self.small_cage_yaw not in SMALL_CAGE_YAW:
             raise ConfigError(f"{where}.small_cage_yaw", f"must be one of {', '.join(SMALL_CAGE_YAW)} "
                               f"(got {self.small_cage_yaw!r})")
