@@ -170,10 +170,8 @@ class Transport(CagingPhases, ClosurePhase, CagedPhase, TransportPhases, ObjectE
 
     def _drive(self, u: Vec, speed_scale: float = 1.0, turn_on_spot_beyond_rad: float = math.pi / 2) -> None:
         """Drive along the world-frame input u at cruise speed (the authors normalised u the same way)."""
-        p, percept = self.params, self.percept
-        local = world_to_robot(c.unit(u), percept.yaw)
-        left, right = vector_to_wheels(local[0], local[1], p.cruise_speed_m_s * speed_scale,
-                                       self.robot.spec.wheel_base_m,
+        local, speed = world_to_robot(c.unit(u), self.percept.yaw), self.params.cruise_speed_m_s * speed_scale
+        left, right = vector_to_wheels(local[0], local[1], speed, self.robot.spec.wheel_base_m,
                                        turn_on_spot_beyond_rad=turn_on_spot_beyond_rad)
         self.robot.wheels.set_speeds(left, right)
 
