@@ -6,16 +6,19 @@ import dataclasses
 import numpy as np
 
 from sim_backend.scenario import load_scenario
-from sim_backend.transport_metrics import TransportEvaluator
 from sim_backend.world import World
 
 
-def _evaluator(time_limit_s: float) -> TransportEvaluator:
+def _evaluator(time_limit_s: float):
+    # Imported here: importing it registers the transport evaluator, which a test module must not do as it is
+    # collected (tests/test_suite_isolation.py).
+    from sim_backend.transport_metrics import TransportEvaluator
+
     scenario = dataclasses.replace(load_scenario("lab-6"), time_limit_s=time_limit_s)
     return TransportEvaluator(scenario, World(scenario, np.random.default_rng(1)))
 
 
-def _run(evaluator: TransportEvaluator, states_at: dict, until_s: float) -> None:
+def _run(evaluator, states_at: dict, until_s: float) -> None:
     """Telemetry every 0.1 s: the robots' states from each time in ``states_at`` on (member: caged)."""
     states = None
     for step in range(int(round(until_s * 10)) + 1):

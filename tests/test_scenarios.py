@@ -328,7 +328,7 @@ def test_a_key_yaml_reads_as_a_number_a_boolean_or_null_is_said_to_be_no_name(te
 def test_unknown_params_key_lists_the_known_names():
     err = error_of({"params": {"inter_robot_distance": 0.65}})
     assert err.problem.startswith("unknown key (known: allocation_time_s, attach_timeout_s, barrier_fraction, ")
-    assert "inter_robot_distance_m" in err.problem and err.problem.endswith("travel_speed_m_s)")
+    assert "inter_robot_distance_m" in err.problem and err.problem.endswith("travel_speed_m_s, turn_on_spot_at_object)")
 
 
 def test_not_a_mapping(tmp_path):
