@@ -8,6 +8,8 @@ from typing import Any, Callable, Dict, List, Optional
 
 import zmq
 
+from onboard.console import drop_span
+
 REPEAT_QUIET_MAX_S = 60.0   # the longest a sender repeating one bad message goes unmentioned
 
 
@@ -118,7 +120,7 @@ class DropLog:
             return
         more = self._suppressed.pop(sender, 0)
         self._hidden_reasons.pop(sender, None)
-        suffix = f" (+{more} more from this sender in the last {_span(since)})" if more else ""
+        suffix = f" (+{more} more from this sender in the last {drop_span(since)})" if more else ""
         self._said(sender, now, key)
         self.log(f"hub: dropped {reason}: {detail}{suffix}")
         if len(self._last_line) > 10_000:   # a flood of fake senders must not grow memory without bound
@@ -150,7 +152,7 @@ class DropLog:
             reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(hidden.items()))
             self._said(sender, now, self._last_key.get(sender, ""))
             self.log(f"hub: dropped {more} more message{'s' if more > 1 else ''} from {sender} in the last "
-                     f"{_span(since)} ({reasons}; `khepri ctl status` counts drops by reason)")
+                     f"{drop_span(since)} ({reasons}; `khepri ctl status` counts drops by reason)")
 
     @property
     def total(self) -> int:
@@ -199,9 +201,6 @@ def frame_property(frame: zmq.Frame, name: str) -> Optional[str]:
     except zmq.ZMQError:      # no such property (e.g. no authentication: no User-Id)
         return None
 
-
-def _span(seconds: float) -> str:
-    return "second" if seconds < 2.0 else f"{seconds:.0f} s"
 
 
 class SparseFrames:

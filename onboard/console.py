@@ -40,6 +40,12 @@ _ONE_LINE.update({code: f"\\u{code:04x}" for code in (0x200E, 0x200F, 0x2028, 0x
                                                       *range(0x2066, 0x206A))})
 
 
+def drop_span(seconds: float) -> str:
+    """How long the drops a line counts were hidden, for "(+3 more in the last second)": the hub's drop lines
+    (hub/links.py) and the agent's (onboard/agent/bad_messages.py) say it alike."""
+    return "second" if seconds < 2.0 else f"{seconds:.0f} s"
+
+
 def one_line(text: str) -> str:
     """``text`` with each control character written as its escape (``\\x0a``, ``\\u2028``): shown on one line,
     never acting on the terminal."""

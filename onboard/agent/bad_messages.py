@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 from typing import Callable
 
+from ..console import drop_span
+
 LINE_EVERY_S = 1.0     # at most one line a second: a hub gone wrong must not bury the agent's log
 
 
@@ -25,7 +27,7 @@ class BadMessages:
         if since < LINE_EVERY_S:
             self.hidden += 1
             return
-        more = f" (+{self.hidden} more in the last {_span(since)})" if self.hidden else ""
+        more = f" (+{self.hidden} more in the last {drop_span(since)})" if self.hidden else ""
         self.hidden, self.last_line = 0, now
         self.log(f"agent {self.robot_id}: dropped a bad message ({self.count} so far): {detail}{more}")
 
@@ -37,8 +39,5 @@ class BadMessages:
             return
         more, self.hidden, self.last_line = self.hidden, 0, now
         self.log(f"agent {self.robot_id}: dropped {more} more bad message{'s' if more > 1 else ''} from the hub in "
-                 f"the last {_span(since)} ({self.count} so far; the telemetry's frames_bad counts them)")
+                 f"the last {drop_span(since)} ({self.count} so far; the telemetry's frames_bad counts them)")
 
-
-def _span(seconds: float) -> str:
-    return "second" if seconds < 2.0 else f"{seconds:.0f} s"
