@@ -174,6 +174,15 @@ def format_version(metadata: Dict[str, Dict[str, str]]) -> Optional[int]:
     return int(version) if isinstance(version, str) and is_whole_number(version) else None
 
 
+def unreadable_version(metadata: Dict[str, Dict[str, str]]) -> Optional[str]:
+    """The version text of a ``khepri.log`` record that has one but not a whole number (``"²"``, ``"-1"``), for
+    saying so; None when the version reads, or there is no such record (another tool's file)."""
+    record = metadata.get(FORMAT_METADATA)
+    if record is None or format_version(metadata) is not None:
+        return None
+    return str(record.get("version", ""))
+
+
 def newer_format(version: Optional[int]) -> Optional[str]:
     """What to say of a log written in a newer format than this khepri reads, or None."""
     if version is None or version <= LOG_FORMAT_VERSION:

@@ -25,6 +25,7 @@ from hub.log_format import (
     is_json_channel,
     metadata_from_text,
     split_robot_topic,
+    unreadable_version,
 )
 from hub.log_reader import LogReader, ends_with_footer, json_or_none, summary_crc_holds
 from onboard.config import is_whole_number
@@ -76,6 +77,9 @@ class LogSummary:
     # cleared_s and cleared_by (None while latched at the log's end), resumed_s and resumed_by (the `start` that
     # resumed the run after the clear; None if it was stopped instead, or never went on).
     estops: List[Dict[str, Any]] = dataclasses.field(default_factory=list)
+    # The version text of a khepri.log record whose version is not a whole number (format_version is None then,
+    # as for a file with no such record, which another tool wrote); None otherwise.
+    format_version_text: Optional[str] = None
 
     def to_dict(self) -> dict:
         """Every field, for JSON. Not ``dataclasses.asdict``, which copies every value recursively, two frames
@@ -262,7 +266,8 @@ def _build_summary(reader: LogReader, tally: _Tally, metadata: Dict[str, Dict[st
         robots=_robot_ids(tally.counts), drops=dict(sorted(tally.drops.items())),
         drops_by_sender=dict(sorted(tally.drops_by_sender.items())),
         metadata=metadata_from_text(metadata.get(USER_METADATA, {})),
-        format_version=format_version(metadata), damaged_records=list(reader.damaged),
+        format_version=format_version(metadata), format_version_text=unreadable_version(metadata),
+        damaged_records=list(reader.damaged),
         sim_start_s=sim_start_s, sim_end_s=sim_end_s, posed_robots=_posed_ids(tally.first_poses, tally.last_poses),
         foreign_topics={topic: {"encoding": tally.foreign_encodings[topic], "messages": count}
                         for topic, count in sorted(tally.foreign.items(), key=lambda item: natural_key(item[0]))},

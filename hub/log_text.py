@@ -10,6 +10,7 @@ from typing import Any, Dict, List, Optional, Tuple
 from hub.log_format import newer_format, split_robot_topic
 from hub.log_summary import LogSummary
 from hub.run_events import outcome_text
+from onboard.config import as_written
 from onboard.jsontext import dump_json
 
 #: What ``khepri log info`` prints in place of a metadata value it cannot print (see printable_metadata).
@@ -40,7 +41,7 @@ def printable_metadata(summary: LogSummary, *, indent: Optional[int] = None) -> 
 def format_summary(summary: LogSummary, *, all_topics: bool = False) -> str:
     """The text ``khepri log info`` prints. Robot topics are grouped by kind unless ``all_topics``."""
     lines = [f"log:       {summary.path} ({_size(summary.file_bytes)})", f"status:    {_status(summary)}",
-             f"format:    {_format_text(summary.format_version, summary.truncated)}"]
+             f"format:    {_format_text(summary)}"]
     if summary.start_s is None:
         lines.append("messages:  none")
     else:
@@ -80,7 +81,10 @@ def _shortened(text: str) -> str:
     return f"{text[:METADATA_SHOWN_CHARS]}... ({len(text):,} characters; all of it with --json)"
 
 
-def _format_text(version: Optional[int], truncated: bool = False) -> str:
+def _format_text(summary: LogSummary) -> str:
+    version, truncated = summary.format_version, summary.truncated
+    if summary.format_version_text is not None:     # a khepri.log record all the same: not another tool's file
+        return f"khepri-log of an unreadable version, {as_written(summary.format_version_text)} (not a whole number)"
     if version is None and truncated:      # a hub's log cut before its metadata: not a sign of another writer
         return "no khepri.log record in what was recovered"
     if version is None:

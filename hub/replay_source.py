@@ -24,7 +24,7 @@ class ReplaySource(PoseSource):
     hub recording, which is said at start."""
 
     def __init__(self, path: str, rate: float = 1.0, log: Callable[[str], None] = print):
-        from hub.log_format import format_version, newer_format
+        from hub.log_format import FORMAT_METADATA, format_version, newer_format
         from hub.log_reader import LogReader, last_indexed_stamp
         from hub.recording import MOCAP_POSES, LogError
 
@@ -61,8 +61,9 @@ class ReplaySource(PoseSource):
                 raise ConfigError("source.file", f"{path} holds no /mocap/poses records the replay can read: that "
                                                  f"channel's message encoding is {foreign!r}, not JSON (another "
                                                  "tool's log, not a khepri hub recording?)")
-            what = ("a khepri log with no motion-capture frames: nothing to replay" if
-                    format_version(self.reader.metadata) is not None else "not a khepri hub recording?")
+            khepri = FORMAT_METADATA in self.reader.metadata     # a khepri.log record, its version read or not
+            what = ("a khepri log with no motion-capture frames: nothing to replay" if khepri
+                    else "not a khepri hub recording?")
             raise ConfigError("source.file", f"{path} holds no /mocap/poses records ({what})")
         version = format_version(self.reader.metadata)      # its record comes before the first poses
         newer = newer_format(version)

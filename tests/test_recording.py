@@ -634,7 +634,7 @@ def test_a_log_in_a_newer_format_is_said_by_log_info_and_the_replay(tmp_path):
 
 
 @pytest.mark.parametrize("version", ["\u00b2", "9" * 5000, "-1"])
-def test_a_log_version_that_is_no_whole_number_is_said_as_none(tmp_path, version):
+def test_a_log_version_that_is_no_whole_number_is_said_unreadable(tmp_path, version):
     """`version: "²"` passed str.isdigit and a 5000-digit one int()'s bound: log info and the replay ended in
     ValueError tracebacks."""
     from hub.log_format import format_version
@@ -645,7 +645,10 @@ def test_a_log_version_that_is_no_whole_number_is_said_as_none(tmp_path, version
     path = foreign_log_with_format(tmp_path / "odd.mcap", version, poses)
     said = run_khepri(path)
     assert said.returncode == 0 and "Traceback" not in said.stderr
-    assert "format:    " in said.stdout
+    # The file has a khepri.log record: it was said to have none, "(not written by a khepri hub?)".
+    shown = repr(version) if len(version) < 60 else "'" + "9" * 59 + "..."
+    assert f"format:    khepri-log of an unreadable version, {shown} (not a whole number)\n" in said.stdout
+    assert json.loads(run_khepri(path, "--json").stdout)["format_version_text"] == version
     assert ReplaySource(str(path), log=lambda line: None).pending is not None
 
 
