@@ -13,13 +13,15 @@ from typing import List, Optional
 
 from onboard.config import is_whole_number
 
-INTERRUPTED_WAIT_S = 1.0      # how long agents a Ctrl-C reached too get to leave by themselves
+# How long agents a Ctrl-C reached too get to leave by themselves. They leave within a second on an idle PC;
+# at a load of 6 on 2 cores six of them needed more than 1 s (the SIGTERM then caught them on their way out).
+INTERRUPTED_WAIT_S = 3.0
 
 def let_leaving_agents_exit(hub, agents: List[subprocess.Popen], ctrl_c: bool, timeout_s: float = 2.0) -> None:
     """An agent whose behaviour raised says so, then exits with code 1 by itself; after a Ctrl-C, the terminal's
     reached the agents too (it goes to the whole process group), and they leave with 0. Wait for those (briefly),
     so that ``agent_exit_codes`` shows their own codes, not the -15 of a SIGTERM that caught them on their way
-    out (every agent read -15 after a Ctrl-C). A SIGINT sent to sil alone costs a second more."""
+    out (every agent read -15 after a Ctrl-C). A SIGINT sent to sil alone costs INTERRUPTED_WAIT_S more."""
     deadline = time.monotonic() + (INTERRUPTED_WAIT_S if ctrl_c else timeout_s)
     for robot_id, agent in enumerate(agents):
         error = str((hub.robots[robot_id].telemetry or {}).get("error") or "")
