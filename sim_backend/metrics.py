@@ -14,6 +14,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Type
 import numpy as np
 
 from onboard.behaviour import USER_CODE_ERRORS, plain_json
+from onboard.config import ConfigError, as_written
 from onboard.geometry import wrap
 from onboard.hal.payload import a_kind
 from onboard.plugins import OTHER_REGISTRIES
@@ -176,10 +177,28 @@ OTHER_REGISTRIES.append(lambda: list(_EVALUATORS.values()))    # a user's module
 
 
 def register_evaluator(name: str):
+    """Class decorator: judge the runs of the behaviour ``name`` with this Evaluator subclass. As @register does
+    for behaviours, it refuses a name that is not a non-empty string (no scenario could name it), a class that is
+    not an Evaluator, and a name another class took (the later import silently replaced the earlier)."""
     def decorate(cls):
+        from . import transport_metrics  # noqa: F401  (the built-in names are taken first, whatever the order)
+
+        where = f"@register_evaluator({as_written(name)}) above {_qualified(cls)}"
+        if not isinstance(name, str) or not name.strip():
+            raise ConfigError("register_evaluator", f"{where}: the name must be the behaviour's, a non-empty string")
+        if not (isinstance(cls, type) and issubclass(cls, Evaluator)):
+            raise ConfigError("register_evaluator", f"{where}: the class must subclass sim_backend.metrics.Evaluator")
+        taken = _EVALUATORS.get(name)
+        if taken is not None and _qualified(taken) != _qualified(cls):     # the same class imported again is fine
+            raise ConfigError("register_evaluator", f"the behaviour {name!r} is judged by {_qualified(taken)} "
+                                                    f"already; {_qualified(cls)} cannot judge it too")
         _EVALUATORS[name] = cls
         return cls
     return decorate
+
+
+def _qualified(cls: Any) -> str:
+    return f"{getattr(cls, '__module__', '?')}.{getattr(cls, '__qualname__', repr(cls))}"
 
 
 def spread(xy: np.ndarray) -> float:

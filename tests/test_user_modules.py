@@ -318,6 +318,24 @@ def test_import_may_also_follow_the_command(tmp_path, monkeypatch):
     assert json.loads((tmp_path / "out" / "result.json").read_text())["behaviour"] == "late-drive"
 
 
+@pytest.mark.parametrize("decorator, cls, said", [
+    ('""', "E(Evaluator)", "@register_evaluator('') above {m}.E: the name must be the behaviour's, a non-empty string"),
+    ("3", "E(Evaluator)", "@register_evaluator(3) above {m}.E: the name must be the behaviour's, a non-empty string"),
+    ('"mine"', "E", "@register_evaluator('mine') above {m}.E: the class must subclass sim_backend.metrics.Evaluator"),
+    ('"transport"', "E(Evaluator)", "the behaviour 'transport' is judged by sim_backend.transport_metrics."
+                                    "TransportEvaluator already; {m}.E cannot judge it too"),
+])
+def test_register_evaluator_refuses_what_no_run_could_use(tmp_path, capsys, decorator, cls, said):
+    """It took any name and any class: @register_evaluator(3) could never be named, a class without on_step or
+    result failed in the middle of a run, and a user's "transport" evaluator was silently replaced by the
+    built-in one (or replaced it) depending on which was imported first."""
+    module = f"evaluator_{abs(hash(said)) % 10 ** 8}"
+    (tmp_path / f"{module}.py").write_text("from sim_backend.metrics import Evaluator, register_evaluator\n\n\n"
+                                           f"@register_evaluator({decorator})\nclass {cls}:\n    pass\n")
+    assert main(["--import", str(tmp_path / f"{module}.py"), "sim", "list"]) == 2
+    assert capsys.readouterr().err == f"khepri: error: register_evaluator: {said.format(m=module)}\n"
+
+
 def test_a_behaviour_module_that_imports_the_simulator_is_warned_about(tmp_path, capsys):
     """It ran in `sim run` and `sil` and would fail only on a robot, which has onboard/ alone. An evaluator's
     module (no behaviour in it) may import the simulator."""
