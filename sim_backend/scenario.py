@@ -304,9 +304,16 @@ def looks_like_path(text: str) -> bool:
 
 
 def no_such_file(shown: str, given: str) -> ConfigError:
-    """``no such file: SHOWN``, and the built-in's name when ``given`` is one behind a folder part (./lab-6)."""
+    """``no such file: SHOWN``, and the built-in's name when ``given`` is one behind a folder part (./lab-6) or
+    with the suffix of its file in sim_backend/scenarios/ (lab-6.yaml, which a new user copies from there)."""
     name = os.path.basename(given)
-    hint = f" (the built-in scenario is {name}, without a folder)" if name in builtin_names() else ""
+    stem, suffix = os.path.splitext(name)
+    hint = ""
+    if name in builtin_names():
+        hint = f" (the built-in scenario is {name}, without a folder)"
+    elif suffix in (".yaml", ".yml") and stem in builtin_names():
+        folder = "a folder or " if name != given else ""
+        hint = f" (the built-in scenario is {stem}, without {folder}{suffix})"
     return ConfigError("scenario", f"no such file: {shown}{hint}")
 
 

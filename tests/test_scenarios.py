@@ -424,6 +424,21 @@ def test_a_path_to_no_file_is_an_error_not_the_builtin_of_that_name(tmp_path, mo
     assert load_scenario("lab-6").name == "lab-6"      # by its name, the built-in as before
 
 
+@pytest.mark.parametrize("given, hint", [
+    ("lab-6.yaml", " (the built-in scenario is lab-6, without .yaml)"),
+    ("paper-25-straight.yml", " (the built-in scenario is paper-25-straight, without .yml)"),
+    ("runs/lab-6.yaml", " (the built-in scenario is lab-6, without a folder or .yaml)"),
+    ("mine.yaml", ""),
+])
+def test_a_builtin_name_with_its_yaml_suffix_names_the_builtin(tmp_path, monkeypatch, given, hint):
+    """`khepri sim run lab-6.yaml` (the file's name in sim_backend/scenarios/) said only `no such file: lab-6.yaml`,
+    where `./lab-6` already got the built-in's name: a new user was not told that `lab-6` is the name to give."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError) as info:
+        load_scenario(given)
+    assert str(info.value) == f"scenario: no such file: {given}{hint}"
+
+
 def test_a_name_too_long_for_the_file_system_is_an_error_not_a_traceback():
     """Path.is_file raised OSError "File name too long" for a name of 300 characters."""
     with pytest.raises(ConfigError) as info:
