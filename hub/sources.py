@@ -165,13 +165,19 @@ class _WakeUp:
 
 CONNECT_TIMEOUT_S = 10.0          # source.connect_timeout_s's default
 IN_PROCESS_SYSTEMS = ("mock",)    # synthetic backends: nothing on the network to wait for
+# Backends whose connect returns at once even when nothing answers: the probe waits for their first frame
+# instead. Vicon's does so for an address no host answers (192.168.10.2 from a PC off that network), and its
+# waitForNextFrame then spins a whole core for as long as the hub runs, frames never coming.
+FIRST_FRAME_SYSTEMS = ("vicon",)
 # Connects in a child process, which ends itself (SIGALRM's default action) should its parent die first.
 _PROBE = """
 import json, os, signal, sys
 signal.alarm(int(sys.argv[3]) + 5)
 import motioncapture
 try:
-    motioncapture.connect(sys.argv[1], json.loads(sys.argv[2]))
+    mocap = motioncapture.connect(sys.argv[1], json.loads(sys.argv[2]))
+    if sys.argv[4] == "frame":
+        mocap.waitForNextFrame()
 except RuntimeError as err:
     print(err, file=sys.stderr, flush=True)
     os._exit(1)
@@ -185,20 +191,24 @@ def describe_options(options: Dict[str, str], limit: int = 80) -> str:
 
 
 def probe_mocap(system: str, options: Dict[str, str], timeout_s: float) -> None:
-    """Connect once in a child process and wait for it at most ``timeout_s``, so that a system that never
-    answers is an error instead of a hang. In this process it could not be timed out or interrupted: some
-    backends (optitrack, with no server) block inside the SDK while holding Python's GIL, which freezes every
-    thread, signal handlers included. The child dies with us on Ctrl-C (same process group) or is killed."""
+    """Connect once in a child process (and, for FIRST_FRAME_SYSTEMS, read one frame) and wait for it at most
+    ``timeout_s``, so that a system that never answers is an error instead of a hang. In this process it could
+    not be timed out or interrupted: some backends (optitrack, with no server) block inside the SDK while
+    holding Python's GIL, which freezes every thread, signal handlers included. The child dies with us on
+    Ctrl-C (same process group) or is killed."""
     import json
     import subprocess
     import sys
 
-    command = [sys.executable, "-c", _PROBE, system, json.dumps(options), str(int(math.ceil(timeout_s)))]
+    first_frame = system in FIRST_FRAME_SYSTEMS
+    command = [sys.executable, "-c", _PROBE, system, json.dumps(options), str(int(math.ceil(timeout_s))),
+               "frame" if first_frame else "connect"]
     try:
         probe = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
         where = f" at {options['hostname']}" if "hostname" in options else ""
-        raise ConfigError("source.system", f"no answer from {system}{where} within {timeout_s:g} s") from None
+        frame = " (not one frame: is that its address, and is it streaming?)" if first_frame else ""
+        raise ConfigError("source.system", f"no answer from {system}{where} within {timeout_s:g} s{frame}") from None
     if probe.returncode != 0:
         reason = probe.stderr.strip().splitlines()[-1:] or [f"exit code {probe.returncode}"]
         raise ConfigError("source.system",

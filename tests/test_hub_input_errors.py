@@ -466,6 +466,39 @@ def test_a_silent_motion_capture_system_is_an_error_after_the_timeout(tmp_path):
     assert "hub: connecting to optitrack (hostname=127.0.0.1)...\n" in run.stdout
 
 
+FRAMELESS_MOTIONCAPTURE = """
+import time
+
+
+class _Frameless:
+    def waitForNextFrame(self):
+        while True:          # as Vicon's SDK does for an address no host answers (it spins a core there)
+            time.sleep(0.05)
+
+
+def connect(system, options):
+    return _Frameless()
+"""
+
+
+@pytest.mark.parametrize("system, refused", [("vicon", True), ("qualisys", False)])
+def test_a_system_whose_connect_proves_nothing_must_send_a_frame(tmp_path, monkeypatch, system, refused):
+    """Vicon's connect returns at once for an address nothing answers; the hub then started, and the reader
+    thread's waitForNextFrame spun one core at 100 % for as long as it ran, no frame ever coming. The probe
+    now waits for Vicon's first frame too (a stand-in motioncapture module that connects and never sends)."""
+    from hub.sources import probe_mocap
+
+    (tmp_path / "motioncapture.py").write_text(FRAMELESS_MOTIONCAPTURE)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))       # the probe's child imports the stand-in
+    if not refused:                                         # a system whose connect is an answer: as before
+        probe_mocap(system, {"hostname": "10.0.0.9"}, 1.0)
+        return
+    with pytest.raises(ConfigError) as info:
+        probe_mocap(system, {"hostname": "10.0.0.9"}, 1.0)
+    assert str(info.value) == ("source.system: no answer from vicon at 10.0.0.9 within 1 s (not one frame: is that "
+                               "its address, and is it streaming?)")
+
+
 def test_a_refused_motion_capture_connection_says_why():
     from hub.factory import build_hub
 
