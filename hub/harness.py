@@ -88,14 +88,17 @@ class HubThread:
 
 
 def spawn_agent(endpoint: str, robot_id: int, log_path: Path, keys: Optional[Path] = None,
-                driver: str = "sim", extra: Optional[List[str]] = None) -> subprocess.Popen:
-    """A real agent process (``python -m onboard.agent``) writing its log to ``log_path``. It ends (SIGTERM:
-    wheels stopped) when the thread that started it does, even if this process is killed with SIGKILL
-    (``onboard/agent/parent.py``), so start agents from a thread that outlives them."""
+                driver: str = "sim", extra: Optional[List[str]] = None,
+                python: Optional[str] = None) -> subprocess.Popen:
+    """A real agent process (``python -m onboard.agent``, with ``python`` or else this interpreter) writing its
+    log to ``log_path``. It ends (SIGTERM: wheels stopped) when the thread that started it does, even if this
+    process is killed with SIGKILL (``onboard/agent/parent.py``), so start agents from a thread that outlives
+    them."""
     env = dict(os.environ)
     env[PARENT_ENV] = str(os.getpid())
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    command = [sys.executable, "-m", "onboard.agent", "--id", str(robot_id), "--hub", endpoint, "--driver", driver]
+    command = [python or sys.executable, "-m", "onboard.agent", "--id", str(robot_id), "--hub", endpoint,
+               "--driver", driver]
     if keys is not None:
         command += ["--keys", str(keys)]
     command += extra or []

@@ -32,6 +32,7 @@ from .runner import print_now
 from .sil_agents import (
     KEY_FOLDER_PREFIX,
     agent_log_line,
+    agent_python_text,
     agent_traceback,
     exit_text,
     let_leaving_agents_exit,
@@ -55,6 +56,8 @@ class SilOptions:
     imports: List[str] = field(default_factory=list)    # the user's behaviour modules (--import), for the agents
     log_to_console: bool = False
     scenario_ref: Optional[str] = None     # the scenario as given (its file), for errors; None: its name
+    agent_python: Optional[str] = None     # the agents' interpreter (--agent-python); None: this one
+    agent_python_version: Optional[str] = None     # its version, as check_agent_python found it
 
 
 def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any]:
@@ -92,7 +95,7 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
         session: Optional[SilSession] = None
         try:
             hub.bind()
-            agents = spawn_agents(hub.endpoints["robots"], keys, scenario.robots.count, out, options.imports)
+            agents = spawn_agents(hub.endpoints["robots"], keys, scenario.robots.count, out, options)
             session = SilSession(hub, scenario, agents, options, limit, out)
             logged_by_hub = set(not_simulated_here(scenario))      # its sim source said those as it started
             for warning in session.warnings:
@@ -109,6 +112,7 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
             hub.close()
             hub_log.close()
     result["sil"]["agent_exit_codes"] = [a.returncode for a in agents]
+    result["sil"]["agent_python"] = agent_python_text(options.agent_python, options.agent_python_version)
     stop_error = stop_failure(out, len(agents))
     if stop_error and "error" not in result:     # the run itself went well; the behaviour's stop() did not
         result["error"] = stop_error
@@ -137,12 +141,14 @@ def refuse_before_starting(scenario: Scenario, scenario_ref: Optional[str] = Non
     run_template(parse_config(sil_config(scenario, SilOptions(), {"insecure": True}, None)), scenario, scenario_ref)
 
 
-def spawn_agents(endpoint: str, keys: Path, count: int, out: Path, imports: List[str]) -> List[subprocess.Popen]:
-    """One agent process per robot; each imports the user's behaviour modules, as `khepri --import` did here."""
+def spawn_agents(endpoint: str, keys: Path, count: int, out: Path, options: SilOptions) -> List[subprocess.Popen]:
+    """One agent process per robot, with ``options.agent_python``; each imports the user's behaviour modules, as
+    `khepri --import` did here."""
     logs = out / "agents"
     logs.mkdir(exist_ok=True)
-    extra = [word for name in imports for word in ("--import", name)]
-    return [spawn_agent(endpoint, i, logs / f"agent-{i}.log", keys=keys, extra=extra) for i in range(count)]
+    extra = [word for name in options.imports for word in ("--import", name)]
+    return [spawn_agent(endpoint, i, logs / f"agent-{i}.log", keys=keys, extra=extra, python=options.agent_python)
+            for i in range(count)]
 
 
 STUCK_STEP_NOTE = "the behaviour's step() has run for "    # the agent's step watchdog, once per stuck step

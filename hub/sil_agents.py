@@ -107,3 +107,62 @@ def agent_traceback(out: Path, index: int) -> Optional[List[str]]:
             trace[-1] += "\n" + line
         # else: the rest of an error message of several lines, before the trace
     return trace or None
+
+
+# --- --agent-python: the robots' interpreter ---------------------------------------------------------------------
+AGENT_PYTHON_CHECK_S = 60.0      # importing numpy and scipy (filterpy's) on a cold disk takes a few seconds
+# Run by the interpreter --agent-python names, which may be old: %-formatting, no f-strings, to say its version.
+_CHECK = """
+import importlib, sys
+if sys.version_info < (3, 9):
+    print("is Python %d.%d: onboard/ needs Python 3.9 or newer" % tuple(sys.version_info[:2]))
+    sys.exit(3)
+missing = []
+for name in ("numpy", "zmq", "yaml", "filterpy.kalman", "onboard.agent"):
+    try:
+        importlib.import_module(name)
+    except Exception as err:
+        missing.append("%s (%s: %s)" % (name, type(err).__name__, err))
+if missing:
+    print("cannot import " + "; ".join(missing))
+    sys.exit(3)
+print("%d.%d.%d" % tuple(sys.version_info[:3]))
+"""
+
+
+def check_agent_python(python: str) -> str:
+    """The version of the interpreter ``--agent-python`` names, once it has shown it can run onboard/: Python 3.9
+    or newer with the robots' packages (numpy, pyzmq, pyyaml, filterpy) and this khepri's onboard/ importable.
+    A lab checks its behaviour on the robots' Python before deploying; an interpreter that cannot run an agent
+    is said here, not as six crashed agents."""
+    from onboard.config import ConfigError
+
+    from .harness import ROOT
+
+    if not os.path.isfile(python) or not os.access(python, os.X_OK):
+        raise ConfigError("--agent-python", f"{python} is not an executable file")
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    try:
+        check = subprocess.run([python, "-c", _CHECK], capture_output=True, text=True, env=env,
+                               timeout=AGENT_PYTHON_CHECK_S, errors="backslashreplace")
+    except subprocess.TimeoutExpired:
+        raise ConfigError("--agent-python", f"{python} did not import onboard/'s packages within "
+                                            f"{AGENT_PYTHON_CHECK_S:g} s") from None
+    except OSError as err:
+        raise ConfigError("--agent-python", f"{python} does not run: {err.strerror}") from None
+    said = (check.stdout.strip().splitlines() or check.stderr.strip().splitlines()[-1:] or
+            [f"exit code {check.returncode}"])[-1]
+    if check.returncode != 0:
+        advice = ": install numpy, pyzmq, pyyaml and filterpy into it" if said.startswith("cannot import") else ""
+        raise ConfigError("--agent-python", f"{python} {said}{advice}")
+    return said
+
+
+def agent_python_text(python: Optional[str], version: Optional[str] = None) -> str:
+    """``3.9.18 (/path/to/python)``: which interpreter ran the agents, for result.json."""
+    import platform
+    import sys
+
+    if python is None:
+        return f"{platform.python_version()} ({sys.executable})"
+    return f"{version or '?'} ({python})"

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -235,11 +236,15 @@ def _add_sil(groups) -> None:
     sil.add_argument("--realtime", action="store_true", help="pace by the wall clock instead of lockstep")
     sil.add_argument("--no-record", action="store_true", help="skip the MCAP log")
     sil.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
+    sil.add_argument("--agent-python", metavar="PYTHON",
+                     help="run the agents with this Python interpreter, e.g. one like the robots' (3.9 or newer, "
+                          "with numpy, pyzmq, pyyaml and filterpy); default: the one running khepri")
     sil.set_defaults(func=cmd_sil)
 
 
 def cmd_sil(args: argparse.Namespace) -> int:
     from hub.sil import SilOptions, run_sil
+    from hub.sil_agents import check_agent_python
     from hub.sil_report import sil_summary_lines
     from khepri_cli.signals import sigterm_as_ctrl_c
     from khepri_cli.sim_commands import (
@@ -259,13 +264,15 @@ def cmd_sil(args: argparse.Namespace) -> int:
     seed = scenario.seed if given_seed is None else given_seed
     out = args.out or Path("out") / f"sil-{scenario.name}-seed{seed}"
 
+    python = None if args.agent_python is None else os.path.abspath(args.agent_python)
+    version = None if python is None else check_agent_python(python)      # before --out is made
     require_out_folder(out, RUN_FILES + ("hub.log", "hub.mcap"))     # what sil writes there
     problem = out_folder_problem(out / "agents")     # else a file of that name stops sil once the hub is up
     if problem:
         raise ConfigError("--out", f"{problem} (sil writes the agents' logs into it)")
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
                          record=not args.no_record, plot=not args.no_plot, imports=list(args.imports),
-                         scenario_ref=args.scenario)
+                         scenario_ref=args.scenario, agent_python=python, agent_python_version=version)
     with sigterm_as_ctrl_c():      # `kill` stops the agents and the hub and closes the log, as Ctrl-C does
         result = run_sil(scenario, out, options)
     print_summary(result)
