@@ -456,11 +456,20 @@ sys.stdin.read()                       # wait here until the test signals us
 """
 
 
-def run_child(stub_library: Path, stub_log: Path, tmp_path: Path, mode: str) -> subprocess.CompletedProcess:
+# The robots' own Python where `make test` could build it (tests/test_robot_python.py): the driver's ctypes
+# calls and its stop on exit run on 3.9 and the oldest numpy there as on this Python.
+ROBOT_PYTHON = ROOT / ".venv-robot" / "bin" / "python"
+INTERPRETERS = [pytest.param(sys.executable, id="this-python"),
+                pytest.param(str(ROBOT_PYTHON), id="robot-python", marks=pytest.mark.skipif(
+                    not ROBOT_PYTHON.exists(), reason="no .venv-robot (make robot-venv, where a Python 3.9 is)"))]
+
+
+def run_child(stub_library: Path, stub_log: Path, tmp_path: Path, mode: str,
+              python: str = sys.executable) -> subprocess.CompletedProcess:
     script = tmp_path / "child.py"
     script.write_text(CHILD_SCRIPT)
     env = dict(os.environ, PYTHONPATH=str(ROOT), KH4_STUB_LOG=str(stub_log))
-    child = subprocess.Popen([sys.executable, str(script), str(stub_library), mode], env=env, cwd=tmp_path,
+    child = subprocess.Popen([python, str(script), str(stub_library), mode], env=env, cwd=tmp_path,
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert child.stdout.readline() == "driving\n"
     if mode in ("sigterm", "guarded", "idle-fails"):
@@ -471,15 +480,17 @@ def run_child(stub_library: Path, stub_log: Path, tmp_path: Path, mode: str) -> 
     return subprocess.CompletedProcess(child.args, child.returncode, stdout, stderr)
 
 
-def test_a_process_killed_with_sigterm_stops_the_wheels(stub_library, stub_log, tmp_path):
-    finished = run_child(stub_library, stub_log, tmp_path, "sigterm")
+@pytest.mark.parametrize("python", INTERPRETERS)
+def test_a_process_killed_with_sigterm_stops_the_wheels(stub_library, stub_log, tmp_path, python):
+    finished = run_child(stub_library, stub_log, tmp_path, "sigterm", python)
     assert finished.returncode == 0, finished.stderr
     assert speed_commands(stub_log) == [(295, 295), (0, 0)]
     assert calls(stub_log)[-1] == ("knet_close", {"dev": "ok"})
 
 
-def test_a_process_dying_of_an_exception_stops_the_wheels(stub_library, stub_log, tmp_path):
-    finished = run_child(stub_library, stub_log, tmp_path, "raise")
+@pytest.mark.parametrize("python", INTERPRETERS)
+def test_a_process_dying_of_an_exception_stops_the_wheels(stub_library, stub_log, tmp_path, python):
+    finished = run_child(stub_library, stub_log, tmp_path, "raise", python)
     assert finished.returncode == 1 and "a behaviour bug" in finished.stderr
     assert speed_commands(stub_log) == [(295, 295), (0, 0)]
 
@@ -495,11 +506,13 @@ def wait_for_calls(log: Path, wanted, timeout_s: float = 20.0) -> List[Call]:
     return calls(log)
 
 
-def test_a_process_killed_with_sigkill_has_its_wheels_stopped_by_the_guard(stub_library, stub_log, tmp_path):
+@pytest.mark.parametrize("python", INTERPRETERS)
+def test_a_process_killed_with_sigkill_has_its_wheels_stopped_by_the_guard(stub_library, stub_log, tmp_path,
+                                                                           python):
     """SIGKILL runs none of the process's own code: the guard, a process of its own, stops the wheels and
     idles the motors once the pipe from the dead process closes."""
     started = time.monotonic()
-    finished = run_child(stub_library, stub_log, tmp_path, "sigkill")
+    finished = run_child(stub_library, stub_log, tmp_path, "sigkill", python)
     assert finished.returncode == -signal.SIGKILL
     logged = wait_for_calls(stub_log, lambda c: c and c[-1] == ("knet_close", {"dev": "ok"}))
     assert speed_commands(stub_log) == [(295, 295), (0, 0)]
