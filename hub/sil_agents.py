@@ -3,6 +3,7 @@ they were given."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -135,7 +136,7 @@ def check_agent_python(python: str) -> str:
     or newer with the robots' packages (numpy, pyzmq, pyyaml, filterpy) and this khepri's onboard/ importable.
     A lab checks its behaviour on the robots' Python before deploying; an interpreter that cannot run an agent
     is said here, not as six crashed agents."""
-    from onboard.config import ConfigError
+    from onboard.config import ConfigError, as_written
 
     from .harness import ROOT
 
@@ -150,12 +151,16 @@ def check_agent_python(python: str) -> str:
                                             f"{AGENT_PYTHON_CHECK_S:g} s") from None
     except OSError as err:
         raise ConfigError("--agent-python", f"{python} does not run: {err.strerror}") from None
-    said = (check.stdout.strip().splitlines() or check.stderr.strip().splitlines()[-1:] or
-            [f"exit code {check.returncode}"])[-1]
-    if check.returncode != 0:
-        advice = ": install numpy, pyzmq, pyyaml and filterpy into it" if said.startswith("cannot import") else ""
-        raise ConfigError("--agent-python", f"{python} {said}{advice}")
-    return said
+    said = (check.stdout.strip().splitlines() or check.stderr.strip().splitlines()[-1:] or [""])[-1]
+    if check.returncode == 0 and re.fullmatch(r"\d+\.\d+\.\d+", said):
+        return said
+    if said.startswith("cannot import"):
+        raise ConfigError("--agent-python", f"{python} {said}: install numpy, pyzmq, pyyaml and filterpy into it")
+    if said.startswith("is Python"):
+        raise ConfigError("--agent-python", f"{python} {said}")
+    # Not a Python that runs the check (/bin/true, a shell script that fails): what it said, or its exit code.
+    raise ConfigError("--agent-python", f"{python} does not run as a Python interpreter (exit code "
+                                        f"{check.returncode}{': ' + as_written(said) if said else ''})")
 
 
 def agent_python_text(python: Optional[str], version: Optional[str] = None) -> str:

@@ -57,3 +57,9 @@ def test_an_interpreter_that_cannot_run_an_agent_is_refused_before_anything_star
     text.write_text("not a program\n")
     run = khepri("sil", "lab-6", "--agent-python", str(text), "--out", str(out))
     assert run.returncode == 2 and run.stderr == f"khepri: error: --agent-python: {text} is not an executable file\n"
+    silent = tmp_path / "silent"          # runs, says nothing, exits 0: no version, so no Python
+    silent.write_text("#!/bin/sh\nexit 0\n")
+    silent.chmod(0o755)
+    run = khepri("sil", "lab-6", "--agent-python", str(silent), "--out", str(out))
+    assert run.returncode == 2 and run.stderr == (f"khepri: error: --agent-python: {silent} does not run as a Python "
+                                                  "interpreter (exit code 0)\n")
