@@ -46,8 +46,13 @@ $(ROBOT_STAMP): pyproject.toml
 	if [ -z "$$py" ]; then \
 	  echo "robot-venv: no Python 3.9 found (set ROBOT_PYTHON=...): the robots' Python will not be tested"; \
 	else \
-	  rm -rf $(ROBOT_VENV) && "$$py" -m venv $(ROBOT_VENV) && \
-	  $(ROBOT_VENV)/bin/pip install --quiet $(ROBOT_PACKAGES) && touch $@; \
+	  rm -rf $(ROBOT_VENV); \
+	  if "$$py" -m venv $(ROBOT_VENV) && $(ROBOT_VENV)/bin/pip install --quiet $(ROBOT_PACKAGES); then \
+	    touch $@; \
+	  else \
+	    rm -rf $(ROBOT_VENV); \
+	    echo "robot-venv: could not install $(ROBOT_PACKAGES) for $$py: the robots' Python will not be tested"; \
+	  fi; \
 	fi
 
 lint: $(STAMP)
