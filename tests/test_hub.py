@@ -174,3 +174,34 @@ def test_a_killed_agent_shows_no_loop_rate_and_says_its_state_is_old(three_robot
             assert row.split()[6] == "-" and "state is its last report" in row, row
         finally:
             stop_processes(agents)
+
+
+def test_wheel_commands_an_agent_sends_outside_run_do_not_move_the_simulated_robots(three_robots):
+    """The sim hub is the physics: a robot the hub holds (e-stop, hold, idle) stays put whatever its agent sends,
+    as a wheel command from a behaviour's own thread or a rogue agent would. Real agents close their wheel gate
+    in those modes, so the tests with them never sent one: the hub's own check went untested."""
+    from hub.factory import build_hub
+
+    hub = build_hub(lab_config(), log=lambda line: None, scenario=three_robots)
+    source = hub.source
+
+    def moved_by(left, right):
+        before = source.world.robot_poses().copy()
+        for _ in range(5):                     # commands as an agent sends them, between physics steps
+            for robot in hub.robots.values():
+                hub._on_wheels(robot, {"type": "wheels", "id": robot.id, "left": left, "right": right}, 0.0)
+            source.advance(source.substeps_per_control)
+        return float(np.abs(source.world.robot_poses() - before)[:, :2].max())
+
+    try:
+        hub.on_pose_frame(source.snapshot(time.monotonic()))
+        assert moved_by(0.3, 0.3) < 1e-6                       # idle
+        hub.control.execute("start")
+        hub.control.execute("estop")
+        assert moved_by(0.3, 0.3) < 1e-6                       # e-stop
+        hub.control.execute("clear")
+        assert moved_by(0.3, -0.3) < 1e-6                      # hold, after the clear
+        hub.control.execute("start")
+        assert moved_by(0.3, 0.3) > 0.05                       # run: the same commands drive them
+    finally:
+        hub.close()
