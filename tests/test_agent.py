@@ -87,6 +87,9 @@ def test_watchdog_stops_wheels_within_0_3_s_of_hub_silence_and_resumes(scripted,
                                    f"(arrived here after {stopped['_at'] - last_frame:.3f} s)")
     held = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["_at"] > stopped["_at"])
     assert held["mode"] == "watchdog"
+    # Held while the hub stays silent: the behaviour is not stepped, so nothing turns the wheels on again.
+    scripted.pump(0.5)
+    assert not [m for m in scripted.received if wheels_after(scripted, stopped["_at"], moving=True)(m)]
     resumed_at = time.monotonic()
     feed(scripted, 0.5, neighbours=FAR_NEIGHBOUR)
     scripted.wait_for(wheels_after(scripted, resumed_at, moving=True), timeout_s=2.0)
