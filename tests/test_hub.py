@@ -205,3 +205,26 @@ def test_wheel_commands_an_agent_sends_outside_run_do_not_move_the_simulated_rob
         assert moved_by(0.3, 0.3) > 0.05                       # run: the same commands drive them
     finally:
         hub.close()
+
+
+def test_the_geofence_holds_a_robot_past_any_of_its_four_sides_and_frees_one_back_inside(three_robots):
+    """The geofence test above has every robot start beyond xmin: a fence that checked x only, or one side of each
+    axis, passed it. Here robots leave (and come back) through every side during a run."""
+    from hub.factory import build_hub
+    from hub.sources import PoseFrame
+
+    hub = build_hub(lab_config(geofence=[-1.0, -1.0, 1.0, 1.0]), log=lambda line: None, scenario=three_robots)
+
+    def modes_at(*xy):
+        poses = np.array([[x, y, 0.0] for x, y in xy])
+        hub.on_pose_frame(PoseFrame(time.monotonic(), [0, 1, 2], poses))
+        return [hub.mode_for(hub.robots[rid]) for rid in (0, 1, 2)]
+
+    held = ("hold", "outside the geofence")
+    try:
+        hub.control.execute("start")
+        assert modes_at((0.0, 0.0), (0.5, -0.5), (-0.9, 0.9)) == [("run", "")] * 3
+        assert modes_at((0.0, 0.0), (0.0, 1.2), (1.2, 0.0)) == [("run", ""), held, held]       # past ymax, xmax
+        assert modes_at((0.0, -1.2), (0.0, 0.5), (-1.2, 0.0)) == [held, ("run", ""), held]     # ymin, back, xmin
+    finally:
+        hub.close()
