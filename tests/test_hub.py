@@ -203,6 +203,9 @@ def test_wheel_commands_an_agent_sends_outside_run_do_not_move_the_simulated_rob
         assert moved_by(0.3, -0.3) < 1e-6                      # hold, after the clear
         hub.control.execute("start")
         assert moved_by(0.3, 0.3) > 0.05                       # run: the same commands drive them
+        # ... and no faster than a KheperaIV can, whatever a bad agent asks for (the agent's HAL clamps too).
+        top = 5 * source.substeps_per_control * source.world.dt * source.world.spec.max_wheel_speed_m_s
+        assert 0.5 * top < moved_by(50.0, 50.0) < 1.05 * top
     finally:
         hub.close()
 
