@@ -231,3 +231,33 @@ def test_the_geofence_holds_a_robot_past_any_of_its_four_sides_and_frees_one_bac
         assert modes_at((0.0, -1.2), (0.0, 0.5), (-1.2, 0.0)) == [held, ("run", ""), held]     # ymin, back, xmin
     finally:
         hub.close()
+
+
+def test_a_simulated_robot_whose_agent_falls_silent_is_stopped_by_the_hub(three_robots):
+    """The sim hub's side of the watchdog: an agent that says nothing for watchdog_s (dead, frozen, cut off)
+    cannot stop its own wheels, so the hub holds its simulated ones; the robots whose agents speak drive on. The
+    tests with real agents killed one and looked at its status row only, never at where its robot went."""
+    from hub.factory import build_hub
+
+    hub = build_hub(lab_config(), log=lambda line: None, scenario=three_robots)
+    source = hub.source
+
+    def travelled(now):
+        hub.on_pose_frame(source.snapshot(now))              # each pose frame holds the wheels the hub must
+        before = source.world.robot_poses().copy()
+        source.advance(5 * source.substeps_per_control)
+        return np.hypot(*(source.world.robot_poses() - before)[:, :2].T)
+
+    try:
+        hub.control.execute("start")
+        now = time.monotonic()
+        hub.on_pose_frame(source.snapshot(now))              # tracked: they may run
+        for robot in hub.robots.values():                    # three agents, all heard from just now
+            robot.routing, robot.last_uplink = b"agent-%d" % robot.id, now
+            hub._on_wheels(robot, {"type": "wheels", "id": robot.id, "left": 0.3, "right": 0.3}, now)
+        assert (travelled(now) > 0.05).all()
+        hub.robots[1].last_uplink = now - 2 * hub.config.watchdog_s     # robot 1's agent fell silent
+        moved = travelled(now)
+        assert moved[1] < 0.02 and (moved[[0, 2]] > 0.1).all(), moved     # it coasts a few mm
+    finally:
+        hub.close()
