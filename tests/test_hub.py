@@ -261,3 +261,23 @@ def test_a_simulated_robot_whose_agent_falls_silent_is_stopped_by_the_hub(three_
         assert moved[1] < 0.02 and (moved[[0, 2]] > 0.1).all(), moved     # it coasts a few mm
     finally:
         hub.close()
+
+
+def test_an_estop_cleared_before_any_run_leaves_the_hub_idle_and_start_begins_a_run(three_robots):
+    """Clear goes back to hold only when a run was going (start then resumes it). An e-stop pressed with no run
+    cleared to hold all the same, and `start` then "resumed" run None: no agent was ever told to start. The
+    tests cleared e-stops of running runs only."""
+    from hub.factory import build_hub
+
+    hub = build_hub(lab_config(), log=lambda line: None, scenario=three_robots)
+    try:
+        hub.control.execute("estop")
+        assert hub.control.execute("clear")[0] and (hub.mode, hub.run_id) == ("idle", None)
+        hub.control.execute("start")
+        run_id = hub.run_id
+        assert hub.mode == "run" and run_id is not None
+        hub.control.execute("estop")
+        hub.control.execute("clear")
+        assert (hub.mode, hub.run_id) == ("hold", run_id)             # a run was going: held, to resume
+    finally:
+        hub.close()
