@@ -411,3 +411,21 @@ def test_a_robot_flooded_with_messages_keeps_what_a_real_one_would(make_scenario
     assert radio["dropped_overflow"] > 0
     in_flight = 2 * 600        # the last step's 600 broadcasts, each to the two others
     assert radio["delivered"] + radio["dropped_overflow"] == 2 * radio["sent"] - in_flight
+
+
+def test_a_behaviour_asking_for_more_than_the_top_speed_drives_at_it_keeping_its_turn(make_scenario):
+    """The world drives any speed it is given: the HAL's set_speeds is what holds a behaviour to a KheperaIV's
+    0.81 m/s, scaling both wheels together. Every simulated behaviour in the tests asked for less, so a HAL
+    that passed 2 m/s on went unnoticed (only the kh4 driver's own clamp was tested)."""
+
+    class FloorIt(Behaviour):
+        def step(self):
+            self.robot.wheels.set_speeds(2.0, -1.0)
+
+    register("test-floor-it")(FloorIt)
+    sim = Simulation(make_scenario(behaviour="test-floor-it", robots={"count": 1, "spawn": {"x": [0, 0],
+                                                                                            "y": [0, 0]}}))
+    sim.step()
+    top = sim.world.spec.max_wheel_speed_m_s
+    assert top == pytest.approx(0.81)
+    assert (sim.world.robots[0].left_cmd, sim.world.robots[0].right_cmd) == pytest.approx((top, -top / 2))
