@@ -429,3 +429,31 @@ def test_a_behaviour_asking_for_more_than_the_top_speed_drives_at_it_keeping_its
     top = sim.world.spec.max_wheel_speed_m_s
     assert top == pytest.approx(0.81)
     assert (sim.world.robots[0].left_cmd, sim.world.robots[0].right_cmd) == pytest.approx((top, -top / 2))
+
+
+def test_the_simulated_radio_delays_loses_and_spares_the_dead_as_the_scenario_asks():
+    """comm.latency_s, comm.drop and the dead: the radio's docstring promises them, and no test looked. With the
+    delay fixed at one step, no loss, or messages handed to dead robots, this file and the equivalence tests
+    still passed (their scenarios have no latency or loss; the one with comm.drop compares two runs alike)."""
+    from sim_backend.radio import RadioNetwork
+
+    alive = np.array([True, True, False])
+    late = RadioNetwork(3, drop=0.0, latency_s=0.25, period_s=0.1, rng=np.random.default_rng(0))
+    late.send(5, 0, {"k": 1}, 0.5, np.array([1, 2]))
+    inboxes = [[], [], []]
+    for step in (6, 7, 8):                   # 0.25 s is three control periods (rounded up), after the next step
+        late.deliver(step, inboxes, alive)
+        assert inboxes == [[], [], []], step
+    late.deliver(9, inboxes, alive)
+    assert [[m.payload for m in inbox] for inbox in inboxes] == [[], [{"k": 1}], []]       # robot 2 is dead
+    assert late.stats()["delivered"] == 1
+
+    lossy = RadioNetwork(2, drop=0.3, latency_s=0.0, period_s=0.1, rng=np.random.default_rng(2))
+    heard = 0
+    for step in range(2000):
+        inboxes = [[], []]
+        lossy.send(step, 0, {"n": step}, step * 0.1, np.array([1]))
+        lossy.deliver(step + 1, inboxes, np.array([True, True]))         # no latency: at the next step
+        heard += len(inboxes[1])
+    assert heard / 2000 == pytest.approx(0.7, abs=0.04)
+    assert lossy.stats()["dropped"] + heard == 2000
