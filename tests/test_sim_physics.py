@@ -457,3 +457,41 @@ def test_the_simulated_radio_delays_loses_and_spares_the_dead_as_the_scenario_as
         heard += len(inboxes[1])
     assert heard / 2000 == pytest.approx(0.7, abs=0.04)
     assert lossy.stats()["dropped"] + heard == 2000
+
+
+def test_the_simulated_motion_capture_is_late_noisy_and_lossy_as_the_scenario_asks(make_scenario):
+    """sensors.pose_latency_s, pose_noise_m and pose_dropout: what a behaviour's positioning.pose() gets. No test
+    ran a scenario with any of them, and a simulator that served every robot its exact, current pose passed."""
+
+    class Driver(Behaviour):
+        seen: list = []
+
+        def step(self):
+            Driver.seen.append(self.robot.positioning.pose())
+            self.robot.wheels.set_speeds(0.1, 0.1)
+
+    register("test-pose-reader")(Driver)
+
+    def run(**sensors):
+        Driver.seen = []
+        sim = Simulation(make_scenario(behaviour="test-pose-reader", sensors=sensors, robots={
+            "count": 1, "spawn": {"x": [0, 0], "y": [0, 0]}}, time_limit_s=60), seed=3)
+        truth = []
+        for _ in range(300):
+            truth.append(sim.world.robot_poses()[0].copy())
+            sim.step()
+        return sim.period, np.array(truth), Driver.seen
+
+    period, truth, seen = run(pose_latency_s=0.3, pose_noise_m=0.0, pose_noise_rad=0.0, pose_dropout=0.0)
+    lag = round(0.3 / period)
+    for k in range(lag, 300):                        # three steps late, stamped when it was measured
+        assert (seen[k].x, seen[k].y) == pytest.approx(tuple(truth[k - lag][:2]), abs=1e-12), k
+        assert seen[k].age_s == pytest.approx(0.3) and seen[k].stamp_s == pytest.approx((k - lag) * period)
+
+    _, truth, seen = run(pose_latency_s=0.0, pose_noise_m=0.05, pose_noise_rad=0.0, pose_dropout=0.0)
+    errors = [pose.x - true[0] for pose, true in zip(seen, truth)]
+    assert np.std(errors) == pytest.approx(0.05, rel=0.2)
+
+    _, _, seen = run(pose_latency_s=0.0, pose_noise_m=0.0, pose_noise_rad=0.0, pose_dropout=0.5)
+    fresh = sum(pose is not None and pose.age_s == 0.0 for pose in seen)
+    assert fresh / len(seen) == pytest.approx(0.5, abs=0.1)         # the others: the last pose that came, older
