@@ -520,3 +520,22 @@ def test_the_simulated_range_and_bearing_is_as_noisy_as_the_scenario_asks(make_s
     ranges, bearings = np.array(Listener.heard).T
     assert np.mean(ranges) == pytest.approx(true_range, abs=0.01)
     assert np.std(ranges) == pytest.approx(0.05, rel=0.2) and np.std(bearings) == pytest.approx(0.1, rel=0.2)
+
+
+def test_the_simulated_ir_is_as_noisy_as_the_scenario_asks(make_scenario):
+    """sensors.proximity_noise: the IR tests set it to 0, and readings without any noise passed every test here."""
+
+    class Still(Behaviour):
+        def step(self):
+            pass
+
+    register("test-still")(Still)
+    scenario = make_scenario(behaviour="test-still", robots={"count": 1, "spawn": {"x": [0, 0], "y": [0, 0]}},
+                             arena={"walls": [-1, -1, 1, 1]}, sensors={"proximity_noise": 0.05})
+    sim = Simulation(scenario)
+    place(sim.world, 0, 1.0 - R - 0.05, 0.0, 0.0)          # the front sensor's rim 5 cm from the east wall
+    readings = []
+    for _ in range(300):
+        sim.step()
+        readings.append(sim.frame.proximity[0][0])
+    assert np.mean(readings) == pytest.approx(0.7, abs=0.03) and np.std(readings) == pytest.approx(0.05, rel=0.2)
