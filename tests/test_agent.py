@@ -585,6 +585,15 @@ def test_a_pose_from_before_a_new_run_keeps_its_age():
     assert HubRangeAndBearing(state, clock).neighbours().age_s == pytest.approx(5.0, abs=0.05)
 
 
+def test_frames_the_agent_never_got_are_counted_by_their_sequence_numbers():
+    """telemetry.frames_lost (summed in SIL's `frames lost on the way to the agents`) was only ever checked to be 0,
+    which an agent that never counted passed."""
+    state = HubState()
+    for seq in (1, 2, 5, 6, 10):         # 3 and 4 lost, then 7, 8 and 9
+        apply_frame(state, {"seq": seq, "pose": None, "neighbours": [], "messages": []}, AgentClock(state), 0.0)
+    assert (state.seq, state.frames_lost) == (10, 5)
+
+
 def test_a_flooded_agent_keeps_the_newest_messages_and_counts_the_others():
     """A robot keeps Radio.INBOX_LIMIT messages between two steps, as the simulator does; the rest is counted,
     not lost without a trace."""
