@@ -446,6 +446,26 @@ def test_kh4_options_with_the_sim_driver_are_refused_rather_than_ignored(option,
     assert info.value.problem.startswith("is only for --driver kh4: the sim driver's readings come from the hub")
 
 
+@pytest.mark.parametrize("value", ["0", "-0.1", "0.31", "60", "nan", "inf"])
+def test_a_watchdog_longer_than_0_3_s_or_not_a_duration_is_refused(value):
+    """The agent's watchdog stops the wheels once the hub is silent for --watchdog: a longer one (or nan, which
+    compares false with every time) would leave a robot driving blind. No test gave the option at all."""
+    from onboard.agent.cli import add_agent_arguments, run_agent
+    from onboard.config import ConfigError
+
+    parser = argparse.ArgumentParser()
+    add_agent_arguments(parser)
+    args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--quiet",
+                              "--watchdog", value])
+    with pytest.raises(ConfigError) as info:
+        run_agent(args)
+    assert info.value.field == "--watchdog" and info.value.problem.startswith("must be in (0, 0.3] seconds")
+    args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--quiet",
+                              "--watchdog", "0.3"])
+    with pytest.raises(ConfigError, match="--hub"):          # 0.3 s passes: the bad --hub stops it next
+        run_agent(args)
+
+
 class BrokenIRDriver(SimDriver):
     """A robot whose IR bus has given up: the hardware fails, not the behaviour's code."""
 
