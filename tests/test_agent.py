@@ -87,6 +87,9 @@ def test_watchdog_stops_wheels_within_0_3_s_of_hub_silence_and_resumes(scripted,
                                    f"(arrived here after {stopped['_at'] - last_frame:.3f} s)")
     held = scripted.wait_for(lambda m: m["type"] == "telemetry" and m["_at"] > stopped["_at"])
     assert held["mode"] == "watchdog"
+    # Held while the hub stays silent: the behaviour is not stepped, so nothing turns the wheels on again.
+    scripted.pump(0.5)
+    assert not [m for m in scripted.received if wheels_after(scripted, stopped["_at"], moving=True)(m)]
     resumed_at = time.monotonic()
     feed(scripted, 0.5, neighbours=FAR_NEIGHBOUR)
     scripted.wait_for(wheels_after(scripted, resumed_at, moving=True), timeout_s=2.0)
@@ -443,6 +446,26 @@ def test_kh4_options_with_the_sim_driver_are_refused_rather_than_ignored(option,
     assert info.value.problem.startswith("is only for --driver kh4: the sim driver's readings come from the hub")
 
 
+@pytest.mark.parametrize("value", ["0", "-0.1", "0.31", "60", "nan", "inf"])
+def test_a_watchdog_longer_than_0_3_s_or_not_a_duration_is_refused(value):
+    """The agent's watchdog stops the wheels once the hub is silent for --watchdog: a longer one (or nan, which
+    compares false with every time) would leave a robot driving blind. No test gave the option at all."""
+    from onboard.agent.cli import add_agent_arguments, run_agent
+    from onboard.config import ConfigError
+
+    parser = argparse.ArgumentParser()
+    add_agent_arguments(parser)
+    args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--quiet",
+                              "--watchdog", value])
+    with pytest.raises(ConfigError) as info:
+        run_agent(args)
+    assert info.value.field == "--watchdog" and info.value.problem.startswith("must be in (0, 0.3] seconds")
+    args = parser.parse_args(["--id", "0", "--hub", "tcp://bad host", "--driver", "sim", "--quiet",
+                              "--watchdog", "0.3"])
+    with pytest.raises(ConfigError, match="--hub"):          # 0.3 s passes: the bad --hub stops it next
+        run_agent(args)
+
+
 class BrokenIRDriver(SimDriver):
     """A robot whose IR bus has given up: the hardware fails, not the behaviour's code."""
 
@@ -580,6 +603,15 @@ def test_a_pose_from_before_a_new_run_keeps_its_age():
     pose = HubPositioning(state, clock).pose()
     assert pose is not None and pose.age_s == pytest.approx(5.0, abs=0.05)
     assert HubRangeAndBearing(state, clock).neighbours().age_s == pytest.approx(5.0, abs=0.05)
+
+
+def test_frames_the_agent_never_got_are_counted_by_their_sequence_numbers():
+    """telemetry.frames_lost (summed in SIL's `frames lost on the way to the agents`) was only ever checked to be 0,
+    which an agent that never counted passed."""
+    state = HubState()
+    for seq in (1, 2, 5, 6, 10):         # 3 and 4 lost, then 7, 8 and 9
+        apply_frame(state, {"seq": seq, "pose": None, "neighbours": [], "messages": []}, AgentClock(state), 0.0)
+    assert (state.seq, state.frames_lost) == (10, 5)
 
 
 def test_a_flooded_agent_keeps_the_newest_messages_and_counts_the_others():

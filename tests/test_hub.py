@@ -174,3 +174,110 @@ def test_a_killed_agent_shows_no_loop_rate_and_says_its_state_is_old(three_robot
             assert row.split()[6] == "-" and "state is its last report" in row, row
         finally:
             stop_processes(agents)
+
+
+def test_wheel_commands_an_agent_sends_outside_run_do_not_move_the_simulated_robots(three_robots):
+    """The sim hub is the physics: a robot the hub holds (e-stop, hold, idle) stays put whatever its agent sends,
+    as a wheel command from a behaviour's own thread or a rogue agent would. Real agents close their wheel gate
+    in those modes, so the tests with them never sent one: the hub's own check went untested."""
+    from hub.factory import build_hub
+
+    hub = build_hub(lab_config(), log=lambda line: None, scenario=three_robots)
+    source = hub.source
+
+    def moved_by(left, right):
+        before = source.world.robot_poses().copy()
+        for _ in range(5):                     # commands as an agent sends them, between physics steps
+            for robot in hub.robots.values():
+                hub._on_wheels(robot, {"type": "wheels", "id": robot.id, "left": left, "right": right}, 0.0)
+            source.advance(source.substeps_per_control)
+        return float(np.abs(source.world.robot_poses() - before)[:, :2].max())
+
+    try:
+        hub.on_pose_frame(source.snapshot(time.monotonic()))
+        assert moved_by(0.3, 0.3) < 1e-6                       # idle
+        hub.control.execute("start")
+        hub.control.execute("estop")
+        assert moved_by(0.3, 0.3) < 1e-6                       # e-stop
+        hub.control.execute("clear")
+        assert moved_by(0.3, -0.3) < 1e-6                      # hold, after the clear
+        hub.control.execute("start")
+        assert moved_by(0.3, 0.3) > 0.05                       # run: the same commands drive them
+        # ... and no faster than a KheperaIV can, whatever a bad agent asks for (the agent's HAL clamps too).
+        top = 5 * source.substeps_per_control * source.world.dt * source.world.spec.max_wheel_speed_m_s
+        assert 0.5 * top < moved_by(50.0, 50.0) < 1.05 * top
+    finally:
+        hub.close()
+
+
+def test_the_geofence_holds_a_robot_past_any_of_its_four_sides_and_frees_one_back_inside(three_robots):
+    """The geofence test above has every robot start beyond xmin: a fence that checked x only, or one side of each
+    axis, passed it. Here robots leave (and come back) through every side during a run."""
+    from hub.factory import build_hub
+    from hub.sources import PoseFrame
+
+    hub = build_hub(lab_config(geofence=[-1.0, -1.0, 1.0, 1.0]), log=lambda line: None, scenario=three_robots)
+
+    def modes_at(*xy):
+        poses = np.array([[x, y, 0.0] for x, y in xy])
+        hub.on_pose_frame(PoseFrame(time.monotonic(), [0, 1, 2], poses))
+        return [hub.mode_for(hub.robots[rid]) for rid in (0, 1, 2)]
+
+    held = ("hold", "outside the geofence")
+    try:
+        hub.control.execute("start")
+        assert modes_at((0.0, 0.0), (0.5, -0.5), (-0.9, 0.9)) == [("run", "")] * 3
+        assert modes_at((0.0, 0.0), (0.0, 1.2), (1.2, 0.0)) == [("run", ""), held, held]       # past ymax, xmax
+        assert modes_at((0.0, -1.2), (0.0, 0.5), (-1.2, 0.0)) == [held, ("run", ""), held]     # ymin, back, xmin
+    finally:
+        hub.close()
+
+
+def test_a_simulated_robot_whose_agent_falls_silent_is_stopped_by_the_hub(three_robots):
+    """The sim hub's side of the watchdog: an agent that says nothing for watchdog_s (dead, frozen, cut off)
+    cannot stop its own wheels, so the hub holds its simulated ones; the robots whose agents speak drive on. The
+    tests with real agents killed one and looked at its status row only, never at where its robot went."""
+    from hub.factory import build_hub
+
+    hub = build_hub(lab_config(), log=lambda line: None, scenario=three_robots)
+    source = hub.source
+
+    def travelled(now):
+        hub.on_pose_frame(source.snapshot(now))              # each pose frame holds the wheels the hub must
+        before = source.world.robot_poses().copy()
+        source.advance(5 * source.substeps_per_control)
+        return np.hypot(*(source.world.robot_poses() - before)[:, :2].T)
+
+    try:
+        hub.control.execute("start")
+        now = time.monotonic()
+        hub.on_pose_frame(source.snapshot(now))              # tracked: they may run
+        for robot in hub.robots.values():                    # three agents, all heard from just now
+            robot.routing, robot.last_uplink = b"agent-%d" % robot.id, now
+            hub._on_wheels(robot, {"type": "wheels", "id": robot.id, "left": 0.3, "right": 0.3}, now)
+        assert (travelled(now) > 0.05).all()
+        hub.robots[1].last_uplink = now - 2 * hub.config.watchdog_s     # robot 1's agent fell silent
+        moved = travelled(now)
+        assert moved[1] < 0.02 and (moved[[0, 2]] > 0.1).all(), moved     # it coasts a few mm
+    finally:
+        hub.close()
+
+
+def test_an_estop_cleared_before_any_run_leaves_the_hub_idle_and_start_begins_a_run(three_robots):
+    """Clear goes back to hold only when a run was going (start then resumes it). An e-stop pressed with no run
+    cleared to hold all the same, and `start` then "resumed" run None: no agent was ever told to start. The
+    tests cleared e-stops of running runs only."""
+    from hub.factory import build_hub
+
+    hub = build_hub(lab_config(), log=lambda line: None, scenario=three_robots)
+    try:
+        hub.control.execute("estop")
+        assert hub.control.execute("clear")[0] and (hub.mode, hub.run_id) == ("idle", None)
+        hub.control.execute("start")
+        run_id = hub.run_id
+        assert hub.mode == "run" and run_id is not None
+        hub.control.execute("estop")
+        hub.control.execute("clear")
+        assert (hub.mode, hub.run_id) == ("hold", run_id)             # a run was going: held, to resume
+    finally:
+        hub.close()

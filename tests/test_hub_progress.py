@@ -175,3 +175,33 @@ def test_a_push_that_stalls_is_said_once_on_the_hubs_console():
     hub.mode = "run"
     progress._say_a_stall(hub)
     assert len(lines) == 1
+
+
+def test_a_waypoint_passed_beyond_its_tolerance_is_no_completion():
+    """The swarm passes every waypoint, but the object went by the first 0.15 m off it (push_tolerance_m is
+    0.1 m): the run is not completed. The test above puts the object on each waypoint, and the one after fakes
+    the evaluator's verdict, so an evaluator that took any pass for a completion passed them both."""
+    lines = []
+    hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True}}),
+                    log=lines.append)
+    source, box = hub.source, hub.source.world.object_body
+    try:
+        hub.control.execute("start")
+        for state, waypoint, at in (("caged", 0, None), ("push", 1, (0.15, 0.3)), ("push", 2, (0.0, 0.6)),
+                                    ("done", 2, (0.0, 0.9)), ("done", 2, None)):
+            source.advance(source.substeps_per_control)
+            if at is not None:
+                box.position, box.angle = at, 0.0
+            for robot in hub.robots.values():
+                robot.run_id = hub.run_id
+                robot.telemetry = {"mode": "run", "run_id": hub.run_id, "behaviour": {
+                    "state": state, "member": True, "closed": True, "waypoint": waypoint, "finished": False}}
+            hub.housekeeping(time.monotonic())
+        said = [line for line in lines if "waypoints" in line]
+        assert len(said) == 1 and said[0].startswith(
+            f"hub: run {hub.run_id}: NOT completed, although the object passed all 3 waypoints: "), lines
+        verdict = hub.progress.verdict()       # the line names its first failure: the hand-made cage's shape
+        assert verdict["outcome"] == "not completed" and \
+            "waypoint 1 was passed with the object 0.15 m from it (tolerance 0.10 m)" in verdict["failures"], verdict
+    finally:
+        hub.close()

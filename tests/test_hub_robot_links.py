@@ -206,3 +206,23 @@ def test_an_agent_that_joins_a_run_is_said_to_start_it_afresh(tmp_path):
     assert joined == (f"hub: robot 0 connected from 127.0.0.1: it joins run {run_id} with a new behaviour (it knows "
                       "nothing of the run so far)"), joined
     assert lines_with(hub, "robot 1 connected from") == ["hub: robot 1 connected from 127.0.0.1"]
+
+
+def test_an_estop_the_agent_does_not_acknowledge_is_sent_again_until_it_is():
+    """A send never blocks, so a command can be lost (a full queue, a reconnecting agent): the hub sends it again
+    every COMMAND_RETRY_S until the agent acknowledges it. On loopback nothing is lost, so no test needed the
+    retry, and a hub that sent each command once passed them all."""
+    with HubThread(parse_config(LAB)) as hub:
+        sock = dealer(hub.endpoints["robots"])
+        try:
+            say(sock, "agent-a")
+            hub.wait_until(lambda s: s["robots"][0]["connected"])
+            hub.request("estop")
+            assert next_command(sock)["cmd"] == "estop"
+            again = next_command(sock)                       # not acknowledged: sent again
+            assert again is not None and again["cmd"] == "estop", again
+            sock.send(encode({"type": "ack", "id": 0, "cmd": "estop", "seq": 0, "agent": "agent-a"}))
+            next_command(sock, within_s=0.3)                 # one may have crossed the acknowledgement
+            assert next_command(sock, within_s=1.0) is None   # acknowledged: no more
+        finally:
+            sock.close(0)

@@ -120,3 +120,41 @@ def test_the_default_relay_queue_holds_what_a_25_robot_swarm_sends_one_robot_in_
         for k in range(3):
             relay.submit(sender, 0.0, {"k": k}, 10, [0])
     assert relay.stats.dropped_overflow == 0 and len(relay.take(0, 65_536)) == 72
+
+
+def test_the_hub_relays_a_broadcast_only_to_the_robots_within_d_c_and_only_in_a_run(make_scenario):
+    """What a robot broadcasts through a hub reaches the robots within comm.range_m of it at the latest frame, as
+    in the simulator, and nothing goes out outside a run. The relay and the sensors are tested on their own above;
+    this is the hub putting them together (an uplink that relayed to every robot passed every other test)."""
+    import time
+
+    from hub.config import parse_config
+    from hub.factory import build_hub
+
+    scenario = make_scenario(robots={"count": 6, "spawn": {"x": [-1.5, 1.5], "y": [-1.5, 1.5]}},
+                             comm={"range_m": 1.2}, sensors={"pose_noise_m": 0.0, "pose_noise_rad": 0.0},
+                             arena={"walls": [-2.0, -2.0, 2.0, 2.0]})
+    config = parse_config({"source": {"type": "sim"}, "security": {"insecure": True},
+                           "network": {"bind": "127.0.0.1", "robot_port": 0, "control_port": 0}})
+    hub = build_hub(config, log=lambda line: None, scenario=scenario)
+    try:
+        hub.on_pose_frame(hub.source.snapshot(time.monotonic()))
+        poses = hub.source.world.robot_poses()
+
+        def broadcast(sender):
+            hub._on_broadcast(hub.robots[sender], {"type": "broadcast", "id": sender, "sent_s": 0.0,
+                                                   "payload": {"from": sender}}, time.monotonic())
+            return sorted(rid for rid in hub.ids if hub.relay.pending(rid) and [hub.relay.clear(rid)])
+
+        assert broadcast(0) == []                       # idle: no run, no radio
+        hub.control.execute("start")
+        reached_any = unreached_any = False
+        for sender in hub.ids:
+            near = sorted(rid for rid in hub.ids if rid != sender
+                          and math.dist(poses[rid][:2], poses[sender][:2]) <= 1.2)
+            assert broadcast(sender) == near, (sender, poses.round(2).tolist())
+            reached_any |= bool(near)
+            unreached_any |= len(near) < len(hub.ids) - 1
+        assert reached_any and unreached_any, poses.round(2).tolist()    # both cases were met
+    finally:
+        hub.close()

@@ -411,3 +411,131 @@ def test_a_robot_flooded_with_messages_keeps_what_a_real_one_would(make_scenario
     assert radio["dropped_overflow"] > 0
     in_flight = 2 * 600        # the last step's 600 broadcasts, each to the two others
     assert radio["delivered"] + radio["dropped_overflow"] == 2 * radio["sent"] - in_flight
+
+
+def test_a_behaviour_asking_for_more_than_the_top_speed_drives_at_it_keeping_its_turn(make_scenario):
+    """The world drives any speed it is given: the HAL's set_speeds is what holds a behaviour to a KheperaIV's
+    0.81 m/s, scaling both wheels together. Every simulated behaviour in the tests asked for less, so a HAL
+    that passed 2 m/s on went unnoticed (only the kh4 driver's own clamp was tested)."""
+
+    class FloorIt(Behaviour):
+        def step(self):
+            self.robot.wheels.set_speeds(2.0, -1.0)
+
+    register("test-floor-it")(FloorIt)
+    sim = Simulation(make_scenario(behaviour="test-floor-it", robots={"count": 1, "spawn": {"x": [0, 0],
+                                                                                            "y": [0, 0]}}))
+    sim.step()
+    top = sim.world.spec.max_wheel_speed_m_s
+    assert top == pytest.approx(0.81)
+    assert (sim.world.robots[0].left_cmd, sim.world.robots[0].right_cmd) == pytest.approx((top, -top / 2))
+
+
+def test_the_simulated_radio_delays_loses_and_spares_the_dead_as_the_scenario_asks():
+    """comm.latency_s, comm.drop and the dead: the radio's docstring promises them, and no test looked. With the
+    delay fixed at one step, no loss, or messages handed to dead robots, this file and the equivalence tests
+    still passed (their scenarios have no latency or loss; the one with comm.drop compares two runs alike)."""
+    from sim_backend.radio import RadioNetwork
+
+    alive = np.array([True, True, False])
+    late = RadioNetwork(3, drop=0.0, latency_s=0.25, period_s=0.1, rng=np.random.default_rng(0))
+    late.send(5, 0, {"k": 1}, 0.5, np.array([1, 2]))
+    inboxes = [[], [], []]
+    for step in (6, 7, 8):                   # 0.25 s is three control periods (rounded up), after the next step
+        late.deliver(step, inboxes, alive)
+        assert inboxes == [[], [], []], step
+    late.deliver(9, inboxes, alive)
+    assert [[m.payload for m in inbox] for inbox in inboxes] == [[], [{"k": 1}], []]       # robot 2 is dead
+    assert late.stats()["delivered"] == 1
+
+    lossy = RadioNetwork(2, drop=0.3, latency_s=0.0, period_s=0.1, rng=np.random.default_rng(2))
+    heard = 0
+    for step in range(2000):
+        inboxes = [[], []]
+        lossy.send(step, 0, {"n": step}, step * 0.1, np.array([1]))
+        lossy.deliver(step + 1, inboxes, np.array([True, True]))         # no latency: at the next step
+        heard += len(inboxes[1])
+    assert heard / 2000 == pytest.approx(0.7, abs=0.04)
+    assert lossy.stats()["dropped"] + heard == 2000
+
+
+def test_the_simulated_motion_capture_is_late_noisy_and_lossy_as_the_scenario_asks(make_scenario):
+    """sensors.pose_latency_s, pose_noise_m and pose_dropout: what a behaviour's positioning.pose() gets. No test
+    ran a scenario with any of them, and a simulator that served every robot its exact, current pose passed."""
+
+    class Driver(Behaviour):
+        seen: list = []
+
+        def step(self):
+            Driver.seen.append(self.robot.positioning.pose())
+            self.robot.wheels.set_speeds(0.1, 0.1)
+
+    register("test-pose-reader")(Driver)
+
+    def run(**sensors):
+        Driver.seen = []
+        sim = Simulation(make_scenario(behaviour="test-pose-reader", sensors=sensors, robots={
+            "count": 1, "spawn": {"x": [0, 0], "y": [0, 0]}}, time_limit_s=60), seed=3)
+        truth = []
+        for _ in range(300):
+            truth.append(sim.world.robot_poses()[0].copy())
+            sim.step()
+        return sim.period, np.array(truth), Driver.seen
+
+    period, truth, seen = run(pose_latency_s=0.3, pose_noise_m=0.0, pose_noise_rad=0.0, pose_dropout=0.0)
+    lag = round(0.3 / period)
+    for k in range(lag, 300):                        # three steps late, stamped when it was measured
+        assert (seen[k].x, seen[k].y) == pytest.approx(tuple(truth[k - lag][:2]), abs=1e-12), k
+        assert seen[k].age_s == pytest.approx(0.3) and seen[k].stamp_s == pytest.approx((k - lag) * period)
+
+    _, truth, seen = run(pose_latency_s=0.0, pose_noise_m=0.05, pose_noise_rad=0.0, pose_dropout=0.0)
+    errors = [pose.x - true[0] for pose, true in zip(seen, truth)]
+    assert np.std(errors) == pytest.approx(0.05, rel=0.2)
+
+    _, _, seen = run(pose_latency_s=0.0, pose_noise_m=0.0, pose_noise_rad=0.0, pose_dropout=0.5)
+    fresh = sum(pose is not None and pose.age_s == 0.0 for pose in seen)
+    assert fresh / len(seen) == pytest.approx(0.5, abs=0.1)         # the others: the last pose that came, older
+
+
+def test_the_simulated_range_and_bearing_is_as_noisy_as_the_scenario_asks(make_scenario):
+    """comm.range_noise_m and bearing_noise_rad: the only simulator test of the sensor sets both to 0, and one
+    that served exact ranges and bearings passed every test here (the hub's own noise is tested apart)."""
+
+    class Listener(Behaviour):
+        heard: list = []
+
+        def step(self):
+            if self.robot.id == 0:
+                table = self.robot.range_and_bearing.neighbours()
+                Listener.heard.append((float(table.ranges_m[0]), float(table.bearings_rad[0])))
+
+    register("test-range-listener")(Listener)
+    Listener.heard = []
+    sim = Simulation(make_scenario(behaviour="test-range-listener", robots={"count": 2, "spawn": {
+        "x": [-0.5, 0.5], "y": [-0.5, 0.5]}}, comm={"range_m": 3.0, "range_noise_m": 0.05, "bearing_noise_rad": 0.1}))
+    poses = sim.world.robot_poses()
+    true_range = math.hypot(*(poses[1, :2] - poses[0, :2]))
+    for _ in range(400):
+        sim.step()
+    ranges, bearings = np.array(Listener.heard).T
+    assert np.mean(ranges) == pytest.approx(true_range, abs=0.01)
+    assert np.std(ranges) == pytest.approx(0.05, rel=0.2) and np.std(bearings) == pytest.approx(0.1, rel=0.2)
+
+
+def test_the_simulated_ir_is_as_noisy_as_the_scenario_asks(make_scenario):
+    """sensors.proximity_noise: the IR tests set it to 0, and readings without any noise passed every test here."""
+
+    class Still(Behaviour):
+        def step(self):
+            pass
+
+    register("test-still")(Still)
+    scenario = make_scenario(behaviour="test-still", robots={"count": 1, "spawn": {"x": [0, 0], "y": [0, 0]}},
+                             arena={"walls": [-1, -1, 1, 1]}, sensors={"proximity_noise": 0.05})
+    sim = Simulation(scenario)
+    place(sim.world, 0, 1.0 - R - 0.05, 0.0, 0.0)          # the front sensor's rim 5 cm from the east wall
+    readings = []
+    for _ in range(300):
+        sim.step()
+        readings.append(sim.frame.proximity[0][0])
+    assert np.mean(readings) == pytest.approx(0.7, abs=0.03) and np.std(readings) == pytest.approx(0.05, rel=0.2)

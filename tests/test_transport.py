@@ -47,6 +47,20 @@ def test_lab6_cages_the_box_and_brings_it_to_the_last_waypoint(lab6_run):
         assert waypoint["centroid_estimation_error_m"] <= 0.05
 
 
+def test_the_reported_errors_are_the_objects_true_offset_from_its_waypoints(lab6_run):
+    """Every bar above is an upper bound on the evaluator's own figures: an error computed from x alone (or 0)
+    passed them all. They must be the true object's distance and yaw difference from the waypoint."""
+    from sim_backend.metrics import waypoint_error
+
+    sim, result = lab6_run
+    truth, (x, y, yaw_deg) = sim.world.object_pose(), sim.scenario.path[-1]
+    assert result["final_position_error_m"] == pytest.approx(math.hypot(truth[0] - x, truth[1] - y), abs=1e-9)
+    assert result["final_orientation_error_rad"] == pytest.approx(abs(truth[2] - math.radians(yaw_deg)), abs=1e-9)
+    assert waypoint_error((1.0, 2.0, 0.1), (1.3, 2.4, 90.0)) == pytest.approx((0.5, math.pi / 2 - 0.1))
+    assert waypoint_error((0.0, 0.0, math.radians(179.0)), (0.0, -0.3, -179.0)) == pytest.approx(
+        (0.3, math.radians(2.0)))                                  # across +-180 degrees: the short way round
+
+
 def test_lab6_payload_is_slower_but_reaches_every_waypoint(lab6_run):
     """The 4.3 kg box: same bar as lab-6, and it takes the cage longer than the empty box."""
     result = Simulation(load_scenario("lab-6-payload"), seed=1).run()
