@@ -1,5 +1,6 @@
 """`--import`: the user's behaviour module, loaded the same way by `khepri`, study workers and the agents that
 `khepri sil` starts (the behaviour must run unchanged from simulation to the lab stack)."""
+import dataclasses
 import json
 import re
 import sys
@@ -129,7 +130,8 @@ def test_sil_stops_with_the_reason_when_an_agent_cannot_start_the_run(tmp_path, 
     (tmp_path / "lonely.yaml").write_text(SCENARIO.format(name="sil-lonely"))
     monkeypatch.chdir(tmp_path)
     spawn = hub.sil.spawn_agents
-    monkeypatch.setattr(hub.sil, "spawn_agents", lambda *args: spawn(*args[:-1], []))   # agents without it
+    monkeypatch.setattr(hub.sil, "spawn_agents",       # agents without it
+                        lambda *args: spawn(*args[:-1], dataclasses.replace(args[-1], imports=[])))
     assert main(["--import", "sil_lonely", "sil", "lonely.yaml", "--out", "out", "--no-plot", "--no-record"]) == 1
     err = capsys.readouterr().err
     assert "agent 0: cannot start the run: run.behaviour: unknown behaviour 'sil-lonely'" in err
