@@ -7,9 +7,9 @@ STAMP  := $(VENV)/.installed
 .PHONY: demo test lint venv robot-venv clean
 
 # The robots' Python: the oldest that onboard/ supports (3.9), with the oldest releases of its packages that
-# pyproject.toml allows (numpy's last 1.22). `make test` builds it when it finds a Python 3.9 (or ROBOT_PYTHON names one), and
-# tests/test_robot_python.py runs lab-6's agents on it (`khepri sil --agent-python`); without one, that test
-# is skipped and says why.
+# pyproject.toml allows (numpy's last 1.22). `make test` builds it when it finds a Python 3.9 (or ROBOT_PYTHON
+# names one); tests/test_robot_python.py runs lab-6-payload's agents on it (`khepri sil --agent-python`) and
+# test_kh4_driver.py the driver's stop-on-exit. Without one, those tests are skipped and say why.
 ROBOT_VENV     := .venv-robot
 ROBOT_STAMP    := $(ROBOT_VENV)/.installed
 ROBOT_PACKAGES := numpy==1.22.4 pyzmq==25.0.0 pyyaml==6.0 filterpy==2.0.0
