@@ -129,7 +129,6 @@ def test_the_hub_survives_fuzzing_of_both_sockets_and_keeps_serving(lab):
     # The agent is back in run mode: on a loaded machine the burst can delay its frames past its 0.3 s
     # watchdog, which it must then leave by itself (a failed fresh-clone run read "watchdog" at once).
     robot = hub.wait_until(lambda s: s["robots"][0]["loop_misses"] is not None and s["robots"][0]["connected"]
-                           and (s["robots"][0]["frames_lost"] or 0) >= 0
                            and s["robots"][0]["agent_mode"] == "run")["robots"][0]
     assert agent.poll() is None and robot["agent_mode"] == "run"
     assert status["mode"] == "run"
