@@ -77,19 +77,11 @@ def test_the_arrival_at_the_last_waypoint_is_said_once_with_the_outcome(tmp_path
     lines = []
     hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True},
                                   "record": str(log)}), log=lines.append)
-    source, box = hub.source, hub.source.world.object_body
     try:
         hub.control.execute("start")
 
         def step(state, waypoint, closed=False, at=None):
-            source.advance(source.substeps_per_control)
-            if at is not None:
-                box.position, box.angle = at, 0.0
-            for robot in hub.robots.values():
-                robot.run_id = hub.run_id
-                robot.telemetry = {"mode": "run", "run_id": hub.run_id, "behaviour": {
-                    "state": state, "member": True, "closed": closed, "waypoint": waypoint, "finished": False}}
-            hub.housekeeping(time.monotonic())
+            report_step(hub, state, waypoint, closed, at)
 
         step("caged", 0, closed=True)
         step("push", 1, at=(0.0, 0.3))
@@ -184,19 +176,11 @@ def test_a_waypoint_passed_beyond_its_tolerance_is_no_completion():
     lines = []
     hub = build_hub(parse_config({"source": {"type": "sim"}, "network": NETWORK, "security": {"insecure": True}}),
                     log=lines.append)
-    source, box = hub.source, hub.source.world.object_body
     try:
         hub.control.execute("start")
         for state, waypoint, at in (("caged", 0, None), ("push", 1, (0.15, 0.3)), ("push", 2, (0.0, 0.6)),
                                     ("done", 2, (0.0, 0.9)), ("done", 2, None)):
-            source.advance(source.substeps_per_control)
-            if at is not None:
-                box.position, box.angle = at, 0.0
-            for robot in hub.robots.values():
-                robot.run_id = hub.run_id
-                robot.telemetry = {"mode": "run", "run_id": hub.run_id, "behaviour": {
-                    "state": state, "member": True, "closed": True, "waypoint": waypoint, "finished": False}}
-            hub.housekeeping(time.monotonic())
+            report_step(hub, state, waypoint, True, at)
         said = [line for line in lines if "waypoints" in line]
         assert len(said) == 1 and said[0].startswith(
             f"hub: run {hub.run_id}: NOT completed, although the object passed all 3 waypoints: "), lines
@@ -205,3 +189,17 @@ def test_a_waypoint_passed_beyond_its_tolerance_is_no_completion():
             "waypoint 1 was passed with the object 0.15 m from it (tolerance 0.10 m)" in verdict["failures"], verdict
     finally:
         hub.close()
+
+
+def report_step(hub, state: str, waypoint: int, closed: bool, at=None) -> None:
+    """One control step of a sim-source hub whose robots all report ``state`` at ``waypoint`` (as cage members),
+    with the object put at ``at`` first (unless None); then the hub's housekeeping judges the progress."""
+    source, box = hub.source, hub.source.world.object_body
+    source.advance(source.substeps_per_control)
+    if at is not None:
+        box.position, box.angle = at, 0.0
+    for robot in hub.robots.values():
+        robot.run_id = hub.run_id
+        robot.telemetry = {"mode": "run", "run_id": hub.run_id, "behaviour": {
+            "state": state, "member": True, "closed": closed, "waypoint": waypoint, "finished": False}}
+    hub.housekeeping(time.monotonic())
