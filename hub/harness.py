@@ -75,6 +75,18 @@ class HubThread:
     def status(self) -> Dict[str, Any]:
         return self.request("status")["status"]
 
+    def wait_for_lines(self, fragment: str, count: int = 1, timeout_s: float = 10.0) -> List[str]:
+        """The hub's log lines holding ``fragment`` once there are ``count`` of them; TimeoutError naming every
+        line logged, should they not come within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            found = [line for line in list(self.lines) if fragment in line]
+            if len(found) >= count:
+                return found
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no {count} line(s) with {fragment!r} within {timeout_s} s: {self.lines}")
+            time.sleep(0.02)
+
     def wait_until(self, condition, timeout_s: float = 20.0, poll_s: float = 0.05) -> Dict[str, Any]:
         """Poll status until ``condition(status)``; the last status, or TimeoutError naming what it saw."""
         deadline = time.monotonic() + timeout_s

@@ -31,16 +31,6 @@ def dealer(endpoint: str) -> zmq.Socket:
     return sock
 
 
-def wait_for_line(hub: HubThread, fragment: str, timeout_s: float = 5.0) -> str:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for line in list(hub.lines):
-            if fragment in line:
-                return line
-        time.sleep(0.02)
-    raise AssertionError(f"no line with {fragment!r} in {hub.lines}")
-
-
 def test_a_request_the_hub_cannot_take_is_answered_with_why():
     """A lab's own client asking for a command the hub does not know waited for its timeout, told nothing."""
     with HubThread(parse_config(SIM)) as hub:
@@ -65,7 +55,7 @@ def test_a_message_in_too_many_frames_names_its_sender():
         sock = dealer(hub.endpoints["robots"])
         try:
             sock.send_multipart([encode({"type": "hello", "id": 0, "driver": "test"}), b"extra"])
-            line = wait_for_line(hub, "dropped malformed message")
+            line = hub.wait_for_lines("dropped malformed message", timeout_s=5.0)[0]
         finally:
             sock.close(0)
     assert line.startswith("hub: dropped malformed message: 2 frames from peer at 127.0.0.1, expected 1"), line
@@ -78,7 +68,7 @@ def test_a_message_nested_past_pythons_recursion_limit_is_counted_and_dropped_na
         robot, operator = dealer(hub.endpoints["robots"]), dealer(hub.endpoints["control"])
         try:
             robot.send(b'{"v": 2, "type": "hello", "id": 0, "driver": "test", "x": ' + nested + b"}")
-            line = wait_for_line(hub, "dropped bad message")
+            line = hub.wait_for_lines("dropped bad message", timeout_s=5.0)[0]
             operator.send(b'{"v": 2, "type": "request", "cmd": "status", "nonce": 4, "x": ' + nested + b"}")
             assert operator.poll(3000), "no reply to a request nested past the recursion limit"
             reply = decode(operator.recv(), "hub", accept=("reply",))
@@ -137,7 +127,7 @@ def test_a_robot_without_a_rigid_body_is_refused():
 def test_bodies_of_robots_left_out_of_the_run_are_said():
     """Four of six robots out today is fine; a body the hub silently ignores may be a typo."""
     with HubThread(parse_config(mocap_config({"kh0": 0, "kh1": 1, "kh5": 5}, robots=[0]))) as hub:
-        line = wait_for_line(hub, "source.bodies")
+        line = hub.wait_for_lines("source.bodies", timeout_s=5.0)[0]
     assert line == "hub: source.bodies kh1 (robot 1), kh5 (robot 5): not in robots, so not served (their poses " \
                    "are ignored)"
 

@@ -43,16 +43,6 @@ def telemetry(step: int, **fields) -> bytes:
     return raw({"type": "telemetry", "id": 0, "step": step, "mode": "idle", **fields})
 
 
-def wait_for_line(hub: HubThread, fragment: str, timeout_s: float = 5.0) -> str:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for line in list(hub.lines):
-            if fragment in line:
-                return line
-        time.sleep(0.02)
-    raise AssertionError(f"no line with {fragment!r} in {hub.lines}")
-
-
 def ctl_status(hub: HubThread) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "khepri_cli.main", "ctl", "status", "--hub",
                            hub.endpoints["control"]], capture_output=True, text=True, env=ENV, timeout=60)
@@ -77,7 +67,7 @@ def test_telemetry_the_protocol_does_not_allow_is_dropped_naming_the_field_and_t
         try:
             sock.send(encode({"type": "hello", "id": 0, "driver": "sim"}))
             sock.send(telemetry(1, **{field: value}))
-            line = wait_for_line(hub, "dropped bad message")
+            line = hub.wait_for_lines("dropped bad message", timeout_s=5.0)[0]
         finally:
             sock.close(0)
         status = hub.status()
@@ -148,7 +138,7 @@ def test_ctl_status_prints_a_hub_whose_peer_sent_a_loop_rate_that_is_text():
             for step in range(1, 6):
                 sock.send(telemetry(step, loop={"hz": "fast"}))
                 time.sleep(0.05)
-            wait_for_line(hub, "telemetry.loop.hz")
+            hub.wait_for_lines("telemetry.loop.hz", timeout_s=5.0)
             run = ctl_status(hub)
         finally:
             sock.close(0)
@@ -195,8 +185,8 @@ def test_a_robots_text_makes_no_line_of_its_own_on_the_hubs_console_in_its_log_o
                      hello={"driver": EVIL, "run_id": EVIL})
         agent.start()
         try:
-            wait_for_line(hub, "hub: robot 0: ")
-            wait_for_line(hub, "which this hub did not start")
+            hub.wait_for_lines("hub: robot 0: ", timeout_s=5.0)
+            hub.wait_for_lines("which this hub did not start", timeout_s=5.0)
             status = khepri("ctl", "status", "--hub", hub.endpoints["control"])
         finally:
             agent.stop()

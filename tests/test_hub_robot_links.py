@@ -19,14 +19,6 @@ def lines_with(hub: HubThread, fragment: str):
     return [line for line in list(hub.lines) if fragment in line]
 
 
-def wait_for_lines(hub: HubThread, fragment: str, count: int = 1, timeout_s: float = 10.0):
-    deadline = time.monotonic() + timeout_s
-    while len(lines_with(hub, fragment)) < count:
-        assert time.monotonic() < deadline, f"no {count} lines with {fragment!r}: {hub.lines}"
-        time.sleep(0.05)
-    return lines_with(hub, fragment)
-
-
 def test_a_robot_that_goes_silent_and_comes_back_is_said_once_each_way(tmp_path):
     """The hub's console said nothing when a connected robot stopped talking (agent dead, Wi-Fi gone): only
     `ctl status` showed it. Now one line when it goes silent, one when it is back, none per frame between."""
@@ -35,12 +27,12 @@ def test_a_robot_that_goes_silent_and_comes_back_is_said_once_each_way(tmp_path)
         try:
             hub.wait_until(lambda s: s["robots"][0]["connected"])
             agent.send_signal(signal.SIGSTOP)     # frozen: its connection stays open, nothing comes through it
-            silent = wait_for_lines(hub, "robot 0 went silent")
+            silent = hub.wait_for_lines("robot 0 went silent")
             agent.send_signal(signal.SIGCONT)     # before its own 2 s reconnect: back on the same connection
-            back = wait_for_lines(hub, "robot 0 is back after")
+            back = hub.wait_for_lines("robot 0 is back after")
             agent.kill()                          # dies without a word
             agent.wait()
-            wait_for_lines(hub, "robot 0 went silent", count=2)
+            hub.wait_for_lines("robot 0 went silent", count=2)
             time.sleep(1.5)                       # and stays dead: nothing more is said
         finally:
             stop_processes([agent])
@@ -57,7 +49,7 @@ def test_an_agent_that_exits_is_said_to_have_exited(tmp_path):
             hub.wait_until(lambda s: s["robots"][1]["connected"])
         finally:
             assert stop_processes([agent]) == [0]       # SIGTERM: it says goodbye on its way out
-        assert wait_for_lines(hub, "has exited")[-1] == "hub: robot 1's agent has exited (its last message said so)"
+        assert hub.wait_for_lines("has exited")[-1] == "hub: robot 1's agent has exited (its last message said so)"
 
 
 def dealer(endpoint: str) -> zmq.Socket:
@@ -95,7 +87,7 @@ def test_an_agents_own_reconnect_takes_the_robot_over_quietly_and_a_second_agent
             hub.wait_until(lambda s: s["robots"][0]["connected"])
             say(old, "agent-a", times=2)           # alive: it spoke just now
             say(new, "agent-a")                    # the same agent on a new socket
-            wait_for_lines(hub, "reconnected")
+            hub.wait_for_lines("reconnected")
             say(old, "agent-a")                    # a message still in flight on the replaced connection
             assert gets_frames(new)                # the new connection holds the robot
             assert "duplicate robot" not in hub.status()["drops"]
@@ -103,7 +95,7 @@ def test_an_agents_own_reconnect_takes_the_robot_over_quietly_and_a_second_agent
                 say(other, "agent-b")
                 say(new, "agent-a")
             assert hub.status()["drops"]["duplicate robot"] >= 10
-            wait_for_lines(hub, "claimed by two connections")
+            hub.wait_for_lines("claimed by two connections")
         finally:
             for sock in (old, new, other):
                 sock.close(0)
@@ -200,7 +192,7 @@ def test_an_agent_that_joins_a_run_is_said_to_start_it_afresh(tmp_path):
             hub.request("start")
             run_id = hub.status()["run_id"]
             late = spawn_agent(hub.endpoints["robots"], 0, tmp_path / "late.log")
-            (joined,) = wait_for_lines(hub, "robot 0 connected from")
+            (joined,) = hub.wait_for_lines("robot 0 connected from")
         finally:
             stop_processes([p for p in (first, late) if p is not None])
     assert joined == (f"hub: robot 0 connected from 127.0.0.1: it joins run {run_id} with a new behaviour (it knows "
