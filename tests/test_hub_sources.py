@@ -563,23 +563,20 @@ def test_an_unknown_sim_scenario_names_the_lab_configs_field():
         assert info.value.field == field and "not built in" in str(info.value)
 
 
-def test_a_missing_scenario_file_says_relative_paths_are_from_the_hubs_folder(tmp_path, monkeypatch):
-    """A scenario beside the config, named without its folder, read as gone: the hub looks from its own folder."""
+@pytest.mark.parametrize("scenario, said", [
+    # A scenario beside the config, named without its folder, read as gone: the hub looks from its own folder.
+    ("beside-the-config.yaml", r"^source.scenario: no such file: beside-the-config.yaml \(a lab config's paths are "
+                               r"relative to the folder the hub is started in, "),
+    # `source: {scenario: ./lab-6}` with no file ./lab-6 served the built-in lab-6 without a word.
+    ("./lab-6", r"^source.scenario: no such file: ./lab-6 \(the built-in scenario is lab-6, without a folder\) \(a "
+                r"lab config's paths are relative to the folder"),
+])
+def test_a_sim_scenario_file_that_is_not_there_is_an_error_naming_where_the_hub_looked(tmp_path, monkeypatch,
+                                                                                        scenario, said):
     monkeypatch.chdir(tmp_path)
-    config = parse_config({"source": {"type": "sim", "scenario": "beside-the-config.yaml"}, "network": NETWORK,
+    config = parse_config({"source": {"type": "sim", "scenario": scenario}, "network": NETWORK,
                            "security": {"insecure": True}})
-    with pytest.raises(ConfigError, match=r"^source.scenario: no such file: beside-the-config.yaml \(a lab config's "
-                                          r"paths are relative to the folder the hub is started in, "):
-        build_hub(config, log=lambda line: None)
-
-
-def test_a_sim_scenario_written_as_a_path_to_no_file_is_not_the_builtin(tmp_path, monkeypatch):
-    """`source: {scenario: ./lab-6}` with no file ./lab-6 served the built-in lab-6 without a word."""
-    monkeypatch.chdir(tmp_path)
-    config = parse_config({"source": {"type": "sim", "scenario": "./lab-6"}, "network": NETWORK,
-                           "security": {"insecure": True}})
-    with pytest.raises(ConfigError, match=r"^source.scenario: no such file: ./lab-6 \(the built-in scenario is lab-6, "
-                                          r"without a folder\) \(a lab config's paths are relative to the folder"):
+    with pytest.raises(ConfigError, match=said):
         build_hub(config, log=lambda line: None)
 
 
