@@ -99,6 +99,12 @@ class HubThread:
         return status
 
 
+def khepri_env() -> Dict[str, str]:
+    """This environment with this khepri's root first on PYTHONPATH: a child Python (an agent, a hub, another
+    interpreter's check) imports the same onboard/ and hub/ as this process."""
+    return dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+
 def spawn_agent(endpoint: str, robot_id: int, log_path: Path, keys: Optional[Path] = None,
                 driver: str = "sim", extra: Optional[List[str]] = None,
                 python: Optional[str] = None) -> subprocess.Popen:
@@ -106,9 +112,8 @@ def spawn_agent(endpoint: str, robot_id: int, log_path: Path, keys: Optional[Pat
     log to ``log_path``. It ends (SIGTERM: wheels stopped) when the thread that started it does, even if this
     process is killed with SIGKILL (``onboard/agent/parent.py``), so start agents from a thread that outlives
     them."""
-    env = dict(os.environ)
+    env = khepri_env()
     env[PARENT_ENV] = str(os.getpid())
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     command = [python or sys.executable, "-m", "onboard.agent", "--id", str(robot_id), "--hub", endpoint,
                "--driver", driver]
     if keys is not None:

@@ -138,13 +138,12 @@ def check_agent_python(python: str) -> str:
     is said here, not as six crashed agents."""
     from onboard.config import ConfigError, as_written
 
-    from .harness import ROOT
+    from .harness import khepri_env
 
     if not os.path.isfile(python) or not os.access(python, os.X_OK):
         raise ConfigError("--agent-python", f"{python} is not an executable file")
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     try:
-        check = subprocess.run([python, "-c", _CHECK], capture_output=True, text=True, env=env,
+        check = subprocess.run([python, "-c", _CHECK], capture_output=True, text=True, env=khepri_env(),
                                timeout=AGENT_PYTHON_CHECK_S, errors="backslashreplace")
     except subprocess.TimeoutExpired:
         raise ConfigError("--agent-python", f"{python} did not import onboard/'s packages within "
