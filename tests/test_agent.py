@@ -95,6 +95,23 @@ def test_watchdog_stops_wheels_within_0_3_s_of_hub_silence_and_resumes(scripted,
     scripted.wait_for(wheels_after(scripted, resumed_at, moving=True), timeout_s=2.0)
 
 
+def test_the_agent_stops_its_wheels_after_the_watchdog_it_is_given(scripted, tmp_path):
+    """--watchdog was checked for its range, but nothing showed the loop used it and not its 0.25 s default."""
+    process = spawn_agent(scripted.endpoint, 0, tmp_path / "agent.log", extra=["--watchdog", "0.1"])
+    try:
+        scripted.wait_for(lambda m: m["type"] == "hello")
+        start_run(scripted)
+        t0 = time.monotonic()
+        last_frame = feed(scripted, 1.0, neighbours=FAR_NEIGHBOUR)
+        scripted.wait_for(wheels_after(scripted, t0, moving=True))
+        stopped = scripted.wait_for(wheels_after(scripted, last_frame, moving=False), timeout_s=2.0)
+        # Not before 0.1 s (frames came every 0.05 s, so the watchdog did not trip during the feed), and well
+        # before the default 0.25 s.
+        assert 0.09 <= stopped["at_s"] - last_frame < 0.2, stopped["at_s"] - last_frame
+    finally:
+        stop_processes([process])
+
+
 def test_estop_stops_the_wheels_before_the_acknowledgement(scripted, agent_process):
     start_run(scripted)
     t0 = time.monotonic()

@@ -335,6 +335,9 @@ def test_agents_end_with_the_process_that_started_them(tmp_path):
         "print(agent.pid, flush=True); time.sleep(60)")], stdout=subprocess.PIPE, text=True, env=ENV)
     agent_pid = int(starter.stdout.readline())
     time.sleep(1.0)
+    # An agent that died by itself before its starter would pass the check below without proving anything.
+    assert "zombie" not in _state(agent_pid), (tmp_path / "agent.log").read_text()
+    assert "connecting to tcp://127.0.0.1:9" in (tmp_path / "agent.log").read_text()
     starter.kill()
     starter.wait()
     deadline = time.monotonic() + 10
