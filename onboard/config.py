@@ -9,6 +9,7 @@ import dataclasses
 import datetime
 import math
 import os
+import types
 import typing
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Type, TypeVar
@@ -16,6 +17,11 @@ from typing import Any, Dict, List, Mapping, Optional, Type, TypeVar
 from .tracebacks import describe
 
 T = TypeVar("T")
+
+# `float | None` (Python 3.10 and later): the same as Optional[float] to the reader. A robot's 3.9 has no such type.
+_UNION_TYPES = tuple(kind for kind in (typing.Union, getattr(types, "UnionType", None)) if kind is not None)
+# What coerce reads, for the line that says a behaviour declared a parameter of another type.
+READABLE_TYPES = "bool, int, float, str, Literal, Optional, List, Tuple, Dict or a dataclass"
 
 
 class ConfigError(ValueError):
@@ -25,6 +31,11 @@ class ConfigError(ValueError):
         self.field = field
         self.problem = problem
         super().__init__(f"{field}: {problem}" if field else problem)
+
+
+class UnsupportedType(ConfigError):
+    """A field's declared type has no reading rule: the record's (a behaviour's Params') mistake, not the file's;
+    from_mapping names the record's field and its type."""
 
 
 def join(where: str, name: Any) -> str:
@@ -117,7 +128,7 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     args = typing.get_args(tp)
     if tp is Any:
         return value
-    if origin is typing.Union:
+    if origin in _UNION_TYPES:
         if value is None and type(None) in args:
             return None
         options = [a for a in args if a is not type(None)]
@@ -133,6 +144,8 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
             except ConfigError as err:
                 errors.append(err.problem)
         raise ConfigError(where, " or ".join(dict.fromkeys(errors)))
+    if origin is typing.Literal:
+        return _literal(value, args, where)
     if dataclasses.is_dataclass(tp):
         return from_mapping(tp, value, where)
     if tp is bool:
@@ -168,7 +181,23 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
         if len(args) == 2:         # Dict[str, float]: every value checked, as a field of that type would be
             return {key: coerce(item, args[1], join(where, key)) for key, item in value.items()}
         return dict(value)
-    raise ConfigError(where, f"unsupported type {_type_name(tp)}")
+    raise UnsupportedType(where, f"unsupported type {_type_name(tp)}")
+
+
+def _literal(value: Any, allowed: Any, where: str) -> Any:
+    """One of a ``Literal[...]``'s values, as a scenario writes it: 3.0 for 3, but true is not 1."""
+    for option in allowed:
+        if isinstance(option, bool) or option is None or isinstance(option, str):
+            if type(value) is type(option) and value == option:
+                return option
+        elif isinstance(option, int):
+            if as_integer(value) == option:
+                return option
+        elif isinstance(option, float):
+            if not isinstance(value, bool) and isinstance(value, (int, float)) and value == option:
+                return option
+    shown = ", ".join(as_written(option) for option in allowed)
+    raise ConfigError(where, f"must be one of {shown} (got {as_written(value)})")
 
 
 SHOWN_CHARS = 60     # of a value in an error line: enough to recognise it, and never a whole file in one line
@@ -244,7 +273,7 @@ def _number(value: float) -> str:
 
 
 def _takes_none(hint: Any) -> bool:
-    return typing.get_origin(hint) is typing.Union and type(None) in typing.get_args(hint)
+    return typing.get_origin(hint) in _UNION_TYPES and type(None) in typing.get_args(hint)
 
 
 def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
@@ -272,7 +301,12 @@ def from_mapping(cls: Type[T], data: Any, where: str = "") -> T:
                 and not _takes_none(hints[name]):
             continue    # `params:` with every line under it commented out: empty, as `comm:` already was
         if name in data:
-            kwargs[name] = coerce(data[name], hints[name], join(where, name))
+            try:
+                kwargs[name] = coerce(data[name], hints[name], join(where, name))
+            except UnsupportedType:
+                raise ConfigError(join(where, name), f"{cls.__name__}.{name} is declared as "
+                                  f"{_type_name(hints[name])}, a type a scenario cannot give (use "
+                                  f"{READABLE_TYPES})") from None
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(join(where, name), "is required")
     obj = cls(**kwargs)
