@@ -12,6 +12,7 @@ from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
 
+from onboard.agent.telemetry_message import widest_telemetry_message
 from onboard.behaviour import (
     USER_CODE_ERRORS,
     BehaviourError,
@@ -389,8 +390,8 @@ def check_telemetry_fits_the_wire(telemetry: List[Optional[Dict[str, Any]]], rob
         if data is None:
             continue
         try:
-            # telemetry_of made it plain JSON already; the rest of the message is the agent's own
-            encode({"type": "telemetry", "id": 0, "step": 0, "mode": "run", "behaviour": data})
+            # telemetry_of made it plain JSON already; the rest of the message is the agent's own, at its widest
+            encode(widest_telemetry_message(data))
         except ProtocolError as err:
             key = err.field.rpartition("telemetry.behaviour.")[2] if "." in err.field else ""
             said = f"telemetry[{key!r}] {err.problem}" if key else \

@@ -42,6 +42,7 @@ from .link import HubLink, family_hint
 from .loop_stats import LoopStats
 from .run_start import run_control_hz, run_id_text, run_params, run_spec, run_uses_hub_clock
 from .safety import GuardedDriver, StepWatchdog
+from .telemetry_message import telemetry_message
 
 SLOW_STEP_REPEAT_S = 10.0  # a behaviour whose step outlasts the watchdog is said at most this often
 HELLO_PERIOD_S = 0.5      # while the hub is silent (or has not given us the run), say hello this often
@@ -345,13 +346,10 @@ class Agent:
                 behaviour = plain_json(telemetry_of(self.behaviour, self.robot_id))
             except BehaviourError as err:
                 self.behaviour_failed(err)
-        message: Dict[str, Any] = {
-            "type": "telemetry", "step": self.state.seq, "mode": mode, "behaviour": behaviour,
-            "loop": self.stats.as_dict(), "battery_v": self.driver.battery_v(),
-            "clock_s": round(self.clock.now(), 6), "frames_lost": self.state.frames_lost,
-            "frames_bad": self.link.bad, "unsent": self.link.unsent, "inbox_dropped": self.state.inbox_dropped,
-            "run_id": self.run.get("run_id") if self.run else None, "driver": self.driver_name(),
-        }
+        message = telemetry_message(
+            self.state.seq, mode, behaviour, self.stats.as_dict(), self.driver.battery_v(),
+            round(self.clock.now(), 6), self.state.frames_lost, self.link.bad, self.link.unsent,
+            self.state.inbox_dropped, self.run.get("run_id") if self.run else None, self.driver_name())
         if self.error:
             message["error"] = error_for_the_hub(self.error)
         if self.run is None and self.error and self.refused_run_id is not None:
