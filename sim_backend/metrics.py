@@ -176,6 +176,17 @@ def evaluator_for(name: str) -> Callable[..., Evaluator]:
 OTHER_REGISTRIES.append(lambda: list(_EVALUATORS.values()))    # a user's module of evaluators registers something
 
 
+def evaluators_of_no_behaviour() -> List[str]:
+    """``module.Class is registered to judge 'name', ...`` for each evaluator registered under a name that no
+    registered behaviour has: a typo of the behaviour's name, which judged nothing without a word."""
+    from onboard.behaviour import behaviour_names
+
+    known = behaviour_names()
+    return [f"{_qualified(cls)} is registered to judge {name!r}, which is no behaviour's name (known: "
+            f"{', '.join(known)}): no run is judged by it" for name, cls in sorted(_EVALUATORS.items())
+            if name not in known]
+
+
 def register_evaluator(name: str):
     """Class decorator: judge the runs of the behaviour ``name`` with this Evaluator subclass. As @register does
     for behaviours, it refuses a name that is not a non-empty string (no scenario could name it), a class that is
