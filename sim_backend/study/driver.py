@@ -206,7 +206,8 @@ def warn_of_other_code(result: Dict[str, Any], run: RunSpec, said: Set[Tuple[Any
     said.add((behaviour, theirs))
     progress.say(f"warning: {run.run_dir} ran another version of the code of behaviour {behaviour!r} "
                  f"(behaviour_sha1 {theirs}) than this machine has ({ours}): the study mixes code versions; give "
-                 f"every worker the same commit")
+                 f"every worker the same commit, and restart long-lived dask workers after changing the code "
+                 f"(they keep what they imported)")
 
 
 def run_dir_problem(run_dir: Path) -> Optional[str]:
