@@ -182,8 +182,9 @@ def study_grid(args: argparse.Namespace):
 
 def print_dry_run(runs, out: Path, retry_failed: bool) -> int:
     from sim_backend.study.driver import plan_runs, plan_warnings
-    from sim_backend.study.grid import grid_table
+    from sim_backend.study.grid import adopt_reordered_cells, grid_table
 
+    adopt_reordered_cells(runs, out)
     plan = plan_runs(runs, out, retry_failed)
     for warning in plan_warnings(plan, out):
         print(f"warning: {warning}", file=sys.stderr)

@@ -19,7 +19,7 @@ from typing import Any, Dict, Iterator, List, Optional, Sequence, Set, TextIO, T
 from onboard.config import ConfigError, to_mapping
 
 from .folder import LOCK_FILE, UNWRITABLE_KEY, load_study, read_study, write_study_json
-from .grid import RunSpec, StudySpec
+from .grid import RunSpec, StudySpec, adopt_reordered_cells
 from .text import are, counted, them
 from .worker import RESULT_FILE, failed_result, read_result, write_result
 
@@ -150,6 +150,7 @@ def lock_holder_text(handle: TextIO) -> str:
 def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, retry_failed: bool = False,
               command: str = "", stream: Optional[TextIO] = None) -> StudyOutcome:
     out_dir.mkdir(parents=True, exist_ok=True)
+    adopt_reordered_cells(runs, out_dir)
     record_study(spec, out_dir, command, [run.run_dir for run in runs])
     plan = plan_runs(runs, out_dir, retry_failed)
     outcome = StudyOutcome(skipped=len(plan.finished), kept_failed=len(plan.kept_failed))
