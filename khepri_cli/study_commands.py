@@ -149,7 +149,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 def study_grid(args: argparse.Namespace):
     from khepri_cli.sim_commands import check_time_limit
     from sim_backend.study.grid import expand, restrict
-    from sim_backend.study.study_file import check_reps, load_study_file, paper_study
+    from sim_backend.study.study_file import check_limit_not_overridden, check_reps, load_study_file, paper_study
 
     if args.reps is not None:
         check_reps("--reps", args.reps)
@@ -160,6 +160,7 @@ def study_grid(args: argparse.Namespace):
     else:
         spec = load_study_file(study_file_path(args.target), args.reps)
     if args.time_limit is not None:
+        check_limit_not_overridden(spec, "--time-limit")
         spec.time_limit_s = args.time_limit
     if args.scenarios is not None:
         names = [n.strip() for n in args.scenarios.split(",") if n.strip()]
@@ -181,8 +182,9 @@ def study_grid(args: argparse.Namespace):
 
 def print_dry_run(runs, out: Path, retry_failed: bool) -> int:
     from sim_backend.study.driver import plan_runs, plan_warnings
-    from sim_backend.study.grid import grid_table
+    from sim_backend.study.grid import adopt_reordered_cells, grid_table
 
+    adopt_reordered_cells(runs, out)
     plan = plan_runs(runs, out, retry_failed)
     for warning in plan_warnings(plan, out):
         print(f"warning: {warning}", file=sys.stderr)

@@ -265,6 +265,11 @@ def _names_a_file(name: str, base: str) -> bool:
     return name.endswith((".py", ".yaml", ".yml")) or "/" in name or os.sep in name or Path(base, name).is_file()
 
 
+def user_module_name(name: str, base_dir: Optional[str] = None) -> str:
+    """The name under which :func:`import_user_modules` imports ``name`` (its key in ``sys.modules``)."""
+    return _module_name(name, base_dir or os.getcwd())
+
+
 def _module_name(name: str, base: str) -> str:
     """The importable name of ``name``; a file's folder goes on ``sys.path`` first."""
     if not _names_a_file(name, base):

@@ -461,7 +461,8 @@ def test_a_worker_that_ran_another_version_of_the_code_is_said_during_the_run(tm
     warnings = [line for line in said.getvalue().splitlines() if line.startswith("warning:")]
     assert warnings == ["warning: lab-6/seed-1 ran another version of the code of behaviour 'transport' "
                         f"(behaviour_sha1 0123456789abcdef) than this machine has ({behaviour_code_sha1('transport')}"
-                        "): the study mixes code versions; give every worker the same commit"]     # once, not per run
+                        "): the study mixes code versions; give every worker the same commit, and restart "
+                        "long-lived dask workers after changing the code (they keep what they imported)"]  # once
 
 
 # What a running study does to its folder, written out (not through khepri's code, which this test checks).

@@ -19,7 +19,7 @@ from typing import Any, Dict, Iterator, List, Optional, Sequence, Set, TextIO, T
 from onboard.config import ConfigError, to_mapping
 
 from .folder import LOCK_FILE, UNWRITABLE_KEY, load_study, read_study, write_study_json
-from .grid import RunSpec, StudySpec
+from .grid import RunSpec, StudySpec, adopt_reordered_cells
 from .text import are, counted, them
 from .worker import RESULT_FILE, failed_result, read_result, write_result
 
@@ -150,6 +150,7 @@ def lock_holder_text(handle: TextIO) -> str:
 def run_study(spec: StudySpec, runs: List[RunSpec], out_dir: Path, executor, retry_failed: bool = False,
               command: str = "", stream: Optional[TextIO] = None) -> StudyOutcome:
     out_dir.mkdir(parents=True, exist_ok=True)
+    adopt_reordered_cells(runs, out_dir)
     record_study(spec, out_dir, command, [run.run_dir for run in runs])
     plan = plan_runs(runs, out_dir, retry_failed)
     outcome = StudyOutcome(skipped=len(plan.finished), kept_failed=len(plan.kept_failed))
@@ -206,7 +207,8 @@ def warn_of_other_code(result: Dict[str, Any], run: RunSpec, said: Set[Tuple[Any
     said.add((behaviour, theirs))
     progress.say(f"warning: {run.run_dir} ran another version of the code of behaviour {behaviour!r} "
                  f"(behaviour_sha1 {theirs}) than this machine has ({ours}): the study mixes code versions; give "
-                 f"every worker the same commit")
+                 f"every worker the same commit, and restart long-lived dask workers after changing the code "
+                 f"(they keep what they imported)")
 
 
 def run_dir_problem(run_dir: Path) -> Optional[str]:

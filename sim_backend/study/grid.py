@@ -275,6 +275,32 @@ def cell_name(scenario_name: str, chosen: Dict[str, Any]) -> str:
     return fit_folder_name("@".join(re.sub(r"[^A-Za-z0-9_.,+=-]", "_", part) for part in parts))
 
 
+def adopt_reordered_cells(runs: List[RunSpec], out_dir: Path) -> None:
+    """Give a run whose cell has no folder in ``out_dir`` yet the folder of the same scenario and overrides written
+    in another order, when there is one: a cell is named by its overrides in the order the study file lists them,
+    so after moving one key above another every finished run was run again into a second folder, and the report
+    showed the one cell twice. (A name cut short by ``fit_folder_name`` cannot be compared, and is left.)"""
+    try:
+        folders = [path.name for path in out_dir.iterdir() if path.is_dir()] if out_dir.is_dir() else []
+    except OSError:
+        return
+    existing: Dict[Tuple[str, Tuple[str, ...]], str] = {}
+    for name in sorted(folders):
+        existing.setdefault(_cell_key(name), name)
+    for run in runs:
+        other = existing.get(_cell_key(run.cell))
+        if other is not None and other != run.cell and not (out_dir / run.cell).exists():
+            run.cell = other
+
+
+def _cell_key(name: str) -> Tuple[str, Tuple[str, ...]]:
+    """The scenario and the set of ``key=value`` parts of a cell's name (no part holds an ``@``: cell_name)."""
+    if "~" in name:
+        return name, ()
+    scenario, *parts = name.split("@")
+    return scenario, tuple(sorted(parts))
+
+
 def fit_folder_name(name: str) -> str:
     """``name``, or when it is longer than ``MAX_CELL_NAME`` its start, ``~`` and a fingerprint of the whole name:
     a long override (a whole object with a few dozen vertices) named a folder that no run of its cell could

@@ -99,14 +99,25 @@ def parse_study(data: Any, base_dir: Path = Path("."), default_name: str = "stud
                      time_limit_s=parse_time_limit("time_limit_s", data.get("time_limit_s")),
                      override_sets=parse_override_sets(listed) if isinstance(listed, list) else None)
     check_grid_size(spec, seeds_field or ("seeds" if "seeds" in data else "reps"))
-    limited = [i for i, chosen in enumerate(spec.cells()) if "time_limit_s" in chosen]
-    if spec.time_limit_s is not None and limited:
-        # The study's limit replaces every run's, so the cells would differ in name only.
-        where = "overrides" if spec.override_sets is None else f"overrides[{limited[0]}]"
-        raise ConfigError(f"{where}.time_limit_s", "the study's time_limit_s replaces it in every run: give "
-                                                   "one or the other")
+    if spec.time_limit_s is not None:
+        check_limit_not_overridden(spec)
     expand(spec)   # builds and validates every cell's scenario now, before anything runs
     return spec
+
+
+def check_limit_not_overridden(spec: StudySpec, flag: str = "") -> None:
+    """Refuse a study time limit (the file's time_limit_s, or ``flag``: --time-limit) beside cells that override
+    time_limit_s: it replaces every run's limit, so the cells would differ in name only (and summary.csv would
+    name them by limits they never ran with)."""
+    limited = [i for i, chosen in enumerate(spec.cells()) if "time_limit_s" in chosen]
+    if not limited:
+        return
+    where = "overrides" if spec.override_sets is None else f"overrides[{limited[0]}]"
+    if not flag:
+        raise ConfigError(f"{where}.time_limit_s", "the study's time_limit_s replaces it in every run: give "
+                                                   "one or the other")
+    raise ConfigError(flag, f"replaces the time limit of every run, and the study's {where}.time_limit_s gives its "
+                            "cells limits of their own: they would differ in name only; drop one or the other")
 
 
 def check_grid_size(spec: StudySpec, seeds_field: str) -> None:

@@ -6,20 +6,22 @@ A run never raises: whatever goes wrong becomes a result with ``failed: true`` a
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import secrets
 import shutil
+import sys
 import tempfile
 import traceback
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any, Dict, List, Optional
 
 from onboard.jsontext import parse_json
-from onboard.plugins import import_user_modules
+from onboard.plugins import import_user_modules, user_module_name
 
 from ..metrics import result_text
 from ..scenario import Scenario
-from .grid import RunSpec
+from .grid import RunSpec, behaviour_code_sha1
 
 RESULT_FILE = "result.json"
 TRACEBACK_LINES = 6   # enough to find the failing line without flooding result.json
@@ -31,7 +33,7 @@ def execute_run(spec: RunSpec, out_root: str) -> Dict[str, Any]:
         from sim_backend.runner import Simulation
         from sim_backend.scenario import parse_scenario
 
-        import_user_modules(spec.imports, spec.import_dir)
+        import_current_modules(spec.imports, spec.import_dir)
         sim = Simulation(parse_scenario(spec.scenario_data).with_time_limit(spec.time_limit_s), seed=spec.seed)
         result = sim.run(time_limit_s=spec.time_limit_s, wall_limit_s=spec.wall_limit_s)
     except Exception as exc:  # a run that cannot start is recorded as failed with its reason, not lost
@@ -47,6 +49,36 @@ def execute_run(spec: RunSpec, out_root: str) -> Dict[str, Any]:
     except OSError:
         pass   # e.g. a remote worker without the shared folder: the driver writes result.json
     return result
+
+
+#: The user's modules (``--import``) this process imported for a run: file -> sha1 of its bytes then.
+_IMPORTED: Dict[str, str] = {}
+
+
+def import_current_modules(names: List[str], base_dir: Optional[str]) -> None:
+    """Import the user's modules as their files are now. A Dask worker serves one study after another: it kept
+    the module it imported for the first, so after the user fixed their behaviour the next study on the same
+    scheduler ran the old code. A module whose file changed since this process imported it is imported again
+    (its @register then replaces the old class: the same name and qualified name); helpers it imports are not."""
+    for name in names:
+        module = sys.modules.get(user_module_name(name, base_dir))
+        path = getattr(module, "__file__", None)
+        if module is not None and path in _IMPORTED and _IMPORTED[path] != _file_sha1(path):
+            del sys.modules[module.__name__]
+            del _IMPORTED[path]
+            behaviour_code_sha1.cache_clear()      # it fingerprints the code this process runs
+    import_user_modules(names, base_dir)
+    for name in names:
+        path = getattr(sys.modules.get(user_module_name(name, base_dir)), "__file__", None)
+        if path and path not in _IMPORTED:
+            _IMPORTED[path] = _file_sha1(path)
+
+
+def _file_sha1(path: str) -> str:
+    try:
+        return hashlib.sha1(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return ""
 
 
 def with_study_fields(result: Dict[str, Any], spec: RunSpec, failed: bool) -> Dict[str, Any]:
