@@ -334,10 +334,14 @@ def test_agents_end_with_the_process_that_started_them(tmp_path):
         f"agent = spawn_agent('tcp://127.0.0.1:9', 0, Path({str(tmp_path / 'agent.log')!r}))\n"
         "print(agent.pid, flush=True); time.sleep(60)")], stdout=subprocess.PIPE, text=True, env=ENV)
     agent_pid = int(starter.stdout.readline())
-    time.sleep(1.0)
-    # An agent that died by itself before its starter would pass the check below without proving anything.
+    # An agent that died by itself before its starter would pass the check below without proving anything: wait
+    # until it runs (a loaded machine takes seconds to start an interpreter) and check it still does.
+    started = time.monotonic() + 30
+    while "connecting to tcp://127.0.0.1:9" not in (tmp_path / "agent.log").read_text():
+        assert time.monotonic() < started, (tmp_path / "agent.log").read_text()
+        time.sleep(0.1)
+    time.sleep(0.5)
     assert "zombie" not in _state(agent_pid), (tmp_path / "agent.log").read_text()
-    assert "connecting to tcp://127.0.0.1:9" in (tmp_path / "agent.log").read_text()
     starter.kill()
     starter.wait()
     deadline = time.monotonic() + 10
