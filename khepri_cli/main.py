@@ -13,7 +13,7 @@ from onboard.config import ConfigError
 from onboard.console import say
 from onboard.drivers import DriverError
 from onboard.plugins import import_user_modules
-from sim_backend.metrics import EvaluatorError, evaluators_of_no_behaviour
+from sim_backend.evaluator_error import EvaluatorError
 
 from . import bench_commands, lab_commands, log_commands, sim_commands, study_commands
 
@@ -215,6 +215,8 @@ def _run(argv: Optional[List[str]]) -> int:
         if args.imports:
             for warning in import_user_modules(args.imports):
                 say(f"khepri: warning: --import {warning}")
+            from sim_backend.metrics import evaluators_of_no_behaviour
+
             for warning in evaluators_of_no_behaviour():
                 say(f"khepri: warning: --import: {warning}")
         code = int(args.func(args) or 0)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import math
-import traceback
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Type
 
 import numpy as np
@@ -18,7 +17,8 @@ from onboard.config import ConfigError, as_written
 from onboard.geometry import wrap
 from onboard.hal.payload import a_kind
 from onboard.plugins import OTHER_REGISTRIES
-from onboard.tracebacks import traceback_lines, where_in_users_code
+
+from .evaluator_error import EvaluatorError  # noqa: F401  (raised here; imported from here by the runners)
 
 
 class Evaluator:
@@ -54,19 +54,6 @@ def waypoint_error(truth: Sequence[float], target: Sequence[float]) -> Tuple[flo
     true pose ``[x, y, yaw_rad]``: result.json's ``position_error_m`` and ``orientation_error_rad``."""
     return (float(math.hypot(truth[0] - target[0], truth[1] - target[1])),
             float(abs(wrap(truth[2] - math.radians(target[2])))))
-
-
-class EvaluatorError(RuntimeError):
-    """An evaluator's own code raised: which evaluator, in which call, what, and where in the user's file,
-    said as a behaviour's bug is (``onboard.behaviour.BehaviourError``); ``lines`` keeps the traceback's end."""
-
-    def __init__(self, evaluator: Any, call: str, exc: BaseException):
-        self.call, self.exc = call, exc
-        name = evaluator.__name__ if isinstance(evaluator, type) else type(evaluator).__name__
-        frames = traceback.extract_tb(exc.__traceback__)[1:]    # [0] is evaluator_call's own frame
-        self.lines: List[str] = traceback_lines(frames, exc)
-        super().__init__(f"evaluator {name}.{call}: {type(exc).__name__}: {exc}"
-                         f"{where_in_users_code(frames)}")
 
 
 def evaluator_call(evaluator: Evaluator, method: str, *args: Any) -> Any:

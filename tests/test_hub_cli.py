@@ -283,6 +283,22 @@ def test_ctl_json_without_a_hub_prints_a_json_error_for_status_too(command):
     assert "khepri: error: " in lonely.stderr and said["error"] in lonely.stderr
 
 
+HEAVY_MODULES = ("filterpy", "scipy", "pymunk", "matplotlib", "onboard.behaviours.transport")
+
+
+@pytest.mark.parametrize("command", ["ctl estop --port 1 --timeout 0.3", "ctl status --port 1 --timeout 0.3",
+                                     "keys init {tmp}/keys"])
+def test_the_operators_commands_do_not_load_the_simulator_or_the_behaviours(command, tmp_path):
+    """`khepri ctl estop` imported the built-in evaluators with the command's error handling, and with them the
+    transport behaviour, filterpy and scipy: 3-4 s on a busy lab PC before the e-stop was even sent."""
+    argv = command.format(tmp=tmp_path).split()
+    probe = subprocess.run(
+        [sys.executable, "-c", "import sys\nfrom khepri_cli.main import main\nmain(sys.argv[1:])\n"
+         f"print(sorted(m for m in {HEAVY_MODULES!r} if m in sys.modules))", *argv],
+        capture_output=True, text=True, env=ENV, timeout=120)
+    assert probe.stdout.strip().splitlines()[-1] == "[]", (probe.stdout, probe.stderr)
+
+
 def test_keys_add_adds_robots_and_operators_to_a_key_folder(tmp_path):
     keys = tmp_path / "keys"
     assert khepri("keys", "init", str(keys), "--robots", "2").returncode == 0
