@@ -52,15 +52,16 @@ class ControlService:
         except zmq.ZMQError:
             pass    # the operator left; nothing to do
 
-    def execute(self, cmd: str, sender: str = "operator") -> Tuple[bool, Dict[str, Any]]:
-        ok, extra = self._execute(cmd, sender)
+    def execute(self, cmd: str, sender: str = "operator", note: Optional[str] = None) -> Tuple[bool, Dict[str, Any]]:
+        """``note``: why the sender stops the run, for its ``ended`` record (`khepri sil` after a crash)."""
+        ok, extra = self._execute(cmd, sender, note)
         if cmd != "status" and self.hub.recorder is not None:
             # With the hub's mode and run after it: a start that resumed a run keeps its run_id, a new run a new one.
             self.hub.recorder.write("/control", {"cmd": cmd, "sender": sender, "ok": ok, **extra,
                                                  "mode": self.hub.mode, "run_id": self.hub.run_id})
         return ok, extra
 
-    def _execute(self, cmd: str, sender: str) -> Tuple[bool, Dict[str, Any]]:
+    def _execute(self, cmd: str, sender: str, note: Optional[str] = None) -> Tuple[bool, Dict[str, Any]]:
         hub = self.hub
         if cmd == "status":
             return True, {"status": self.status(time.monotonic())}
@@ -74,7 +75,7 @@ class ControlService:
         if cmd == "stop":
             if hub.mode == "estop":
                 return False, {"error": "the e-stop is latched: `khepri ctl clear` first"}
-            return self.stop(sender)
+            return self.stop(sender, note)
         return False, {"error": f"unknown command {cmd!r}"}
 
     def clear(self, sender: str) -> Tuple[bool, Dict[str, Any]]:
@@ -154,7 +155,7 @@ class ControlService:
         listed = ", ".join(f"robot {rid}" for rid in missing[:6]) + (" ..." if len(missing) > 6 else "")
         return f"{reached} (not connected: {listed})"
 
-    def stop(self, sender: str) -> Tuple[bool, Dict[str, Any]]:
+    def stop(self, sender: str, note: Optional[str] = None) -> Tuple[bool, Dict[str, Any]]:
         """Ends the run. Without one, the robots are told to stop all the same (an agent may hold a run of an
         earlier hub), but the operator is told there was nothing to stop rather than a bare "ok"."""
         hub = self.hub
@@ -167,7 +168,7 @@ class ControlService:
         hub._hold_sim_wheels(time.monotonic())
         if run_id is None:
             return True, nothing_done("nothing to stop: no run is going")
-        outcome = outcome_text(run_event(hub, run_id, "ended", "stop", sender))
+        outcome = outcome_text(run_event(hub, run_id, "ended", "stop", sender, note))
         hub.log(f"hub: run {run_id} stopped by {sender}" + (f": {outcome}" if outcome else ""))
         return True, {"note": f"run {run_id} ended; " + self._reach("told to stop")}
 

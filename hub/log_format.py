@@ -110,7 +110,8 @@ SCHEMAS: Dict[str, dict] = {
         "khepri.HubRun", "A run started, reached its last waypoint, or ended; with the sim source, the object's "
                          "progress and the outcome.",
         {"run_id": {"type": "string"}, "event": {"enum": ["started", "all waypoints reached", "ended"]},
-         "cause": {"type": "string"}, "by": {"type": "string"}},
+         "cause": {"type": "string"}, "by": {"type": "string"},
+         "note": {"type": "string", "description": "why it was ended, when the one who ended it says"}},
         required=("run_id", "event")),
     # Foxglove's own log message (its Log panel shows these): the hub's console, line by line.
     "foxglove.Log": _object_schema(

@@ -121,14 +121,16 @@ class _Tally:
         run = self.runs.setdefault(payload["run_id"], {
             "run_id": payload["run_id"], "behaviour": payload.get("behaviour"), "started_s": None,
             "started_by": None, "arrived_s": None, "ended_s": None, "ended_by": None, "end_cause": None,
-            "outcome": None, "failures": [], "object": None})
+            "end_note": None, "outcome": None, "failures": [], "object": None})
         event, by = payload.get("event"), payload.get("by")
         if event == "started":
             run.update(started_s=stamp_s, started_by=by)
         elif event in ("all waypoints reached", "ended"):
             run.update({key: payload[key] for key in ("outcome", "failures", "object") if key in payload})
             if event == "ended":
-                run.update(ended_s=stamp_s, ended_by=by, end_cause=payload.get("cause"))
+                note = payload.get("note")
+                run.update(ended_s=stamp_s, ended_by=by, end_cause=payload.get("cause"),
+                           end_note=note if isinstance(note, str) else None)
             else:
                 run["arrived_s"] = stamp_s
 

@@ -112,7 +112,8 @@ def _run_text(run: Dict[str, Any]) -> str:
         said.append(f"all waypoints reached {_time(run['arrived_s'])}")
     if run.get("ended_s"):
         how = "stopped" if run.get("end_cause") == "stop" else "ended"      # else by a signal, named
-        said.append(f"{how} {_time(run['ended_s'])}{_by(run.get('ended_by'))}")
+        said.append(f"{how} {_time(run['ended_s'])}{_by(run.get('ended_by'))}"
+                    + (f" ({_shortened(run['end_note'])})" if run.get("end_note") else ""))
     else:
         said.append("no end in the log (the hub was killed, or is still running)")
     outcome = outcome_text(run)       # a row has a /hub/run record's outcome, failures and object

@@ -4,7 +4,7 @@
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Dict
+from typing import TYPE_CHECKING, Any, Dict, Optional
 
 from .control import object_text
 from .log_format import HUB_RUN
@@ -42,11 +42,14 @@ def stop_hint(hub: Hub) -> str:
     return "" if hub.run.lockstep else "; `khepri ctl stop` ends the run"
 
 
-def run_event(hub: Hub, run_id: str, event: str, cause: str, by: str) -> Dict[str, Any]:
+def run_event(hub: Hub, run_id: str, event: str, cause: str, by: str, note: Optional[str] = None) -> Dict[str, Any]:
     """The ``/hub/run`` record of a run's ``started``, ``all waypoints reached`` or ``ended``, with the object's
-    progress and (but at the start) the outcome when the hub knows them; recorded when the hub records."""
+    progress and (but at the start) the outcome when the hub knows them, and ``note``, why whoever ended it did
+    (`khepri sil`: an agent or the evaluator crashed, Ctrl-C); recorded when the hub records."""
     record: Dict[str, Any] = {"run_id": run_id, "event": event, "cause": cause, "by": by,
                               "behaviour": hub.run.behaviour}
+    if note:
+        record["note"] = note
     if hub.progress is not None:
         record["object"] = hub.progress.status()
         if event != "started":

@@ -216,7 +216,7 @@ class SilSession:
             error = f"interrupted ({getattr(interrupt, 'how', 'Ctrl-C')}) (at t = {self.source.time_s:.1f} s)"
             self.stop_reason = "interrupted"
         wall = time.perf_counter() - started
-        self.hub.control.execute("stop", "sil")
+        self.hub.control.execute("stop", "sil", note=f"{self.stop_reason}: {error}" if error else None)
         return self._result(wall, lockstep, error)
 
     def _connected(self) -> int:

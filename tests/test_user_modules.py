@@ -200,7 +200,7 @@ def test_sil_ends_as_crashed_when_an_agent_stops_answering(tmp_path, monkeypatch
     (tmp_path / "hangs.yaml").write_text(SCENARIO.format(name="sil-drive2-hangs").replace("time_limit_s: 3",
                                                                                           "time_limit_s: 30"))
     monkeypatch.chdir(tmp_path)
-    assert main(["--import", "sil_hangs.py", "sil", "hangs.yaml", "--out", "out", "--no-plot", "--no-record"]) == 1
+    assert main(["--import", "sil_hangs.py", "sil", "hangs.yaml", "--out", "out", "--no-plot"]) == 1
     err = capsys.readouterr().err
     assert "khepri: error: agent 0 stopped answering (3 frames in a row, 2 s each): the behaviour's step() has run " \
            "for " in err
@@ -213,6 +213,12 @@ def test_sil_ends_as_crashed_when_an_agent_stops_answering(tmp_path, monkeypatch
     assert result["stop_reason"] == "crashed" and result["sim_time_s"] < 2.0
     # The figures the clean runs' tests find at 0 (tests/test_sil.py) count the three unanswered frames here.
     assert result["sil"]["step_timeouts"] >= 3 and result["sil"]["missing_answers"] >= 3, result["sil"]
+    # The recording says why sil ended the run: `log info` said only "stopped by sil: not completed".
+    assert main(["log", "info", "out/hub.mcap", "--json"]) == 0
+    run, = json.loads(capsys.readouterr().out)["runs"]
+    assert run["end_note"].startswith("crashed: agent 0 stopped answering (3 frames in a row"), run
+    assert main(["log", "info", "out/hub.mcap"]) == 0
+    assert re.search(r"stopped [0-9:]+ by sil \(crashed: agent 0 stopped answering", capsys.readouterr().out)
 
 
 def test_a_realtime_sil_ends_as_crashed_when_an_agent_stops_answering(tmp_path, monkeypatch, capsys):
