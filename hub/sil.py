@@ -58,6 +58,7 @@ class SilOptions:
     scenario_ref: Optional[str] = None     # the scenario as given (its file), for errors; None: its name
     agent_python: Optional[str] = None     # the agents' interpreter (--agent-python); None: this one
     agent_python_version: Optional[str] = None     # its version, as check_agent_python found it
+    settings: Dict[str, Any] = field(default_factory=dict)    # --set values the scenario was loaded with
 
 
 def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any]:
@@ -117,6 +118,8 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
     if stop_error and "error" not in result:     # the run itself went well; the behaviour's stop() did not
         result["error"] = stop_error
     result["sil"]["log"] = str(out / "hub.mcap") if options.record else None
+    if options.settings:
+        result["settings"] = options.settings
     write_run(session.recording, result, out, plot=options.plot)
     return result
 

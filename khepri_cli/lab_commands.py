@@ -232,6 +232,9 @@ def _add_sil(groups) -> None:
     sil.add_argument("scenario", help="built-in scenario name or YAML file")
     sil.add_argument("--out", type=folder_arg, help="output folder (default out/sil-<scenario>-seed<N>)")
     sil.add_argument("--seed", help="random seed (default: the scenario's)")
+    sil.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                     help="change one field of the scenario, e.g. params.cruise_speed_m_s=0.15 or "
+                          "robots.count=8 (a dotted key, a YAML value; repeatable)")
     sil.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
     sil.add_argument("--realtime", action="store_true", help="pace by the wall clock instead of lockstep")
     sil.add_argument("--no-record", action="store_true", help="skip the MCAP log")
@@ -256,10 +259,10 @@ def cmd_sil(args: argparse.Namespace) -> int:
         require_out_folder,
         seed_value,
     )
-    from sim_backend.scenario import load_scenario
+    from sim_backend.scenario_settings import load_with_settings
 
     given_seed = seed_value(args.seed)
-    scenario = load_scenario(args.scenario)
+    scenario, settings = load_with_settings(args.scenario, args.settings)
     check_time_limit(args.time_limit)
     seed = scenario.seed if given_seed is None else given_seed
     out = args.out or Path("out") / f"sil-{scenario.name}-seed{seed}"
@@ -272,7 +275,8 @@ def cmd_sil(args: argparse.Namespace) -> int:
         raise ConfigError("--out", f"{problem} (sil writes the agents' logs into it)")
     options = SilOptions(seed=seed, time_limit_s=args.time_limit, realtime=args.realtime,
                          record=not args.no_record, plot=not args.no_plot, imports=list(args.imports),
-                         scenario_ref=args.scenario, agent_python=python, agent_python_version=version)
+                         scenario_ref=args.scenario, agent_python=python, agent_python_version=version,
+                         settings=settings)
     with sigterm_as_ctrl_c():      # `kill` stops the agents and the hub and closes the log, as Ctrl-C does
         result = run_sil(scenario, out, options)
     print_summary(result)

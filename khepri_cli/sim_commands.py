@@ -38,6 +38,9 @@ def add_sim(groups) -> None:
                                           "trajectory.npz and trajectory.png to --out.")
     run.add_argument("scenario", help="built-in scenario name (see `khepri sim list`) or path to a YAML file")
     run.add_argument("--seed", help="random seed (default: the scenario's)")
+    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                     help="change one field of the scenario, e.g. params.cruise_speed_m_s=0.15 or "
+                          "robots.count=8 (a dotted key, a YAML value; repeatable)")
     run.add_argument("--out", type=folder_arg, help="output folder (default: out/<scenario>-seed<N>)")
     run.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
     run.add_argument("--wall-limit", type=float, metavar="S",
@@ -55,6 +58,9 @@ def add_sim(groups) -> None:
     show = commands.add_parser("show", help="print a scenario as loaded (defaults filled in)",
                                description="Validate SCENARIO and print it with every default filled in.")
     show.add_argument("scenario", help="built-in scenario name (see `khepri sim list`) or path to a YAML file")
+    show.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                     help="change one field of the scenario, e.g. params.cruise_speed_m_s=0.15 or "
+                          "robots.count=8 (a dotted key, a YAML value; repeatable)")
     show.set_defaults(func=cmd_show)
 
 
@@ -93,9 +99,9 @@ def add_bench(groups):
 def cmd_run(args: argparse.Namespace) -> int:
     from sim_backend.outputs import ProgressBar, write_run
     from sim_backend.runner import Simulation
-    from sim_backend.scenario import load_scenario
+    from sim_backend.scenario_settings import load_with_settings
 
-    scenario = load_scenario(args.scenario)
+    scenario, settings = load_with_settings(args.scenario, args.settings)
     check_time_limit(args.time_limit)
     check_time_limit(args.wall_limit, "--wall-limit")
     problem = video_problem(args.video) if args.video is not None else None
@@ -120,6 +126,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         bar.close()
     interrupted = result.get("stop_reason") == "interrupted"
     video = Path(args.video) if args.video is not None and not interrupted else None
+    if settings:                # which values of the scenario file this run did not use
+        result["settings"] = settings
     files = write_run(sim, result, out, video=video, plot=not args.no_plot)
     print_summary(result)
     for name, path in files.items():
@@ -255,9 +263,9 @@ def cmd_show(args: argparse.Namespace) -> int:
     from onboard.config import to_mapping
     from onboard.yamlfile import dump_yaml
     from sim_backend.runner import Simulation
-    from sim_backend.scenario import load_scenario
+    from sim_backend.scenario_settings import load_with_settings
 
-    scenario = load_scenario(args.scenario)
+    scenario, _ = load_with_settings(args.scenario, args.settings)
     for warning in Simulation(scenario).warnings:     # what `sim run` would warn about, on stderr
         print(f"khepri: warning: {warning}", file=sys.stderr)
     shown = to_mapping(scenario)

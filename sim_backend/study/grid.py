@@ -7,7 +7,6 @@ study file (or the paper's grid) into a StudySpec is ``study_file.py``'s.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 import hashlib
@@ -23,6 +22,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 from onboard.behaviour import get_behaviour
 from onboard.config import ConfigError, as_written, to_mapping
 from sim_backend.scenario import load_builtin, load_scenario, parse_scenario
+from sim_backend.scenario_settings import apply_overrides
 
 # A cell's folder name at most (ASCII, so bytes too): what the usual file systems allow a name. A name that fits
 # is kept as it is, so the folders of studies run before this still resume.
@@ -189,22 +189,6 @@ def scenario_mapping(scenario_ref: str, where: str) -> Dict[str, Any]:
     except ConfigError as err:
         which = f"{Path(scenario_ref).name}: " if is_file and scenario_ref not in str(err) else ""   # named yet?
         raise ConfigError(where, which + str(err)) from None
-
-
-def apply_overrides(base: Dict[str, Any], chosen: Dict[str, Any]) -> Dict[str, Any]:
-    data = copy.deepcopy(base)
-    for key, value in chosen.items():
-        target = data
-        parts = key.split(".")
-        for depth, part in enumerate(parts[:-1]):
-            child = target.get(part)
-            if child is None:
-                child = target[part] = {}
-            if not isinstance(child, dict):
-                raise ConfigError(f"overrides.{key}", f"{'.'.join(parts[:depth + 1])} is not a mapping")
-            target = child
-        target[parts[-1]] = copy.deepcopy(value)
-    return data
 
 
 def check_cell(data: Dict[str, Any], cell: str, chosen: Dict[str, Any], seed: int,
