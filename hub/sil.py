@@ -219,7 +219,10 @@ class SilSession:
             error = f"interrupted ({getattr(interrupt, 'how', 'Ctrl-C')}) (at t = {self.source.time_s:.1f} s)"
             self.stop_reason = "interrupted"
         wall = time.perf_counter() - started
-        self.hub.control.execute("stop", "sil", note=f"{self.stop_reason}: {error}" if error else None)
+        # 'crashed: agent 0 stopped answering ...'; 'interrupted (Ctrl-C) ...' says why already
+        note = None if error is None else error if error.startswith(self.stop_reason) else \
+            f"{self.stop_reason}: {error}"
+        self.hub.control.execute("stop", "sil", note=note)
         return self._result(wall, lockstep, error)
 
     def _connected(self) -> int:

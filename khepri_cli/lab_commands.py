@@ -11,7 +11,7 @@ from pathlib import Path
 from onboard.config import ConfigError
 
 from .keys_commands import add_keys_commands
-from .sim_commands import folder_arg
+from .sim_commands import add_set_argument, folder_arg
 
 
 def add_lab(groups) -> None:
@@ -232,9 +232,7 @@ def _add_sil(groups) -> None:
     sil.add_argument("scenario", help="built-in scenario name or YAML file")
     sil.add_argument("--out", type=folder_arg, help="output folder (default out/sil-<scenario>-seed<N>)")
     sil.add_argument("--seed", help="random seed (default: the scenario's)")
-    sil.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
-                     help="change one field of the scenario, e.g. params.cruise_speed_m_s=0.15 or "
-                          "robots.count=8 (a dotted key, a YAML value; repeatable)")
+    add_set_argument(sil)
     sil.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
     sil.add_argument("--realtime", action="store_true", help="pace by the wall clock instead of lockstep")
     sil.add_argument("--no-record", action="store_true", help="skip the MCAP log")

@@ -38,9 +38,7 @@ def add_sim(groups) -> None:
                                           "trajectory.npz and trajectory.png to --out.")
     run.add_argument("scenario", help="built-in scenario name (see `khepri sim list`) or path to a YAML file")
     run.add_argument("--seed", help="random seed (default: the scenario's)")
-    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
-                     help="change one field of the scenario, e.g. params.cruise_speed_m_s=0.15 or "
-                          "robots.count=8 (a dotted key, a YAML value; repeatable)")
+    add_set_argument(run)
     run.add_argument("--out", type=folder_arg, help="output folder (default: out/<scenario>-seed<N>)")
     run.add_argument("--time-limit", type=float, metavar="S", help="override the scenario's time_limit_s")
     run.add_argument("--wall-limit", type=float, metavar="S",
@@ -58,10 +56,15 @@ def add_sim(groups) -> None:
     show = commands.add_parser("show", help="print a scenario as loaded (defaults filled in)",
                                description="Validate SCENARIO and print it with every default filled in.")
     show.add_argument("scenario", help="built-in scenario name (see `khepri sim list`) or path to a YAML file")
-    show.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
-                     help="change one field of the scenario, e.g. params.cruise_speed_m_s=0.15 or "
-                          "robots.count=8 (a dotted key, a YAML value; repeatable)")
+    add_set_argument(show)
     show.set_defaults(func=cmd_show)
+
+
+def add_set_argument(parser: argparse.ArgumentParser) -> None:
+    """``--set KEY=VALUE`` (``sim run``, ``sim show``, ``sil``): sim_backend/scenario_settings.py."""
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                        help="change one field of the scenario, e.g. params.cruise_speed_m_s=0.15 or "
+                             "robots.count=8 (a dotted key, a YAML value; repeatable)")
 
 
 def seed_value(text: Optional[str]) -> Optional[int]:

@@ -168,7 +168,11 @@ def test_kill_ends_sil_as_ctrl_c_does_with_its_log_closed(tmp_path, sig):
         sil.kill()
     assert sil.returncode == 130
     assert f"khepri: interrupted ({sig.name}) (at t = " in err and "Traceback" not in err    # was "(Ctrl-C)"
-    assert not summarise(out / "hub.mcap").truncated
+    summary = summarise(out / "hub.mcap")
+    assert not summary.truncated
+    # The log says why the run ended: `log info` said only "stopped by sil".
+    run, = summary.runs
+    assert run["end_note"].startswith(f"interrupted ({sig.name}) (at t = "), run
     # What was recorded is written, as `sim run` does, in place of the earlier run's result.
     result = json.loads((out / "result.json").read_text())
     assert result["stop_reason"] == "interrupted" and result["sim_time_s"] > 1.0
