@@ -18,7 +18,7 @@ from onboard.geometry import wrap
 from onboard.hal.payload import a_kind
 from onboard.plugins import OTHER_REGISTRIES
 
-from .evaluator_error import EvaluatorError  # noqa: F401  (raised here; imported from here by the runners)
+from .evaluator_error import EvaluatorError
 
 
 class Evaluator:
