@@ -347,9 +347,11 @@ class Agent:
             except BehaviourError as err:
                 self.behaviour_failed(err)
         message = telemetry_message(
-            self.state.seq, mode, behaviour, self.stats.as_dict(), self.driver.battery_v(),
-            round(self.clock.now(), 6), self.state.frames_lost, self.link.bad, self.link.unsent,
-            self.state.inbox_dropped, self.run.get("run_id") if self.run else None, self.driver_name())
+            step=self.state.seq, mode=mode, behaviour=behaviour, loop=self.stats.as_dict(),
+            battery_v=self.driver.battery_v(), clock_s=round(self.clock.now(), 6),
+            frames_lost=self.state.frames_lost, frames_bad=self.link.bad, unsent=self.link.unsent,
+            inbox_dropped=self.state.inbox_dropped, run_id=self.run.get("run_id") if self.run else None,
+            driver=self.driver_name())
         if self.error:
             message["error"] = error_for_the_hub(self.error)
         if self.run is None and self.error and self.refused_run_id is not None:
