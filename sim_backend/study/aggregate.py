@@ -165,7 +165,8 @@ def load_results(out_dir: Path) -> StudyResults:
     for path in sorted(out_dir.glob(f"*/seed-*/{RESULT_FILE}")):
         result = read_result(path.parent)
         seed_text = path.parent.name[len("seed-"):]
-        if not result or not is_whole_number(seed_text):     # seed-² (int() refuses it) is not a run's folder
+        # seed-² (int() refuses it) is not a run's folder; seed 1's result copied into seed-2 is not seed 2's run
+        if not result or not is_whole_number(seed_text) or result.get("seed") != int(seed_text):
             unreadable.append(str(path.relative_to(out_dir)))
             continue
         name = path.parent.parent.name

@@ -32,6 +32,7 @@ class StudyPlan:
     other_limit: List[RunSpec] = field(default_factory=list)    # skipped, but ran with another time limit
     other_scenario: List[RunSpec] = field(default_factory=list)  # skipped, but the scenario changed since
     other_code: List[RunSpec] = field(default_factory=list)      # skipped, but the behaviour's code changed since
+    other_seed: List[RunSpec] = field(default_factory=list)      # its result.json is another seed's: run again
 
 
 @dataclass
@@ -47,6 +48,9 @@ def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) ->
     plan = StudyPlan()
     for run in runs:
         previous = read_result(out_dir / run.run_dir)
+        if previous and previous.get("seed") != run.seed:    # copied from another seed's folder: not this run
+            plan.other_seed.append(run)
+            previous = {}
         if not previous or (previous.get("failed") and retry_failed):
             plan.to_run.append(run)
             continue
@@ -66,6 +70,12 @@ def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) ->
 def plan_warnings(plan: StudyPlan, out_dir: Path) -> List[str]:
     """Finished runs that are kept although they do not match what the study asks now."""
     found = []
+    if plan.other_seed:
+        folders = [str(run.run_dir) for run in plan.other_seed]
+        found.append(f"{counted(len(plan.other_seed), 'result.json')} in {out_dir} "
+                     f"({', '.join(folders[:5])}{' ...' if len(folders) > 5 else ''}) "
+                     f"{'is' if len(folders) == 1 else 'are'} another seed's and will be replaced: "
+                     f"{'that run runs' if len(folders) == 1 else 'those runs run'} again")
     if plan.other_limit:
         found.append(f"{counted(len(plan.other_limit), 'run')} already in {out_dir} "
                      f"ran with another time limit and {are(len(plan.other_limit))} "
