@@ -37,6 +37,7 @@ from .sil_agents import (
     exit_text,
     let_leaving_agents_exit,
     remove_stale_key_folders,
+    slow_step_warnings,
     stop_failure,
 )
 from .sil_report import SilRecording, agents_total, sil_figures
@@ -113,6 +114,9 @@ def run_sil(scenario: Scenario, out: Path, options: SilOptions) -> Dict[str, Any
             hub.close()
             hub_log.close()
     result["sil"]["agent_exit_codes"] = [a.returncode for a in agents]
+    for warning in slow_step_warnings(out, len(agents)):       # the logs are whole once the agents have exited
+        print(f"khepri: warning: {warning}", file=sys.stderr)
+        result["warnings"] = [*result.get("warnings", []), warning]
     result["sil"]["agent_python"] = agent_python_text(options.agent_python, options.agent_python_version)
     stop_error = stop_failure(out, len(agents))
     if stop_error and "error" not in result:     # the run itself went well; the behaviour's stop() did not

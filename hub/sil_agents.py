@@ -90,6 +90,28 @@ def agent_log_line(out: Path, index: int, marker: str) -> str:
     return next((line[len(marker):] for line in reversed(lines) if line.startswith(marker)), "")
 
 
+# How an agent logs a step longer than its watchdog (loop._say_if_slow; safety's step watchdog, during the step).
+SLOW_STEP_MARKS = ("the behaviour's step took ", "the behaviour's step() has run for ")
+SLOW_STEP_AGENTS_LISTED = 5
+
+
+def slow_step_warnings(out: Path, count: int) -> List[str]:
+    """result.json's warnings for the agents whose log says a step() outlasted the watchdog: the first such line
+    of each, for at most five agents. `sim run` lists a slow step() among its warnings; sil's was only in the
+    agent's log, so a run that passed in sil hid a behaviour that stops a real robot's wheels."""
+    found = []
+    for index in range(count):
+        marks = tuple(f"agent {index}: {mark}" for mark in SLOW_STEP_MARKS)
+        line = next((line for line in agent_log_lines(out, index) if line.startswith(marks)), None)
+        if line is not None:
+            found.append(f"{line} (agents/agent-{index}.log)")
+    if len(found) > SLOW_STEP_AGENTS_LISTED:
+        rest = len(found) - SLOW_STEP_AGENTS_LISTED
+        found = found[:SLOW_STEP_AGENTS_LISTED] + [f"{rest} more agent{'s' if rest > 1 else ''} logged a step() "
+                                                   "longer than the watchdog (agents/agent-*.log)"]
+    return found
+
+
 def agent_traceback(out: Path, index: int) -> Optional[List[str]]:
     """The traceback agent ``index`` logged under its last ``behaviour crashed`` (or ``driver failed``) line, as
     `khepri sim run` keeps it in result.json: one string per entry, its source lines joined by newlines."""

@@ -305,13 +305,18 @@ def test_a_lockstep_run_does_not_depend_on_how_long_an_agent_takes(user_behaviou
     from khepri_cli.main import main
 
     scenario = user_behaviour("course_holder", COURSE_HOLDER, COURSE_SCENARIO)
-    poses = {}
+    poses, warnings = {}, {}
     for slow in ("0", "0.7"):
         out = f"slow-{slow}"
         assert main(["--import", "course_holder", "sil", scenario(slow), "--no-plot", "--no-record", "--out", out]) == 0
         result = json.loads((tmp_path / out / "result.json").read_text())
         assert result["sil"]["step_timeouts"] == 0 and result["sil"]["dropped"]["frames_lost_at_agents"] == 0
         poses[slow] = np.load(tmp_path / out / "trajectory.npz")["robot_pose"]
+        warnings[slow] = result.get("warnings", [])
     assert "the behaviour's step took 0.7" in (tmp_path / "slow-0.7" / "agents" / "agent-0.log").read_text()
+    # Said in result.json, as `sim run` says a slow step(): a robot's wheels would stop (it was in the log alone).
+    assert warnings["0"] == [] and len(warnings["0.7"]) == 1
+    said = warnings["0.7"][0]
+    assert said.startswith("agent 0: the behaviour's step") and said.endswith("(agents/agent-0.log)")
     assert np.abs(poses["0"][-1, :, :2] - poses["0"][0, :, :2]).max() > 0.1      # they drove
     assert np.array_equal(poses["0"], poses["0.7"])
