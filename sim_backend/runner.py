@@ -7,7 +7,6 @@ import math
 import random
 import time
 import traceback
-from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, List, Optional
 
 import numpy as np
@@ -32,7 +31,7 @@ from .metrics import EvaluatorError, evaluator_call, make_evaluator, merge_resul
 from .radio import RadioNetwork
 from .scenario import Scenario
 from .sensing import ProximityModel
-from .trajectory import trajectory_arrays
+from .trajectory import Recording, trajectory_arrays
 from .wall_clock import WallClockLimit, WallClockLimitReached
 from .world import World
 
@@ -42,26 +41,6 @@ PHASES = ("physics", "sensing", "behaviours", "radio", "evaluation")
 # A robot's step() that runs this long (wall time) is said once a run: on a robot, the agent's step watchdog
 # stops the wheels after 0.25 s (onboard/agent/safety.py), so what runs in simulation would not run there.
 SLOW_STEP_S = 0.25
-
-
-@dataclass
-class Recording:
-    """Samples at the control rate; see docs/outputs.md for the trajectory file."""
-
-    t: List[float] = field(default_factory=list)
-    robot_pose: List[np.ndarray] = field(default_factory=list)
-    robot_alive: List[np.ndarray] = field(default_factory=list)
-    object_pose: List[np.ndarray] = field(default_factory=list)
-    centroid_estimate: List[np.ndarray] = field(default_factory=list)
-
-    def trim(self, has_object: bool) -> None:
-        """Drop a sample left half-written by a run stopped from outside (between two of its appends)."""
-        lists = [self.t, self.robot_pose, self.robot_alive, self.centroid_estimate]
-        if has_object:
-            lists.append(self.object_pose)
-        complete = min(len(samples) for samples in lists)
-        for samples in lists:
-            del samples[complete:]
 
 
 def mission_params(behaviour_cls, scenario: Scenario) -> Dict[str, Any]:
