@@ -68,13 +68,14 @@ def plan_runs(runs: List[RunSpec], out_dir: Path, retry_failed: bool = False) ->
 
 
 def plan_warnings(plan: StudyPlan, out_dir: Path) -> List[str]:
-    """Finished runs that are kept although they do not match what the study asks now."""
+    """Finished runs that are kept although they do not match what the study asks now, and results in a run's
+    folder that are another seed's (run again)."""
     found = []
     if plan.other_seed:
         folders = [str(run.run_dir) for run in plan.other_seed]
-        found.append(f"{counted(len(plan.other_seed), 'result.json')} in {out_dir} "
-                     f"({', '.join(folders[:5])}{' ...' if len(folders) > 5 else ''}) "
-                     f"{'is' if len(folders) == 1 else 'are'} another seed's and will be replaced: "
+        files = "1 result.json" if len(folders) == 1 else f"{len(folders)} result.json files"
+        found.append(f"{files} in {out_dir} ({', '.join(folders[:5])}{' ...' if len(folders) > 5 else ''}) "
+                     f"{are(len(folders))} another seed's and will be replaced: "
                      f"{'that run runs' if len(folders) == 1 else 'those runs run'} again")
     if plan.other_limit:
         found.append(f"{counted(len(plan.other_limit), 'run')} already in {out_dir} "
