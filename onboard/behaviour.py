@@ -60,7 +60,7 @@ class Behaviour:
         raise NotImplementedError
 
     def stop(self) -> None:
-        """Called when the backend halts the behaviour (end of run, e-stop, watchdog). Stops the wheels."""
+        """Called when the run ends (an e-stop or the watchdog only pauses step()). Stops the wheels."""
         self.robot.wheels.stop()
 
     @property
