@@ -471,9 +471,16 @@ def test_the_sim_devices_fast_records_equal_the_constructors(make_scenario):
     sim.step()
     robot = sim.robots[1]
     pose, odometry, reading = robot.positioning.pose(), robot.odometry.read(), robot.proximity.read()
-    assert pose == Pose(pose.x, pose.y, pose.yaw_rad, pose.stamp_s, pose.age_s) and hash(pose)
-    assert odometry == WheelOdometry(odometry.left_m, odometry.right_m)
-    assert reading == ProximityReading(reading.values)
+    # What the constructors make of robot 1's rows of the frame: the same class, every field in the instance
+    # (not a class default) and the same values. Built from the record's own fields, as this test was, they held
+    # for any values: robot 0's pose, or x and y swapped, passed.
+    x, y, yaw, stamp = sim.frame.pose_rows[1]
+    assert sim.frame.pose_rows[0][:2] != (x, y)
+    expected = (Pose(x, y, yaw, stamp, sim.frame.time_s - stamp), WheelOdometry(*sim.frame.odometry_rows[1]),
+                ProximityReading(sim.frame.proximity_rows[1]))
+    for fast, made in zip((pose, odometry, reading), expected):
+        assert fast == made and vars(fast) == vars(made), (fast, made)
+    assert hash(pose)
     message = Message(1, {"ts": []}, 0.5)
     sim.radio.send(0, 1, {"ts": []}, 0.5, np.array([0]))
     sim.radio.deliver(5, sim.frame.inboxes, np.array([True, True]))
