@@ -1,6 +1,7 @@
 """The second round of fast paths (issue #5) give exactly what the plain paths give: the batched receive loop,
 the lazy relay scan, the cached rules, prefix lists and bid views, nearest among members, the lazy neighbour
 columns, and the simulator's noise draw and bearing wrap."""
+import copy
 import math
 import random
 from types import SimpleNamespace
@@ -11,7 +12,7 @@ import pytest
 from onboard.behaviours.transport.entries import entry_problem
 from onboard.behaviours.transport.perception import NeighbourVectors, nearest
 from onboard.behaviours.transport.tasks import Task, TaskBoard, new_space, task_from
-from onboard.geometry import wrap
+from onboard.geometry import pairwise_range_bearing, wrap
 from onboard.hal import Message, Neighbours
 from onboard.stigmergy import TupleSpace, lowest_field
 from sim_backend.hal import encode_payload
@@ -171,13 +172,22 @@ def test_noisy_bearings_wrap_exactly_as_geometry_wrap():
     assert np.array_equal(fast.ravel(), expected) and np.array_equal(np.signbit(fast.ravel()), np.signbit(expected))
 
 
-def test_one_standard_normal_draw_gives_the_two_normal_draws():
-    a, b = np.random.default_rng(6), np.random.default_rng(6)
-    ranges, bearings, after = a.normal(0.0, 0.02, (9, 9)), a.normal(0.0, 0.05, (9, 9)), a.random(3)
-    noise = np.empty((2, 9, 9))
-    b.standard_normal(out=noise)
-    assert np.array_equal(noise[0] * 0.02, ranges) and np.array_equal(noise[1] * 0.05, bearings)
-    assert np.array_equal(b.random(3), after)      # the stream goes on from the same place
+def test_one_standard_normal_draw_gives_the_two_normal_draws(make_scenario):
+    """The simulator's own sensing step, against the plain path it replaced: two normal draws, range noise
+    then bearing noise, and the IR noise after them from the same stream. (This test drew numpy's numbers
+    alone, never the simulator's: a swapped or rescaled noise matrix passed it.)"""
+    sim = Simulation(make_scenario(robots={"count": 9, "spawn": {"x": [-1, 1], "y": [-1, 1]}},
+                                   comm={"range_noise_m": 0.02, "bearing_noise_rad": 0.05},
+                                   sensors={"proximity_noise": 0.03}))
+    poses, alive = sim.world.robot_poses(), np.ones(9, dtype=bool)
+    plain = copy.deepcopy(sim.rng_sensors)
+    sim._sense(poses, alive)
+    true_ranges, true_bearings = pairwise_range_bearing(poses[:, :2], poses[:, 2])
+    ranges = np.maximum(true_ranges + plain.normal(0.0, 0.02, (9, 9)), 0.0)
+    bearings = wrap(true_bearings + plain.normal(0.0, 0.05, (9, 9)))
+    assert np.array_equal(sim.frame.ranges, ranges) and np.array_equal(sim.frame.bearings, bearings)
+    ir = sim.ir.readings(poses[:, :2], poses[:, 2], true_ranges, sim.world.obstacle_groups(), plain, 0.03)
+    assert np.array_equal(sim.frame.proximity, ir)      # the stream goes on from the same place
 
 
 def test_lazy_neighbour_columns_are_the_frame_slices(make_scenario):
