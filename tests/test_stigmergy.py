@@ -139,7 +139,9 @@ def test_a_value_nested_too_deeply_is_refused_however_deep_the_caller_stands():
     as_deep = json.loads(json.dumps(nested(MAX_VALUE_DEPTH)))
     assert merge_from_a_deep_stack([["k", as_deep, 1, 1]]) == ["k"] and space.rejected == 0
     for depth in (MAX_VALUE_DEPTH + 1, 900, 950):
-        entries = json.loads(json.dumps([["k", nested(depth), 1, 1], ["j", {"a": nested(depth)}, 1, 1]]))
+        # Built as a decoder would hand them over (lists and a dict), not through json here: encoding 950 levels
+        # from this test's own frame hit the recursion limit under pytest-xdist, whose worker stands deeper.
+        entries = [["k", nested(depth), 1, 1], ["j", {"a": nested(depth)}, 1, 1]]
         assert merge_from_a_deep_stack(entries) == []
     assert space.rejected == 6 and space.last_rejected_sender == 3
     assert space.get("k") == as_deep and space.get("j") is None
