@@ -32,7 +32,9 @@ class TransportParams:
     # Ours: while robots remain (before I_d grows), two tips that see the object in opposite directions close
     # only this close (times I_d): their gap leaves a whole end of the object open (closure.py:_closure_distance).
     end_gap_closure_factor: float = 1.3
-    k_t_caging: float = 30.0                 # K_t (caging): gain toward the caging target
+    # K_t (caging): Table 1's value, but not used: the caging inputs are unit vectors with fixed weights
+    # (docs/behaviour.md section 6, "Caging inputs are unit vectors with fixed weights"). Setting it changes nothing.
+    k_t_caging: float = 30.0
     proximity_threshold: float = 0.7         # Prox. thres.: IR reading that means contact (~5 cm)
     # --- Pushing (Table 1, middle) ---
     theta_p_deg: float = 115.0               # θ_p: effective pusher when angle(x_o, τ_p) < θ_p (see docs)
