@@ -27,7 +27,8 @@ class TransportParams:
     # --- Caging (Table 1, left) ---
     safety_distance_m: float = 0.35          # d_s: local collision-avoidance radius between robots
     inter_robot_distance_m: float = 0.45     # I_d: desired spacing of adjacent robots in the cage
-    caging_tolerance_m: float = 0.05         # d_tol (caging): a caging target counts as reached within this
+    caging_tolerance_m: float = 0.05         # d_tol (caging): an attaching robot settles within this of I_d
+    #                                          from its branch predecessor (reaching the target: ATTACH_RADIUS_M)
     closure_factor: float = 1.85             # d_T = closure_factor * I_d (Proposition 1)
     # Ours: while robots remain (before I_d grows), two tips that see the object in opposite directions close
     # only this close (times I_d): their gap leaves a whole end of the object open (closure.py:_closure_distance).
