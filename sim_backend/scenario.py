@@ -115,7 +115,7 @@ MIN_CONTROL_HZ = 0.1     # a control period of at most 10 s
 @dataclass
 class PhysicsSpec:
     dt_s: float = 0.01        # physics step
-    control_hz: float = 10.0  # behaviour rate (the paper's robots ran at 10 Hz)
+    control_hz: float = 10.0  # behaviour rate (the authors' simulations ran at 10 Hz; the paper gives none)
     iterations: int = 10      # pymunk solver iterations
 
     def validate(self, where: str) -> None:

@@ -240,7 +240,8 @@ def _faults(scenario: Any) -> List[str]:
 
 
 def _control_rate(scenario: Any) -> List[str]:
-    """The behaviour's gains, thresholds and counts were tuned at the paper's 10 Hz, the agents' default rate.
+    """The behaviour's gains, thresholds and counts were tuned at 10 Hz, the authors' simulation rate and the
+    agents' default (the paper states no rate).
     Measured on lab-6, seeds 1-16, 2026-11-29: 16 of 16 completed at 10 Hz, 15 at 5 Hz, 9 at 20 Hz, whose box
     turned up to 8 degrees while the cage formed: attaching robots pressed into its corners as they turned
     (params.turn_on_spot_at_object: 15 of 16 at 20 Hz, and lab-6-payload 16 of 16; docs/behaviour.md section 8)."""
@@ -251,8 +252,8 @@ def _control_rate(scenario: Any) -> List[str]:
         "; params.turn_on_spot_at_object: true keeps attaching robots from turning it (31 of 32 runs of lab-6 "
         "and lab-6-payload at 20 Hz completed with it)")
     return [f"physics.control_hz: the transport behaviour is tuned and tested at {TUNED_CONTROL_HZ:g} Hz, the "
-            f"paper's rate and the agents' default; at {hz:g} Hz runs fail more often (lab-6 at 20 Hz completed "
-            f"9 of 16 runs, against 16 of 16 at 10 Hz: the box turned while the cage formed){advice}"]
+            f"authors' simulation rate and the agents' default; at {hz:g} Hz runs fail more often (lab-6 at 20 Hz "
+            f"completed 9 of 16 runs, against 16 of 16 at 10 Hz: the box turned while the cage formed){advice}"]
 
 
 def _cage_fits(hull: np.ndarray, spacing: float, robot_radius: float) -> List[str]:
