@@ -67,12 +67,19 @@ def is_effective_pusher(x_o: Vec, tau_direction: Vec, theta_p: float) -> bool:
 
 
 def u_cp(x_o: Vec, effective: bool, k_cp_effective: float, k_cp_other: float) -> Vec:
-    """Stay in contact with the object while pushing (gain per Table 1: 40 below theta_p, 20 otherwise)."""
+    """Stay in contact with the object while pushing (gain per Table 1: 40 below theta_p, 20 otherwise).
+
+    Deviation: the printed Eq. center_push gives 0 at or above theta_p; we follow Table 1, which gives
+    K_cp = 20 there, so every robot keeps contact (docs/behaviour.md section 6, "u_cp never zero")."""
     return scale(unit(x_o), k_cp_effective if effective else k_cp_other)
 
 
 def u_r(position: Vec, centroid: Vec, yaw_error: float, k_r: float, tolerance: float) -> Vec:
-    """Tangential input around the centroid that turns the object toward the target yaw."""
+    """Tangential input around the centroid that turns the object toward the target yaw.
+
+    Deviation: the printed Eq. force_rot is K_r perp(unit(x_i - C_o)) in one fixed (counter-clockwise)
+    direction, on while angle(tau_p, C_o) < theta_r; here its sign follows the yaw error and it is 0 within
+    ``tolerance`` (docs/behaviour.md section 6, "u_r signed by the yaw error")."""
     if abs(yaw_error) <= tolerance:
         return ZERO
     radial = unit(sub(position, centroid))
