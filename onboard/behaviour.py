@@ -28,7 +28,7 @@ import os
 import traceback
 from typing import Any, Callable, Dict, List, Mapping, Optional, Type
 
-from .config import ConfigError, as_written, from_mapping
+from .config import SHOWN_CHARS, ConfigError, as_written, from_mapping, join
 from .hal import Robot
 from .hal.payload import a_kind
 from .protocol_schema import short
@@ -297,6 +297,13 @@ def build_params(cls: Type[Behaviour], overrides: Optional[Mapping[str, Any]], w
     """The behaviour's parameter record with ``overrides`` applied; unknown names and bad values rejected."""
     if not (isinstance(cls.Params, type) and dataclasses.is_dataclass(cls.Params)):
         raise ConfigError(where, f"{cls.__name__}.Params must be a dataclass (got {cls.Params!r})")
+    named = [key for key in overrides if isinstance(key, str)] if isinstance(overrides, Mapping) else []
+    if named and not any(f.init for f in dataclasses.fields(cls.Params)):
+        # `unknown key (known: )` left the author to guess that the behaviour, not the scenario, was wrong
+        how = "sets no Params (class attribute `Params = <a dataclass of its parameters>`)" \
+            if cls.Params is NoParams else f"has no parameters ({cls.Params.__name__} has no fields)"
+        key = named[0] if len(named[0]) <= SHOWN_CHARS else named[0][:SHOWN_CHARS] + "..."
+        raise ConfigError(join(where, key), f"unknown key: behaviour {cls.__name__} {how}")
     try:
         return from_mapping(cls.Params, dict(overrides or {}), where)
     except (NameError, TypeError) as err:      # an annotation the config reader cannot resolve or build

@@ -81,3 +81,39 @@ def test_a_union_written_with_a_bar_is_read_on_the_pcs_python(tmp_path):
     assert build_params(cls, {"limit": None}).limit is None
     with pytest.raises(ConfigError, match=r"^params\.limit: must be a number \(got 'x'\)$"):
         build_params(cls, {"limit": "x"})
+
+
+NO_PARAMS = '''
+from dataclasses import dataclass
+
+from onboard.behaviour import Behaviour, register
+
+
+@dataclass
+class EmptyParams:
+    pass
+
+
+@register("noparams-{tag}")
+class Forgot(Behaviour):
+    {params}
+
+    def step(self) -> None:
+        self.robot.wheels.stop()
+'''
+
+
+def test_params_given_to_a_behaviour_without_any_name_the_behaviour_not_an_empty_list(tmp_path):
+    """A behaviour whose author forgot `Params = WanderParams` was told `params.speed_m_s: unknown key (known: )`,
+    which points at the scenario; the line says that the behaviour declares no parameters, and how to give it
+    some."""
+    forgot = _load(tmp_path, NO_PARAMS.replace("{tag}", "forgot").replace("{params}", "pass"), "noparams-forgot")
+    with pytest.raises(ConfigError, match=r"^params\.speed_m_s: unknown key: behaviour Forgot sets no Params "
+                                          r"\(class attribute `Params = <a dataclass of its parameters>`\)$"):
+        build_params(forgot, {"speed_m_s": 0.1})
+    empty = _load(tmp_path, NO_PARAMS.replace("{tag}", "empty").replace("{params}", "Params = EmptyParams"),
+                  "noparams-empty")
+    with pytest.raises(ConfigError, match=r"^params\.k: unknown key: behaviour Forgot has no parameters "
+                                          r"\(EmptyParams has no fields\)$"):
+        build_params(empty, {"k": 1})
+    assert build_params(forgot, {}) is not None and build_params(empty, None) is not None
