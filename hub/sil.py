@@ -37,6 +37,7 @@ from .sil_agents import (
     exit_text,
     let_leaving_agents_exit,
     remove_stale_key_folders,
+    signal_it_left_on,
     slow_step_warnings,
     stop_failure,
 )
@@ -238,6 +239,10 @@ class SilSession:
                 why = self._crash_line(i)
                 if why:
                     return f"agent {i}: behaviour crashed: {why}; the agent exited with code {agent.returncode}"
+                signal_name = signal_it_left_on(self.out, i)
+                if signal_name:      # 'exited with code 0' alone read as a crash without a cause
+                    return (f"agent {i} {exit_text(agent.returncode)}: it was sent {signal_name} (not by khepri "
+                            "sil), stopped its wheels and left")
                 return f"agent {i} {exit_text(agent.returncode)}"
         return None
 

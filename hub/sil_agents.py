@@ -65,6 +65,17 @@ def exit_text(code: int) -> str:
     return f"exited with code {code}"
 
 
+LEFT_ON_SIGNAL = ": wheels stopped, leaving"      # how an agent logs leaving on a signal (loop._say_why_leaving)
+
+
+def signal_it_left_on(out: Path, index: int) -> str:
+    """The signal agent ``index`` says it left on (``agent 3: SIGTERM: wheels stopped, leaving``), or ""."""
+    marker = f"agent {index}: SIG"
+    line = next((line for line in reversed(agent_log_lines(out, index))
+                 if line.startswith(marker) and line.endswith(LEFT_ON_SIGNAL)), "")
+    return line[len(marker) - 3:-len(LEFT_ON_SIGNAL)] if line else ""
+
+
 def stop_failure(out: Path, count: int) -> Optional[str]:
     """The first agent's account of its behaviour's ``stop()`` raising at the end of the run (the agent logs
     it and stops the wheels all the same; ``khepri sim run`` reports the same bug as an error)."""
