@@ -20,7 +20,7 @@ from onboard.config import ConfigError, to_mapping
 
 from .folder import LOCK_FILE, UNWRITABLE_KEY, load_study, read_study, write_study_json
 from .grid import RunSpec, StudySpec, adopt_reordered_cells
-from .text import are, counted, them
+from .text import are, counted, first_few, them
 from .worker import RESULT_FILE, failed_result, read_result, write_result
 
 
@@ -74,7 +74,7 @@ def plan_warnings(plan: StudyPlan, out_dir: Path) -> List[str]:
     if plan.other_seed:
         folders = [str(run.run_dir) for run in plan.other_seed]
         files = "1 result.json" if len(folders) == 1 else f"{len(folders)} result.json files"
-        found.append(f"{files} in {out_dir} ({', '.join(folders[:5])}{' ...' if len(folders) > 5 else ''}) "
+        found.append(f"{files} in {out_dir} ({first_few(folders)}) "
                      f"{are(len(folders))} another seed's and will be replaced: "
                      f"{'that run runs' if len(folders) == 1 else 'those runs run'} again")
     if plan.other_limit:
@@ -85,14 +85,14 @@ def plan_warnings(plan: StudyPlan, out_dir: Path) -> List[str]:
         cells = sorted({run.cell for run in plan.other_scenario})
         found.append(f"{counted(len(plan.other_scenario), 'run')} already in {out_dir} "
                      f"ran a scenario that has changed since "
-                     f"(cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}) and "
+                     f"(cells {first_few(cells)}) and "
                      f"{are(len(plan.other_scenario))} kept; use another --out, or delete those cells' folders, to run "
                      f"{them(len(plan.other_scenario))} again")
     if plan.other_code:
         cells = sorted({run.cell for run in plan.other_code})
         found.append(f"{counted(len(plan.other_code), 'run')} already in {out_dir} "
                      f"ran another version of {'its' if len(plan.other_code) == 1 else 'their'} behaviour's "
-                     f"code (its files changed since; cells {', '.join(cells[:5])}{' ...' if len(cells) > 5 else ''}"
+                     f"code (its files changed since; cells {first_few(cells)}"
                      f") and {are(len(plan.other_code))} kept; use another --out, or delete those cells' folders, to "
                      f"run {them(len(plan.other_code))} again")
     return found

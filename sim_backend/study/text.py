@@ -14,3 +14,9 @@ def are(n: int) -> str:
 
 def them(n: int) -> str:
     return "it" if n == 1 else "them"
+
+
+def first_few(names, shown: int = 5) -> str:
+    """'a, b, c' or, past ``shown`` names, 'a, b, c, d, e ...': the runs or cells a warning is about."""
+    names = list(names)
+    return ", ".join(names[:shown]) + (" ..." if len(names) > shown else "")
