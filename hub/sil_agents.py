@@ -70,10 +70,10 @@ LEFT_ON_SIGNAL = ": wheels stopped, leaving"      # how an agent logs leaving on
 
 def signal_it_left_on(out: Path, index: int) -> str:
     """The signal agent ``index`` says it left on (``agent 3: SIGTERM: wheels stopped, leaving``), or ""."""
-    marker = f"agent {index}: SIG"
+    own = f"agent {index}: "
     line = next((line for line in reversed(agent_log_lines(out, index))
-                 if line.startswith(marker) and line.endswith(LEFT_ON_SIGNAL)), "")
-    return line[len(marker) - 3:-len(LEFT_ON_SIGNAL)] if line else ""
+                 if line.startswith(own + "SIG") and line.endswith(LEFT_ON_SIGNAL)), "")
+    return line[len(own):-len(LEFT_ON_SIGNAL)] if line else ""
 
 
 def stop_failure(out: Path, count: int) -> Optional[str]:
